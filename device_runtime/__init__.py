@@ -1,0 +1,5 @@
+"""eigencast device runtime: flash store, reconstruction, display and runtime loop.
+
+Pure numpy plus pyserial, cbor2, zstandard and (display only, lazily) pygame.
+Never imports ``host``.
+"""

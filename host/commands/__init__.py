@@ -1,0 +1,1 @@
+"""Sub-commands of ``eigencast``; each module: HELP, add_arguments(parser), run(args)."""
