@@ -1,0 +1,303 @@
+"""Cinema Spec D databases: the training and test images of eigencast.
+
+A database is a folder ``NAME.cdb/`` holding
+
+* ``data.csv`` -- one row per image: ``phi,theta`` (degrees, floats always
+  written with a decimal point), the camera vectors (``cam_x..``, ``look_x..``,
+  ``up_x..``) and ``FILE`` last (a path relative to the folder);
+* the PNG images (``images/view_00000.png`` ...);
+* ``eigencast.json`` -- the sidecar: volume, transfer function, camera and
+  renderer settings, image size and view set. Databases written by other tools
+  (ParaView, VisIt, a path tracer) have no sidecar and are still valid input.
+
+Writing is crash-safe: every PNG is written to a temporary name and renamed
+into place, and ``data.csv`` is rewritten atomically listing only images that
+exist, so a killed run never leaves a corrupt PNG or a row naming a missing
+file. `CinemaWriter` resumes an interrupted database with the same settings,
+keeping every valid image already written.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from host.errors import CinemaError
+
+__all__ = [
+    "CinemaDB",
+    "CinemaWriter",
+    "SIDECAR",
+    "format_float",
+    "atomic_write_bytes",
+]
+
+SIDECAR = "eigencast.json"
+DATA_CSV = "data.csv"
+IMAGE_DIR = "images"
+CAMERA_COLUMNS = (
+    "cam_x", "cam_y", "cam_z", "look_x", "look_y", "look_z", "up_x", "up_y", "up_z",
+)
+
+
+def format_float(value: float) -> str:
+    """Format a float for data.csv: shortest round-trip form, always with a decimal point."""
+    text = repr(float(value))
+    if "e" in text or "E" in text:
+        text = f"{float(value):.9f}".rstrip("0")
+    if "." not in text and text not in ("inf", "-inf", "nan"):
+        text += ".0"
+    if text.endswith("."):
+        text += "0"
+    return text
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same folder and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """Deterministic PNG encoding of an (H, W, 3) uint8 image."""
+    buf = io.BytesIO()
+    Image.fromarray(image, mode="RGB").save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
+
+@dataclass
+class CinemaDB:
+    """A Cinema Spec D database opened for reading.
+
+    Attributes
+    ----------
+    path : Path
+        The ``.cdb`` folder.
+    phi_deg, theta_deg : ndarray of shape (n_views,), float64
+    files : list of str
+        Image paths relative to `path`, one per view.
+    settings : dict or None
+        The eigencast sidecar, or None for databases from other tools.
+    image_shape : tuple (height, width)
+    """
+
+    path: Path
+    phi_deg: np.ndarray
+    theta_deg: np.ndarray
+    files: list[str]
+    settings: dict | None
+    image_shape: tuple[int, int]
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> CinemaDB:
+        """Open a database; raise `CinemaError` (one line) when it is unusable."""
+        root = Path(path)
+        csv_path = root / DATA_CSV
+        if not root.is_dir():
+            raise CinemaError(f"{root}: not a Cinema database folder (no such directory)")
+        if not csv_path.is_file():
+            raise CinemaError(f"{root}: not a Cinema database (no {DATA_CSV})")
+        try:
+            with open(csv_path, newline="", encoding="utf-8") as f:
+                rows = list(csv.reader(f))
+        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            raise CinemaError(f"{csv_path}: unreadable: {exc}") from None
+        if not rows:
+            raise CinemaError(f"{csv_path}: empty file")
+        header = [h.strip() for h in rows[0]]
+        lower = [h.lower() for h in header]
+        missing = [c for c in ("phi", "theta") if c not in lower]
+        file_col = next((i for i, h in enumerate(header) if h.upper() == "FILE"), None)
+        if missing or file_col is None:
+            need = ", ".join([*missing, *([] if file_col is not None else ["FILE"])])
+            raise CinemaError(f"{csv_path}: missing column(s) {need}; header is {header}")
+        i_phi, i_theta = lower.index("phi"), lower.index("theta")
+        phis, thetas, files = [], [], []
+        for line_no, row in enumerate(rows[1:], start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise CinemaError(
+                    f"{csv_path}:{line_no}: {len(row)} fields, header has {len(header)}"
+                )
+            try:
+                phis.append(float(row[i_phi]))
+                thetas.append(float(row[i_theta]))
+            except ValueError:
+                raise CinemaError(
+                    f"{csv_path}:{line_no}: phi/theta not numbers: {row[i_phi]!r}, "
+                    f"{row[i_theta]!r}"
+                ) from None
+            files.append(row[file_col].strip())
+        if not files:
+            raise CinemaError(f"{csv_path}: no image rows")
+        theta = np.array(thetas)
+        if np.any(np.abs(theta) > 90.0 + 1e-9):
+            raise CinemaError(f"{csv_path}: theta outside [-90, 90] (elevation in degrees)")
+        for name in files:
+            if not (root / name).is_file():
+                raise CinemaError(f"{csv_path}: names {name}, which does not exist")
+        settings = None
+        if (root / SIDECAR).is_file():
+            try:
+                settings = json.loads((root / SIDECAR).read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                raise CinemaError(f"{root / SIDECAR}: unreadable sidecar: {exc}") from None
+        first = _read_png(root / files[0])
+        return cls(
+            path=root,
+            phi_deg=np.mod(np.array(phis), 360.0),
+            theta_deg=theta,
+            files=files,
+            settings=settings,
+            image_shape=first.shape[:2],
+        )
+
+    @property
+    def n_views(self) -> int:
+        return len(self.files)
+
+    def read_image(self, index: int) -> np.ndarray:
+        """Image ``index`` as uint8 (height, width, 3); alpha (if any) is dropped."""
+        image = _read_png(self.path / self.files[index])
+        if image.shape[:2] != self.image_shape:
+            raise CinemaError(
+                f"{self.path / self.files[index]}: size {image.shape[1]}x{image.shape[0]} "
+                f"differs from the first image's {self.image_shape[1]}x{self.image_shape[0]}"
+            )
+        return image
+
+    def iter_images(self) -> Iterator[np.ndarray]:
+        """Yield every image in row order as uint8 (height, width, 3)."""
+        for i in range(self.n_views):
+            yield self.read_image(i)
+
+
+def _read_png(path: Path) -> np.ndarray:
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode != "RGB":
+                im = im.convert("RGB")
+            return np.asarray(im, dtype=np.uint8)
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise CinemaError(f"{path}: not a readable image: {exc}") from None
+
+
+class CinemaWriter:
+    """Write (or resume) a database image by image, crash-safely.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``.cdb`` folder to create or resume.
+    settings : dict
+        JSON-able sidecar. Resuming requires an identical sidecar; otherwise
+        `CinemaError` (or, with ``overwrite=True``, the old images are removed).
+    rows : sequence of (phi_deg, theta_deg, camera_dict)
+        One per view, in database order; ``camera_dict`` holds ``position``,
+        ``look_at`` and ``up`` 3-vectors.
+    image_shape : (height, width)
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        settings: dict,
+        rows: Sequence[tuple[float, float, dict]],
+        image_shape: tuple[int, int],
+        *,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        self.settings = settings
+        self.rows = list(rows)
+        self.image_shape = tuple(image_shape)
+        self.files = [f"{IMAGE_DIR}/view_{i:05d}.png" for i in range(len(self.rows))]
+        self._prepare(overwrite)
+        self.done = [self._valid(i) for i in range(len(self.rows))]
+
+    # -- setup -----------------------------------------------------------
+    def _prepare(self, overwrite: bool) -> None:
+        sidecar = self.path / SIDECAR
+        text = json.dumps(self.settings, indent=2, sort_keys=True) + "\n"
+        if self.path.exists() and not self.path.is_dir():
+            raise CinemaError(f"{self.path}: exists and is not a folder")
+        if sidecar.is_file():
+            same = sidecar.read_text(encoding="utf-8") == text
+            if not same and not overwrite:
+                raise CinemaError(
+                    f"{self.path}: holds a database rendered with different settings; "
+                    "choose another -o or pass --overwrite"
+                )
+            if not same:
+                for old in (self.path / IMAGE_DIR).glob("*.png"):
+                    old.unlink()
+                (self.path / DATA_CSV).unlink(missing_ok=True)
+        elif self.path.is_dir() and any(self.path.iterdir()) and not overwrite:
+            raise CinemaError(
+                f"{self.path}: folder is not empty and is not an eigencast database; "
+                "choose another -o or pass --overwrite"
+            )
+        (self.path / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
+        for stale in self.path.glob(f"{IMAGE_DIR}/.*.tmp"):
+            stale.unlink(missing_ok=True)
+        atomic_write_bytes(sidecar, text.encode("utf-8"))
+
+    def _valid(self, index: int) -> bool:
+        path = self.path / self.files[index]
+        if not path.is_file():
+            return False
+        try:
+            image = _read_png(path)
+        except CinemaError:
+            path.unlink(missing_ok=True)
+            return False
+        if image.shape[:2] != self.image_shape:
+            path.unlink(missing_ok=True)
+            return False
+        return True
+
+    # -- writing ---------------------------------------------------------
+    @property
+    def pending(self) -> list[int]:
+        """Indices of the views still to render."""
+        return [i for i, ok in enumerate(self.done) if not ok]
+
+    def write_image(self, index: int, image: np.ndarray) -> None:
+        """Store view ``index`` (uint8 (H, W, 3)) atomically."""
+        if image.shape != (*self.image_shape, 3) or image.dtype != np.uint8:
+            raise ValueError(f"image {index}: expected uint8 {(*self.image_shape, 3)}")
+        atomic_write_bytes(self.path / self.files[index], encode_png(image))
+        self.done[index] = True
+
+    def write_csv(self) -> None:
+        """Rewrite data.csv atomically, listing only the images that exist."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["phi", "theta", *CAMERA_COLUMNS, "FILE"])
+        for i, (phi, theta, cam) in enumerate(self.rows):
+            if not self.done[i]:
+                continue
+            vec = [*cam["position"], *cam["look_at"], *cam["up"]]
+            w.writerow([format_float(phi), format_float(theta),
+                        *(format_float(v) for v in vec), self.files[i]])
+        atomic_write_bytes(self.path / DATA_CSV, buf.getvalue().encode("utf-8"))
