@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "FlashError", "BudgetError"]
+__all__ = ["BudgetError", "DeviceError", "FlashError"]
 
 
 class DeviceError(Exception):

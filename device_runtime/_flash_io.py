@@ -1,0 +1,73 @@
+"""The one seam through which the flash store changes files on disk.
+
+Every *mutating* system call of :mod:`device_runtime.flash` (create, write,
+truncate, fsync, rename, unlink, fsync of the folder) goes through the
+:class:`FileOps` object returned by :func:`file_ops`. Reads go straight to
+:mod:`os`. Production code never replaces it; the power-cut tests install a
+subclass (see ``tests/flash_crash_driver.py``) that counts the operations and
+kills its own process with SIGKILL at a chosen one, tearing a write half way,
+which lets a test cut the power at every step of a provisioning sequence.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+
+__all__ = ["FileOps", "file_ops", "install_file_ops"]
+
+
+class FileOps:
+    """Thin wrappers over the POSIX calls the flash store uses to change files."""
+
+    def open(self, path: str, flags: int, mode: int = 0o644) -> int:
+        """Open ``path`` with ``os.open`` flags (``O_CLOEXEC`` added); return the fd."""
+        return os.open(path, flags | getattr(os, "O_CLOEXEC", 0), mode)
+
+    def pwrite(self, fd: int, data: bytes | memoryview, offset: int) -> None:
+        """Write all of ``data`` at byte ``offset`` of ``fd`` (loops over short writes)."""
+        view = memoryview(data)
+        while view:
+            written = os.pwrite(fd, view, offset)
+            view = view[written:]
+            offset += written
+
+    def fsync(self, fd: int) -> None:
+        """Flush ``fd``'s data and metadata to stable storage."""
+        os.fsync(fd)
+
+    def ftruncate(self, fd: int, length_bytes: int) -> None:
+        """Cut or extend the file behind ``fd`` to ``length_bytes``."""
+        os.ftruncate(fd, length_bytes)
+
+    def replace(self, src: str, dst: str) -> None:
+        """Atomically rename ``src`` over ``dst`` (same folder)."""
+        os.replace(src, dst)
+
+    def unlink(self, path: str) -> None:
+        """Remove ``path``; a missing file is not an error."""
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+
+    def fsync_dir(self, path: str) -> None:
+        """Make the folder's entries (creations, renames, removals) durable."""
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+_current: FileOps = FileOps()
+
+
+def file_ops() -> FileOps:
+    """Return the :class:`FileOps` in use (the plain one unless a test installed another)."""
+    return _current
+
+
+def install_file_ops(ops: FileOps) -> FileOps:
+    """Use ``ops`` for every later flash-store write; return the previous object (tests only)."""
+    global _current
+    previous, _current = _current, ops
+    return previous
