@@ -92,7 +92,7 @@ def render_reference(
     step_mm : float
         Distance between samples along a ray.
     window : (lo, hi), optional
-        Intensity window; default ``tf.window`` or the ``tf.percentiles`` of the data.
+        Intensity window; default ``tf.resolve_window(volume)``, as the renderer uses.
     shading, opacity_correction, early_termination : bool
     lut_size : int
 
@@ -102,11 +102,7 @@ def render_reference(
         Premultiplied RGB and alpha, before the background.
     """
     if window is None:
-        window = (
-            tf.window
-            if tf.window is not None
-            else tuple(np.percentile(volume.data, tf.percentiles))
-        )
+        window = tf.resolve_window(volume)
     lo, hi = float(window[0]), float(window[1])
     u = (volume.data.astype(np.float64) - lo) / (hi - lo)
     nz, ny, nx = u.shape
