@@ -34,11 +34,11 @@ from PIL import Image
 from host.errors import CinemaError
 
 __all__ = [
+    "SIDECAR",
     "CinemaDB",
     "CinemaWriter",
-    "SIDECAR",
-    "format_float",
     "atomic_write_bytes",
+    "format_float",
 ]
 
 SIDECAR = "eigencast.json"

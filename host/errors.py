@@ -8,12 +8,12 @@ A traceback from the CLI means a bug in eigencast.
 from __future__ import annotations
 
 __all__ = [
+    "CinemaError",
     "EigencastError",
-    "VolumeError",
+    "FitError",
     "TransferFunctionError",
     "ViewSpecError",
-    "CinemaError",
-    "FitError",
+    "VolumeError",
 ]
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["shared_data_dir", "shared_volume", "SHARED_VOLUMES"]
+__all__ = ["SHARED_VOLUMES", "shared_data_dir", "shared_volume"]
 
 _REPO = Path(__file__).resolve().parent.parent
 

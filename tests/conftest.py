@@ -7,9 +7,9 @@ import os
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 
-import pytest  # noqa: E402
+import pytest
 
-from host.shared_data import SHARED_VOLUMES, shared_volume  # noqa: E402
+from host.shared_data import SHARED_VOLUMES, shared_volume
 
 
 @pytest.fixture

@@ -125,5 +125,5 @@ def test_corrupt_image_reported_with_its_path(tmp_path):
     root.mkdir()
     (root / "a.png").write_bytes(b"not a png")
     (root / "data.csv").write_text("phi,theta,FILE\n0.0,0.0,a.png\n")
-    with pytest.raises(CinemaError, match="a.png: not a readable image"):
+    with pytest.raises(CinemaError, match=r"a\.png: not a readable image"):
         CinemaDB.open(root)

@@ -1,0 +1,88 @@
+"""Options shared by the commands that ray-cast (render, render-view, evaluate, demo)."""
+
+from __future__ import annotations
+
+import argparse
+
+from host.errors import EigencastError
+
+__all__ = ["add_render_arguments", "parse_size", "render_setup", "renderer_from_args"]
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"300"`` -> (300, 300); ``"640x480"`` -> width 640, height 480: returns (width, height)."""
+    try:
+        parts = [int(p) for p in text.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) == 1:
+        parts = parts * 2
+    if len(parts) != 2 or not all(8 <= p <= 8192 for p in parts):
+        raise EigencastError(f"--size {text!r}: expected N or WxH with 8 <= N <= 8192")
+    return parts[0], parts[1]
+
+
+def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str = "300") -> None:
+    """Add --size, --samples/--step, --projection, --fov, --background, --workers, --no-shading."""
+    g = parser.add_argument_group("rendering")
+    g.add_argument("--size", default=size_default, metavar="N|WxH",
+                   help=f"image size in pixels (default {size_default})")
+    step = g.add_mutually_exclusive_group()
+    step.add_argument("--samples", type=int, metavar="N",
+                      help="samples per ray across the volume's bounding sphere "
+                           "(the paper uses 1000; default)")
+    step.add_argument("--step", type=float, metavar="S",
+                      help="ray step in units of the smallest voxel spacing")
+    g.add_argument("--projection", choices=("perspective", "orthographic"),
+                   default="perspective", help="camera projection (default perspective)")
+    g.add_argument("--fov", type=float, default=30.0, metavar="DEG",
+                   help="vertical field of view for perspective (default 30)")
+    g.add_argument("--background", default="0,0,0", metavar="R,G,B",
+                   help="background colour, components in [0,1] (default black)")
+    g.add_argument("--no-shading", action="store_true", help="disable gradient shading")
+    g.add_argument("--workers", type=int, metavar="N",
+                   help="render threads (default: all cores)")
+
+
+def _parse_background(text: str) -> tuple[float, float, float]:
+    try:
+        rgb = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise EigencastError(f"--background {text!r}: expected R,G,B with values in [0,1]")
+    return rgb  # type: ignore[return-value]
+
+
+def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
+    """Build a `host.raycast.Renderer` from parsed options."""
+    from host.raycast import Renderer
+
+    if args.samples is not None and args.samples < 2:
+        raise EigencastError(f"--samples {args.samples}: must be at least 2")
+    if args.step is not None and not args.step > 0:
+        raise EigencastError(f"--step {args.step}: must be positive")
+    if args.workers is not None and args.workers < 1:
+        raise EigencastError(f"--workers {args.workers}: must be at least 1")
+    if not 1.0 <= args.fov <= 150.0:
+        raise EigencastError(f"--fov {args.fov}: must be within [1, 150] degrees")
+    samples = args.samples if (args.samples is not None or args.step is not None) else 1000
+    return Renderer(
+        volume,
+        tf,
+        samples=samples if args.step is None else None,
+        step=args.step,
+        shading=not args.no_shading,
+        background=_parse_background(args.background),
+        workers=args.workers,
+    )
+
+
+def render_setup(args: argparse.Namespace):
+    """Load the volume and transfer function and build the renderer: (volume, tf, renderer)."""
+    from host.transfer import transfer_function_from_args
+    from host.volume import volume_from_args
+
+    volume = volume_from_args(args.volume, args)
+    tf = transfer_function_from_args(args, volume)
+    return volume, tf, renderer_from_args(args, volume, tf)

@@ -1,0 +1,43 @@
+"""``eigencast render-view``: ray-cast one view to a PNG."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from host.camera import View, orbit_camera
+from host.cinema import atomic_write_bytes, encode_png
+from host.commands._render_options import add_render_arguments, parse_size, render_setup
+from host.errors import EigencastError
+from host.transfer import add_transfer_function_argument
+from host.volume import add_volume_arguments
+
+HELP = "ray-cast one view of a volume to a PNG"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("volume", metavar="VOLUME", help="a volume file or folder, or builtin:NAME")
+    parser.add_argument("--phi", type=float, default=0.0, metavar="DEG",
+                        help="azimuth in degrees (default 0)")
+    parser.add_argument("--theta", type=float, default=0.0, metavar="DEG",
+                        help="elevation in degrees, -90..90 (default 0)")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    add_volume_arguments(parser)
+    add_transfer_function_argument(parser)
+    add_render_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not -90.0 <= args.theta <= 90.0:
+        raise EigencastError(f"--theta {args.theta}: elevation must be within [-90, 90]")
+    width, height = parse_size(args.size)
+    volume, _tf, renderer = render_setup(args)
+    camera = orbit_camera(View(args.phi % 360.0, args.theta), volume.center_mm,
+                          volume.radius_mm, projection=args.projection, fov_deg=args.fov)
+    image = renderer.render_rgb8(camera, width, height)
+    out = Path(args.output)
+    if not out.parent.exists():
+        raise EigencastError(f"{out.parent}: output folder does not exist")
+    atomic_write_bytes(out, encode_png(image))
+    print(f"wrote {out} ({width}x{height}, phi={args.phi:g}, theta={args.theta:g})")
+    return 0
