@@ -1,0 +1,487 @@
+"""Reconstruct views from score vectors with the quantized eigenspace (pure numpy).
+
+For each cell c (row-major grid, zero-padded at the bottom/right)::
+
+    x_c = mean_c + sum_{j in cell c} y_j * scales[j] * eigenimages[j]
+    pixel = clip(rint(x), 0, 255) as uint8, then crop the padding
+
+How it is computed (the host evaluates with this same code, so what is measured is what is
+shown):
+
+* ``w = y * scales`` is formed once per frame (the scales fold into the coefficients).
+* Only cells whose slice of ``y`` changed since the last call (exact equality) are recomputed;
+  cells with 0 components show their mean, written once at construction.
+* The work is cut at construction into *jobs* that respect ``scratch_bytes``: a job is a run of
+  consecutive cells whose int8 rows, cast to float32, plus one float32 output row per cell fit
+  the scratch budget; a cell too large for that (e.g. the single cell of a ``standard``
+  eigenspace) is cut into tiles of whole pixel rows of the cell, accumulating over row chunks
+  when even one tile of all its components does not fit. Per job: one int8 -> float32 cast of
+  the rows into the fixed scratch buffer, one BLAS ``sgemv`` per cell (``w_c @ E_c``), then the
+  mean is added and the batch is rounded, clipped and written straight into the frame buffer
+  through a ``(n_cells_y, cell_h, n_cells_x, cell_w, 3)`` view. No per-pixel Python work, no
+  float32 copy of the eigenspace: memory beyond the arrays themselves is the scratch buffer,
+  the frame buffer and O(K) vectors.
+* With ``threads=2`` the jobs are split in two halves of equal row count, each with its own
+  half of the scratch budget; numpy releases the GIL in the casts and in BLAS.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_SCRATCH_BYTES",
+    "Reconstructor",
+    "reconstruct_view",
+    "reconstruction_memory_bytes",
+]
+
+#: Default scratch budget (float32 cast buffer + output rows), in bytes.
+DEFAULT_SCRATCH_BYTES = 4 << 20
+_FLOAT_BYTES = 4
+
+
+@dataclass
+class _Batch:
+    """Consecutive cells [start, stop) whose rows fit the scratch at once."""
+
+    start: int
+    stop: int
+    row_start: int
+    row_stop: int
+    cast_dst: np.ndarray  # float32 (rows, d) view of the scratch
+    out: np.ndarray  # float32 (stop - start, d) view of the scratch
+    calls: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]  # (cell, w, rows, out row)
+    zero_rows: np.ndarray  # positions in `out` of 0-component cells
+    cell_y: np.ndarray
+    cell_x: np.ndarray
+
+
+@dataclass
+class _Tile:
+    """Pixel rows [y0, y1) of one big cell; its components in chunks of `chunk` rows."""
+
+    col_start: int
+    col_stop: int
+    y0: int
+    y1: int
+
+
+@dataclass
+class _BigCell:
+    cell: int
+    row_start: int
+    row_stop: int
+    chunk: int
+    tiles: list[_Tile]
+    scratch: np.ndarray  # flat float32
+    tile_values: int
+
+
+@dataclass
+class _Worker:
+    jobs: list[Any] = field(default_factory=list)
+    rows: int = 0
+
+
+class Reconstructor:
+    """Blend int8 eigenimages into a uint8 frame, recomputing only changed cells.
+
+    Parameters
+    ----------
+    mean : ndarray of shape (n_cells, cell_values), uint8
+        Per-cell means (``cell_values = cell_h * cell_w * 3``).
+    eigenimages : ndarray of shape (n_coefficients, cell_values), int8
+        Quantized components, cell-major.
+    scales : ndarray of shape (n_coefficients,), float32
+        Per-component scales (``component_j ~= scales[j] * eigenimages[j]``).
+    n_components : ndarray of shape (n_cells,), int
+        Components per cell (0: the cell shows its mean).
+    image_shape : (int, int)
+        ``(height, width)`` of the output.
+    cell_shape : (int, int)
+        ``(cell_h, cell_w)``.
+    scratch_bytes : int
+        Budget for the float32 scratch buffers (split between threads).
+    threads : int or "auto"
+        1 or 2 worker threads; ``"auto"`` picks 2 when the machine has at least 2 CPUs and the
+        eigenspace is larger than 8 MB.
+
+    Attributes
+    ----------
+    frame : ndarray of shape (height, width, 3), uint8
+        The frame buffer `update` returns (reused: copy it to keep a frame).
+    cells_recomputed : int
+        Cells recomputed by the last `update`.
+    total_cells_recomputed : int
+        Sum over all updates.
+    threads : int
+        Threads actually used.
+    """
+
+    def __init__(
+        self,
+        mean: np.ndarray,
+        eigenimages: np.ndarray,
+        scales: np.ndarray,
+        n_components: np.ndarray,
+        image_shape: tuple[int, int],
+        cell_shape: tuple[int, int],
+        *,
+        scratch_bytes: int = DEFAULT_SCRATCH_BYTES,
+        threads: int | str = 1,
+    ) -> None:
+        height, width = (int(v) for v in image_shape)
+        cell_h, cell_w = (int(v) for v in cell_shape)
+        if min(height, width, cell_h, cell_w) < 1:
+            raise ValueError(
+                f"Reconstructor: image_shape={image_shape} and cell_shape={cell_shape} must be "
+                "positive"
+            )
+        ny, nx = -(-height // cell_h), -(-width // cell_w)
+        n_cells = ny * nx
+        values = cell_h * cell_w * 3
+        counts = np.asarray(n_components)
+        if (
+            counts.shape != (n_cells,)
+            or counts.dtype.kind not in "iu"
+            or (counts.size and counts.min() < 0)
+        ):
+            raise ValueError(
+                f"Reconstructor: n_components must be ints >= 0 of shape ({n_cells},) for image "
+                f"{height}x{width} with cells {cell_h}x{cell_w}, got {counts.dtype} {counts.shape}"
+            )
+        n_coeff = int(counts.sum())
+        for name, arr, dtype, shape in (
+            ("mean", mean, np.uint8, (n_cells, values)),
+            ("eigenimages", eigenimages, np.int8, (n_coeff, values)),
+            ("scales", scales, np.float32, (n_coeff,)),
+        ):
+            if not isinstance(arr, np.ndarray) or arr.dtype != dtype or arr.shape != shape:
+                got = f"{arr.dtype} {arr.shape}" if isinstance(arr, np.ndarray) else type(arr)
+                raise ValueError(
+                    f"Reconstructor: {name} must be {np.dtype(dtype).name} of shape {shape}, "
+                    f"got {got}"
+                )
+        if threads == "auto":
+            big = eigenimages.nbytes > 8_000_000
+            threads = 2 if big and (os.cpu_count() or 1) >= 2 else 1
+        if threads not in (1, 2):
+            raise ValueError(f"Reconstructor: threads={threads!r} must be 1, 2 or 'auto'")
+        min_scratch = self.min_scratch_bytes(cell_shape) * threads
+        if scratch_bytes < min_scratch:
+            raise ValueError(
+                f"Reconstructor: scratch_bytes={scratch_bytes} is below the minimum "
+                f"{min_scratch} for cells of width {cell_w} with {threads} thread(s)"
+            )
+        self.image_shape = (height, width)
+        self.cell_shape = (cell_h, cell_w)
+        self.grid_shape = (ny, nx)
+        self.n_cells = n_cells
+        self.cell_values = values
+        self.n_coefficients = n_coeff
+        self.scratch_bytes = int(scratch_bytes)
+        self.threads = int(threads)
+        self.mean = np.ascontiguousarray(mean)
+        self.eigenimages = np.ascontiguousarray(eigenimages)
+        self.scales = np.ascontiguousarray(scales)
+        self.n_components = counts.astype(np.int64)
+        self.offsets = np.zeros(n_cells + 1, dtype=np.int64)
+        np.cumsum(self.n_components, out=self.offsets[1:])
+        self._padded = np.empty((ny * cell_h, nx * cell_w, 3), dtype=np.uint8)
+        self._cells_view = self._padded.reshape(ny, cell_h, nx, cell_w, 3)
+        self._cells_view[...] = self.mean.reshape(ny, nx, cell_h, cell_w, 3).transpose(
+            0, 2, 1, 3, 4
+        )
+        needs_crop = (ny * cell_h, nx * cell_w) != (height, width)
+        self.frame = self._padded[:height, :width].copy() if needs_crop else self._padded
+        self._needs_crop = needs_crop
+        self._w = np.zeros(n_coeff, dtype=np.float32)
+        self._last_y = np.full(n_coeff, np.nan, dtype=np.float32)
+        self._cum = np.zeros(n_coeff + 1, dtype=np.int64)
+        self._cell_y = np.arange(n_cells) // nx
+        self._cell_x = np.arange(n_cells) % nx
+        self.cells_recomputed = 0
+        self.total_cells_recomputed = 0
+        self._workers = self._plan(self.scratch_bytes // self.threads)
+        self._pool = ThreadPoolExecutor(1) if self.threads == 2 else None
+
+    # ------------------------------------------------------------------ construction
+
+    @staticmethod
+    def min_scratch_bytes(cell_shape: tuple[int, int]) -> int:
+        """Smallest scratch (per thread) that holds three pixel rows of one cell, in bytes."""
+        return 3 * int(cell_shape[1]) * 3 * _FLOAT_BYTES
+
+    @classmethod
+    def from_image(cls, image: Any, **kwargs: Any) -> Reconstructor:
+        """Build from an `protocol.image.EigenspaceImage` (keyword arguments pass through)."""
+        return cls(
+            image.mean,
+            image.eigenimages,
+            image.scales,
+            image.n_components,
+            image.image_shape,
+            image.cell_shape,
+            **kwargs,
+        )
+
+    def _plan(self, budget_bytes: int) -> list[_Worker]:
+        """Cut the cells into jobs under the per-thread budget and split them among threads."""
+        budget = budget_bytes // _FLOAT_BYTES
+        values = self.cell_values
+        scratches = [np.zeros(budget, dtype=np.float32) for _ in range(self.threads)]
+        # first pass: job boundaries (cells) and their row counts
+        spans: list[tuple[str, int, int]] = []
+        c = 0
+        counts = self.n_components
+        while c < self.n_cells:
+            k = int(counts[c])
+            if (k + 1) * values > budget:
+                spans.append(("big", c, c + 1))
+                c += 1
+                continue
+            start = c
+            rows = 0
+            while c < self.n_cells:
+                k = int(counts[c])
+                if (rows + k + (c - start + 1)) * values > budget:
+                    break
+                rows += k
+                c += 1
+            spans.append(("batch", start, c))
+        total_rows = max(1, self.n_coefficients)
+        workers = [_Worker() for _ in range(self.threads)]
+        done_rows = 0
+        for kind, start, stop in spans:
+            rows = int(self.offsets[stop] - self.offsets[start])
+            index = 0 if self.threads == 1 or done_rows < total_rows / 2 else 1
+            done_rows += rows
+            scratch = scratches[index]
+            job = (
+                self._make_big(start, scratch)
+                if kind == "big"
+                else self._make_batch(start, stop, scratch)
+            )
+            workers[index].jobs.append(job)
+            workers[index].rows += rows
+        return workers
+
+    def _make_batch(self, start: int, stop: int, scratch: np.ndarray) -> _Batch:
+        values = self.cell_values
+        r0, r1 = int(self.offsets[start]), int(self.offsets[stop])
+        rows = r1 - r0
+        cast_dst = scratch[: rows * values].reshape(rows, values)
+        out = scratch[rows * values : (rows + stop - start) * values].reshape(stop - start, values)
+        calls = []
+        zero_rows = []
+        for i, c in enumerate(range(start, stop)):
+            a, b = int(self.offsets[c]), int(self.offsets[c + 1])
+            if a == b:
+                zero_rows.append(i)
+                continue
+            calls.append((c, self._w[a:b], cast_dst[a - r0 : b - r0], out[i]))
+        return _Batch(
+            start,
+            stop,
+            r0,
+            r1,
+            cast_dst,
+            out,
+            calls,
+            np.asarray(zero_rows, dtype=np.intp),
+            self._cell_y[start:stop],
+            self._cell_x[start:stop],
+        )
+
+    def _make_big(self, c: int, scratch: np.ndarray) -> _BigCell:
+        cell_h, cell_w = self.cell_shape
+        row_len = cell_w * 3
+        k = int(self.n_components[c])
+        budget = scratch.size
+        # rows of pixels per tile when all k components are cast at once (+ out + accumulator)
+        pix_rows = budget // ((k + 2) * row_len)
+        if pix_rows >= 1:
+            chunk = max(1, k)
+            pix_rows = min(pix_rows, cell_h)
+        else:
+            pix_rows = 1
+            chunk = max(1, budget // row_len - 2)
+        tiles = []
+        for y0 in range(0, cell_h, pix_rows):
+            y1 = min(cell_h, y0 + pix_rows)
+            tiles.append(_Tile(y0 * row_len, y1 * row_len, y0, y1))
+        return _BigCell(
+            c,
+            int(self.offsets[c]),
+            int(self.offsets[c + 1]),
+            chunk,
+            tiles,
+            scratch,
+            pix_rows * row_len,
+        )
+
+    # ------------------------------------------------------------------ per frame
+
+    def update(self, y: np.ndarray) -> np.ndarray:
+        """Reconstruct the frame for score vector ``y``.
+
+        Parameters
+        ----------
+        y : ndarray of shape (n_coefficients,), float32
+            Scores in orthonormal coordinates (other float dtypes are converted).
+
+        Returns
+        -------
+        ndarray of shape (height, width, 3), uint8
+            The frame buffer (the same array every call).
+        """
+        y = np.asarray(y, dtype=np.float32)
+        if y.shape != (self.n_coefficients,):
+            raise ValueError(
+                f"Reconstructor.update: y must have shape ({self.n_coefficients},), got {y.shape}"
+            )
+        if not np.all(np.isfinite(y)):
+            raise ValueError("Reconstructor.update: y has NaN or infinite entries")
+        diff = y != self._last_y
+        np.cumsum(diff, out=self._cum[1:])
+        counts = self._cum[self.offsets[1:]] - self._cum[self.offsets[:-1]]
+        changed = counts > 0
+        n_changed = int(np.count_nonzero(changed))
+        if n_changed == 0:
+            self.cells_recomputed = 0
+            return self.frame
+        self._last_y[...] = y
+        np.multiply(y, self.scales, out=self._w)
+        if self._pool is not None and n_changed > 1:
+            future = self._pool.submit(self._run, self._workers[1], changed)
+            done = self._run(self._workers[0], changed) + future.result()
+        else:
+            done = sum(self._run(worker, changed) for worker in self._workers)
+        # counted where the work is done, so the instrumentation cannot drift from it
+        self.cells_recomputed = done
+        self.total_cells_recomputed += done
+        if self._needs_crop:
+            height, width = self.image_shape
+            self.frame[...] = self._padded[:height, :width]
+        return self.frame
+
+    def _run(self, worker: _Worker, changed: np.ndarray) -> int:
+        """Run a worker's jobs for the changed cells; return how many cells it computed."""
+        done = 0
+        for job in worker.jobs:
+            if isinstance(job, _Batch):
+                done += self._run_batch(job, changed)
+            elif changed[job.cell]:
+                self._run_big(job)
+                done += 1
+        return done
+
+    def _run_batch(self, job: _Batch, changed: np.ndarray) -> int:
+        flags = changed[job.start : job.stop]
+        n_flag = int(np.count_nonzero(flags))
+        if n_flag == 0:
+            return 0
+        if n_flag == len(job.calls):  # every cell with components changed: whole batch
+            np.copyto(
+                job.cast_dst, self.eigenimages[job.row_start : job.row_stop], casting="unsafe"
+            )
+            for _, w, rows, out in job.calls:
+                np.matmul(w, rows, out=out)
+            if job.zero_rows.size:
+                job.out[job.zero_rows] = 0.0
+            out = job.out
+            np.add(out, self.mean[job.start : job.stop], out=out)
+            self._finish(out)
+            self._cells_view[job.cell_y, :, job.cell_x] = out.reshape(
+                -1, self.cell_shape[0], self.cell_shape[1], 3
+            )
+            return len(job.calls)
+        done = 0
+        for c, w, rows, out in job.calls:  # only some cells changed: one by one
+            if not changed[c]:
+                continue
+            done += 1
+            a, b = int(self.offsets[c]), int(self.offsets[c + 1])
+            np.copyto(rows, self.eigenimages[a:b], casting="unsafe")
+            np.matmul(w, rows, out=out)
+            np.add(out, self.mean[c], out=out)
+            self._finish(out)
+            self._cells_view[self._cell_y[c], :, self._cell_x[c]] = out.reshape(
+                self.cell_shape[0], self.cell_shape[1], 3
+            )
+        return done
+
+    def _run_big(self, job: _BigCell) -> None:
+        c = job.cell
+        cell = self._cells_view[self._cell_y[c], :, self._cell_x[c]]  # (cell_h, cell_w, 3)
+        scratch = job.scratch
+        for tile in job.tiles:
+            width = tile.col_stop - tile.col_start
+            out = scratch[:width]
+            acc = scratch[width : 2 * width]
+            first = True
+            for r0 in range(job.row_start, job.row_stop, job.chunk):
+                r1 = min(job.row_stop, r0 + job.chunk)
+                dst = scratch[2 * width : 2 * width + (r1 - r0) * width].reshape(r1 - r0, width)
+                np.copyto(
+                    dst, self.eigenimages[r0:r1, tile.col_start : tile.col_stop], casting="unsafe"
+                )
+                if first:
+                    np.matmul(self._w[r0:r1], dst, out=out)
+                    first = False
+                else:
+                    np.matmul(self._w[r0:r1], dst, out=acc)
+                    out += acc
+            np.add(out, self.mean[c, tile.col_start : tile.col_stop], out=out)
+            self._finish(out)
+            cell[tile.y0 : tile.y1] = out.reshape(tile.y1 - tile.y0, self.cell_shape[1], 3)
+
+    @staticmethod
+    def _finish(x: np.ndarray) -> None:
+        np.rint(x, out=x)
+        np.clip(x, 0.0, 255.0, out=x)
+
+    def close(self) -> None:
+        """Stop the helper thread (if any)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            pool.shutdown(wait=False)
+
+
+def reconstruction_memory_bytes(
+    image_shape: tuple[int, int],
+    cell_shape: tuple[int, int],
+    n_coefficients: int,
+    *,
+    scratch_bytes: int = DEFAULT_SCRATCH_BYTES,
+) -> int:
+    """Estimate the RAM a `Reconstructor` needs (arrays + frame buffers + scratch), in bytes.
+
+    The eigenspace arrays (int8 eigenimages, uint8 mean, float32 scales) dominate; the device
+    compares this figure with its declared RAM budget.
+    """
+    height, width = image_shape
+    cell_h, cell_w = cell_shape
+    ny, nx = -(-height // cell_h), -(-width // cell_w)
+    values = cell_h * cell_w * 3
+    padded = ny * cell_h * nx * cell_w * 3
+    crop = height * width * 3 if padded != height * width * 3 else 0
+    arrays = n_coefficients * values + ny * nx * values + 4 * n_coefficients
+    vectors = (4 + 4 + 4 + 8) * n_coefficients + 8 * 4 * (ny * nx + 1)
+    return int(arrays + padded + crop + vectors + scratch_bytes)
+
+
+def reconstruct_view(image: Any, y: np.ndarray) -> np.ndarray:
+    """One-shot reconstruction of ``y`` with an `EigenspaceImage` (returns a new array)."""
+    return Reconstructor.from_image(image).update(y).copy()

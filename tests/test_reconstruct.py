@@ -1,0 +1,264 @@
+"""Tests of device_runtime.reconstruct: exactness, changed-cells-only, scratch bound."""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from device_runtime.reconstruct import (
+    Reconstructor,
+    reconstruct_view,
+    reconstruction_memory_bytes,
+)
+from protocol.image import EigenspaceImage
+
+
+def make_space(height, width, cell_h, cell_w, *, k_max=10, zero_fraction=0.3, seed=0):
+    rng = np.random.default_rng(seed)
+    ny, nx = -(-height // cell_h), -(-width // cell_w)
+    n_cells = ny * nx
+    values = cell_h * cell_w * 3
+    counts = rng.integers(1, k_max + 1, n_cells)
+    counts[rng.random(n_cells) < zero_fraction] = 0
+    counts[0] = max(counts[0], 1)
+    n_coeff = int(counts.sum())
+    return {
+        "mean": rng.integers(0, 256, (n_cells, values), dtype=np.uint8),
+        "eigenimages": rng.integers(-127, 128, (n_coeff, values), dtype=np.int8),
+        "scales": (rng.random(n_coeff) * 0.05 + 0.001).astype(np.float32),
+        "n_components": counts.astype(np.int32),
+        "image_shape": (height, width),
+        "cell_shape": (cell_h, cell_w),
+    }
+
+
+def build(space, **kwargs):
+    return Reconstructor(
+        space["mean"],
+        space["eigenimages"],
+        space["scales"],
+        space["n_components"],
+        space["image_shape"],
+        space["cell_shape"],
+        **kwargs,
+    )
+
+
+def reference(space, y):
+    """The formula of model.md in float64, before rounding: (H, W, 3) float64."""
+    height, width = space["image_shape"]
+    cell_h, cell_w = space["cell_shape"]
+    ny, nx = -(-height // cell_h), -(-width // cell_w)
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    x = space["mean"].astype(np.float64)
+    for c in range(ny * nx):
+        a, b = offsets[c], offsets[c + 1]
+        coeff = y[a:b].astype(np.float64) * space["scales"][a:b].astype(np.float64)
+        x[c] += coeff @ space["eigenimages"][a:b].astype(np.float64)
+    padded = x.reshape(ny, nx, cell_h, cell_w, 3).transpose(0, 2, 1, 3, 4)
+    return padded.reshape(ny * cell_h, nx * cell_w, 3)[:height, :width]
+
+
+def assert_matches_reference(frame, ref):
+    expected = np.clip(np.rint(ref), 0, 255)
+    # float32 accumulation may land on the other side of a .5 tie: only there may it differ
+    near_tie = np.abs(np.abs(ref - np.floor(ref)) - 0.5) < 1e-3
+    assert frame.dtype == np.uint8
+    assert frame.shape == ref.shape
+    mismatch = (frame != expected) & ~near_tie
+    assert not mismatch.any(), f"{mismatch.sum()} pixels differ from the float64 reference"
+    assert np.abs(frame.astype(np.int64) - expected).max() <= 1
+
+
+CONFIGS = [
+    # (height, width, cell_h, cell_w, scratch_bytes, threads): batches, tiles, accumulation
+    (48, 64, 16, 16, 1 << 20, 1),  # divisible, one batch
+    (37, 23, 8, 8, 1 << 20, 1),  # padding at bottom and right
+    (37, 23, 8, 8, 4000, 1),  # tiny scratch: many batches and big-cell tiles
+    (37, 23, 8, 8, 4000, 2),  # two threads
+    (40, 30, 40, 30, 1 << 20, 1),  # one cell (standard), fits
+    (40, 30, 40, 30, 6000, 1),  # one cell, tiles of pixel rows
+    (40, 30, 40, 30, 1200, 1),  # one cell, component chunks accumulated
+    (5, 7, 4, 4, 1 << 16, 1),  # cells larger than the leftover image
+]
+
+
+@pytest.mark.parametrize("height,width,cell_h,cell_w,scratch,threads", CONFIGS)
+def test_matches_float64_reference(height, width, cell_h, cell_w, scratch, threads):
+    space = make_space(height, width, cell_h, cell_w, seed=height * width)
+    rec = build(space, scratch_bytes=scratch, threads=threads)
+    rng = np.random.default_rng(1)
+    try:
+        for _ in range(3):
+            y = (rng.standard_normal(rec.n_coefficients) * 400).astype(np.float32)
+            assert_matches_reference(rec.update(y), reference(space, y))
+    finally:
+        rec.close()
+
+
+def test_big_cell_paths_are_exercised():
+    space = make_space(40, 30, 40, 30, k_max=6, zero_fraction=0)
+    tiles = build(space, scratch_bytes=6000)._workers[0].jobs[0]
+    chunks = build(space, scratch_bytes=1200)._workers[0].jobs[0]
+    assert len(tiles.tiles) > 1 and tiles.chunk == space["n_components"][0]
+    assert chunks.chunk < space["n_components"][0]
+
+
+def test_only_changed_cells_are_recomputed():
+    space = make_space(37, 23, 8, 8, zero_fraction=0.3, seed=3)
+    rec = build(space, scratch_bytes=1 << 20)
+    rng = np.random.default_rng(2)
+    y = (rng.standard_normal(rec.n_coefficients) * 300).astype(np.float32)
+    rec.update(y)
+    assert rec.cells_recomputed == int((space["n_components"] > 0).sum())
+    before = rec.update(y).copy()
+    assert rec.cells_recomputed == 0
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    cell = int(np.flatnonzero(space["n_components"] >= 2)[-1])
+    y2 = y.copy()
+    y2[offsets[cell] + 1] += 500.0
+    after = rec.update(y2)
+    assert rec.cells_recomputed == 1
+    assert_matches_reference(after, reference(space, y2))
+    # pixels outside that cell are untouched
+    nx = 3  # 23 px wide in cells of 8
+    cy, cx = divmod(cell, nx)
+    mask = np.ones(after.shape[:2], bool)
+    mask[cy * 8 : cy * 8 + 8, cx * 8 : cx * 8 + 8] = False
+    assert np.array_equal(after[mask], before[mask])
+    assert not np.array_equal(after[~mask], before[~mask])
+    assert rec.total_cells_recomputed == int((space["n_components"] > 0).sum()) + 1
+
+
+def test_partial_change_inside_one_batch_with_threads():
+    space = make_space(64, 64, 8, 8, seed=5)
+    rec = build(space, scratch_bytes=50_000, threads=2)
+    rng = np.random.default_rng(3)
+    y = (rng.standard_normal(rec.n_coefficients) * 300).astype(np.float32)
+    rec.update(y)
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    cells = np.flatnonzero(space["n_components"])[[0, 5, -1]]
+    for c in cells:
+        y[offsets[c]] -= 123.0
+    frame = rec.update(y)
+    assert rec.cells_recomputed == 3
+    assert_matches_reference(frame, reference(space, y))
+    rec.close()
+
+
+def test_zero_component_cells_show_their_mean():
+    space = make_space(24, 24, 8, 8, zero_fraction=0.5, seed=7)
+    counts = space["n_components"]
+    assert (counts == 0).any()
+    rec = build(space)
+    rng = np.random.default_rng(4)
+    for _ in range(2):
+        frame = rec.update((rng.standard_normal(rec.n_coefficients) * 500).astype(np.float32))
+    cells = frame.reshape(3, 8, 3, 8, 3).transpose(0, 2, 1, 3, 4).reshape(9, -1)
+    for c in np.flatnonzero(counts == 0):
+        assert np.array_equal(cells[c], space["mean"][c])
+
+
+def test_all_zero_components_and_initial_frame_is_the_mean():
+    space = make_space(10, 10, 4, 4, zero_fraction=1.0)
+    space["n_components"][:] = 0
+    space["eigenimages"] = np.zeros((0, 48), np.int8)
+    space["scales"] = np.zeros(0, np.float32)
+    rec = build(space)
+    frame = rec.update(np.zeros(0, np.float32))
+    padded = space["mean"].reshape(3, 3, 4, 4, 3).transpose(0, 2, 1, 3, 4).reshape(12, 12, 3)
+    assert np.array_equal(frame, padded[:10, :10])
+
+
+def test_padding_is_cropped_and_buffer_reused():
+    space = make_space(37, 23, 8, 8)
+    rec = build(space)
+    y = np.zeros(rec.n_coefficients, np.float32)
+    first = rec.update(y)
+    assert first.shape == (37, 23, 3) and first.flags.c_contiguous
+    second = rec.update(y + 1)
+    assert second is first
+
+
+def test_scratch_bound_respected_for_large_k():
+    # K * cell_values * 4 bytes of float32 would be ~9.8 MB; scratch is 64 KiB
+    rng = np.random.default_rng(0)
+    n_cells, values = 16, 16 * 16 * 3
+    counts = np.full(n_cells, 200, np.int32)
+    n_coeff = int(counts.sum())
+    mean = rng.integers(0, 256, (n_cells, values), dtype=np.uint8)
+    eig = rng.integers(-127, 128, (n_coeff, values), dtype=np.int8)
+    scales = np.full(n_coeff, 0.01, np.float32)
+    y = rng.standard_normal(n_coeff).astype(np.float32)
+    scratch = 64 << 10
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        rec = Reconstructor(mean, eig, scales, counts, (64, 64), (16, 16), scratch_bytes=scratch)
+        rec.update(y)
+        rec.update(y * 2)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    frame_bytes = 64 * 64 * 3
+    allowance = scratch + frame_bytes + 64 * n_coeff + 128 * 1024
+    assert peak < allowance, f"peak {peak} B over {allowance} B"
+    assert peak < n_coeff * values * 4 / 8
+
+
+def test_from_image_and_reconstruct_view():
+    space = make_space(20, 20, 8, 8, seed=9)
+    image = EigenspaceImage(
+        space["image_shape"],
+        space["cell_shape"],
+        space["mean"],
+        space["eigenimages"],
+        space["scales"],
+        space["n_components"],
+    )
+    y = np.random.default_rng(0).standard_normal(image.n_coefficients).astype(np.float32) * 99
+    assert_matches_reference(reconstruct_view(image, y), reference(space, y))
+    assert np.array_equal(Reconstructor.from_image(image).update(y), reconstruct_view(image, y))
+
+
+def test_memory_estimate_covers_the_arrays():
+    space = make_space(37, 23, 8, 8)
+    estimate = reconstruction_memory_bytes((37, 23), (8, 8), len(space["scales"]))
+    arrays = sum(space[k].nbytes for k in ("mean", "eigenimages", "scales"))
+    assert estimate > arrays + 37 * 23 * 3
+
+
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        ({"mean": np.zeros((2, 2), np.uint8)}, "mean must be uint8"),
+        ({"eigenimages": "x"}, "eigenimages must be int8"),
+        ({"scales": None}, "scales must be float32"),
+        ({"n_components": np.array([1.5])}, "n_components must be ints"),
+        ({"image_shape": (0, 5)}, "must be positive"),
+    ],
+)
+def test_bad_arrays_are_refused(change, match):
+    space = {**make_space(8, 8, 4, 4), **change}
+    if "scales" in change and change["scales"] is None:
+        space["scales"] = np.zeros(3, np.float64)
+    with pytest.raises(ValueError, match=match):
+        build(space)
+
+
+def test_bad_arguments_are_refused():
+    space = make_space(8, 8, 4, 4)
+    with pytest.raises(ValueError, match="threads"):
+        build(space, threads=3)
+    with pytest.raises(ValueError, match="scratch_bytes=10 is below the minimum"):
+        build(space, scratch_bytes=10)
+    rec = build(space)
+    with pytest.raises(ValueError, match=r"y must have shape"):
+        rec.update(np.zeros(rec.n_coefficients + 1, np.float32))
+    y = np.zeros(rec.n_coefficients, np.float32)
+    y[0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        rec.update(y)

@@ -1,0 +1,460 @@
+"""Tests of protocol.scores: round trips, hostile packets, golden packet vectors.
+
+The golden vectors (tests/golden/score_packets.jsonl) pin the wire format. Each line holds the
+encoder's inputs and the expected hex; the test re-encodes the inputs, decodes the hex with the
+codec, and also parses it with an independent reading of the documented layout written here
+(struct + a plain varint loop). Changing a line means bumping the packet version.
+Regenerate (deliberately) with ``.venv/bin/python tests/test_scores.py --regenerate``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zstandard as zstd
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from protocol.errors import LimitExceeded, ProtocolError
+from protocol.scores import (
+    HEADER_SIZE,
+    MAGIC,
+    EncodedScores,
+    ImageMismatch,
+    MissingBase,
+    ScoreDecoder,
+    ScorePacketError,
+    encode_scores,
+)
+
+GOLDEN = Path(__file__).parent / "golden" / "score_packets.jsonl"
+DIGEST = bytes(range(100, 132))
+
+
+def realistic_scores(n_coefficients, seed=0):
+    """Scores with a decaying spectrum, like PCA scores (first components large)."""
+    rng = np.random.default_rng(seed)
+    spread = np.geomspace(800.0, 2.0, n_coefficients)
+    return (rng.standard_normal(n_coefficients) * spread).astype(np.float32)
+
+
+def encode(y, **kwargs):
+    kwargs.setdefault("frame", 1)
+    kwargs.setdefault("view", (10.0, 20.0))
+    kwargs.setdefault("image_digest", DIGEST)
+    kwargs.setdefault("step", 1.0)
+    return encode_scores(y, **kwargs)
+
+
+def with_header(packet, **fields):
+    """Rewrite header fields of a packet (fields by name of the documented layout)."""
+    names = ["magic", "version", "flags", "frame", "base", "phi", "theta", "k", "tag", "step"]
+    values = dict(zip(names, struct.unpack_from("<2sBBIIffI4sf", packet)))
+    values.update(fields)
+    return struct.pack("<2sBBIIffI4sf", *[values[n] for n in names]) + packet[HEADER_SIZE:]
+
+
+# ----------------------------------------------------------------------------- round trips
+
+
+def test_key_round_trip_error_within_half_step():
+    y = realistic_scores(500)
+    enc = encode(y, step=2.0)
+    out = ScoreDecoder(500, DIGEST).decode(enc.packet)
+    assert out.is_key and out.base_frame is None and out.frame == 1
+    assert (out.phi_deg, out.theta_deg) == (10.0, 20.0)
+    assert out.y.dtype == np.float32 and out.y.shape == (500,)
+    assert np.abs(out.y - y).max() <= 1.0 + 1e-3
+    assert np.array_equal(out.q, enc.q)
+    assert np.array_equal(out.y, enc.q.astype(np.float32) * np.float32(2.0))
+
+
+def test_delta_chain_round_trip_and_is_smaller():
+    y = realistic_scores(400)
+    dec = ScoreDecoder(400, DIGEST)
+    key = encode(y, step=1.0, frame=10)
+    dec.decode(key.packet)
+    base = key
+    rng = np.random.default_rng(1)
+    for frame in range(11, 15):
+        y = y + rng.standard_normal(400).astype(np.float32) * 3
+        delta = encode(y, step=1.0, frame=frame, base=base)
+        out = dec.decode(delta.packet)
+        assert out.base_frame == frame - 1 and not out.is_key
+        assert np.abs(out.y - y).max() <= 0.5 + 1e-3
+        assert np.array_equal(out.q, delta.q)
+        assert len(delta.packet) < len(encode(y, step=1.0, frame=frame).packet)
+        base = delta
+
+
+def test_delta_against_an_older_held_base():
+    y = realistic_scores(64)
+    dec = ScoreDecoder(64, DIGEST, keep_bases=2)
+    f1 = encode(y, frame=1)
+    f2 = encode(y + 5, frame=2, base=f1)
+    f3 = encode(y + 9, frame=3, base=f2)
+    for enc in (f1, f2, f3):
+        dec.decode(enc.packet)
+    assert dec.base_frames == [2, 3]
+    # the host did not see the ack of frame 3 and codes against frame 2: still decodable
+    out = dec.decode(encode(y + 1, frame=4, base=f2).packet)
+    assert np.abs(out.y - (y + 1)).max() <= 0.5 + 1e-3
+    # frame 1 fell out of the window
+    with pytest.raises(MissingBase, match="needs base frame 1") as info:
+        dec.decode(encode(y, frame=5, base=f1).packet)
+    assert info.value.base_frame == 1
+
+
+def test_missing_base_on_a_fresh_decoder():
+    y = realistic_scores(32)
+    key = encode(y, frame=7)
+    delta = encode(y * 1.01, frame=8, base=key)
+    with pytest.raises(MissingBase, match="request a key frame"):
+        ScoreDecoder(32, DIGEST).decode(delta.packet)
+    dec = ScoreDecoder(32, DIGEST)
+    dec.decode(key.packet)
+    dec.reset()
+    with pytest.raises(MissingBase):
+        dec.decode(delta.packet)
+
+
+def test_per_component_and_per_cell_steps():
+    counts = np.array([5, 0, 20, 39], np.int32)
+    y = realistic_scores(64, seed=3)
+    steps = np.linspace(0.25, 8.0, 64).astype(np.float32)
+    out = ScoreDecoder(64, DIGEST).decode(encode(y, step=steps).packet)
+    assert np.all(np.abs(out.y - y) <= steps / 2 + 1e-3)
+    assert np.array_equal(out.step, steps)
+    cell_steps = np.array([0.5, 1.0, 2.0, 4.0], np.float32)
+    enc = encode(y, step=cell_steps, per_cell=True, n_components=counts)
+    out = ScoreDecoder(64, DIGEST, n_components=counts).decode(enc.packet)
+    assert np.all(np.abs(out.y - y) <= np.repeat(cell_steps, counts) / 2 + 1e-3)
+    with pytest.raises(ScorePacketError, match="per-cell steps need"):
+        ScoreDecoder(64, DIGEST).decode(enc.packet)
+
+
+def test_empty_score_vector():
+    enc = encode(np.zeros(0, np.float32))
+    assert len(enc.packet) == HEADER_SIZE
+    assert ScoreDecoder(0, DIGEST).decode(enc.packet).y.shape == (0,)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    values=st.lists(
+        st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, width=32),
+        min_size=1,
+        max_size=80,
+    ),
+    step=st.floats(0.01, 100.0),
+    delta=st.booleans(),
+)
+def test_round_trip_property(values, step, delta):
+    y = np.array(values, np.float32)
+    dec = ScoreDecoder(len(y), DIGEST)
+    base = encode(np.zeros_like(y), step=step, frame=1)
+    dec.decode(base.packet)
+    enc = encode(y, step=step, frame=2, base=base if delta else None)
+    out = dec.decode(enc.packet)
+    step32 = np.float32(step)
+    # half a step, plus the float32 rounding of q * step (relative 2**-24)
+    bound = step32 / 2 * (1 + 1e-5) + np.abs(y.astype(np.float64)) * 2.0**-22 + 1e-6
+    assert np.all(np.abs(out.y.astype(np.float64) - y) <= bound)
+
+
+def test_encoder_argument_errors():
+    y = realistic_scores(8)
+    with pytest.raises(ValueError, match="same step"):
+        encode(y, step=2.0, base=encode(y, step=1.0))
+    with pytest.raises(ValueError, match="step must be finite and > 0"):
+        encode(y, step=0.0)
+    with pytest.raises(ValueError, match="int32 range"):
+        encode(y * 1e9, step=1e-3)
+    with pytest.raises(ValueError, match="NaN"):
+        encode(np.array([np.nan], np.float32))
+    with pytest.raises(ValueError, match="n_coefficients=8 entries"):
+        encode(y, step=np.ones(3))
+
+
+# ----------------------------------------------------------------------------- hostile input
+
+
+def test_wrong_image_and_wrong_k():
+    enc = encode(realistic_scores(16))
+    with pytest.raises(ImageMismatch, match="packet is for image 64656667"):
+        ScoreDecoder(16, bytes(32)).decode(enc.packet)
+    with pytest.raises(ImageMismatch, match="K=16 coefficients, the image has 17"):
+        ScoreDecoder(17, DIGEST).decode(enc.packet)
+
+
+def test_every_truncation_fails_cleanly():
+    enc = encode(realistic_scores(300), step=0.5)
+    dec = ScoreDecoder(300, DIGEST)
+    for cut in range(len(enc.packet)):
+        with pytest.raises(ProtocolError):
+            dec.decode(enc.packet[:cut])
+
+
+def test_trailing_bytes_are_refused():
+    zipped = encode(np.arange(300, dtype=np.float32) % 7, step=1.0).packet
+    assert zipped[3] & 0x02  # zstd payload
+    with pytest.raises(ScorePacketError, match="corrupt zstd payload"):
+        ScoreDecoder(300, DIGEST).decode(zipped + b"\x00")
+    with pytest.raises(ScorePacketError, match="corrupt zstd payload"):
+        ScoreDecoder(300, DIGEST).decode(zipped + zipped[HEADER_SIZE:])
+    raw = encode(np.array([1.0, -2.0], np.float32)).packet
+    assert not raw[3] & 0x02
+    with pytest.raises(ScorePacketError, match="3 varints, expected 2"):
+        ScoreDecoder(2, DIGEST).decode(raw + b"\x05")
+
+
+def test_oversize_packet_and_declared_sizes_refused():
+    dec = ScoreDecoder(10, DIGEST, max_packet_bytes=100)
+    with pytest.raises(LimitExceeded, match="max_packet_bytes=100"):
+        dec.decode(b"\x00" * 101)
+    head = encode(np.zeros(10, np.float32)).packet[:HEADER_SIZE]
+    zip_flag = with_header(head, flags=0x02)
+    bomb = zstd.ZstdCompressor(write_content_size=True).compress(b"\x00" * 10_000_000)
+    # bound for K=100: 5 bytes per varint + a 4-byte step per component = 900
+    head100 = with_header(encode(np.zeros(100, np.float32)).packet[:HEADER_SIZE], flags=0x02)
+    with pytest.raises(LimitExceeded, match="declares 10000000 bytes, over the bound 900"):
+        ScoreDecoder(100, DIGEST).decode(head100 + bomb)
+    unknown = zstd.ZstdCompressor(write_content_size=False).compress(b"\x01" * 10)
+    with pytest.raises(ScorePacketError, match="does not record its content size"):
+        ScoreDecoder(10, DIGEST).decode(zip_flag + unknown)
+    with pytest.raises(LimitExceeded, match="payload is 91 bytes, over the bound 90"):
+        ScoreDecoder(10, DIGEST, max_packet_bytes=1000).decode(head + b"\x01" * 91)
+
+
+def test_lying_content_size_is_caught():
+    # content size says 10 bytes, the frame decodes to more: decompression must stop
+    payload = zstd.ZstdCompressor(write_content_size=True).compress(b"\x02" * 40)
+    b = bytearray(payload)
+    assert b[4] & 0xC0 == 0 and b[4] & 0x20  # single segment, 1-byte content size
+    b[5] = 10
+    head = with_header(encode(np.zeros(10, np.float32)).packet[:HEADER_SIZE], flags=0x02)
+    with pytest.raises(ScorePacketError):
+        ScoreDecoder(10, DIGEST).decode(head + bytes(b))
+
+
+@pytest.mark.parametrize(
+    "fields,match",
+    [
+        ({"magic": b"XX"}, "bad magic"),
+        ({"version": 9}, "unsupported packet version 9"),
+        ({"flags": 0x40}, "unknown flags"),
+        ({"flags": 0x10}, "unknown flags"),
+        ({"flags": 0x0C}, "unsupported step mode 3"),
+        ({"step": float("nan")}, "step nan"),
+        ({"step": -1.0}, "must be finite and > 0"),
+        ({"phi": float("inf")}, "not finite"),
+        ({"base": 5}, "key packet must have base frame 0"),
+    ],
+)
+def test_bad_headers(fields, match):
+    packet = with_header(encode(np.ones(4, np.float32)).packet, **fields)
+    with pytest.raises(ScorePacketError, match=match):
+        ScoreDecoder(4, DIGEST).decode(packet)
+
+
+def test_bad_varints():
+    head = encode(np.zeros(2, np.float32)).packet[:HEADER_SIZE]
+    dec = ScoreDecoder(2, DIGEST)
+    with pytest.raises(ScorePacketError, match="ends inside a varint"):
+        dec.decode(head + b"\x01\x81")
+    with pytest.raises(ScorePacketError, match="overlong"):
+        dec.decode(head + b"\x01\x80\x00")
+    with pytest.raises(ScorePacketError, match="limit 5"):
+        dec.decode(head + b"\x01\x81\x81\x81\x81\x81\x01")
+    with pytest.raises(ScorePacketError, match="int32 range"):
+        dec.decode(head + b"\x01\x80\x80\x80\x80\x20")  # zigzag 2**33 -> q = 2**32
+
+
+def test_delta_with_other_steps_is_refused():
+    y = realistic_scores(8)
+    dec = ScoreDecoder(8, DIGEST)
+    dec.decode(encode(y, step=1.0, frame=1).packet)
+    fake_base = EncodedScores(packet=b"", q=np.zeros(8, np.int32), frame=1, step=2.0)
+    with pytest.raises(ScorePacketError, match="other steps than its base"):
+        dec.decode(encode(y, step=2.0, frame=2, base=fake_base).packet)
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_fuzz_never_raises_anything_but_protocol_errors(data):
+    valid = encode(realistic_scores(40, seed=5), step=0.5, frame=3).packet
+    choice = data.draw(st.sampled_from(["garbage", "flip", "splice"]))
+    if choice == "garbage":
+        packet = data.draw(st.binary(max_size=400))
+        if data.draw(st.booleans()):
+            packet = MAGIC + b"\x01" + packet
+    elif choice == "flip":
+        packet = bytearray(valid)
+        for _ in range(data.draw(st.integers(1, 4))):
+            i = data.draw(st.integers(0, len(packet) - 1))
+            packet[i] ^= data.draw(st.integers(1, 255))
+        packet = bytes(packet)
+    else:
+        i = data.draw(st.integers(0, len(valid)))
+        packet = valid[:i] + data.draw(st.binary(max_size=50)) + valid[i:]
+    dec = ScoreDecoder(40, DIGEST)
+    try:
+        out = dec.decode(packet)
+    except ProtocolError:
+        return
+    assert out.y.shape == (40,) and np.all(np.isfinite(out.y))
+
+
+# ----------------------------------------------------------------------------- golden vectors
+
+
+def golden_cases():
+    """Inputs of the golden packets (documented values, not implementation output)."""
+    k6 = [0.0, 1.0, -1.0, 63.4, -64.6, 8191.9]
+    counts = [2, 0, 4]
+    cases = [
+        {"name": "key_scalar", "y": k6, "step": 1.0, "frame": 7, "view": [12.5, -30.0]},
+        {
+            "name": "delta_scalar",
+            "y": [0.0, 2.0, -1.0, 60.0, -64.0, 8200.0],
+            "step": 1.0,
+            "frame": 8,
+            "view": [16.0, -30.0],
+            "base": "key_scalar",
+        },
+        {
+            "name": "key_per_component",
+            "y": k6,
+            "step": [0.5, 1.0, 2.0, 4.0, 8.0, 16.0],
+            "frame": 1,
+            "view": [0.0, 0.0],
+        },
+        {
+            "name": "key_per_cell",
+            "y": k6,
+            "step": [0.25, 1.0, 3.0],
+            "per_cell": True,
+            "n_components": counts,
+            "frame": 2,
+            "view": [359.5, 89.0],
+        },
+        {
+            "name": "key_zstd",
+            "y": [float((i % 7) - 3) * 2 for i in range(200)],
+            "step": 2.0,
+            "frame": 4294967295,
+            "view": [90.0, 45.0],
+        },
+    ]
+    return cases
+
+
+def encode_case(case, encoded):
+    base = encoded[case["base"]] if case.get("base") else None
+    return encode_scores(
+        np.array(case["y"], np.float32),
+        step=np.array(case["step"], np.float32) if isinstance(case["step"], list) else case["step"],
+        frame=case["frame"],
+        view=tuple(case["view"]),
+        image_digest=bytes.fromhex(case["digest"]),
+        base=base,
+        n_components=np.array(case["n_components"]) if "n_components" in case else None,
+        per_cell=case.get("per_cell", False),
+    )
+
+
+def independent_parse(packet, n_cells=None):
+    """Parse a packet from the documented layout alone (no codec code)."""
+    fields = struct.unpack_from("<2sBBIIffI4sf", packet)
+    magic, version, flags, frame, base, phi, theta, k, tag, step = fields
+    assert magic == b"\xecS" and version == 1
+    payload = packet[32:]
+    if flags & 2:
+        payload = zstd.ZstdDecompressor().decompress(payload)
+    mode = (flags >> 2) & 3
+    n_steps = {0: 0, 1: n_cells, 2: k}[mode]
+    steps = list(struct.unpack_from(f"<{n_steps}f", payload)) if n_steps else [step]
+    values, shift, acc = [], 0, 0
+    for byte in payload[4 * n_steps :]:
+        acc |= (byte & 0x7F) << shift
+        shift += 7
+        if byte < 0x80:
+            values.append((acc >> 1) if acc % 2 == 0 else -((acc + 1) >> 1))
+            acc, shift = 0, 0
+    return {
+        "delta": bool(flags & 1),
+        "frame": frame,
+        "base": base,
+        "view": (phi, theta),
+        "k": k,
+        "tag": tag,
+        "steps": steps,
+        "values": values,
+    }
+
+
+def load_golden():
+    return [json.loads(line) for line in GOLDEN.read_text().splitlines() if line.strip()]
+
+
+def test_golden_packets():
+    records = load_golden()
+    assert [r["name"] for r in records] == [c["name"] for c in golden_cases()]
+    encoded = {}
+    decoders = {}
+    for rec in records:
+        expected = bytes.fromhex(rec["hex"])
+        enc = encode_case(rec, encoded)
+        encoded[rec["name"]] = enc
+        if not expected[3] & 0x02 or rec["zstd_version"] == list(zstd.ZSTD_VERSION):
+            assert enc.packet == expected, rec["name"]
+        # independent reading of the documented layout
+        counts = rec.get("n_components")
+        parsed = independent_parse(expected, n_cells=len(counts) if counts else None)
+        assert parsed["frame"] == rec["frame"] and parsed["delta"] == bool(rec.get("base"))
+        assert parsed["tag"] == bytes.fromhex(rec["digest"])[:4]
+        assert parsed["k"] == len(rec["y"])
+        per_coeff = (
+            np.repeat(parsed["steps"], counts)
+            if counts
+            else np.broadcast_to(parsed["steps"], (len(rec["y"]),))
+        ).astype(np.float32)
+        q = np.rint(np.array(rec["y"], np.float32) / per_coeff).astype(np.int64)
+        coded = q - (encoded[rec["base"]].q if rec.get("base") else 0)
+        assert parsed["values"] == coded.tolist()
+        # and the codec decodes it to q * step
+        key = rec.get("base") or rec["name"]
+        dec = decoders.setdefault(
+            key,
+            ScoreDecoder(
+                len(rec["y"]),
+                bytes.fromhex(rec["digest"]),
+                n_components=np.array(counts) if counts else None,
+            ),
+        )
+        out = dec.decode(expected)
+        assert np.array_equal(out.q, q.astype(np.int32))
+        assert np.array_equal(out.y, q.astype(np.float32) * per_coeff)
+
+
+def regenerate():  # pragma: no cover - a deliberate, manual act
+    encoded = {}
+    lines = []
+    for case in golden_cases():
+        case = {**case, "digest": DIGEST.hex()}
+        enc = encode_case(case, encoded)
+        encoded[case["name"]] = enc
+        lines.append(
+            json.dumps({**case, "zstd_version": zstd.ZSTD_VERSION, "hex": enc.packet.hex()})
+        )
+    GOLDEN.write_text("\n".join(lines) + "\n")
+    print(f"wrote {GOLDEN}")
+
+
+if __name__ == "__main__" and "--regenerate" in sys.argv:  # pragma: no cover
+    regenerate()
