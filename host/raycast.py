@@ -489,6 +489,46 @@ class Renderer:
         empty = (opaque[i_hi + 1] - opaque[i_lo]) == 0
         return np.ascontiguousarray(empty, dtype=np.uint8)
 
+    def visible_sphere(
+        self, *, min_alpha: float = 0.02, trim: float = 1e-4
+    ) -> tuple[np.ndarray, float]:
+        """Bounding sphere of what the transfer function makes visible.
+
+        Orbit cameras framed on this sphere fill the image with the object
+        instead of the (often mostly transparent) volume box.
+
+        Parameters
+        ----------
+        min_alpha : float
+            A voxel counts as visible when its LUT opacity (per unit length)
+            reaches this.
+        trim : float
+            Fraction of the farthest visible voxels ignored, so a few isolated
+            noise voxels cannot inflate the sphere.
+
+        Returns
+        -------
+        center_mm : ndarray of shape (3,), float64
+            Centre of the visible voxels' bounding box, world millimetres.
+        radius_mm : float
+            Distance from the centre enclosing all but `trim` of them (plus
+            one voxel). Falls back to the volume's sphere when nothing is visible.
+        """
+        n = LUT_SIZE
+        index = np.rint(np.clip(self._u, 0.0, 1.0) * (n - 1)).astype(np.int32)
+        visible = np.asarray(self.tf.lut(n))[:, 3][index] >= min_alpha
+        k, j, i = np.nonzero(visible)
+        if k.size == 0:
+            return self.volume.center_mm, self.volume.radius_mm
+        spacing = np.asarray(self.volume.spacing, dtype=np.float64)
+        pts = np.stack([i, j, k], axis=1).astype(np.float64) * spacing
+        lo = np.quantile(pts, trim, axis=0)
+        hi = np.quantile(pts, 1.0 - trim, axis=0)
+        center = (lo + hi) / 2.0
+        dist = np.linalg.norm(pts - center, axis=1)
+        radius = float(np.quantile(dist, 1.0 - trim)) + float(spacing.max())
+        return center, min(radius, self.volume.radius_mm * 2.0)
+
     @property
     def empty_block_fraction(self) -> float:
         """Share of the 8^3-cell blocks that are skipped as empty."""

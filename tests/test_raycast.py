@@ -386,3 +386,29 @@ def test_degenerate_window_and_non_finite_voxels():
     constant = Volume(np.full((6, 6, 6), 3.0, dtype=np.float32))
     image = Renderer(constant, auto, samples=20).render(cam(constant, 0.0, 0.0), 8, 8)
     assert np.all(np.isfinite(image))
+
+
+def test_visible_sphere_frames_the_visible_object_not_the_box():
+    """A small opaque ball off-centre in a big empty box: the sphere hugs the ball."""
+    from host.raycast import Renderer
+
+    n = 48
+    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float32)
+    centre_vox = np.array([30.0, 14.0, 20.0])  # x, y, z
+    ball = np.sqrt((x - centre_vox[0]) ** 2 + (y - centre_vox[1]) ** 2
+                   + (z - centre_vox[2]) ** 2) <= 6.0
+    spacing = (1.0, 2.0, 0.5)
+    vol = Volume(ball.astype(np.float32), spacing)
+    tf = TransferFunction("step", np.array([[0, 1, 1, 1], [1, 1, 1, 1]], float),
+                          np.array([[0, 0], [0.4, 0], [0.6, 1], [1, 1]], float), window=(0, 1))
+    centre, radius = Renderer(vol, tf, samples=64).visible_sphere()
+    want = centre_vox * np.array(spacing)
+    np.testing.assert_allclose(centre, want, atol=max(spacing))
+    # the ball's farthest voxel is 6 voxels away along y (2 mm spacing) = 12 mm
+    assert 12.0 <= radius <= 12.0 + 2 * max(spacing)
+    assert radius < vol.radius_mm / 3
+
+    empty = Volume(np.zeros((8, 8, 8), np.float32))
+    c2, r2 = Renderer(empty, tf, samples=16).visible_sphere()
+    np.testing.assert_allclose(c2, empty.center_mm)
+    assert r2 == empty.radius_mm

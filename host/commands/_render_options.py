@@ -6,7 +6,13 @@ import argparse
 
 from host.errors import EigencastError
 
-__all__ = ["add_render_arguments", "parse_size", "render_setup", "renderer_from_args"]
+__all__ = [
+    "add_render_arguments",
+    "camera_settings",
+    "parse_size",
+    "render_setup",
+    "renderer_from_args",
+]
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -42,6 +48,9 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str =
     g.add_argument("--no-shading", action="store_true", help="disable gradient shading")
     g.add_argument("--workers", type=int, metavar="N",
                    help="render threads (default: all cores)")
+    g.add_argument("--frame", choices=("visible", "volume"), default="visible",
+                   help="orbit around the bounding sphere of what the transfer function "
+                        "shows (default) or of the whole volume box")
 
 
 def _parse_background(text: str) -> tuple[float, float, float]:
@@ -86,3 +95,22 @@ def render_setup(args: argparse.Namespace):
     volume = volume_from_args(args.volume, args)
     tf = transfer_function_from_args(args, volume)
     return volume, tf, renderer_from_args(args, volume, tf)
+
+
+def camera_settings(args: argparse.Namespace, volume, renderer) -> dict:  # noqa: ANN001
+    """Orbit framing for the chosen --frame: projection, fov, centre and radius (JSON-able).
+
+    Recorded in the database sidecar (and from there in the eigenspace image)
+    so novel views are ray-cast with exactly the training cameras' framing.
+    """
+    if args.frame == "visible":
+        center, radius = renderer.visible_sphere()
+    else:
+        center, radius = volume.center_mm, volume.radius_mm
+    return {
+        "projection": args.projection,
+        "fov_deg": float(args.fov),
+        "frame": args.frame,
+        "center_mm": [float(c) for c in center],
+        "radius_mm": float(radius),
+    }

@@ -9,7 +9,12 @@ import time
 from host import __version__
 from host.camera import orbit_camera, parse_view_set
 from host.cinema import CinemaWriter
-from host.commands._render_options import add_render_arguments, parse_size, render_setup
+from host.commands._render_options import (
+    add_render_arguments,
+    camera_settings,
+    parse_size,
+    render_setup,
+)
 from host.progress import progress
 from host.transfer import add_transfer_function_argument
 from host.volume import add_volume_arguments
@@ -59,9 +64,9 @@ def run(args: argparse.Namespace) -> int:
     width, height = parse_size(args.size)
     view_set = parse_view_set(args.views)
     volume, tf, renderer = render_setup(args)
-    camera_opts = {"projection": args.projection, "fov_deg": args.fov}
+    camera_opts = camera_settings(args, volume, renderer)
     cameras = [
-        orbit_camera(v, volume.center_mm, volume.radius_mm,
+        orbit_camera(v, camera_opts["center_mm"], camera_opts["radius_mm"],
                      projection=args.projection, fov_deg=args.fov)
         for v in view_set.views
     ]

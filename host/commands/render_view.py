@@ -7,7 +7,12 @@ from pathlib import Path
 
 from host.camera import View, orbit_camera
 from host.cinema import atomic_write_bytes, encode_png
-from host.commands._render_options import add_render_arguments, parse_size, render_setup
+from host.commands._render_options import (
+    add_render_arguments,
+    camera_settings,
+    parse_size,
+    render_setup,
+)
 from host.errors import EigencastError
 from host.transfer import add_transfer_function_argument
 from host.volume import add_volume_arguments
@@ -32,8 +37,9 @@ def run(args: argparse.Namespace) -> int:
         raise EigencastError(f"--theta {args.theta}: elevation must be within [-90, 90]")
     width, height = parse_size(args.size)
     volume, _tf, renderer = render_setup(args)
-    camera = orbit_camera(View(args.phi % 360.0, args.theta), volume.center_mm,
-                          volume.radius_mm, projection=args.projection, fov_deg=args.fov)
+    framing = camera_settings(args, volume, renderer)
+    camera = orbit_camera(View(args.phi % 360.0, args.theta), framing["center_mm"],
+                          framing["radius_mm"], projection=args.projection, fov_deg=args.fov)
     image = renderer.render_rgb8(camera, width, height)
     out = Path(args.output)
     if not out.parent.exists():
