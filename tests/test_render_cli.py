@@ -1,0 +1,107 @@
+"""`eigencast render` / `render-view` through the real CLI (subprocesses)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from host.cinema import CinemaDB
+
+CLI = [sys.executable, "-m", "host.cli"]
+SMALL = ["--size", "40", "--samples", "150"]
+
+
+def _run(*args, check=True):
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, check=check)
+
+
+def _png_count(db: Path) -> int:
+    return sum(1 for p in (db / "images").glob("view_*.png"))
+
+
+def _snapshot(db: Path) -> dict[str, bytes]:
+    files = {p.relative_to(db).as_posix(): p.read_bytes() for p in db.rglob("*") if p.is_file()}
+    return files
+
+
+def test_killed_render_resumes_to_the_same_database(tmp_path):
+    views = "grid:30x6"  # 180 views: long enough to be caught halfway
+    ref, resumed = tmp_path / "ref.cdb", tmp_path / "resumed.cdb"
+    _run("render", "builtin:tooth", "-o", str(ref), "--views", views, *SMALL)
+
+    proc = subprocess.Popen([*CLI, "render", "builtin:tooth", "-o", str(resumed),
+                             "--views", views, *SMALL],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (resumed / "images").exists() or _png_count(resumed) < 20:
+        assert proc.poll() is None, "render finished before it could be interrupted"
+        assert time.monotonic() < deadline, "render made no progress"
+        time.sleep(0.005)  # polling a condition, not waiting out a race
+    proc.send_signal(signal.SIGSTOP)
+    written = _png_count(resumed)
+    proc.kill()
+    proc.wait()
+    assert 20 <= written < 180
+    # whatever the kill left must already be a consistent (partial) database
+    if (resumed / "data.csv").exists():
+        partial = CinemaDB.open(resumed)
+        assert partial.n_views <= written
+
+    out = _run("render", "builtin:tooth", "-o", str(resumed), "--views", views, *SMALL)
+    assert "resuming" in out.stderr
+    assert _snapshot(resumed) == _snapshot(ref)
+
+
+def test_render_database_layout_and_sidecar(tmp_path):
+    db = tmp_path / "t.cdb"
+    _run("render", "builtin:head", "-o", str(db), "--views", "list:0,0;90,30;180,-30",
+         *SMALL)
+    opened = CinemaDB.open(db)
+    assert opened.n_views == 3 and opened.image_shape == (40, 40)
+    np.testing.assert_allclose(opened.phi_deg, [0, 90, 180])
+    with open(db / "data.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0][-1] == "FILE" and all("." in v for v in rows[1][:2])
+    settings = opened.settings
+    assert settings["camera"]["frame"] == "visible"
+    assert settings["renderer"]["samples"] == 150
+    assert settings["views"]["spec"] == "list:0,0;90,30;180,-30"
+    # the framed object fills the image: non-background pixels reach near the borders
+    img = opened.read_image(0).max(axis=2) > 8
+    rows_hit, _ = np.nonzero(img)
+    assert rows_hit.min() <= 6 and rows_hit.max() >= 33
+
+
+def test_render_view_writes_one_png(tmp_path):
+    out = tmp_path / "one.png"
+    _run("render-view", "builtin:tooth", "--phi", "30", "--theta", "10", "-o", str(out), *SMALL)
+    assert Image.open(out).size == (40, 40)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["render-view", "builtin:nope", "-o", "x.png"], "unknown built-in"),
+        (["render-view", "missing.mhd", "-o", "x.png"], "missing.mhd"),
+        (["render-view", "builtin:tooth", "--theta", "100", "-o", "x.png"], "theta"),
+        (["render", "builtin:tooth", "-o", "d.cdb", "--views", "grid:0x3"], "grid"),
+        (["render", "builtin:tooth", "-o", "d.cdb", "--size", "3"], "--size"),
+        (["render", "builtin:tooth", "-o", "d.cdb", "--samples", "1"], "--samples"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_1(tmp_path, args, message):
+    res = subprocess.run([*CLI, *args], capture_output=True, text=True, cwd=tmp_path,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    assert res.returncode == 1, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], res.stderr
+    assert "Traceback" not in res.stderr
