@@ -1,0 +1,1282 @@
+"""The device's protocol side: a :class:`Device` answers a host over any transport.
+
+One :class:`Device` owns a :class:`~device_runtime.flash.FlashStore` and serves
+one host at a time through a :class:`~protocol.link.Link` (``serve``), and
+keeps serving after a host goes away (``run``: a TCP listener accepts the next
+host; a serial port is reopened and read again). Handlers are registered per
+message type (``HANDLERS``; subclasses and :meth:`Device.on` add more); the
+issue-5 runtime adds its SCORES/VIEW_REQUEST handling through the hooks
+:meth:`Device.on_scores`, :meth:`Device.on_keyframe_request` and
+:meth:`Device.on_image_committed` without rewriting the dispatcher.
+
+Session state machine (docs/protocol.md, "State machines")::
+
+    NO_SESSION --HELLO--> HELLO'D --AUTH_CHALLENGE ok--> AUTHENTICATED
+         ^                   |  (device without a key + --insecure: HELLO'D acts as
+         +--- BYE, disconnect, new HELLO ---+   authenticated for signed requests)
+
+Signed requests (SET_BAUD, RESET, SLOT_SET, IMAGE_BEGIN, IMAGE_COMMIT,
+IMAGE_ABORT) need AUTHENTICATED and a session tag whose counter is above the
+last one accepted; an exact repeat of the last accepted signed frame (a host
+retry after a lost reply) is answered with the cached reply and not executed
+again.
+
+Transfer state machine::
+
+    none --IMAGE_BEGIN--> RECEIVING --all bytes + IMAGE_VERIFY ok--> VERIFIED
+                              |                                         |
+                              +-- refusal (RAM, format) / abort --+     +--IMAGE_COMMIT-->
+                                                                  v        slot TEST
+                                                                 none      -> load, confirm
+
+Bad input never stops the device: frames that do not decode are counted and
+dropped by the link; a request that fails is answered with the ERROR for its
+exception (:func:`error_for`); memory is bounded by the frame size, the inbox
+(``rx_window_frames`` chunks) and the RAM budget given to the image reader.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hmac
+import io
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+from device_runtime.errors import BudgetError, DeviceError, FlashError
+from device_runtime.flash import (
+    BadChunk,
+    FlashStore,
+    ImageTooLarge,
+    ImageWriter,
+    NoImage,
+    RollbackRefused,
+    SlotBusy,
+    SlotDigestMismatch,
+)
+from device_runtime.reconstruct import reconstruction_memory_bytes
+from protocol import messages as m
+from protocol.errors import (
+    AuthenticationError,
+    ImageFormatError,
+    NotAuthenticated,
+    ProtocolError,
+    TransportError,
+)
+from protocol.framing import Frame
+from protocol.image import (
+    HEADER_SIZE,
+    MAX_MANIFEST_BYTES,
+    SUPPORTED_VERSIONS,
+    ImageTagError,
+    parse_header,
+    read_image,
+    read_manifest,
+)
+from protocol.link import CHUNK_OVERHEAD_BYTES, Link
+from protocol.transport import TcpListenTransport, open_transport
+
+__all__ = [
+    "DEFAULT_DEVICE_ID",
+    "DEFAULT_RAM_BUDGET_BYTES",
+    "DEFAULT_RX_WINDOW_FRAMES",
+    "SUPPORTED_BAUDS",
+    "Device",
+    "DeviceConfig",
+    "DeviceRefusal",
+    "DeviceStats",
+    "error_for",
+    "required_ram_bytes",
+]
+
+_logger = logging.getLogger("device_runtime.device")
+
+DEFAULT_DEVICE_ID = "eigencast-device"
+DEFAULT_RAM_BUDGET_BYTES = 256 * 1024 * 1024
+"""RAM the eigenspace may use unless ``--ram-budget`` says otherwise (256 MiB)."""
+DEFAULT_RX_WINDOW_FRAMES = 32
+"""Image receive buffers advertised in HELLO_REPLY (chunks in flight)."""
+SUPPORTED_BAUDS = (
+    9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
+    1000000, 1152000, 1500000, 2000000, 2500000, 3000000, 3500000, 4000000,
+)
+"""Line rates SET_BAUD accepts (others: ERROR(UNSUPPORTED))."""
+PROTOCOL_VERSIONS = (m.PROTOCOL_VERSION, m.PROTOCOL_VERSION)
+"""(min, max) protocol versions this device speaks."""
+SOFTWARE = "eigencast-device 0.1"
+_DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class DeviceRefusal(DeviceError):
+    """A request the device refuses with a specific wire error code.
+
+    Parameters
+    ----------
+    code : ErrorCode
+    message : str
+        One line.
+    detail : dict, optional
+        Machine-readable specifics (text keys, scalar values).
+    """
+
+    def __init__(self, code: m.ErrorCode, message: str, detail: dict | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.detail = detail
+
+
+_FLASH_CODES: tuple[tuple[type[BaseException], m.ErrorCode], ...] = (
+    (ImageTooLarge, m.ErrorCode.TOO_LARGE_FOR_FLASH),
+    (RollbackRefused, m.ErrorCode.ROLLBACK_REFUSED),
+    (BadChunk, m.ErrorCode.BAD_OFFSET),
+    (NoImage, m.ErrorCode.NO_IMAGE),
+    (SlotBusy, m.ErrorCode.BUSY),
+    (SlotDigestMismatch, m.ErrorCode.DIGEST_MISMATCH),
+    (BudgetError, m.ErrorCode.TOO_LARGE_FOR_RAM),
+    (ImageTagError, m.ErrorCode.TAG_MISMATCH),
+    (ImageFormatError, m.ErrorCode.UNSUPPORTED_FORMAT),
+    (FlashError, m.ErrorCode.FLASH_FAILED),
+)
+
+
+def _one_line(text: str, limit: int) -> str:
+    text = " ".join(str(text).split())
+    data = text.encode("utf-8", "replace")
+    if len(data) <= limit:
+        return text
+    return data[: limit - 3].decode("utf-8", "ignore") + "..."
+
+
+def error_for(exc: BaseException, where: str) -> m.Error:
+    """Return the ERROR a device sends for a failed request.
+
+    :class:`DeviceRefusal` carries its code; flash errors map one to one
+    (ImageTooLarge -> TOO_LARGE_FOR_FLASH, RollbackRefused -> ROLLBACK_REFUSED,
+    BadChunk -> BAD_OFFSET, NoImage -> NO_IMAGE, SlotBusy -> BUSY,
+    SlotDigestMismatch -> DIGEST_MISMATCH, other FlashError -> FLASH_FAILED);
+    BudgetError -> TOO_LARGE_FOR_RAM; ImageTagError -> TAG_MISMATCH; other
+    ImageFormatError -> UNSUPPORTED_FORMAT; protocol errors as
+    :func:`protocol.messages.error_code_for`; anything else INTERNAL.
+    """
+    if isinstance(exc, DeviceRefusal):
+        return m.Error(
+            code=exc.code,
+            where=_one_line(where, 64),
+            message=_one_line(str(exc), 256),
+            detail=exc.detail,
+        )
+    for cls, code in _FLASH_CODES:
+        if isinstance(exc, cls):
+            return m.Error(code=code, where=_one_line(where, 64), message=_one_line(str(exc), 256))
+    error = m.Error.from_exception(exc, where=_one_line(where, 64))
+    if error.code == m.ErrorCode.INTERNAL:
+        _logger.error("%s: internal error", where, exc_info=exc)
+    return dataclasses.replace(error, message=_one_line(error.message, 256))
+
+
+# --------------------------------------------------------------------------- RAM
+
+
+def required_ram_bytes(manifest: dict) -> int:
+    """RAM an image needs on the device, from its manifest's declared sizes, in bytes.
+
+    The reconstruction's arrays, frame buffers and scratch
+    (:func:`device_runtime.reconstruct.reconstruction_memory_bytes`, from the
+    image and cell shapes and the number of components) plus the decompressed
+    size of every extra section.
+
+    Parameters
+    ----------
+    manifest : dict
+        As returned by :func:`protocol.image.read_manifest` (untrusted).
+
+    Raises
+    ------
+    ImageFormatError
+        A field this needs is missing or of the wrong type.
+    """
+
+    def ints(value: Any, n: int | None, what: str) -> list[int]:
+        if not isinstance(value, list) or (n is not None and len(value) != n) or not all(
+            isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 62 for v in value
+        ):
+            raise ImageFormatError(f"image manifest: '{what}' is not a list of non-negative ints")
+        return value
+
+    image_shape = ints(manifest.get("image_shape"), 2, "image_shape")
+    cell_shape = ints(manifest.get("cell_shape"), 2, "cell_shape")
+    if min(*image_shape, *cell_shape) < 1:
+        raise ImageFormatError("image manifest: image_shape and cell_shape must be positive")
+    sections = manifest.get("sections")
+    if not isinstance(sections, list):
+        raise ImageFormatError("image manifest: 'sections' is not a list")
+    n_coefficients = 0
+    extra = 0
+    for entry in sections:
+        if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
+            raise ImageFormatError("image manifest: a section entry has no name")
+        raw = entry.get("raw_size")
+        if not isinstance(raw, int) or isinstance(raw, bool) or raw < 0:
+            raise ImageFormatError(f"image manifest: section '{entry['name'][:64]}' raw_size")
+        if entry["name"] == "eigenimages":
+            shape = ints(entry.get("shape"), None, "eigenimages shape")
+            n_coefficients = shape[0] if shape else 0
+        elif entry["name"] not in _DEVICE_SECTIONS:
+            extra += raw
+    base = reconstruction_memory_bytes(
+        (image_shape[0], image_shape[1]), (cell_shape[0], cell_shape[1]), n_coefficients
+    )
+    return int(base + extra)
+
+
+# --------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """What a device is and declares (the CLI builds it from flags).
+
+    Attributes
+    ----------
+    flash_dir : Path
+        The flash folder.
+    key : bytes or None
+        32-byte device key; None: no key (provisioning refused unless ``insecure``).
+    insecure : bool
+        Accept provisioning without authentication and unsigned images (no key only).
+    device_id : str
+        1..64 UTF-8 bytes; enters the AUTH proofs.
+    ram_budget_bytes : int
+        RAM an eigenspace may use; larger images are refused (TOO_LARGE_FOR_RAM).
+    slot_size_bytes : int or None
+        Flash slot capacity when formatting a new folder (None: the store's default,
+        or what an existing store has).
+    rx_window_frames : int
+        Image receive buffers (chunks in flight), 1..65535.
+    rx_buffer_bytes : int or None
+        Largest chunk accepted (None: what the frame size allows).
+    max_frame_bytes : int or None
+        Largest frame (None: the transport's).
+    display_width, display_height : int
+        Pixels (0: headless).
+    flush_interval_s : float
+        Longest time received chunks stay un-journalled (durability for resume
+        after a reboot), seconds.
+    idle_timeout_s : float
+        A TCP host that sends no valid frame for this long is dropped, seconds.
+    """
+
+    flash_dir: Path
+    key: bytes | None = None
+    insecure: bool = False
+    device_id: str = DEFAULT_DEVICE_ID
+    ram_budget_bytes: int = DEFAULT_RAM_BUDGET_BYTES
+    slot_size_bytes: int | None = None
+    rx_window_frames: int = DEFAULT_RX_WINDOW_FRAMES
+    rx_buffer_bytes: int | None = None
+    max_frame_bytes: int | None = None
+    display_width: int = 0
+    display_height: int = 0
+    flush_interval_s: float = 1.0
+    idle_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "flash_dir", Path(self.flash_dir))
+        if self.key is not None and (not isinstance(self.key, bytes) or len(self.key) != 32):
+            raise ValueError("DeviceConfig: key must be 32 bytes")
+        if self.key is not None and self.insecure:
+            raise ValueError(
+                "DeviceConfig: insecure=True cannot be combined with a key (a device with a "
+                "key always authenticates)"
+            )
+        ident = self.device_id.encode("utf-8", "replace")
+        if not 1 <= len(ident) <= 64:
+            raise ValueError(f"device_id={self.device_id!r} must be 1..64 UTF-8 bytes")
+        if not isinstance(self.ram_budget_bytes, int) or self.ram_budget_bytes < 1:
+            raise ValueError(f"ram_budget_bytes={self.ram_budget_bytes!r} must be >= 1")
+        if not 1 <= self.rx_window_frames <= 0xFFFF:
+            raise ValueError(f"rx_window_frames={self.rx_window_frames} must be in 1..65535")
+        if self.rx_buffer_bytes is not None and self.rx_buffer_bytes < 1:
+            raise ValueError(f"rx_buffer_bytes={self.rx_buffer_bytes} must be >= 1")
+
+
+@dataclass
+class DeviceStats:
+    """Counters of a running device (all sessions)."""
+
+    sessions: int = 0
+    chunks: int = 0
+    chunk_bytes: int = 0
+    chunks_stale: int = 0
+    chunks_out_of_window: int = 0
+    acks: int = 0
+    flushes: int = 0
+    errors_sent: int = 0
+    refused: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class _Transfer:
+    request_id: int
+    digest: bytes
+    size_bytes: int
+    image_tag: bytes
+    format_version: int
+    generation: int
+    force: bool
+    writer: ImageWriter
+    window_bytes: int
+    header_checked: bool = False
+    manifest_checked: bool = False
+    verified: bool = False
+    tag_ok: bool = False
+    chunks_since_ack: int = 0
+    last_flush: float = field(default_factory=time.monotonic)
+    manifest_size: int = 0
+
+
+@dataclass
+class _Session:
+    host_nonce: bytes | None = None
+    device_nonce: bytes | None = None
+    host_id: str = ""
+    version: int = 0
+    session_key: bytes | None = None
+    last_counter: int = 0
+    last_signed: tuple[int, bytes, m.Message] | None = None
+    transfer: _Transfer | None = None
+
+    @property
+    def hello_done(self) -> bool:
+        return self.device_nonce is not None
+
+
+# --------------------------------------------------------------------------- device
+
+
+class Device:
+    """A device: flash store, session state and per-message handlers.
+
+    Parameters
+    ----------
+    config : DeviceConfig
+    log : callable, optional
+        ``log(line)`` for one line per event (default: the module logger at INFO).
+
+    Attributes
+    ----------
+    store : FlashStore
+    boot_result : BootResult
+        What the last boot decided.
+    stats : DeviceStats
+    link : Link or None
+        The current host's link while one is served.
+    """
+
+    HANDLERS: ClassVar[dict[m.MessageType, str]] = {
+        m.MessageType.HELLO: "handle_hello",
+        m.MessageType.AUTH_CHALLENGE: "handle_auth_challenge",
+        m.MessageType.PING: "handle_ping",
+        m.MessageType.BYE: "handle_bye",
+        m.MessageType.SET_BAUD: "handle_set_baud",
+        m.MessageType.RESET: "handle_reset",
+        m.MessageType.SLOT_SET: "handle_slot_set",
+        m.MessageType.IMAGE_STATUS: "handle_image_status",
+        m.MessageType.IMAGE_BEGIN: "handle_image_begin",
+        m.MessageType.IMAGE_CHUNK: "handle_image_chunk",
+        m.MessageType.IMAGE_VERIFY: "handle_image_verify",
+        m.MessageType.IMAGE_COMMIT: "handle_image_commit",
+        m.MessageType.IMAGE_ABORT: "handle_image_abort",
+        m.MessageType.SCORES: "handle_scores",
+        m.MessageType.VIEW_REQUEST: "handle_unexpected",
+        m.MessageType.KEYFRAME_REQUEST: "handle_keyframe_request",
+        m.MessageType.NOTICE: "handle_notice",
+    }
+    """Message type -> method name; :meth:`on` overrides per instance."""
+
+    def __init__(
+        self, config: DeviceConfig, *, log: Callable[[str], None] | None = None
+    ) -> None:
+        self.config = config
+        self._log = log or (lambda line: _logger.info("%s", line))
+        self.stats = DeviceStats()
+        self.session = _Session()
+        self.link: Link | None = None
+        self.transport: Any = None
+        self._extra_handlers: dict[int, Callable[[m.Message, Frame], m.Message | None]] = {}
+        self._end_session = threading.Event()
+        self._reboot_requested = False
+        self._baud_timer: threading.Timer | None = None
+        self._told_no_transfer: set[int] = set()
+        self.store = FlashStore.open(config.flash_dir, capacity_bytes=config.slot_size_bytes)
+        self.boot_result = self.boot()
+
+    # ------------------------------------------------------------------ setup
+
+    def log(self, line: str) -> None:
+        """Log one event line."""
+        self._log(line)
+
+    def on(self, msg_type: m.MessageType, handler: Callable[[m.Message, Frame], Any]) -> None:
+        """Register ``handler(msg, frame) -> reply or None`` for ``msg_type`` on this device."""
+        self._extra_handlers[int(msg_type)] = handler
+
+    @property
+    def max_frame_bytes(self) -> int:
+        """Largest frame this device accepts and sends."""
+        if self.config.max_frame_bytes is not None:
+            return self.config.max_frame_bytes
+        if self.transport is not None:
+            return max(self.transport.max_frame_bytes, m.BASELINE_MAX_FRAME_BYTES)
+        return 4096
+
+    @property
+    def rx_buffer_bytes(self) -> int:
+        """Largest IMAGE_CHUNK data accepted."""
+        limit = self.max_frame_bytes - CHUNK_OVERHEAD_BYTES
+        if self.config.rx_buffer_bytes is not None:
+            return min(self.config.rx_buffer_bytes, limit)
+        return limit
+
+    @property
+    def window_bytes(self) -> int:
+        """Bytes beyond the acked offset a host may send."""
+        return self.config.rx_window_frames * self.rx_buffer_bytes
+
+    @property
+    def provisioning_allowed(self) -> bool:
+        """A key is installed, or the device runs ``--insecure``."""
+        return self.config.key is not None or self.config.insecure
+
+    # ------------------------------------------------------------------ boot
+    def boot(self) -> Any:
+        """Boot the flash store, then load and confirm a test image (or revert it)."""
+        result = self.store.boot()
+        self.log(f"boot: {result.reason}")
+        if result.ok and result.state == "test":
+            self._load_and_confirm("boot")
+        return result
+
+    def _load_and_confirm(self, why: str) -> bool:
+        """Load and validate the active TEST image; confirm it, or revert to the fallback.
+
+        Issue 4 has no display: the image is confirmed once it has been read
+        and validated (digest, tag, structure, RAM bounds). The issue-5
+        runtime overrides :meth:`on_image_committed` to confirm after the first frame.
+        """
+        slot = self.store.active_slot
+        try:
+            self.load_active_image()
+        except (ProtocolError, DeviceError, OSError) as exc:
+            self.log(f"{why}: slot {slot}: the image does not load ({_one_line(str(exc), 200)})")
+            try:
+                self.store.revert()
+                self.log(f"{why}: reverted to slot {self.store.active_slot}")
+            except FlashError as revert_exc:
+                self.log(f"{why}: cannot revert: {revert_exc}")
+            self.notice(2, f"slot {slot}: image failed to load; reverted",
+                        {"event": "load-failed", "slot": slot or "?"})
+            return False
+        self.store.confirm()
+        info = self.store.slots[0 if slot == "A" else 1]
+        self.log(f"{why}: slot {slot}: image generation {info.image_generation} loaded and "
+                 "confirmed")
+        self.notice(0, f"slot {slot}: image confirmed",
+                    {"event": "confirmed", "slot": slot or "?",
+                     "generation": info.image_generation})
+        return True
+
+    def load_active_image(self) -> Any:
+        """Read and validate the active image within the RAM budget; return it.
+
+        Raises
+        ------
+        ImageFormatError, ImageTagError, FlashError
+        """
+        with self.store.open_active() as stream:
+            manifest = read_manifest(stream, max_manifest_bytes=self._max_manifest_bytes())
+            need = required_ram_bytes(manifest)
+            if need > self.config.ram_budget_bytes:
+                raise BudgetError(
+                    f"the image needs {need} bytes of RAM, the budget is "
+                    f"{self.config.ram_budget_bytes}"
+                )
+            stream.seek(0)
+            return read_image(
+                stream,
+                key=self.config.key,
+                require_tag=self.config.key is not None,
+                max_manifest_bytes=self._max_manifest_bytes(),
+                max_section_bytes=self.config.ram_budget_bytes,
+                max_total_bytes=self.config.ram_budget_bytes,
+                read_annex=False,
+            )
+
+    def _max_manifest_bytes(self) -> int:
+        return min(MAX_MANIFEST_BYTES, self.config.ram_budget_bytes)
+
+    def reboot(self) -> None:
+        """What RESET does: drop the session, close and reopen the flash store, boot."""
+        self.session = _Session()
+        with contextlib.suppress(FlashError):
+            self.store.close()
+        self.store = FlashStore.open(self.config.flash_dir)
+        self.boot_result = self.boot()
+
+    def close(self) -> None:
+        """Flush an open image writer (its journal allows a resume) and release the store."""
+        self._cancel_baud_timer()
+        with contextlib.suppress(FlashError):
+            self.store.close()
+
+    # ------------------------------------------------------------------ serving
+    def run(
+        self,
+        url: str,
+        *,
+        baud: int = 115200,
+        stop: threading.Event | None = None,
+        on_ready: Callable[[Any], None] | None = None,
+        transport: Any = None,
+    ) -> None:
+        """Serve hosts on ``url`` until ``stop`` is set (keeps going after disconnects).
+
+        Parameters
+        ----------
+        url : str
+            ``tcp-listen://HOST:PORT`` or any port URL ``open_transport`` accepts.
+        baud : int
+            Line rate of serial ports.
+        stop : threading.Event, optional
+        on_ready : callable, optional
+            ``on_ready(transport)`` once the transport is open (e.g. to print the port).
+        transport : Transport, optional
+            Already opened from ``url`` (it is reopened from ``url`` after a cut line).
+
+        Raises
+        ------
+        TransportError
+            The transport cannot be opened at start.
+        """
+        stop = stop or threading.Event()
+        if transport is None:
+            transport = open_transport(
+                url, baud=baud, max_frame_bytes=self.config.max_frame_bytes
+            )
+        listening = isinstance(transport, TcpListenTransport)
+        if on_ready is not None:
+            on_ready(transport)
+        backoff = 0.05
+        try:
+            while not stop.is_set():
+                self.serve(transport, stop=stop)
+                if self._reboot_requested:
+                    self._reboot_requested = False
+                    if listening:
+                        transport.disconnect()
+                    self.log("reset: rebooting")
+                    self.reboot()
+                if stop.is_set() or listening:
+                    continue
+                transport.close()  # a serial line: reopen it (a fresh mem:// line after a cut)
+                while not stop.is_set():
+                    try:
+                        transport = open_transport(
+                            url, baud=baud, max_frame_bytes=self.config.max_frame_bytes
+                        )
+                        break
+                    except TransportError as exc:
+                        self.log(f"reopen {url}: {exc}; retrying in {backoff:.2f} s")
+                        stop.wait(backoff)
+                        backoff = min(backoff * 2, 2.0)
+                backoff = 0.05
+        finally:
+            transport.close()
+            self.close()
+
+    def serve(self, transport: Any, *, stop: threading.Event | None = None) -> None:
+        """Serve one connection on ``transport`` until the link drops, RESET, or ``stop``."""
+        stop = stop or threading.Event()
+        self.transport = transport
+        self._end_session.clear()
+        self.session = _Session()
+        last_frame = [time.monotonic()]
+
+        def on_frame(frame: Frame) -> None:
+            last_frame[0] = time.monotonic()
+
+        link = Link(
+            transport,
+            name=f"device {self.config.device_id}",
+            handler=self.handle,
+            error_mapper=self._map_error,
+            rx_max_frame_bytes=self.max_frame_bytes,
+            tx_max_frame_bytes=self.max_frame_bytes,
+            inbox_frames=self.config.rx_window_frames + 16,
+            image_inbox_frames=self.config.rx_window_frames,
+            on_frame=on_frame,
+        )
+        self.link = link
+        link.start()
+        listening = isinstance(transport, TcpListenTransport)
+        try:
+            while not stop.is_set() and not self._end_session.is_set():
+                if link.wait_closed(0.25):
+                    break
+                if (
+                    listening
+                    and transport.connected
+                    and time.monotonic() - last_frame[0] > self.config.idle_timeout_s
+                ):
+                    self.log(f"host silent for {self.config.idle_timeout_s:.0f} s; dropped")
+                    break
+                if listening and not transport.connected:
+                    last_frame[0] = time.monotonic()
+        finally:
+            error = link.error
+            link.close(flush_timeout_s=1.0)
+            self.link = None
+            self._cancel_baud_timer()
+            if listening:
+                transport.disconnect()
+            had_session = self.session.hello_done
+            self.session = _Session()
+            with contextlib.suppress(FlashError):
+                self.store.close()  # flush: a resumed transfer keeps what was received
+            if had_session or error is not None:
+                why = ""
+                if error is not None and "disconnected" not in str(error):
+                    why = f" ({_one_line(str(error), 120)})"
+                self.log(f"host disconnected{why}")
+
+    # ------------------------------------------------------------------ dispatch
+    def _map_error(self, exc: BaseException, where: str) -> m.Error:
+        self.stats.errors_sent += 1
+        error = error_for(exc, where)
+        self.stats.refused[error.code_name] = self.stats.refused.get(error.code_name, 0) + 1
+        return error
+
+    def handle(self, msg: m.Message, frame: Frame) -> m.Message | None:
+        """Answer one request or event (the link's handler; runs on its dispatcher thread)."""
+        extra = self._extra_handlers.get(int(msg.TYPE))
+        if extra is not None:
+            return extra(msg, frame)
+        name = self.HANDLERS.get(msg.TYPE)
+        if name is None:
+            if frame.kind == m.Kind.REQUEST:
+                raise DeviceRefusal(
+                    m.ErrorCode.UNSUPPORTED, f"{msg.TYPE.name} is not accepted by a device"
+                )
+            return None
+        method = getattr(self, name)
+        if not isinstance(msg, m.SignedRequest):
+            return method(msg, frame)
+        cached = self._authorize(msg, frame)
+        if cached is not None:
+            return cached
+        try:
+            reply = method(msg, frame)
+        except Exception as exc:
+            reply = self._map_error(exc, msg.TYPE.name)
+            self._remember(frame, reply)
+            return reply
+        self._remember(frame, reply)
+        return reply
+
+    def _authorize(self, msg: m.SignedRequest, frame: Frame) -> m.Message | None:
+        """Check a signed request; return a cached reply for an exact repeat, else None."""
+        session = self.session
+        last = session.last_signed
+        if self.config.key is None:
+            if self.config.insecure:  # no counters: an exact repeat of the last one is a retry
+                if last is not None and last[0] == frame.msg_type and last[1] == frame.body:
+                    return self._replay(last[2], frame)
+                return None
+            raise DeviceRefusal(
+                m.ErrorCode.NOT_AUTHENTICATED,
+                "this device has no key: pair one (eigencast-device --pair KEYFILE) or start "
+                "it with --insecure",
+            )
+        if session.session_key is None:
+            raise NotAuthenticated(
+                f"{msg.TYPE.name} needs an authenticated session (HELLO, then AUTH_CHALLENGE)"
+            )
+        if (
+            last is not None
+            and msg.session_counter == session.last_counter
+            and last[0] == frame.msg_type
+            and last[1] == frame.body
+        ):
+            return self._replay(last[2], frame)
+        session.last_counter = m.verify(msg, session.session_key, session.last_counter)
+        return None
+
+    def _replay(self, reply: m.Message, frame: Frame) -> m.Message:
+        """The cached reply to a repeated signed request (a host retry after a lost reply)."""
+        transfer = self.session.transfer
+        if isinstance(reply, m.ImageAck) and transfer is not None:
+            transfer.request_id = frame.request_id  # a retried IMAGE_BEGIN: chunks use the new id
+        return reply
+
+    def _remember(self, frame: Frame, reply: m.Message | None) -> None:
+        if reply is not None and (self.session.session_key is not None or self.config.insecure):
+            self.session.last_signed = (frame.msg_type, frame.body, reply)
+
+    def notice(self, level: int, text: str, detail: dict | None = None) -> None:
+        """Send a NOTICE to the host if one is connected (best effort)."""
+        link = self.link
+        if link is None or link.closed:
+            return
+        with contextlib.suppress(ProtocolError, ValueError):
+            link.send(m.Notice(level=level, text=_one_line(text, 256), detail=detail))
+
+    def _send(self, msg: m.Message, request_id: int) -> None:
+        link = self.link
+        if link is not None and not link.closed:
+            with contextlib.suppress(ProtocolError, ValueError):
+                link.send(msg, request_id=request_id)
+
+    def _slot_infos(self) -> tuple[m.SlotInfo, ...]:
+        active = self.store.active_slot
+        out = []
+        for index, info in enumerate(self.store.slots):
+            out.append(
+                m.SlotInfo(
+                    slot=index,
+                    state=m.SlotState(int(info.state)),
+                    active=info.name == active,
+                    generation=info.image_generation,
+                    size_bytes=info.size_bytes,
+                    digest=info.sha256 or b"",
+                )
+            )
+        return tuple(out)
+
+    # ------------------------------------------------------------------ control handlers
+    def handle_hello(self, msg: m.Hello, frame: Frame) -> m.Message:
+        """Start a new session (forget the previous one); answer HELLO_REPLY."""
+        low = max(msg.min_version, PROTOCOL_VERSIONS[0])
+        high = min(msg.max_version, PROTOCOL_VERSIONS[1])
+        if low > high:
+            raise DeviceRefusal(
+                m.ErrorCode.UNSUPPORTED_VERSION,
+                f"the host speaks protocol versions {msg.min_version}..{msg.max_version}, this "
+                f"device {PROTOCOL_VERSIONS[0]}..{PROTOCOL_VERSIONS[1]}",
+                {"min_version": PROTOCOL_VERSIONS[0], "max_version": PROTOCOL_VERSIONS[1]},
+            )
+        with contextlib.suppress(FlashError):
+            self.store.close()  # a transfer of the old session resumes from its journal
+        self.session = _Session(
+            host_nonce=msg.nonce,
+            device_nonce=os.urandom(m.NONCE_BYTES),
+            host_id=msg.host_id,
+            version=high,
+        )
+        self._told_no_transfer.clear()
+        self.stats.sessions += 1
+        self.log(f"hello from host '{msg.host_id or '?'}' (protocol {high})")
+        return m.HelloReply(
+            min_version=PROTOCOL_VERSIONS[0],
+            max_version=PROTOCOL_VERSIONS[1],
+            device_id=self.config.device_id,
+            nonce=self.session.device_nonce,
+            max_frame_bytes=self.max_frame_bytes,
+            ram_budget_bytes=self.config.ram_budget_bytes,
+            slot_size_bytes=self.store.capacity_bytes,
+            display_width=self.config.display_width,
+            display_height=self.config.display_height,
+            rx_window_frames=self.config.rx_window_frames,
+            rx_buffer_bytes=self.rx_buffer_bytes,
+            slots=self._slot_infos(),
+            has_key=self.config.key is not None,
+            image_format_versions=tuple(SUPPORTED_VERSIONS),
+            software=SOFTWARE,
+        )
+
+    def handle_auth_challenge(self, msg: m.AuthChallenge, frame: Frame) -> m.Message:
+        """Check the host's proof; answer with ours and derive the session key."""
+        session = self.session
+        if not session.hello_done:
+            raise DeviceRefusal(m.ErrorCode.BAD_STATE, "send HELLO before AUTH_CHALLENGE")
+        if self.config.key is None:
+            raise DeviceRefusal(
+                m.ErrorCode.NOT_AUTHENTICATED,
+                "this device has no key (pair one with eigencast-device --pair KEYFILE)",
+            )
+        assert session.host_nonce is not None and session.device_nonce is not None
+        expected = m.auth_proof(
+            self.config.key,
+            role="host",
+            host_nonce=session.host_nonce,
+            device_nonce=session.device_nonce,
+            device_id=self.config.device_id,
+        )
+        if not hmac.compare_digest(expected, msg.host_proof):
+            self.log("auth failed: the host's proof does not verify (wrong key?)")
+            raise AuthenticationError(
+                "AUTH_CHALLENGE: the host proof does not verify with this device's key"
+            )
+        key = m.derive_session_key(self.config.key, session.host_nonce, session.device_nonce)
+        if session.session_key != key:  # a repeated challenge keeps the counter state
+            session.session_key = key
+            session.last_counter = 0
+            session.last_signed = None
+            self.log("host authenticated")
+        return m.AuthResponse(
+            device_proof=m.auth_proof(
+                self.config.key,
+                role="device",
+                host_nonce=session.host_nonce,
+                device_nonce=session.device_nonce,
+                device_id=self.config.device_id,
+            )
+        )
+
+    def handle_ping(self, msg: m.Ping, frame: Frame) -> m.Message:
+        """Echo a PING."""
+        return m.Pong(
+            payload=msg.payload,
+            ping_sent_us=msg.sent_us,
+            sent_us=int(time.monotonic() * 1e6),
+        )
+
+    def handle_bye(self, msg: m.Bye, frame: Frame) -> None:
+        """End the session (state forgotten; a transfer resumes from its journal)."""
+        self.log(f"bye from host{': ' + msg.reason if msg.reason else ''}")
+        with contextlib.suppress(FlashError):
+            self.store.close()
+        self.session = _Session()
+
+    def handle_set_baud(self, msg: m.SetBaud, frame: Frame) -> None:
+        """Answer OK at the old rate, switch, revert unless a valid frame arrives in time."""
+        if msg.baud not in SUPPORTED_BAUDS:
+            raise DeviceRefusal(
+                m.ErrorCode.UNSUPPORTED,
+                f"baud {msg.baud} is not supported (supported: "
+                f"{', '.join(map(str, SUPPORTED_BAUDS))})",
+            )
+        link = self.link
+        assert link is not None
+        old = int(getattr(self.transport, "baud", 0) or 0)
+        timeout_s = msg.revert_timeout_ms / 1000.0
+
+        def switch() -> None:
+            link.switch_baud(msg.baud)
+            frames_then = link.stats.frames_received
+            self.log(f"set-baud: {old or '?'} -> {msg.baud}; reverting in {timeout_s:.2f} s "
+                     "unless the host answers")
+
+            def check() -> None:
+                if link.closed:
+                    return
+                if link.stats.frames_received == frames_then and old:
+                    link.switch_baud(old)
+                    self.log(f"set-baud: no valid frame at {msg.baud}; reverted to {old}")
+                else:
+                    self.log(f"set-baud: now {msg.baud}")
+
+            self._cancel_baud_timer()
+            timer = threading.Timer(timeout_s, check)
+            timer.daemon = True
+            self._baud_timer = timer
+            timer.start()
+
+        reply = m.Ok()
+        self._remember(frame, reply)
+        link.send(reply, request_id=frame.request_id, after_sent=switch)
+        return None
+
+    def _cancel_baud_timer(self) -> None:
+        timer, self._baud_timer = self._baud_timer, None
+        if timer is not None:
+            timer.cancel()
+
+    def handle_reset(self, msg: m.Reset, frame: Frame) -> None:
+        """Answer OK, then reboot (the link drops)."""
+        link = self.link
+        assert link is not None
+        self.log(f"reset requested{': ' + msg.reason if msg.reason else ''}")
+        reply = m.Ok()
+        self._remember(frame, reply)
+
+        def reboot() -> None:
+            self._reboot_requested = True
+            self._end_session.set()
+
+        link.send(reply, request_id=frame.request_id, after_sent=reboot)
+        return None
+
+    def handle_slot_set(self, msg: m.SlotSet, frame: Frame) -> m.Message:
+        """ACTIVATE / CONFIRM / REVERT; answer SLOT_STATUS."""
+        if msg.action == m.SlotAction.ACTIVATE:
+            if msg.slot is None or msg.slot > 1:
+                raise DeviceRefusal(m.ErrorCode.UNSUPPORTED, f"slot {msg.slot} does not exist "
+                                    "(this device has slots 0 = A and 1 = B)")
+            name = "AB"[msg.slot]
+            was = self.store.active_slot
+            self.store.set_active(name, force=msg.force)
+            if was != name:
+                self.log(f"slot {name} activated for a test boot")
+                self._after_activation()
+        elif msg.action == m.SlotAction.CONFIRM:
+            self.store.confirm()
+            self.log(f"slot {self.store.active_slot} confirmed by the host")
+        else:
+            self.store.revert(force=msg.force)
+            self.log(f"reverted to slot {self.store.active_slot}")
+        return m.SlotStatus(slots=self._slot_infos())
+
+    def _after_activation(self) -> None:
+        link = self.link
+        if link is not None:
+            link.defer(self.on_image_committed)
+        else:
+            self.on_image_committed()
+
+    # ------------------------------------------------------------------ image handlers
+    def handle_image_status(self, msg: m.ImageStatus, frame: Frame) -> m.Message:
+        """Where would a transfer of that image resume?"""
+        transfer = self.session.transfer
+        if transfer is not None and transfer.digest == msg.digest and not transfer.writer.closed:
+            return m.ImageStatusReply(next_offset=transfer.writer.next_offset, in_progress=True)
+        journal = self.store.status(verify=False)["journal"]
+        if (
+            journal is None
+            or journal["sha256"] != msg.digest.hex()
+            or journal["size_bytes"] != msg.size_bytes
+        ):
+            return m.ImageStatusReply(next_offset=0, in_progress=False)
+        return m.ImageStatusReply(
+            next_offset=self.store.image_status(msg.digest), in_progress=True
+        )
+
+    def handle_image_begin(self, msg: m.ImageBegin, frame: Frame) -> m.Message:
+        """Open (or resume) a transfer into the inactive slot; answer the first IMAGE_ACK."""
+        if msg.format_version not in SUPPORTED_VERSIONS:
+            raise DeviceRefusal(
+                m.ErrorCode.UNSUPPORTED_FORMAT,
+                f"image format version {msg.format_version} is not supported (this device "
+                f"reads {', '.join(map(str, SUPPORTED_VERSIONS))})",
+                {"format_version": msg.format_version},
+            )
+        if msg.size_bytes < HEADER_SIZE + 64:
+            raise DeviceRefusal(
+                m.ErrorCode.UNSUPPORTED_FORMAT,
+                f"{msg.size_bytes} bytes is too small for an eigenspace image (header and "
+                f"trailer alone take {HEADER_SIZE + 64})",
+            )
+        if msg.size_bytes > self.store.capacity_bytes:
+            raise DeviceRefusal(
+                m.ErrorCode.TOO_LARGE_FOR_FLASH,
+                f"the image is {msg.size_bytes} bytes, a flash slot holds "
+                f"{self.store.capacity_bytes}",
+                {"size_bytes": msg.size_bytes, "limit_bytes": self.store.capacity_bytes},
+            )
+        self.session.transfer = None
+        writer = self.store.begin_image(
+            size_bytes=msg.size_bytes,
+            sha256=msg.digest,
+            image_generation=msg.generation,
+            force=msg.force,
+            window_bytes=self.window_bytes,
+        )
+        transfer = _Transfer(
+            request_id=frame.request_id,
+            digest=msg.digest,
+            size_bytes=msg.size_bytes,
+            image_tag=msg.image_tag,
+            format_version=msg.format_version,
+            generation=msg.generation,
+            force=msg.force,
+            writer=writer,
+            window_bytes=self.window_bytes,
+        )
+        self.session.transfer = transfer
+        self._told_no_transfer.discard(frame.request_id)
+        try:
+            self._check_prefix(transfer)
+        except Exception:
+            self._drop_transfer()
+            raise
+        resumed = f", resuming at {writer.next_offset}" if writer.next_offset else ""
+        self.log(
+            f"image begin: {msg.size_bytes} bytes, sha256 {msg.digest.hex()[:16]}, generation "
+            f"{msg.generation} -> slot {writer.slot}{resumed}"
+        )
+        return m.ImageAck(
+            next_offset=writer.next_offset,
+            credits=self.config.rx_window_frames,
+            window_bytes=min(self.window_bytes, 0xFFFFFFFF),
+        )
+
+    def _drop_transfer(self) -> None:
+        self.session.transfer = None
+        with contextlib.suppress(FlashError):
+            self.store.abort_image()
+
+    def _read_slot(self, transfer: _Transfer, offset: int, size: int) -> bytes:
+        with open(transfer.writer.path, "rb") as handle:
+            handle.seek(offset)
+            return handle.read(size)
+
+    def _check_prefix(self, transfer: _Transfer) -> None:
+        """Check the header, then the manifest, as soon as their bytes have arrived."""
+        received = transfer.writer.next_offset
+        if not transfer.header_checked and received >= HEADER_SIZE:
+            head = self._read_slot(transfer, 0, HEADER_SIZE)
+            try:
+                header = parse_header(head, max_manifest_bytes=self._max_manifest_bytes(),
+                                      what="received image")
+            except ImageFormatError as exc:
+                raise DeviceRefusal(m.ErrorCode.UNSUPPORTED_FORMAT, str(exc)) from None
+            if header.format_version != transfer.format_version:
+                raise DeviceRefusal(
+                    m.ErrorCode.UNSUPPORTED_FORMAT,
+                    f"IMAGE_BEGIN announced format version {transfer.format_version}, the "
+                    f"image header says {header.format_version}",
+                )
+            if header.image_size != transfer.size_bytes:
+                raise DeviceRefusal(
+                    m.ErrorCode.MALFORMED,
+                    f"IMAGE_BEGIN announced {transfer.size_bytes} bytes, the image header "
+                    f"says {header.image_size}",
+                )
+            transfer.header_checked = True
+            transfer.manifest_size = header.manifest_size
+        end = HEADER_SIZE + transfer.manifest_size
+        if transfer.header_checked and not transfer.manifest_checked and received >= end:
+            data = self._read_slot(transfer, 0, end)
+            try:
+                manifest = read_manifest(io.BytesIO(data),
+                                         max_manifest_bytes=self._max_manifest_bytes())
+                need = required_ram_bytes(manifest)
+                generation = manifest.get("image_generation")
+            except ImageFormatError as exc:
+                raise DeviceRefusal(m.ErrorCode.UNSUPPORTED_FORMAT, str(exc)) from None
+            if need > self.config.ram_budget_bytes:
+                raise DeviceRefusal(
+                    m.ErrorCode.TOO_LARGE_FOR_RAM,
+                    f"the eigenspace needs {need} bytes of RAM, this device's budget is "
+                    f"{self.config.ram_budget_bytes}",
+                    {"need_bytes": need, "limit_bytes": self.config.ram_budget_bytes},
+                )
+            if generation != transfer.generation:
+                raise DeviceRefusal(
+                    m.ErrorCode.MALFORMED,
+                    f"IMAGE_BEGIN announced generation {transfer.generation}, the image "
+                    f"manifest says {generation!r}",
+                )
+            transfer.manifest_checked = True
+
+    def handle_image_chunk(self, msg: m.ImageChunk, frame: Frame) -> None:
+        """Write a chunk (idempotent by offset) and acknowledge cumulatively."""
+        transfer = self.session.transfer
+        tid = frame.request_id
+        if transfer is None or tid != transfer.request_id:
+            self.stats.chunks_stale += 1
+            if transfer is None and tid not in self._told_no_transfer and tid != 0:
+                self._told_no_transfer.add(tid)
+                self.stats.errors_sent += 1
+                self._send(
+                    m.Error(
+                        code=m.ErrorCode.NO_IMAGE,
+                        where="IMAGE_CHUNK",
+                        message=f"no image transfer {tid} in this session (send IMAGE_BEGIN)",
+                    ),
+                    tid,
+                )
+            return None
+        writer = transfer.writer
+        data = msg.data
+        end = msg.offset + len(data)
+        try:
+            if len(data) > self.rx_buffer_bytes:
+                raise DeviceRefusal(
+                    m.ErrorCode.LIMIT_EXCEEDED,
+                    f"chunk of {len(data)} bytes exceeds rx_buffer_bytes={self.rx_buffer_bytes}",
+                )
+            if end > transfer.size_bytes:
+                raise DeviceRefusal(
+                    m.ErrorCode.BAD_OFFSET,
+                    f"chunk at {msg.offset} + {len(data)} bytes runs past the image size "
+                    f"{transfer.size_bytes}",
+                )
+            if end > writer.next_offset + transfer.window_bytes:
+                self.stats.chunks_out_of_window += 1
+            else:
+                writer.write_chunk(msg.offset, data)
+                self.stats.chunks += 1
+                self.stats.chunk_bytes += len(data)
+                if not transfer.manifest_checked:
+                    self._check_prefix(transfer)
+                now = time.monotonic()
+                if now - transfer.last_flush >= self.config.flush_interval_s:
+                    transfer.last_flush = now
+                    writer.flush()
+                    self.stats.flushes += 1
+        except (DeviceRefusal, FlashError) as exc:
+            error = self._map_error(exc, "IMAGE_CHUNK")
+            if error.code in (m.ErrorCode.BAD_OFFSET, m.ErrorCode.LIMIT_EXCEEDED):
+                self._send(error, tid)
+                return None
+            self.log(f"image transfer refused: {error.message}")
+            self._drop_transfer()
+            self._told_no_transfer.add(tid)  # its chunks still in flight are dropped quietly
+            self._send(error, tid)
+            return None
+        transfer.chunks_since_ack += 1
+        link = self.link
+        busy = link is not None and link.inbox_image_frames() > 0
+        if not busy or transfer.chunks_since_ack >= max(1, self.config.rx_window_frames // 4):
+            transfer.chunks_since_ack = 0
+            self.stats.acks += 1
+            self._send(
+                m.ImageAck(
+                    next_offset=writer.next_offset,
+                    credits=self.config.rx_window_frames,
+                    window_bytes=min(transfer.window_bytes, 0xFFFFFFFF),
+                ),
+                tid,
+            )
+        return None
+
+    def handle_image_verify(self, msg: m.ImageVerify, frame: Frame) -> m.Message:
+        """Re-read the slot: SHA-256 of the whole image, then its structure, digest and tag."""
+        transfer = self.session.transfer
+        if transfer is None or transfer.digest != msg.digest:
+            raise DeviceRefusal(
+                m.ErrorCode.NO_IMAGE,
+                f"no transfer of image {msg.digest.hex()[:16]} in this session "
+                "(IMAGE_BEGIN first)",
+            )
+        writer = transfer.writer
+        if writer.next_offset < transfer.size_bytes:
+            raise DeviceRefusal(
+                m.ErrorCode.BAD_STATE,
+                f"received {writer.next_offset} of {transfer.size_bytes} bytes; send the rest "
+                "before IMAGE_VERIFY",
+                {"next_offset": writer.next_offset},
+            )
+        if not transfer.verified:
+            if not writer.verify():
+                self.session.transfer = None  # verify() already dropped the journal
+                raise DeviceRefusal(
+                    m.ErrorCode.DIGEST_MISMATCH,
+                    f"the {transfer.size_bytes} bytes received do not hash to the announced "
+                    f"SHA-256 {transfer.digest.hex()[:16]}...; the transfer was discarded",
+                )
+            try:
+                self._check_prefix(transfer)
+                tag_ok = self._validate_slot(transfer)
+            except Exception:
+                self._drop_transfer()
+                raise
+            transfer.verified = True
+            transfer.tag_ok = tag_ok
+            self.log(f"image verified: sha256 {transfer.digest.hex()[:16]}, tag "
+                     f"{'ok' if tag_ok else 'not checked (--insecure)'}")
+        return m.ImageVerifyReply(
+            ok=True,
+            digest=transfer.digest,
+            tag_ok=transfer.tag_ok,
+            size_bytes=transfer.size_bytes,
+        )
+
+    def _validate_slot(self, transfer: _Transfer) -> bool:
+        """Read the written image like a boot would (bounded); True when its tag verified."""
+        tail = self._read_slot(transfer, transfer.size_bytes - 32, 32)
+        if self.config.key is not None and not hmac.compare_digest(tail, transfer.image_tag):
+            raise DeviceRefusal(
+                m.ErrorCode.TAG_MISMATCH,
+                "the image's tag differs from the one announced in IMAGE_BEGIN",
+            )
+        with open(transfer.writer.path, "rb") as handle:
+            try:
+                image = read_image(
+                    handle,
+                    key=self.config.key,
+                    require_tag=self.config.key is not None,
+                    max_manifest_bytes=self._max_manifest_bytes(),
+                    max_section_bytes=self.config.ram_budget_bytes,
+                    max_total_bytes=self.config.ram_budget_bytes,
+                    read_annex=False,
+                )
+            except ImageTagError as exc:
+                raise DeviceRefusal(m.ErrorCode.TAG_MISMATCH, str(exc)) from None
+            except ImageFormatError as exc:
+                raise DeviceRefusal(
+                    m.ErrorCode.UNSUPPORTED_FORMAT, f"the image does not read: {exc}"
+                ) from None
+        return bool(image.tag_verified)
+
+    def handle_image_commit(self, msg: m.ImageCommit, frame: Frame) -> m.Message:
+        """Make the verified image active for a test boot; then load and confirm it."""
+        transfer = self.session.transfer
+        if transfer is None or transfer.digest != msg.digest:
+            raise DeviceRefusal(
+                m.ErrorCode.NO_IMAGE,
+                f"no transfer of image {msg.digest.hex()[:16]} in this session",
+            )
+        if not transfer.verified:
+            raise DeviceRefusal(
+                m.ErrorCode.BAD_STATE, "IMAGE_COMMIT before a successful IMAGE_VERIFY"
+            )
+        self.store.commit_test()
+        self.session.transfer = None
+        self.log(f"image committed to slot {self.store.active_slot} (test)")
+        self._after_activation()
+        return m.SlotStatus(slots=self._slot_infos())
+
+    def handle_image_abort(self, msg: m.ImageAbort, frame: Frame) -> m.Message:
+        """Drop the transfer in progress and its journal."""
+        transfer = self.session.transfer
+        if msg.digest is not None and transfer is not None and transfer.digest != msg.digest:
+            raise DeviceRefusal(m.ErrorCode.NO_IMAGE, "no transfer of that image to abort")
+        self._drop_transfer()
+        self.log("image transfer aborted by the host")
+        return m.Ok()
+
+    # ------------------------------------------------------------------ hooks
+    def on_image_committed(self) -> None:
+        """Called (on the dispatcher) after IMAGE_COMMIT or SLOT_SET ACTIVATE made a test image
+        active. Issue 4: load, validate and confirm it. The issue-5 runtime overrides this to
+        confirm once the first frame is shown."""
+        self._load_and_confirm("commit")
+
+    def handle_scores(self, msg: m.Scores, frame: Frame) -> None:
+        """SCORES from the host: :meth:`on_scores`."""
+        self.on_scores(msg)
+        return None
+
+    def on_scores(self, msg: m.Scores) -> None:
+        """Hook for the runtime (issue 5): decode and show a score packet. Here: ignored."""
+
+    def handle_keyframe_request(self, msg: m.KeyframeRequest, frame: Frame) -> None:
+        """KEYFRAME_REQUEST is device -> host; :meth:`on_keyframe_request` may use it."""
+        self.on_keyframe_request(msg)
+        return None
+
+    def on_keyframe_request(self, msg: m.KeyframeRequest) -> None:
+        """Hook for the runtime (issue 5). Here: ignored."""
+
+    def handle_unexpected(self, msg: m.Message, frame: Frame) -> None:
+        """A host -> device message sent the wrong way: ignored (events) or refused (requests)."""
+        if frame.kind == m.Kind.REQUEST:
+            raise DeviceRefusal(m.ErrorCode.UNSUPPORTED, f"{msg.TYPE.name} is device -> host")
+        return None
+
+    def handle_notice(self, msg: m.Notice, frame: Frame) -> None:
+        """A NOTICE from the host: logged."""
+        self.log(f"host notice: {msg.text}")
+        return None
+

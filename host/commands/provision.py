@@ -1,0 +1,67 @@
+"""``eigencast provision MODEL.ecs --port URL [--baud B] [--key KEYFILE] [--force] [--json]``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from host.provision import provision
+from protocol.keys import load_key
+from protocol.link import RETRANSMIT_STRATEGIES
+
+HELP = "Install an eigenspace image on a device (resumable, verified, authenticated)."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the image, ``--port``, ``--baud``, ``--key``, ``--force`` and tuning flags."""
+    parser.add_argument("model", metavar="MODEL.ecs", type=Path, help="eigenspace image")
+    parser.add_argument("--port", required=True, metavar="URL",
+                        help="device port: /dev/ttyUSB0, socket://HOST:PORT, rfc2217://...")
+    parser.add_argument("--baud", type=int, default=115200,
+                        help="serial line rate (default 115200)")
+    parser.add_argument("--key", metavar="KEYFILE", type=Path,
+                        help="device key (needed when the device holds one)")
+    parser.add_argument("--force", action="store_true",
+                        help="allow installing an older image generation (rollback)")
+    parser.add_argument("--chunk", metavar="BYTES", type=int,
+                        help="largest chunk (default: from the device's buffers and the line)")
+    parser.add_argument("--retransmit", choices=RETRANSMIT_STRATEGIES, default="selective",
+                        help="loss recovery (default selective)")
+    parser.add_argument("--timeout", metavar="S", type=float, default=1.0,
+                        help="first reply timeout of each request, seconds (retries back off)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Provision and print a one-line summary (or JSON)."""
+    if args.baud <= 0:
+        raise ValueError(f"--baud {args.baud} must be positive")
+    if args.chunk is not None and args.chunk < 1:
+        raise ValueError(f"--chunk {args.chunk} must be >= 1")
+    if not args.timeout > 0:
+        raise ValueError(f"--timeout {args.timeout} must be > 0")
+    key = load_key(args.key) if args.key is not None else None
+    result = provision(
+        args.model,
+        args.port,
+        baud=args.baud,
+        key=key,
+        force=args.force,
+        chunk_bytes=args.chunk,
+        retransmit=args.retransmit,
+        request_timeout_s=args.timeout,
+        show_progress=not (args.quiet or args.json),
+        log=(lambda line: None) if args.json or args.quiet else None,
+    )
+    if args.json:
+        print(json.dumps(result.as_dict()))
+    else:
+        rate = result.rate_bytes_per_s
+        extra = f", {rate / 1024:.1f} KiB/s" if result.outcome == "installed" else ""
+        print(
+            f"{result.outcome}: {args.model} ({result.size_bytes} bytes) on device "
+            f"'{result.device_id}', slot {result.slot}{extra}"
+        )
+    return 0

@@ -1,0 +1,688 @@
+"""Provisioning: install an eigenspace image (``.ecs``) on a device over any transport.
+
+:func:`provision` does, in order (docs/protocol.md, "Provisioning"):
+
+1. read the image's header and manifest, hash the *device image* (the first
+   ``image_size`` bytes; a host annex after it stays on the host) and check
+   its digest and, with a key, its tag;
+2. connect, HELLO (version negotiation), mutual AUTH (session key);
+3. compare digests with the device's slots: the active slot already holds the
+   image -> nothing to do; the other slot holds it (verified, not bad) ->
+   SLOT_SET ACTIVATE instead of a transfer;
+4. check what the device declared (format versions, slot size, RAM budget,
+   image generation) so a refusal is one clear line before any byte is sent;
+5. IMAGE_STATUS (resume point), IMAGE_BEGIN (signed), windowed chunks with a
+   progress bar (bytes, rate, ETA);
+6. on a disconnect or a silent device: reconnect with exponential backoff,
+   HELLO, AUTH, IMAGE_STATUS, IMAGE_BEGIN and carry on from the offset the
+   device names (after a device reboot: its journal's verified prefix);
+7. IMAGE_VERIFY (the device re-reads the slot: SHA-256 and the HMAC tag with
+   its key), IMAGE_COMMIT (test state), and wait briefly for the device's
+   NOTICE that it loaded and confirmed the image.
+
+Refusals by the device arrive as :class:`~protocol.errors.RemoteError`
+subclasses (one line each); the host's own pre-checks raise
+:class:`ProvisionError`. Both are user errors (exit code 1 in the CLI).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import mmap
+import os
+import queue
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from device_runtime.device import required_ram_bytes
+from host.errors import EigencastError
+from protocol import messages as m
+from protocol.errors import (
+    ImageFormatError,
+    RemoteNoImage,
+    TransportClosed,
+    TransportError,
+    TransportTimeout,
+)
+from protocol.image import HEADER_SIZE, parse_header, read_manifest, verify_stream
+from protocol.link import CHUNK_OVERHEAD_BYTES, HostSession, Link, send_image
+from protocol.transport import open_transport
+
+__all__ = [
+    "CHUNK_LATENCY_S",
+    "ImageInfo",
+    "ProvisionError",
+    "ProvisionResult",
+    "choose_chunk_bytes",
+    "inspect_image",
+    "provision",
+]
+
+CHUNK_LATENCY_S = 0.08
+"""On a serial line a chunk takes at most about this long on the wire, so a
+control or score frame never waits longer than that behind one (seconds)."""
+_MIN_SERIAL_CHUNK = 256
+_SERIAL_SCHEMES = ("", "mem", "rfc2217", "loop")
+_MB = 1024 * 1024
+
+
+class ProvisionError(EigencastError):
+    """The image cannot be installed on this device (found before sending it)."""
+
+
+# --------------------------------------------------------------------------- image
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What provisioning needs to know about a ``.ecs`` file.
+
+    Attributes
+    ----------
+    path : Path
+    size_bytes : int
+        Size of the device image (what is sent; an annex after it is not).
+    digest : bytes
+        SHA-256 of those ``size_bytes`` bytes (the slot digest a device reports).
+    tag : bytes
+        The image's HMAC tag (its last 32 bytes; zeros when unsigned).
+    signed : bool
+    tag_verified : bool
+        The tag was checked with the host's key and matched.
+    format_version : int
+    generation : int
+    ram_bytes : int
+        RAM the device needs for it (:func:`device_runtime.device.required_ram_bytes`).
+    """
+
+    path: Path
+    size_bytes: int
+    digest: bytes
+    tag: bytes
+    signed: bool
+    tag_verified: bool
+    format_version: int
+    generation: int
+    ram_bytes: int
+
+
+def inspect_image(path: str | os.PathLike, *, key: bytes | None = None) -> ImageInfo:
+    """Read an image's header and manifest, hash its device part, check its tag with ``key``.
+
+    Raises
+    ------
+    ProvisionError
+        Missing file, not an eigencast image, corrupt (digest), or signed with another key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ProvisionError(f"image '{path}' not found")
+    try:
+        with open(path, "rb") as handle:
+            header = parse_header(handle.read(HEADER_SIZE), what=f"image '{path}'")
+            handle.seek(0)
+            manifest = read_manifest(handle)
+            handle.seek(0)
+            _, tag_ok = verify_stream(handle, key)
+            handle.seek(0)
+            hasher = hashlib.sha256()
+            left = header.image_size
+            while left:
+                block = handle.read(min(left, 1 << 20))
+                if not block:
+                    raise ProvisionError(f"image '{path}' is truncated")
+                hasher.update(block)
+                left -= len(block)
+            handle.seek(header.image_size - 32)
+            tag = handle.read(32)
+        ram = required_ram_bytes(manifest)
+    except ImageFormatError as exc:
+        raise ProvisionError(str(exc)) from None
+    if key is not None and header.signed and not tag_ok:
+        raise ProvisionError(
+            f"image '{path}' was signed with a different key than the one given "
+            "(the device would refuse it: TAG_MISMATCH)"
+        )
+    generation = manifest.get("image_generation")
+    return ImageInfo(
+        path=path,
+        size_bytes=header.image_size,
+        digest=hasher.digest(),
+        tag=tag,
+        signed=header.signed,
+        tag_verified=bool(tag_ok),
+        format_version=header.format_version,
+        generation=int(generation) if isinstance(generation, int) else 0,
+        ram_bytes=ram,
+    )
+
+
+# --------------------------------------------------------------------------- result
+
+
+@dataclass
+class ProvisionResult:
+    """What :func:`provision` did.
+
+    Attributes
+    ----------
+    outcome : str
+        ``"installed"`` (sent and committed), ``"already-active"`` (nothing to
+        do) or ``"activated"`` (the other slot already held it).
+    device_id : str
+    slot : str
+        ``"A"`` or ``"B"``: where the image is active now.
+    digest : str
+        Hex SHA-256 of the device image.
+    size_bytes : int
+    resumed_from : int
+        Offset the first transfer attempt started at (0: from scratch).
+    reconnects : int
+        Reconnections after a lost link.
+    data_bytes_sent, wire_bytes_sent : int
+        Image bytes in chunk frames (retransmissions included) and their encoded size.
+    retransmitted_chunks, timeouts : int
+    transfer_seconds : float
+        Time spent streaming chunks (all attempts).
+    seconds : float
+        Whole run.
+    confirmed : bool or None
+        The device reported it loaded and confirmed the image (None: no report in time).
+    verified : bool
+        The device re-read the slot and its digest (and tag) matched.
+    """
+
+    outcome: str
+    device_id: str
+    slot: str
+    digest: str
+    size_bytes: int
+    resumed_from: int = 0
+    resume_offsets: list[int] = field(default_factory=list)
+    reconnects: int = 0
+    data_bytes_sent: int = 0
+    wire_bytes_sent: int = 0
+    retransmitted_chunks: int = 0
+    timeouts: int = 0
+    transfer_seconds: float = 0.0
+    seconds: float = 0.0
+    confirmed: bool | None = None
+    verified: bool = False
+
+    @property
+    def rate_bytes_per_s(self) -> float:
+        """Image bytes delivered per second of transfer."""
+        sent = self.size_bytes - self.resumed_from
+        return sent / self.transfer_seconds if self.transfer_seconds > 0 else 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-serialisable summary."""
+        out = dict(self.__dict__)
+        out["rate_bytes_per_s"] = self.rate_bytes_per_s
+        return out
+
+
+# --------------------------------------------------------------------------- progress
+
+
+class _TransferProgress:
+    """Bytes, rate and ETA: a rich bar on a terminal, a line per 10 % elsewhere."""
+
+    def __init__(self, total: int, description: str, *, enabled: bool) -> None:
+        self.total = total
+        self.description = description
+        self.enabled = enabled
+        self._rich: Any = None
+        self._task: Any = None
+        self._start = time.monotonic()
+        self._start_bytes = 0
+        self._next = 0.1
+        self.done = 0
+
+    def __enter__(self) -> _TransferProgress:
+        if self.enabled and sys.stderr.isatty():
+            from rich.progress import (
+                BarColumn,
+                DownloadColumn,
+                Progress,
+                TextColumn,
+                TimeRemainingColumn,
+                TransferSpeedColumn,
+            )
+
+            self._rich = Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                DownloadColumn(binary_units=True),
+                TransferSpeedColumn(),
+                TextColumn("ETA"),
+                TimeRemainingColumn(),
+                transient=False,
+            )
+            self._rich.__enter__()
+            self._task = self._rich.add_task(self.description, total=self.total)
+        return self
+
+    def start_at(self, offset: int) -> None:
+        self._start = time.monotonic()
+        self._start_bytes = offset
+        self.update(offset)
+
+    def update(self, done: int) -> None:
+        self.done = done
+        if not self.enabled:
+            return
+        if self._rich is not None:
+            self._rich.update(self._task, completed=done)
+            return
+        frac = done / self.total if self.total else 1.0
+        if frac + 1e-12 < self._next and done < self.total:
+            return
+        while self._next <= frac:
+            self._next += 0.1
+        elapsed = max(time.monotonic() - self._start, 1e-9)
+        rate = (done - self._start_bytes) / elapsed
+        eta = (self.total - done) / rate if rate > 0 else float("nan")
+        print(
+            f"{self.description}: {done}/{self.total} bytes ({100 * frac:.0f}%), "
+            f"{rate / 1024:.1f} KiB/s, ETA {eta:.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def __exit__(self, *exc: object) -> None:
+        if self._rich is not None:
+            self._rich.__exit__(None, None, None)
+
+
+# --------------------------------------------------------------------------- provisioning
+
+
+def choose_chunk_bytes(transport: Any, hello: m.HelloReply, link: Link,
+                       requested: int | None = None) -> int:
+    """Chunk data size: the device's receive buffer and frame limit, and on a serial line
+    no more than ``CHUNK_LATENCY_S`` of wire time (so view requests never wait long)."""
+    limit = min(hello.rx_buffer_bytes, link.tx_max_frame_bytes - CHUNK_OVERHEAD_BYTES)
+    if requested is not None:
+        if requested < 1:
+            raise ValueError(f"chunk_bytes={requested} must be >= 1")
+        return min(requested, limit)
+    scheme = getattr(transport, "scheme", None)
+    baud = getattr(transport, "baud", None)
+    if scheme in _SERIAL_SCHEMES and baud:
+        target = int(baud / 10 * CHUNK_LATENCY_S) // 64 * 64
+        limit = min(limit, max(_MIN_SERIAL_CHUNK, target))
+    return max(1, limit)
+
+
+def _precheck(info: ImageInfo, hello: m.HelloReply, *, force: bool) -> None:
+    name = f"device '{hello.device_id}'"
+    versions = tuple(hello.image_format_versions)
+    if versions and info.format_version not in versions:
+        raise ProvisionError(
+            f"{name} reads image format versions {', '.join(map(str, versions))}; this image "
+            f"is version {info.format_version} (UNSUPPORTED_FORMAT)"
+        )
+    if info.size_bytes > hello.slot_size_bytes:
+        raise ProvisionError(
+            f"the image is {info.size_bytes} bytes ({info.size_bytes / _MB:.1f} MiB); a flash "
+            f"slot of {name} holds {hello.slot_size_bytes} bytes "
+            f"({hello.slot_size_bytes / _MB:.1f} MiB) (TOO_LARGE_FOR_FLASH)"
+        )
+    if info.ram_bytes > hello.ram_budget_bytes:
+        raise ProvisionError(
+            f"the eigenspace needs {info.ram_bytes} bytes ({info.ram_bytes / _MB:.1f} MiB) of "
+            f"RAM; {name} has a budget of {hello.ram_budget_bytes} bytes "
+            f"({hello.ram_budget_bytes / _MB:.1f} MiB) (TOO_LARGE_FOR_RAM; fit fewer "
+            "components or raise the device's --ram-budget)"
+        )
+    active = [s for s in hello.slots if s.active]
+    if active and info.generation < active[0].generation and not force:
+        raise ProvisionError(
+            f"image generation {info.generation} is older than the generation "
+            f"{active[0].generation} active on {name}; pass --force to roll back "
+            "(ROLLBACK_REFUSED)"
+        )
+    if hello.has_key and not info.signed:
+        raise ProvisionError(
+            f"the image is not signed and {name} only accepts images signed with its key "
+            "(eigencast fit --key KEYFILE) (TAG_MISMATCH)"
+        )
+
+
+class _Notices:
+    """Collects NOTICE events from the device (the host link's handler)."""
+
+    def __init__(self) -> None:
+        self.queue: queue.Queue[m.Notice] = queue.Queue()
+
+    def __call__(self, msg: m.Message, frame: Any) -> None:
+        if isinstance(msg, m.Notice):
+            self.queue.put(msg)
+        return None
+
+    def wait_confirm(self, timeout_s: float) -> bool | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            try:
+                notice = self.queue.get(timeout=left)
+            except queue.Empty:
+                return None
+            event = (notice.detail or {}).get("event")
+            if event == "confirmed":
+                return True
+            if event == "load-failed":
+                return False
+
+
+def provision(
+    image_path: str | os.PathLike,
+    url: str,
+    *,
+    baud: int = 115200,
+    key: bytes | None = None,
+    force: bool = False,
+    chunk_bytes: int | None = None,
+    retransmit: str = "selective",
+    precheck: bool = True,
+    show_progress: bool = True,
+    request_timeout_s: float = 1.0,
+    inactivity_timeout_s: float = 15.0,
+    max_reconnects: int = 8,
+    confirm_timeout_s: float = 5.0,
+    transport_factory: Callable[[int], Any] | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+    on_stage: Callable[[str], None] | None = None,
+    log: Callable[[str], None] | None = None,
+    host_id: str = "eigencast",
+) -> ProvisionResult:
+    """Install the image at ``image_path`` on the device at ``url``.
+
+    Parameters
+    ----------
+    image_path : path-like
+        An ``.ecs`` file (only its device image is sent).
+    url : str
+        Port URL (``/dev/ttyUSB0``, ``socket://HOST:PORT``, ``mem://...``).
+    baud : int
+        Serial line rate.
+    key : bytes, optional
+        The device key (needed when the device holds one).
+    force : bool
+        Allow installing an older image generation (rollback).
+    chunk_bytes : int, optional
+        Data bytes per chunk (default: :func:`choose_chunk_bytes`).
+    retransmit : {"selective", "go-back-n"}
+        Loss recovery of the chunk window (:func:`protocol.link.send_image`).
+    precheck : bool
+        Refuse on the host what the device would refuse (off in tests of the device).
+    show_progress : bool
+        Progress bar / lines on stderr.
+    request_timeout_s : float
+        First reply timeout of each request (retries back off).
+    inactivity_timeout_s : float
+        A transfer with no progress for this long counts as a lost link.
+    max_reconnects : int
+        Reconnections in a row without progress before giving up.
+    confirm_timeout_s : float
+        How long to wait for the device's "confirmed" NOTICE after the commit.
+    transport_factory : callable, optional
+        ``factory(attempt) -> Transport`` instead of ``open_transport(url, baud=baud)``.
+    on_progress : callable, optional
+        ``on_progress(acked_offset, size_bytes)`` during the transfer.
+    on_stage : callable, optional
+        ``on_stage(name)`` at "connect", "hello", "status", "begin", "transfer",
+        "verify", "commit", "done".
+    log : callable, optional
+        One line per step (default: stderr).
+
+    Returns
+    -------
+    ProvisionResult
+
+    Raises
+    ------
+    ProvisionError
+        A pre-check failed (one line).
+    RemoteError
+        The device refused (one line with its error code).
+    TransportError
+        The device could not be reached, or the link kept failing.
+    """
+    started = time.monotonic()
+    say = log or (lambda line: print(f"eigencast provision: {line}", file=sys.stderr, flush=True))
+    stage = on_stage or (lambda name: None)
+    info = inspect_image(image_path, key=key if precheck else None)
+    factory = transport_factory or (
+        lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s))
+    )
+    result: ProvisionResult | None = None
+    failures = 0
+    attempt = 0
+    progress_mark = -1
+    transfer_seconds = 0.0
+    learned_chunk: dict[str, int] = {}
+    with open(info.path, "rb") as handle:
+        mapped = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
+    try:
+        data = memoryview(mapped)[: info.size_bytes]
+        with _TransferProgress(info.size_bytes, "provision", enabled=show_progress) as bar:
+            while True:
+                stage("connect")
+                link: Link | None = None
+                try:
+                    transport = factory(attempt)
+                    notices = _Notices()
+                    link = Link(transport, handler=notices, owns_transport=True).start()
+                    session = HostSession(
+                        link, key=key, host_id=host_id, request_timeout_s=request_timeout_s
+                    )
+                    stage("hello")
+                    hello = session.start()
+                    if result is not None and _holds_active(hello, info):
+                        # The link dropped after the commit went through.
+                        result.reconnects += 1
+                        result.verified = True
+                        result.slot = _active_slot(hello.slots)
+                        session.bye("done")
+                        result.seconds = time.monotonic() - started
+                        stage("done")
+                        return result
+                    if result is None:
+                        say(
+                            f"device '{hello.device_id}' ({hello.software or 'unknown software'}"
+                            f", protocol {session.version}"
+                            f"{', authenticated' if session.authenticated else ', no key'})"
+                        )
+                        done = _already_there(session, hello, info, force=force, say=say)
+                        if done is not None:
+                            done.seconds = time.monotonic() - started
+                            session.bye("done")
+                            stage("done")
+                            return done
+                        if precheck:
+                            _precheck(info, hello, force=force)
+                        result = ProvisionResult(
+                            outcome="installed",
+                            device_id=hello.device_id,
+                            slot="",
+                            digest=info.digest.hex(),
+                            size_bytes=info.size_bytes,
+                        )
+                    else:
+                        result.reconnects += 1
+                    stage("status")
+                    status = session.call(m.ImageStatus(digest=info.digest,
+                                                        size_bytes=info.size_bytes))
+                    assert isinstance(status, m.ImageStatusReply)
+                    stage("begin")
+                    answered: dict[str, int] = {}
+                    ack = session.call(
+                        m.ImageBegin(
+                            size_bytes=info.size_bytes,
+                            digest=info.digest,
+                            image_tag=info.tag,
+                            format_version=info.format_version,
+                            generation=info.generation,
+                            force=force,
+                        ),
+                        on_reply=lambda rid, reply, box=answered: box.__setitem__("id", rid),
+                    )
+                    assert isinstance(ack, m.ImageAck)
+                    result.resume_offsets.append(ack.next_offset)
+                    if len(result.resume_offsets) == 1:
+                        result.resumed_from = ack.next_offset
+                    if ack.next_offset:
+                        say(f"resuming at byte {ack.next_offset} of {info.size_bytes}")
+                    chunk = choose_chunk_bytes(transport, hello, link, chunk_bytes)
+                    if getattr(transport, "scheme", None) in _SERIAL_SCHEMES:
+                        # keep about one chunk in the port's buffer: frames that jump the
+                        # queue then wait behind at most ~CHUNK_LATENCY_S of wire time
+                        link.tx_low_water_bytes = chunk + CHUNK_OVERHEAD_BYTES
+                    stage("transfer")
+                    bar.start_at(ack.next_offset)
+
+                    def progressed(offset: int) -> None:
+                        bar.update(offset)
+                        if on_progress is not None:
+                            on_progress(offset, info.size_bytes)
+
+                    t0 = time.monotonic()
+                    try:
+                        stats = send_image(
+                            link,
+                            data,
+                            transfer_id=answered["id"],
+                            first_ack=ack,
+                            chunk_bytes=chunk,
+                            inactivity_timeout_s=inactivity_timeout_s,
+                            retransmit=retransmit,
+                            on_progress=progressed,
+                            initial_chunk_bytes=learned_chunk.get("bytes"),
+                        )
+                        learned_chunk["bytes"] = stats.final_chunk_bytes
+                    finally:
+                        transfer_seconds += time.monotonic() - t0
+                        result.transfer_seconds = transfer_seconds
+                    result.data_bytes_sent += stats.data_bytes_sent
+                    result.wire_bytes_sent += stats.wire_bytes_sent
+                    result.retransmitted_chunks += stats.retransmitted_chunks
+                    result.timeouts += stats.timeouts
+                    stage("verify")
+                    verify = session.call(
+                        m.ImageVerify(digest=info.digest),
+                        timeout_s=max(request_timeout_s, 2.0 + info.size_bytes / (10 * _MB)),
+                        retries=3,
+                    )
+                    assert isinstance(verify, m.ImageVerifyReply)
+                    if not verify.ok or verify.digest != info.digest:
+                        raise ProvisionError(
+                            f"device '{hello.device_id}' could not verify the image it received"
+                        )
+                    result.verified = True
+                    stage("commit")
+                    status_reply = session.call(m.ImageCommit(digest=info.digest))
+                    assert isinstance(status_reply, m.SlotStatus)
+                    result.slot = _active_slot(status_reply.slots)
+                    say(
+                        f"sent {info.size_bytes} bytes, verified (sha256 "
+                        f"{info.digest.hex()[:16]}, tag {'ok' if verify.tag_ok else 'unchecked'})"
+                        f", committed to slot {result.slot}"
+                    )
+                    result.confirmed = notices.wait_confirm(confirm_timeout_s)
+                    if result.confirmed:
+                        say(f"device confirmed the image in slot {result.slot}")
+                    elif result.confirmed is False:
+                        say("device could not load the image and reverted")
+                    session.bye("provisioned")
+                    result.seconds = time.monotonic() - started
+                    stage("done")
+                    return result
+                except (TransportClosed, TransportTimeout, RemoteNoImage) as exc:
+                    if link is not None:
+                        link.close(flush_timeout_s=0.0)
+                    if result is None and isinstance(exc, RemoteNoImage):
+                        raise
+                    mark = bar.done
+                    failures = 0 if mark > progress_mark else failures + 1
+                    progress_mark = max(progress_mark, mark)
+                    if failures > max_reconnects:
+                        raise TransportError(
+                            f"gave up after {failures} reconnects without progress: {exc}"
+                        ) from None
+                    delay = min(0.05 * 2**failures, 2.0)
+                    say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
+                    time.sleep(delay)  # reconnect backoff (a protocol timer)
+                    attempt += 1
+                finally:
+                    if link is not None and not link.closed:
+                        link.close(flush_timeout_s=0.5)
+    finally:
+        with contextlib.suppress(BufferError):
+            mapped.close()
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def _active_slot(slots: tuple[m.SlotInfo, ...]) -> str:
+    for info in slots:
+        if info.active:
+            return "AB"[info.slot] if info.slot < 2 else str(info.slot)
+    return "?"
+
+
+def _holds_active(hello: m.HelloReply, info: ImageInfo) -> bool:
+    return any(
+        s.active and s.digest == info.digest
+        and s.state in (m.SlotState.TEST, m.SlotState.CONFIRMED)
+        for s in hello.slots
+    )
+
+
+def _already_there(
+    session: HostSession,
+    hello: m.HelloReply,
+    info: ImageInfo,
+    *,
+    force: bool,
+    say: Callable[[str], None],
+) -> ProvisionResult | None:
+    """Skip the transfer when a slot already holds this image (see the module docstring)."""
+    usable = (m.SlotState.TEST, m.SlotState.CONFIRMED)
+    for slot in hello.slots:
+        if slot.digest != info.digest or slot.state not in usable:
+            continue
+        name = "AB"[slot.slot] if slot.slot < 2 else str(slot.slot)
+        base = ProvisionResult(
+            outcome="already-active",
+            device_id=hello.device_id,
+            slot=name,
+            digest=info.digest.hex(),
+            size_bytes=info.size_bytes,
+            verified=True,
+            confirmed=slot.state == m.SlotState.CONFIRMED,
+        )
+        if slot.active:
+            state = "confirmed" if slot.state == m.SlotState.CONFIRMED else "test"
+            say(f"slot {name} already holds this image and it is active ({state}); "
+                "nothing to send")
+            return base
+        reply = session.call(m.SlotSet(action=m.SlotAction.ACTIVATE, slot=slot.slot, force=force))
+        assert isinstance(reply, m.SlotStatus)
+        base.outcome = "activated"
+        base.slot = _active_slot(reply.slots)
+        say(f"slot {name} already held this image; activated it instead of sending it again")
+        return base
+    return None
+

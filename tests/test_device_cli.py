@@ -1,0 +1,138 @@
+"""``eigencast-device``: --status [--json], --pair, the --insecure banner, and one-line errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+
+import pytest
+from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name
+
+from device_runtime.cli import KEY_FILE_NAME, build_parser, main
+from host.provision import provision
+from protocol.keys import key_fingerprint, load_key, write_key
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    assert err.startswith("eigencast-device: error: "), err
+    return err
+
+
+@pytest.fixture
+def provisioned(tmp_path):
+    """A flash folder with one confirmed image in slot A; returns (flash_dir, image bytes)."""
+    path = tmp_path / "m.ecs"
+    image = make_image(path, size_bytes=30_000)
+    name = mem_name("cli")
+    with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash"):
+        provision(path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+                  log=lambda line: None)
+    return tmp_path / "flash", image
+
+
+def test_status_prints_each_slot_and_whether_it_verifies(provisioned, capsys):
+    flash, image = provisioned
+    assert main(["--flash", str(flash), "--status"]) == 0
+    out = capsys.readouterr().out
+    assert "slot A *" in out and "confirmed" in out and "verifies" in out
+    assert f"{len(image)} bytes" in out and "slot B" in out and "empty" in out
+    assert "key: none paired" in out
+
+
+def test_status_json_is_machine_readable_and_notices_a_corrupt_slot(provisioned, capsys):
+    flash, image = provisioned
+    assert main(["--flash", str(flash), "--status", "--json"]) == 0
+    status = json.loads(capsys.readouterr().out)
+    slot_a = status["slots"][0]
+    assert status["active_slot"] == "A" and slot_a["verifies"] is True
+    assert slot_a["size_bytes"] == len(image) and slot_a["state"] == "confirmed"
+    with open(flash / "slot_a.img", "r+b") as handle:  # one flipped byte in flash
+        handle.seek(1000)
+        byte = handle.read(1)
+        handle.seek(1000)
+        handle.write(bytes([byte[0] ^ 0xFF]))
+    assert main(["--flash", str(flash), "--status", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["slots"][0]["verifies"] is False
+
+
+def test_pair_installs_the_key_with_mode_0600_and_the_device_uses_it(tmp_path, capsys):
+    write_key(tmp_path / "k.key", KEY)
+    flash = tmp_path / "flash"
+    assert main(["--pair", str(tmp_path / "k.key"), "--flash", str(flash)]) == 0
+    installed = flash / KEY_FILE_NAME
+    assert load_key(installed) == KEY
+    assert stat.S_IMODE(os.stat(installed).st_mode) == 0o600
+    assert key_fingerprint(KEY) in capsys.readouterr().out
+    # A device started on that folder without --key authenticates with the paired key.
+    dev = DeviceProcess(flash)
+    try:
+        path = tmp_path / "m.ecs"
+        make_image(path, size_bytes=20_000)
+        result = provision(path, dev.url, key=KEY, show_progress=False, log=lambda s: None)
+    finally:
+        assert dev.stop() == 0
+    assert result.outcome == "installed"
+    assert any(key_fingerprint(KEY) in line for line in dev.lines)
+    assert main(["--flash", str(flash), "--status"]) == 0
+    assert f"paired, fingerprint {key_fingerprint(KEY)}" in capsys.readouterr().out
+
+
+def test_insecure_is_announced_loudly_and_the_device_stops_cleanly(tmp_path):
+    dev = DeviceProcess(tmp_path / "flash", "--insecure")
+    rc = dev.stop()
+    assert rc == 0
+    banner = [line for line in dev.lines if "--insecure" in line]
+    assert banner and "WARNING" in banner[0] and "ANYONE" in banner[0]
+    assert dev.lines[-1].endswith("stopped")
+
+
+def test_a_device_without_a_key_says_provisioning_is_refused(tmp_path):
+    dev = DeviceProcess(tmp_path / "flash")
+    dev.stop()
+    assert any("no key: provisioning is refused" in line for line in dev.lines)
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--flash", "{d}/f", "--bogus"], "unrecognized arguments: --bogus"),
+        (["--status"], "required: --flash"),
+        (["--flash", "{d}/f", "--port", "nope://x"], "unknown scheme 'nope'"),
+        (["--flash", "{d}/f", "--listen", "nohost"], "is not HOST:PORT"),
+        (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--key", "{d}/missing.key"],
+         "not found"),
+        (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--key", "{d}/k.key", "--insecure"],
+         "--insecure cannot be combined"),
+        (["--flash", "{d}/f"], "give --port URL or --listen"),
+        (["--flash", "{d}/f", "--json"], "--json goes with --status"),
+        (["--flash", "{d}/missing", "--status"], "no flash folder"),
+        (["--flash", "{d}/f", "--port", "x", "--listen", "h:1"], "not allowed with argument"),
+        (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--ram-budget", "-3"], "> 0 MB"),
+        (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--max-frame", "10"], "--max-frame"),
+        (["--pair", "{d}/missing.key", "--flash", "{d}/f"], "not found"),
+    ],
+)
+def test_bad_usage_is_one_line_and_exit_code_1(tmp_path, capsys, argv, needle):
+    write_key(tmp_path / "k.key", KEY)
+    args = [a.format(d=tmp_path) for a in argv]
+    assert main(args) == 1
+    assert needle in _one_error_line(capsys)
+    assert not (tmp_path / "f").exists()  # nothing was formatted on the way to the error
+
+
+def test_a_corrupt_flash_folder_is_one_line(tmp_path, capsys):
+    flash = tmp_path / "f"
+    flash.mkdir()
+    (flash / "state_0.rec").write_bytes(b"garbage" * 30)
+    assert main(["--flash", str(flash), "--status"]) == 1
+    assert "corrupt flash store" in _one_error_line(capsys)
+
+
+def test_the_parser_leaves_room_for_the_runtime_flags():
+    parser = build_parser()
+    parser.add_argument("--headless", action="store_true")  # what issue 5 will add
+    args = parser.parse_args(["--flash", "x", "--listen", "h:1", "--headless"])
+    assert args.headless and args.listen == "h:1"

@@ -1,0 +1,532 @@
+"""Provisioning end to end: mem line, pty, TCP with the device as a separate process; faults,
+resume after a disconnect and after a device reboot, power cuts, and every refusal."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import random
+import struct
+import threading
+
+import cbor2
+import pytest
+from provision_helpers import (
+    KEY,
+    OTHER_KEY,
+    DeviceProcess,
+    DeviceThread,
+    make_image,
+    mem_name,
+    reseal,
+)
+
+from device_runtime.device import Device, DeviceConfig
+from device_runtime.flash import FlashStore
+from host.cli import main as cli_main
+from host.provision import ProvisionError, choose_chunk_bytes, inspect_image, provision
+from protocol import messages as m
+from protocol.errors import (
+    AuthenticationError,
+    RemoteAuthFailed,
+    RemoteNotAuthenticated,
+    RemoteReplayed,
+    RemoteRollbackRefused,
+    RemoteTagMismatch,
+    RemoteTooLargeForFlash,
+    RemoteTooLargeForRam,
+    RemoteUnsupportedFormat,
+    RemoteUnsupportedVersion,
+)
+from protocol.keys import write_key
+from protocol.link import HostSession, Link
+from protocol.transport import open_pty_pair, open_transport
+
+QUIET = {"show_progress": False, "log": lambda line: None}
+
+
+def _check_device_holds(flash_dir, image: bytes, *, slot: str | None = None) -> None:
+    """The flash store's active slot holds exactly ``image`` and its digest verifies."""
+    store = FlashStore.open(flash_dir, create=False)
+    status = store.status()
+    active = [s for s in status["slots"] if s["active"]]
+    assert len(active) == 1
+    assert active[0]["sha256"] == hashlib.sha256(image).hexdigest()
+    assert active[0]["verifies"] is True
+    assert active[0]["size_bytes"] == len(image)
+    if slot is not None:
+        assert active[0]["slot"] == slot
+    with store.open_active() as stream:
+        assert stream.read() == image
+
+
+@pytest.fixture
+def model(tmp_path):
+    path = tmp_path / "model.ecs"
+    return path, make_image(path, size_bytes=150_000)
+
+
+# --------------------------------------------------------------------------- transports
+
+
+def test_provision_over_the_mem_line_verifies_and_confirms(tmp_path, model):
+    path, image = model
+    name = mem_name("prov")
+    with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash") as dev:
+        result = provision(path, f"mem://{name}?end=a&pace=0", key=KEY, **QUIET)
+        again = provision(path, f"mem://{name}?end=a&pace=0", key=KEY, **QUIET)
+    assert result.outcome == "installed" and result.verified and result.confirmed
+    assert result.slot == "A" and result.size_bytes == len(image)
+    assert result.digest == hashlib.sha256(image).hexdigest()
+    assert again.outcome == "already-active" and again.data_bytes_sent == 0
+    _check_device_holds(tmp_path / "flash", image, slot="A")
+    assert any("loaded and confirmed" in line for line in dev.lines)
+    assert FlashStore.open(tmp_path / "flash").slots[0].state.label == "confirmed"
+
+
+def test_provision_over_a_pty_pair_through_pyserial(tmp_path, model):
+    path, image = model
+    pty = open_pty_pair()
+    try:
+        with DeviceThread(pty.slave_path, tmp_path / "flash"):
+            master = pty.master_transport()
+            result = provision(path, "pty", key=KEY, transport_factory=lambda n: master, **QUIET)
+    finally:
+        pty.close()
+    assert result.outcome == "installed" and result.verified
+    _check_device_holds(tmp_path / "flash", image)
+
+
+def test_provision_over_tcp_to_a_separate_device_process(tmp_path, model):
+    path, image = model
+    write_key(tmp_path / "dev.key", KEY)
+    dev = DeviceProcess(tmp_path / "flash", key_file=tmp_path / "dev.key")
+    try:
+        result = provision(path, dev.url, key=KEY, **QUIET)
+    finally:
+        assert dev.stop() == 0
+    assert result.outcome == "installed" and result.verified and result.confirmed
+    _check_device_holds(tmp_path / "flash", image)
+    assert any("image verified" in line for line in dev.lines)
+
+
+def test_cli_provision_prints_a_summary_and_json(tmp_path, model, capsys):
+    path, image = model
+    write_key(tmp_path / "k.key", KEY)
+    name = mem_name("cli")
+    with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash"):
+        rc = cli_main(["provision", str(path), "--port", f"mem://{name}?end=a&pace=0",
+                       "--key", str(tmp_path / "k.key"), "--quiet"])
+        assert rc == 0
+        assert "installed" in capsys.readouterr().out
+        rc = cli_main(["provision", str(path), "--port", f"mem://{name}?end=a&pace=0",
+                       "--key", str(tmp_path / "k.key"), "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["outcome"] == "already-active" and out["digest"] == hashlib.sha256(image).hexdigest()
+
+
+def test_cli_provision_errors_are_one_line(tmp_path, capsys):
+    rc = cli_main(["provision", str(tmp_path / "missing.ecs"), "--port", "mem://x?end=a"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.count("\n") == 0 and "not found" in err
+    path = tmp_path / "m.ecs"
+    make_image(path, size_bytes=20_000)
+    rc = cli_main(["provision", str(path), "--port", "nope://x"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.count("\n") == 0 and "unknown scheme 'nope'" in err
+
+
+# --------------------------------------------------------------------------- faults
+
+
+@pytest.mark.parametrize(
+    "faults",
+    [
+        "&ber=1e-4&seed=11",  # about 1 bit in 10^4 flipped
+        "&burst=3e-6&burst_bytes=200&drop=1e-6&dup=1e-6&seed=12",  # ~1-2 % of frames lost
+    ],
+)
+def test_provision_completes_verified_under_line_faults(tmp_path, faults):
+    path = tmp_path / "m.ecs"
+    image = make_image(path, size_bytes=100_000)
+    name = mem_name("noisy")
+    with DeviceThread(f"mem://{name}?end=b&pace=0&{faults[1:]}", tmp_path / "flash"):
+        result = provision(path, f"mem://{name}?end=a&pace=0{faults}", key=KEY,
+                           request_timeout_s=0.3, **QUIET)
+    assert result.outcome == "installed" and result.verified
+    assert result.retransmitted_chunks > 0  # the faults did hit the transfer
+    _check_device_holds(tmp_path / "flash", image)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_resume_after_a_disconnect_at_a_random_offset(tmp_path, seed):
+    path = tmp_path / "m.ecs"
+    image = make_image(path, size_bytes=400_000, seed=seed)
+    cut = random.Random(seed).randrange(150_000, 380_000)
+    name = mem_name("cut")
+
+    def factory(attempt: int):
+        extra = f"&disconnect_after={cut}" if attempt == 0 else ""
+        return open_transport(f"mem://{name}?end=a&pace=0{extra}", timeout_s=5)
+
+    with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash"):
+        result = provision(path, "mem", key=KEY, transport_factory=factory, **QUIET)
+    assert result.reconnects >= 1
+    assert result.resume_offsets[0] == 0
+    resumed = result.resume_offsets[1]
+    assert 0 < resumed <= cut and resumed % 65536 == 0  # journalled 64 KiB blocks
+    assert result.verified
+    _check_device_holds(tmp_path / "flash", image)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_resume_after_the_device_process_is_killed_and_restarted(tmp_path):
+    path = tmp_path / "m.ecs"
+    image = make_image(path, size_bytes=2_500_000)
+    write_key(tmp_path / "dev.key", KEY)
+    dev = DeviceProcess(tmp_path / "flash", key_file=tmp_path / "dev.key")
+    port = dev.port
+    state: dict = {"killed_at": None, "devices": [dev]}
+
+    def on_progress(offset: int, size: int) -> None:
+        if state["killed_at"] is None and offset >= 0.6 * size:
+            state["killed_at"] = offset
+            dev.kill()  # a reboot mid-transfer: SIGKILL, then start again on the same flash
+            state["devices"].append(
+                DeviceProcess(tmp_path / "flash", port=port, key_file=tmp_path / "dev.key")
+            )
+
+    try:
+        result = provision(path, dev.url, key=KEY, on_progress=on_progress,
+                           request_timeout_s=0.5, **QUIET)
+    finally:
+        for d in state["devices"]:
+            d.stop()
+    assert state["killed_at"] is not None and result.reconnects >= 1
+    resumed = result.resume_offsets[-1]
+    # The restarted device resumed from its journal: >= one 16-block flush (1 MiB) in.
+    assert 1 << 20 <= resumed <= state["killed_at"]
+    assert result.verified
+    _check_device_holds(tmp_path / "flash", image)
+    restarted = state["devices"][-1].lines
+    assert any(f"resuming at {resumed}" in line for line in restarted)
+
+
+def test_power_cuts_during_writing_and_committing_always_boot_old_or_new(tmp_path):
+    old_path, new_path = tmp_path / "old.ecs", tmp_path / "new.ecs"
+    old = make_image(old_path, size_bytes=1_500_000, generation=1, seed=1)
+    new = make_image(new_path, size_bytes=1_500_000, generation=2, seed=2)
+    digests = {hashlib.sha256(old).hexdigest(): "old", hashlib.sha256(new).hexdigest(): "new"}
+    write_key(tmp_path / "dev.key", KEY)
+    flash = tmp_path / "flash"
+    dev = DeviceProcess(flash, key_file=tmp_path / "dev.key")
+    try:
+        provision(old_path, dev.url, key=KEY, **QUIET)
+    finally:
+        dev.stop()
+    rng = random.Random(7)
+    cuts = [("transfer", rng.uniform(0.05, 0.95)) for _ in range(2)] + [("commit", 0.0)]
+    outcomes = []
+    for where, fraction in cuts:
+        dev = DeviceProcess(flash, key_file=tmp_path / "dev.key")
+        killer: dict = {}
+
+        def on_progress(offset, size, fraction=fraction, where=where, dev=dev, killer=killer):
+            if where == "transfer" and offset >= fraction * size and not killer:
+                killer["done"] = True
+                dev.kill()
+
+        def on_stage(name, where=where, dev=dev, killer=killer):
+            if where == "commit" and name == "commit" and not killer:
+                killer["done"] = True
+                timer = threading.Timer(rng.uniform(0.0, 0.01), dev.kill)
+                timer.start()
+                killer["timer"] = timer
+
+        try:
+            provision(new_path, dev.url, key=KEY, on_progress=on_progress, on_stage=on_stage,
+                      max_reconnects=0, request_timeout_s=0.3, confirm_timeout_s=0.5, **QUIET)
+            finished = True
+        except Exception:  # the link drops in some way; which one does not matter here
+            finished = False
+        assert where == "commit" or not finished  # a cut mid-transfer cannot finish
+        if "timer" in killer:
+            killer["timer"].join()
+        dev.kill()
+        store = FlashStore.open(flash, create=False)
+        boot = store.boot()  # what the device does at power-up
+        assert boot.ok and boot.verified, boot.reason
+        outcomes.append(digests[boot.sha256.hex()])
+        store.close()
+    assert outcomes[0] == "old" and outcomes[1] == "old"  # the transfer never finished
+    # And after all that, a clean run installs the new image.
+    dev = DeviceProcess(flash, key_file=tmp_path / "dev.key")
+    try:
+        result = provision(new_path, dev.url, key=KEY, **QUIET)
+    finally:
+        dev.stop()
+    assert result.outcome in ("installed", "already-active", "activated")
+    _check_device_holds(flash, new)
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+@pytest.fixture
+def device(tmp_path):
+    """A device thread on a fresh unpaced mem line; yields (url_for_host, DeviceThread)."""
+    started = []
+
+    def start(**config):
+        name = mem_name("dev")
+        dev = DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / f"flash{len(started)}",
+                           **config)
+        started.append(dev)
+        return f"mem://{name}?end=a&pace=0", dev
+
+    yield start
+    for dev in started:
+        dev.stop()
+
+
+def _open_session(url: str, key=KEY, *, auth: bool = True) -> HostSession:
+    link = Link(open_transport(url, timeout_s=5), owns_transport=True).start()
+    link.set_tx_max_frame_bytes(4096)
+    session = HostSession(link, key=key, request_timeout_s=0.5)
+    if auth:
+        session.start()
+    return session
+
+
+def test_no_common_protocol_version_is_one_clear_error(device):
+    url, _ = device()
+    link = Link(open_transport(url, timeout_s=5), owns_transport=True).start()
+    try:
+        session = HostSession(link, key=KEY, versions=(2, 3), request_timeout_s=0.5)
+        with pytest.raises(RemoteUnsupportedVersion, match=r"2\.\.3, this device 1\.\.1") as info:
+            session.start()
+        assert info.value.detail == {"min_version": 1, "max_version": 1}
+    finally:
+        link.close()
+
+
+def test_host_without_the_key_is_refused_before_sending(device, model):
+    url, _ = device()
+    with pytest.raises(AuthenticationError, match="holds a key"):
+        provision(model[0], url, key=None, precheck=False, **QUIET)
+
+
+def test_unauthenticated_signed_request_is_refused_not_authenticated(device):
+    url, _ = device()
+    session = _open_session(url, auth=False)
+    try:
+        session.link.request(m.Hello(min_version=1, max_version=1, nonce=bytes(16)))
+        with pytest.raises(RemoteNotAuthenticated):
+            session.link.request(m.ImageAbort(), retries=0)
+    finally:
+        session.link.close()
+
+
+def test_wrong_key_is_refused_auth_failed(device, model):
+    url, dev = device()
+    with pytest.raises(RemoteAuthFailed):
+        provision(model[0], url, key=OTHER_KEY, precheck=False, **QUIET)
+    assert any("auth failed" in line for line in dev.lines)
+
+
+def test_replayed_and_cross_session_frames_are_refused(device):
+    url, _ = device()
+    session = _open_session(url)
+    try:
+        first = session.sign(m.ImageAbort())
+        assert isinstance(session.link.request(first, retries=0), m.Ok)
+        assert isinstance(session.call(m.ImageAbort(), retries=0), m.Ok)  # counter 2
+        # An exact repeat of the LAST accepted frame is a host retry: answered, not re-run ...
+        second = session.sign(m.ImageAbort())
+        assert isinstance(session.link.request(second, retries=0), m.Ok)
+        assert isinstance(session.link.request(second, retries=0), m.Ok)
+        # ... but an older frame is a replay.
+        with pytest.raises(RemoteReplayed):
+            session.link.request(first, retries=0)
+    finally:
+        session.link.close()
+    other = _open_session(url)  # a new session: new nonces, new session key
+    try:
+        with pytest.raises(RemoteAuthFailed):
+            other.link.request(second, retries=0)
+    finally:
+        other.link.close()
+
+
+def test_device_without_a_key_refuses_provisioning_unless_insecure(device, tmp_path):
+    path = tmp_path / "unsigned.ecs"
+    image = make_image(path, size_bytes=30_000, key=None)
+    url, _ = device(key=None)
+    with pytest.raises(RemoteNotAuthenticated, match="no key"):
+        provision(path, url, key=None, **QUIET)
+    url, dev = device(key=None, insecure=True)
+    result = provision(path, url, key=None, **QUIET)
+    assert result.outcome == "installed" and result.confirmed
+    _check_device_holds(dev.config.flash_dir, image)
+
+
+def test_image_signed_with_another_key_is_refused_at_verify(device, tmp_path):
+    path = tmp_path / "other.ecs"
+    make_image(path, size_bytes=40_000, key=OTHER_KEY)
+    with pytest.raises(ProvisionError, match="different key"):
+        inspect_image(path, key=KEY)
+    url, dev = device()
+    with pytest.raises(RemoteTagMismatch):
+        provision(path, url, key=KEY, precheck=False, **QUIET)
+    store = FlashStore.open(dev.config.flash_dir)
+    assert store.active_slot is None  # nothing was committed
+    assert store.status()["journal"] is None  # and the transfer was discarded
+
+
+def test_ram_budget_is_enforced_by_host_and_device(device, model):
+    path, _ = model
+    url, _ = device(ram_budget_bytes=1 << 20)
+    with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_RAM"):
+        provision(path, url, key=KEY, **QUIET)
+    with pytest.raises(RemoteTooLargeForRam, match=r"budget is 1048576") as info:
+        provision(path, url, key=KEY, precheck=False, **QUIET)
+    assert info.value.detail["limit_bytes"] == 1 << 20
+
+
+def test_flash_size_is_enforced_by_host_and_device(device, model):
+    path, _ = model
+    url, _ = device(slot_size_bytes=100_000)
+    with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_FLASH"):
+        provision(path, url, key=KEY, **QUIET)
+    with pytest.raises(RemoteTooLargeForFlash):
+        provision(path, url, key=KEY, precheck=False, **QUIET)
+
+
+def test_unsupported_format_version_is_refused(device, model):
+    url, _ = device()
+    session = _open_session(url)
+    try:
+        begin = m.ImageBegin(size_bytes=1000, digest=bytes(32), image_tag=bytes(32),
+                             format_version=2, generation=1)
+        with pytest.raises(RemoteUnsupportedFormat, match="format version 2"):
+            session.call(begin, retries=0)
+    finally:
+        session.link.close()
+    hello = session.hello
+    info = dataclasses.replace(inspect_image(model[0]), format_version=2)
+    from host.provision import _precheck
+
+    with pytest.raises(ProvisionError, match="UNSUPPORTED_FORMAT"):
+        _precheck(info, hello, force=False)
+
+
+def test_an_image_whose_header_lies_about_its_version_is_refused_mid_transfer(device, tmp_path):
+    path = tmp_path / "m.ecs"
+    image = make_image(path, size_bytes=60_000)
+    url, _ = device()
+    session = _open_session(url)
+    try:
+        begin = m.ImageBegin(size_bytes=len(image), digest=hashlib.sha256(image).digest(),
+                             image_tag=image[-32:], format_version=1, generation=1)
+        bad = bytearray(image)
+        struct.pack_into("<H", bad, 8, 7)  # header: format version 7
+        bad = reseal(bytes(bad))
+        box = {}
+        ack = session.call(dataclasses.replace(begin, digest=hashlib.sha256(bad).digest()),
+                           on_reply=lambda rid, r: box.setdefault("id", rid))
+        from protocol.link import send_image
+
+        with pytest.raises(RemoteUnsupportedFormat):
+            send_image(session.link, bad, transfer_id=box["id"], first_ack=ack, chunk_bytes=1024)
+    finally:
+        session.link.close()
+
+
+def _bomb(image: bytes) -> bytes:
+    """The image with a manifest that declares an enormous eigenspace (same compressed data)."""
+    header = struct.unpack_from("<8sHHHHIQI", image)
+    manifest_size = header[5]
+    manifest = cbor2.loads(image[32:32 + manifest_size])
+    for entry in manifest["sections"]:
+        if entry["name"] == "eigenimages":
+            entry["shape"][0] *= 100_000
+            entry["raw_size"] *= 100_000
+    encoded = cbor2.dumps(manifest, canonical=True)
+    rest = image[32 + manifest_size:]
+    head = bytearray(image[:32])
+    struct.pack_into("<I", head, 16, len(encoded))
+    return reseal(bytes(head) + encoded + rest)
+
+
+def test_a_decompression_bomb_manifest_is_refused_before_anything_is_inflated(device, tmp_path):
+    path = tmp_path / "m.ecs"
+    image = make_image(path, size_bytes=60_000)
+    bomb_path = tmp_path / "bomb.ecs"
+    bomb_path.write_bytes(_bomb(image))
+    url, _ = device()
+    with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_RAM"):
+        provision(bomb_path, url, key=KEY, **QUIET)
+    with pytest.raises(RemoteTooLargeForRam):
+        provision(bomb_path, url, key=KEY, precheck=False, **QUIET)
+    # The device is still fine and takes the honest image.
+    assert provision(path, url, key=KEY, **QUIET).outcome == "installed"
+
+
+def test_rollback_is_refused_unless_forced_and_known_images_are_activated(device, tmp_path):
+    v1, v2 = tmp_path / "v1.ecs", tmp_path / "v2.ecs"
+    image1 = make_image(v1, size_bytes=40_000, generation=1, seed=1)
+    make_image(v2, size_bytes=40_000, generation=2, seed=2)
+    url, dev = device()
+    assert provision(v2, url, key=KEY, **QUIET).outcome == "installed"
+    with pytest.raises(ProvisionError, match="ROLLBACK_REFUSED"):
+        provision(v1, url, key=KEY, **QUIET)
+    with pytest.raises(RemoteRollbackRefused):
+        provision(v1, url, key=KEY, precheck=False, **QUIET)
+    forced = provision(v1, url, key=KEY, force=True, **QUIET)
+    assert forced.outcome == "installed" and forced.slot == "B"
+    _check_device_holds(dev.config.flash_dir, image1, slot="B")
+    # v2 is still in slot A (confirmed): asking for it again activates it, nothing is sent.
+    back = provision(v2, url, key=KEY, **QUIET)
+    assert back.outcome == "activated" and back.slot == "A" and back.data_bytes_sent == 0
+
+
+# --------------------------------------------------------------------------- units
+
+
+def test_chunk_size_follows_the_line_rate_and_device_buffers():
+    hello = m.HelloReply(
+        min_version=1, max_version=1, device_id="d", nonce=bytes(16), max_frame_bytes=4096,
+        ram_budget_bytes=1, slot_size_bytes=1, display_width=0, display_height=0,
+        rx_window_frames=8, rx_buffer_bytes=4000, slots=(), has_key=True,
+    )
+
+    class Serial:
+        scheme, baud, max_frame_bytes = "", 115200, 4096
+
+    class Tcp:
+        scheme, baud, max_frame_bytes = "socket", 115200, 16384
+
+    link = Link(Tcp())  # only its frame limit is used
+    link.set_tx_max_frame_bytes(4096)
+    assert choose_chunk_bytes(Serial(), hello, link) == 896  # 80 ms at 115200 baud
+    assert choose_chunk_bytes(Tcp(), hello, link) == 4000  # the device's buffer
+    assert choose_chunk_bytes(Tcp(), hello, link, 100) == 100
+
+
+def test_device_config_checks_its_inputs(tmp_path):
+    with pytest.raises(ValueError, match="insecure"):
+        DeviceConfig(flash_dir=tmp_path, key=KEY, insecure=True)
+    with pytest.raises(ValueError, match="device_id"):
+        DeviceConfig(flash_dir=tmp_path, device_id="")
+    with pytest.raises(ValueError, match="rx_window_frames"):
+        DeviceConfig(flash_dir=tmp_path, rx_window_frames=0)
+    assert Device(DeviceConfig(flash_dir=tmp_path / "f"), log=lambda s: None).store is not None
