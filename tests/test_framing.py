@@ -5,6 +5,7 @@ from __future__ import annotations
 import random
 import zlib
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -367,3 +368,26 @@ def test_encode_frame_rejects_bad_arguments(kwargs, problem):
 def test_decoder_rejects_bad_limits(limit):
     with pytest.raises(ValueError, match="max_frame_bytes"):
         FrameDecoder(limit)
+
+
+@pytest.mark.parametrize("zero_share", [0.0, 0.004, 0.02, 0.2, 0.9])
+def test_cobs_fast_and_vector_paths_agree(zero_share):
+    """Both implementations (chosen by zero density) give the canonical encoding."""
+    from protocol import _cobs
+
+    rng = np.random.default_rng(int(zero_share * 1000))
+    for size in (1, 253, 254, 255, 508, 509, 4096, 20000):
+        data = rng.integers(1, 256, size=size, dtype=np.uint8)
+        data[rng.random(size) < zero_share] = 0
+        raw = data.tobytes()
+        fast = _cobs._encode_runs(raw)
+        old_sparse = _cobs._SPARSE
+        try:
+            _cobs._SPARSE = 0.0  # force the vectorised paths
+            vector = _cobs.cobs_encode(raw)
+            assert _cobs.cobs_decode(vector) == raw
+        finally:
+            _cobs._SPARSE = old_sparse
+        assert fast == vector
+        assert _cobs._decode_runs(fast) == raw
+        assert _cobs.cobs_decode(fast) == raw
