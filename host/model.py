@@ -7,10 +7,17 @@ settings); `save_model` writes the ``.ecs`` with the float training scores in
 the host annex. `HostModel` loads it back and synthesises novel views with the
 device's own code (`device_runtime.reconstruct`, `device_runtime.interpolation`),
 so what the host measures is what a device shows.
+
+The annex also keeps, per kept component, its eigenvalue and, per cell, the
+total variance (the trace), so `HostModel.truncated` can cut a model to any
+lower threshold T (or fewer components per cell) without refitting: the
+quantization scale is per component, so truncating the int8 model equals
+quantizing the truncated float model.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import tempfile
@@ -31,13 +38,24 @@ from host.quantize import quantize_eigenspace
 from protocol.image import EigenspaceImage, read_image, write_image
 
 __all__ = [
+    "ANNEX_EIGENVALUES",
+    "ANNEX_SCORES",
+    "ANNEX_TOTAL_VARIANCE",
     "DEFAULT_SCORE_MSE",
+    "INT8_CHECK_VIEWS",
     "HostModel",
+    "add_standalone_table",
     "auto_score_step",
     "build_image",
+    "components_for_threshold",
     "fit_database",
+    "int8_report",
     "save_model",
+    "score_step_for",
     "stack_for",
+    "standalone_scores",
+    "subset_database",
+    "truncate_eigenspace",
 ]
 
 #: Default score quantization: the step whose uniform rounding noise adds this
@@ -45,7 +63,16 @@ __all__ = [
 #: of components. 0.25 is ~54 dB: invisible next to the interpolation error.
 DEFAULT_SCORE_MSE = 0.25
 
+#: Views `int8_report` uses (training views for the loss, novel views for float vs int8).
+INT8_CHECK_VIEWS = 16
+
 ANNEX_SCORES = "training_scores"
+#: float64 (K,): eigenvalue (variance, ddof=1) of each kept component, cell-major.
+ANNEX_EIGENVALUES = "eigenvalues"
+#: float64 (n_cells,): total variance (trace) of each cell.
+ANNEX_TOTAL_VARIANCE = "total_variance"
+# Same slack as host.pca's adaptive rule, so truncating to the fitted T keeps every component.
+_THRESHOLD_SLACK = 1e-12
 
 
 def _cache_dir(db: CinemaDB, cache_dir: str | os.PathLike | None) -> Path:
@@ -103,6 +130,114 @@ def fit_database(
     return model.fit(stack)
 
 
+def subset_database(db: CinemaDB, indices: Any) -> CinemaDB:
+    """The same database restricted to the views ``indices`` (in that order).
+
+    Used to fit without held-out views; `fit_database` caches its stack separately.
+    """
+    idx = np.asarray(indices, dtype=np.int64)
+    if idx.ndim != 1 or idx.size < 2 or idx.min() < 0 or idx.max() >= db.n_views:
+        raise FitError(f"subset of {db.path}: need >= 2 view indices within 0..{db.n_views - 1}")
+    return dataclasses.replace(
+        db,
+        phi_deg=db.phi_deg[idx].copy(),
+        theta_deg=db.theta_deg[idx].copy(),
+        files=[db.files[i] for i in idx],
+    )
+
+
+def truncate_eigenspace(
+    model: CellEigenspace, n_components: np.ndarray, *, threshold: float | None = None,
+    components: int | None = None,
+) -> CellEigenspace:
+    """A shallow copy of a fitted float model keeping the first ``n_components[c]`` per cell.
+
+    Parameters
+    ----------
+    model : CellEigenspace
+        Fitted.
+    n_components : ndarray of shape (n_cells,), int
+        New counts, each at most the fitted one.
+    threshold, components : optional
+        Recorded as the copy's ``threshold`` / ``components`` (what the counts correspond to).
+    """
+    import copy
+
+    old = np.asarray(model.n_components_, dtype=np.int64)
+    new = np.asarray(n_components, dtype=np.int64)
+    if new.shape != old.shape or (new.size and (new.min() < 0 or np.any(new > old))):
+        raise ValueError("truncate_eigenspace: n_components must be (n_cells,) within 0..fitted")
+    out = copy.copy(model)
+    out.components_ = [c[:k] for c, k in zip(model.components_, new)]
+    out.eigenvalues_ = [e[:k] for e, k in zip(model.eigenvalues_, new)]
+    out.explained_variance_ratio_ = [r[:k] for r, k in zip(model.explained_variance_ratio_, new)]
+    out.n_components_ = new.astype(np.int32)
+    offsets = np.zeros(new.size + 1, dtype=np.int64)
+    np.cumsum(new, out=offsets[1:])
+    out.component_offsets_ = offsets
+    keep = (np.arange(int(old.sum())) - np.repeat(model.component_offsets_[:-1], old)) < np.repeat(
+        new, old)
+    out.scores_ = np.ascontiguousarray(model.scores_[:, keep])
+    if threshold is not None:
+        out.threshold = float(threshold)
+    if components is not None:
+        out.components = int(components)
+    out.solver_params_ = {**model.solver_params_, "threshold": float(out.threshold),
+                          "components": int(out.components)}
+    return out
+
+
+def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHECK_VIEWS) -> dict:
+    """Measure what int8 quantization costs (recorded in provenance["int8"] by ``fit``).
+
+    The float components exist only while fitting, so the measurement is made here:
+
+    * ``train_*``: ``n_views`` training views (evenly spread) reconstructed from their own
+      scores by the float model (rounded to 8 bits) and by the int8 model through the device
+      code, each against the training image (`host.quantize.int8_loss_db`);
+    * ``novel_psnr_float_vs_int8_db``: the two reconstructions against each other at
+      interpolated scores of ``n_views`` novel views (``random:N:7`` directions).
+
+    Returns
+    -------
+    dict
+        ``views``, ``train_psnr_float_db``, ``train_psnr_int8_db``, ``train_loss_db``,
+        ``novel_psnr_float_vs_int8_db`` (floats; inf is stored as 999.0).
+    """
+    from host.camera import parse_view_set
+    from host.quantize import int8_loss_db, quantize_eigenspace
+
+    quantized = quantize_eigenspace(model)
+    count = min(int(n_views), db.n_views)
+    idx = np.unique(np.linspace(0, db.n_views - 1, count).round().astype(np.int64))
+    images = np.stack([db.read_image(int(i)) for i in idx])
+    loss = int8_loss_db(model, images, scores=model.scores_[idx], quantized=quantized)
+    interp = ScoreInterpolator(db.phi_deg, db.theta_deg, model.scores_)
+    views = parse_view_set(f"random:{count}:7").angles_deg()
+    rec = quantized.reconstructor()
+    sse = 0.0
+    try:
+        for phi, theta in views:
+            y = interp(phi, theta)
+            float_image = np.clip(np.rint(model.inverse_transform(y)), 0, 255)
+            sse += float(np.square(float_image - rec.update(y).astype(np.float64)).sum())
+    finally:
+        rec.close()
+    pixels = images[0].size * len(views)
+    between = math.inf if sse == 0 else 10.0 * math.log10(255.0**2 * pixels / sse)
+
+    def finite(v: float) -> float:
+        return float(v) if math.isfinite(v) else 999.0
+
+    return {
+        "views": int(idx.size),
+        "train_psnr_float_db": finite(loss.psnr_float_db),
+        "train_psnr_int8_db": finite(loss.psnr_int8_db),
+        "train_loss_db": finite(loss.loss_db) if math.isfinite(loss.psnr_float_db) else 0.0,
+        "novel_psnr_float_vs_int8_db": finite(between),
+    }
+
+
 def auto_score_step(model: Any, *, mse: float = DEFAULT_SCORE_MSE) -> float:
     """Score step whose rounding noise adds ``mse`` to a cell with the mean component count.
 
@@ -115,7 +250,64 @@ def auto_score_step(model: Any, *, mse: float = DEFAULT_SCORE_MSE) -> float:
     if kept.size == 0:
         return 1.0
     d = model.cell_shape_[0] * model.cell_shape_[1] * 3
-    return float(math.sqrt(12.0 * mse * d / float(kept.mean())))
+    return score_step_for(kept, d, mse=mse)
+
+
+def score_step_for(n_components: np.ndarray, cell_values: int, *, mse: float = DEFAULT_SCORE_MSE
+                   ) -> float:
+    """`auto_score_step` from component counts (n_cells,) and ``cell_values = cell_h*cell_w*3``."""
+    kept = np.asarray(n_components)
+    kept = kept[kept > 0]
+    if kept.size == 0:
+        return 1.0
+    return float(math.sqrt(12.0 * mse * cell_values / float(kept.mean())))
+
+
+def components_for_threshold(
+    eigenvalues: np.ndarray,
+    n_components: np.ndarray,
+    total_variance: np.ndarray,
+    threshold: float,
+) -> np.ndarray:
+    """Per-cell component counts of the adaptive rule at ``threshold``, within the kept ones.
+
+    Parameters
+    ----------
+    eigenvalues : ndarray of shape (K,), float
+        Kept eigenvalues, cell-major, descending within each cell.
+    n_components : ndarray of shape (n_cells,), int
+        Components kept per cell now.
+    total_variance : ndarray of shape (n_cells,), float
+        Sum of all eigenvalues of each cell (the trace).
+    threshold : float in (0, 1]
+
+    Returns
+    -------
+    ndarray of shape (n_cells,), int32
+        For each cell the fewest ``k`` with ``sum(lambda_1..k) / trace >= threshold``, or all
+        kept components when they do not reach it (a cap or a lower fitted T).
+    """
+    if not 0.0 < float(threshold) <= 1.0:
+        raise ValueError(f"threshold={threshold} must be within (0, 1]")
+    counts = np.asarray(n_components, dtype=np.int64)
+    lam = np.asarray(eigenvalues, dtype=np.float64)
+    total = np.asarray(total_variance, dtype=np.float64)
+    if lam.shape != (int(counts.sum()),) or total.shape != counts.shape:
+        raise ValueError(
+            f"components_for_threshold: eigenvalues {lam.shape} / total_variance {total.shape} "
+            f"do not match n_components (n_cells={counts.size}, K={int(counts.sum())})"
+        )
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    cell_of = np.repeat(np.arange(counts.size), counts)
+    cum = np.cumsum(lam)
+    within = cum - np.repeat(np.concatenate([[0.0], cum])[offsets[:-1]], counts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = within / total[cell_of]
+    short = ~(ratio >= float(threshold) - _THRESHOLD_SLACK)  # NaN (zero trace): keep all
+    # k = 1 + number of leading components whose cumulative ratio is still short
+    out = np.minimum(np.bincount(cell_of, weights=short, minlength=counts.size).astype(np.int64)
+                     + 1, counts)
+    return out.astype(np.int32)
 
 
 def build_image(
@@ -125,6 +317,7 @@ def build_image(
     score_step: float | None = None,
     interpolation: str = "auto",
     extra_provenance: dict | None = None,
+    measure_int8: bool = True,
 ) -> tuple[EigenspaceImage, dict[str, np.ndarray]]:
     """Quantize ``model`` into an `EigenspaceImage` plus its host annex.
 
@@ -134,7 +327,13 @@ def build_image(
         Manifest: view set, interpolation data, score step, provenance (fit
         parameters, solver, sign convention, the database's render settings).
     annex : dict
-        ``{"training_scores": float32 (n_views, K)}`` for the host.
+        ``{"training_scores": float32 (n_views, K), "eigenvalues": float64 (K,),
+        "total_variance": float64 (n_cells,)}`` for the host.
+
+    Notes
+    -----
+    With ``measure_int8`` the quality lost to int8 is measured now, while the float model
+    exists (`int8_report`), and recorded as ``provenance["int8"]``.
     """
     step = float(score_step) if score_step is not None else auto_score_step(model)
     if not step > 0:
@@ -161,6 +360,7 @@ def build_image(
             "mean_components_per_cell": float(np.mean(model.n_components_)),
         },
         "render": settings,
+        **({"int8": int8_report(model, db)} if measure_int8 else {}),
         **(extra_provenance or {}),
     }
     image = quantize_eigenspace(model).to_image(
@@ -171,7 +371,14 @@ def build_image(
         interpolation=interp.to_manifest(),
         provenance=provenance,
     )
-    return image, {ANNEX_SCORES: np.ascontiguousarray(model.scores_, dtype=np.float32)}
+    eigenvalues = [np.asarray(e, dtype=np.float64) for e in model.eigenvalues_]
+    annex = {
+        ANNEX_SCORES: np.ascontiguousarray(model.scores_, dtype=np.float32),
+        ANNEX_EIGENVALUES: (np.concatenate(eigenvalues) if eigenvalues
+                            else np.zeros(0, dtype=np.float64)),
+        ANNEX_TOTAL_VARIANCE: np.asarray(model.total_variance_, dtype=np.float64),
+    }
+    return image, annex
 
 
 def _jsonable(value: Any) -> Any:
@@ -208,14 +415,21 @@ class HostModel:
     interpolator : ScoreInterpolator
     reconstructor : Reconstructor
         The device's reconstruction code over the int8 eigenspace.
-    path : Path
+    path : Path or None
+        The ``.ecs`` it was read from (None for a model built in memory).
+    eigenvalues : ndarray of shape (K,), float64, or None
+        Eigenvalue of each kept component (None for images written before the annex had it).
+    total_variance : ndarray of shape (n_cells,), float64, or None
+        Per-cell trace.
     """
 
     image: EigenspaceImage
     training_scores: np.ndarray
     interpolator: ScoreInterpolator
     reconstructor: Reconstructor
-    path: Path
+    path: Path | None
+    eigenvalues: np.ndarray | None = None
+    total_variance: np.ndarray | None = None
 
     @classmethod
     def load(
@@ -223,14 +437,44 @@ class HostModel:
     ) -> HostModel:
         """Read ``path`` (with its annex; verified with ``key`` when given)."""
         image = read_image(path, key=key, require_annex=True)
-        scores = image.annex[ANNEX_SCORES]
+        return cls.from_image(image, image.annex or {}, interpolation=interpolation,
+                              path=Path(path))
+
+    @classmethod
+    def from_image(
+        cls,
+        image: EigenspaceImage,
+        annex: dict[str, np.ndarray],
+        *,
+        interpolation: str | None = None,
+        path: Path | None = None,
+    ) -> HostModel:
+        """A model from an in-memory image and its annex (e.g. straight from `build_image`)."""
+        if ANNEX_SCORES not in annex:
+            raise FitError(
+                f"{path or 'eigenspace image'}: the host annex has no {ANNEX_SCORES!r} table "
+                f"(found {sorted(annex)}); refit the model"
+            )
+        scores = annex[ANNEX_SCORES]
+        table = standalone_scores(image)
+        if table is not None:  # fitted --standalone: interpolate what the device holds
+            scores = table
         views = image.views or {}
         if interpolation is None:
             interp = ScoreInterpolator.from_manifest(image.interpolation, scores)
         else:
             interp = ScoreInterpolator(views["phi_deg"], views["theta_deg"], scores,
                                        method=interpolation)
-        return cls(image, scores, interp, Reconstructor.from_image(image), Path(path))
+        eigenvalues = annex.get(ANNEX_EIGENVALUES)
+        total = annex.get(ANNEX_TOTAL_VARIANCE)
+        if eigenvalues is not None and eigenvalues.shape != (image.n_coefficients,):
+            raise FitError(f"{path}: annex eigenvalues {eigenvalues.shape} do not match "
+                           f"K={image.n_coefficients}")
+        if total is not None and total.shape != (image.n_cells,):
+            raise FitError(f"{path}: annex total_variance {total.shape} does not match "
+                           f"n_cells={image.n_cells}")
+        return cls(image, scores, interp, Reconstructor.from_image(image), path,
+                   eigenvalues, total)
 
     @property
     def score_step(self) -> float:
@@ -240,6 +484,19 @@ class HostModel:
     def render_settings(self) -> dict:
         """The training database's sidecar (empty for databases from other tools)."""
         return self.image.provenance.get("render") or {}
+
+    @property
+    def threshold(self) -> float | None:
+        """The threshold T the components were chosen with (adaptive), else None."""
+        fit = self.image.provenance.get("fit") or {}
+        if self.image.method != "adaptive" or "threshold" not in fit:
+            return None
+        return float(fit["threshold"])
+
+    @property
+    def digest(self) -> bytes:
+        """The image's SHA-256 digest (32 zero bytes for an image never written)."""
+        return self.image.digest or bytes(32)
 
     def scores(self, phi_deg: float, theta_deg: float) -> np.ndarray:
         """Interpolated float scores (K,) of a view."""
@@ -257,3 +514,156 @@ class HostModel:
     def view(self, phi_deg: float, theta_deg: float) -> np.ndarray:
         """The frame a device shows for this view (quantized scores, int8 eigenspace)."""
         return self.reconstruct(self.quantized_scores(phi_deg, theta_deg))
+
+    # ------------------------------------------------------------------ truncation
+
+    def components_for(
+        self, *, threshold: float | None = None, components: int | None = None
+    ) -> np.ndarray:
+        """Per-cell counts (n_cells,) int32 at a lower ``threshold`` or at most ``components``.
+
+        Raises
+        ------
+        FitError
+            ``threshold`` asked of a model without annexed eigenvalues.
+        """
+        counts = np.asarray(self.image.n_components, dtype=np.int32)
+        if (threshold is None) == (components is None):
+            raise ValueError("components_for: give exactly one of threshold, components")
+        if components is not None:
+            if components < 0:
+                raise ValueError(f"components={components} must be >= 0")
+            return np.minimum(counts, int(components)).astype(np.int32)
+        if self.eigenvalues is None or self.total_variance is None:
+            raise FitError(
+                f"{self.path or 'model'}: no eigenvalues in the annex (written by an older "
+                "eigencast); refit to truncate by threshold"
+            )
+        return components_for_threshold(self.eigenvalues, counts, self.total_variance,
+                                         threshold)
+
+    def truncated(
+        self,
+        n_components: np.ndarray,
+        *,
+        score_step: float | None = None,
+        provenance: dict | None = None,
+    ) -> HostModel:
+        """The model keeping only the first ``n_components[c]`` components of each cell.
+
+        Parameters
+        ----------
+        n_components : ndarray of shape (n_cells,), int
+            New counts, each at most the current one.
+        score_step : float, optional
+            Score quantization step of the new model (default: keep the current one).
+        provenance : dict, optional
+            Entries merged into the new image's provenance.
+
+        Returns
+        -------
+        HostModel
+            In memory (``path`` None); its image keeps this image's digest until written.
+        """
+        old = np.asarray(self.image.n_components, dtype=np.int64)
+        new = np.asarray(n_components, dtype=np.int64)
+        if new.shape != old.shape or (new.size and (new.min() < 0 or np.any(new > old))):
+            raise ValueError(
+                f"truncated: n_components must be (n_cells={old.size},) ints within 0..current"
+            )
+        keep = (np.arange(int(old.sum())) - np.repeat(np.concatenate([[0], np.cumsum(old)])[:-1],
+                                                       old)) < np.repeat(new, old)
+        prov = dict(self.image.provenance)
+        if provenance:
+            prov.update(provenance)
+        quant = dict(self.image.score_quantization)
+        if score_step is not None:
+            if not score_step > 0:
+                raise ValueError(f"score_step={score_step} must be positive")
+            quant["step"] = float(score_step)
+        image = dataclasses.replace(
+            self.image,
+            eigenimages=np.ascontiguousarray(self.image.eigenimages[keep]),
+            scales=np.ascontiguousarray(self.image.scales[keep]),
+            n_components=new.astype(np.int32),
+            score_quantization=quant,
+            provenance=prov,
+            annex=None,
+        )
+        annex = {ANNEX_SCORES: np.ascontiguousarray(self.training_scores[:, keep])}
+        if self.eigenvalues is not None:
+            annex[ANNEX_EIGENVALUES] = np.ascontiguousarray(self.eigenvalues[keep])
+        if self.total_variance is not None:
+            annex[ANNEX_TOTAL_VARIANCE] = self.total_variance
+        model = HostModel.from_image(image, annex)
+        model.image.annex = annex
+        return model
+
+    def annex(self) -> dict[str, np.ndarray]:
+        """The host annex to write with `save_model`."""
+        annex = {ANNEX_SCORES: self.training_scores}
+        if self.eigenvalues is not None:
+            annex[ANNEX_EIGENVALUES] = self.eigenvalues
+        if self.total_variance is not None:
+            annex[ANNEX_TOTAL_VARIANCE] = self.total_variance
+        return annex
+
+
+# --------------------------------------------------------------------------- standalone
+
+
+def add_standalone_table(image: EigenspaceImage, training_scores: np.ndarray) -> dict:
+    """Store the training views' scores in ``image`` for a standalone device (in place).
+
+    The scores are quantized at the image's score step (``score_quantization["step"]``,
+    recorded again as ``"table_step"``) into int16 when every value fits, else int32, and
+    kept as the device section ``device_runtime.runtime.STANDALONE_SECTION`` (the ``.ecs``
+    compresses it with zstd). A device then interpolates locally
+    (`device_runtime.runtime.StandaloneScores`); `HostModel` interpolates the same table,
+    so ``eigencast view`` and ``serve`` show what a standalone device shows.
+
+    Parameters
+    ----------
+    image : EigenspaceImage
+        With its interpolation manifest (views in the order of ``training_scores``).
+    training_scores : ndarray of shape (n_views, K), float
+
+    Returns
+    -------
+    dict
+        ``dtype``, ``shape``, ``raw_bytes`` (uncompressed) and ``step``.
+    """
+    from device_runtime.runtime import STANDALONE_SECTION
+
+    scores = np.asarray(training_scores, dtype=np.float64)
+    n_views = (image.interpolation or {}).get("n_views")
+    if scores.ndim != 2 or scores.shape != (n_views, image.n_coefficients):
+        raise FitError(
+            f"standalone table: training scores {scores.shape} do not match the image "
+            f"(n_views={n_views}, K={image.n_coefficients})"
+        )
+    step = float(image.score_quantization.get("step", 1.0))
+    q = np.rint(scores / step)
+    limit = float(np.abs(q).max()) if q.size else 0.0
+    if limit > 2**31 - 1:
+        raise FitError(f"standalone table: |score / step| reaches {limit:.3g}, over int32")
+    dtype = np.int16 if limit <= 32767 else np.int32
+    table = np.ascontiguousarray(q.astype(dtype))
+    image.sections[STANDALONE_SECTION] = table
+    image.score_quantization = {**image.score_quantization, "table_step": step}
+    return {"dtype": np.dtype(dtype).name, "shape": list(table.shape),
+            "raw_bytes": int(table.nbytes), "step": step}
+
+
+def standalone_scores(image: EigenspaceImage) -> np.ndarray | None:
+    """The image's standalone table dequantized, float32 (n_views, K); None without one.
+
+    ``float32(q) * float32(table_step)``: the rows a standalone device blends.
+    """
+    from device_runtime.runtime import standalone_table
+
+    found = standalone_table(image)
+    if found is None:
+        return None
+    table, step = found
+    return table.astype(np.float32) * np.float32(step)

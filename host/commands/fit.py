@@ -1,18 +1,47 @@
-"""``eigencast fit``: fit an eigenspace to a Cinema database and write MODEL.ecs."""
+"""``eigencast fit``: fit an eigenspace to a Cinema database and write MODEL.ecs.
+
+With ``--target METRIC=VALUE`` the setting (threshold T for adaptive, components per cell
+otherwise, and the score step) is chosen automatically: the model is fitted once at the top of
+the search range and truncated to cheaper settings, each measured on held-out views through
+the device's path (`host.target`). Held-out views, in order of preference: ``--test-db``; views
+ray-cast with the database's recorded settings (``--holdout`` spec) when its volume can be
+loaded (``--volume`` or the recorded source); else views held out of the database itself (the
+search model is fitted without them, the written model is refitted on every view).
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
+
+import numpy as np
 
 from host.cinema import CinemaDB
 from host.errors import EigencastError
-from host.model import build_image, fit_database, save_model
+from host.model import (
+    HostModel,
+    auto_score_step,
+    build_image,
+    fit_database,
+    save_model,
+    subset_database,
+    truncate_eigenspace,
+)
 
 HELP = "fit a PCA eigenspace to a Cinema database and write the eigenspace image (MODEL.ecs)"
 
+DEFAULT_THRESHOLD = 0.98
+#: Threshold fitted (the search's upper bound) when --target is given without --threshold.
+TARGET_FIT_THRESHOLD = 0.999
+DEFAULT_HOLDOUT = "random:30:1"
+#: Render settings that may differ between a training and a test database.
+_VIEW_KEYS = ("views", "eigencast")
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from host.volume import add_volume_arguments
+
     parser.add_argument("database", metavar="DB.cdb", help="Cinema Spec D database folder")
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.ecs")
     parser.add_argument("--method", choices=("standard", "cell", "adaptive"), default="adaptive",
@@ -22,40 +51,186 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--components", type=int, default=100, metavar="K",
                         help="components per cell (standard/cell), cap for adaptive "
                              "(default 100)")
-    parser.add_argument("--threshold", type=float, default=0.98, metavar="T",
-                        help="adaptive: cumulative variance each cell keeps (default 0.98)")
+    parser.add_argument("--threshold", type=float, default=None, metavar="T",
+                        help=f"adaptive: cumulative variance each cell keeps (default "
+                             f"{DEFAULT_THRESHOLD}; with --target the search's upper bound, "
+                             f"default {TARGET_FIT_THRESHOLD})")
     parser.add_argument("--score-step", type=float, metavar="S",
                         help="score quantization step in orthonormal coordinates "
-                             "(default: from a 0.25 MSE budget)")
+                             "(default: from a 0.25 MSE budget; with --target it is searched)")
     parser.add_argument("--key", metavar="KEYFILE", help="sign the image with this device key")
+    parser.add_argument("--standalone", action="store_true",
+                        help="also store the training views' quantized scores in the image so a "
+                             "device interpolates by itself (eigencast-device --standalone)")
     parser.add_argument("--cache", metavar="DIR",
                         help="where to keep the memory-mapped image stack "
                              "(default DB.cdb/.eigencast-cache)")
+    g = parser.add_argument_group("automatic setting (--target)")
+    g.add_argument("--target", metavar="METRIC=VALUE",
+                   help="pick the cheapest setting (fewest score bytes per view) whose held-out "
+                        "views reach this quality: ssim=0.95, flip=0.05 or psnr=35")
+    g.add_argument("--holdout", default=DEFAULT_HOLDOUT, metavar="SPEC",
+                   help=f"held-out views to ray-cast (a view-set spec, default {DEFAULT_HOLDOUT})"
+                        "; without a loadable volume, that many views of DB.cdb are held out")
+    g.add_argument("--test-db", metavar="T.cdb",
+                   help="a database of held-out views (same image size and render settings)")
+    g.add_argument("--volume", metavar="VOLUME",
+                   help="the volume to ray-cast held-out views from (default: the source the "
+                        "database records)")
+    add_volume_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from protocol.keys import load_key
 
-    if not 0.0 < args.threshold <= 1.0:
-        raise EigencastError(f"--threshold {args.threshold}: must be within (0, 1]")
+    target = None
+    if args.target is not None:
+        from host.target import parse_target
+
+        target = parse_target(args.target)
+    elif args.test_db or args.volume:
+        raise EigencastError("--test-db and --volume are used only with --target")
+    threshold = args.threshold
+    if threshold is None:
+        threshold = TARGET_FIT_THRESHOLD if target is not None else DEFAULT_THRESHOLD
+    if not 0.0 < threshold <= 1.0:
+        raise EigencastError(f"--threshold {threshold}: must be within (0, 1]")
+    if args.score_step is not None and not args.score_step > 0:
+        raise EigencastError(f"--score-step {args.score_step}: must be positive")
     key = load_key(args.key) if args.key else None
     out = Path(args.output)
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
     db = CinemaDB.open(args.database)
-    model = fit_database(db, method=args.method, cell=args.cell, components=args.components,
-                         threshold=args.threshold, cache_dir=args.cache)
-    image, annex = build_image(model, db, score_step=args.score_step)
+    options = {"method": args.method, "cell": args.cell, "components": args.components,
+               "threshold": threshold, "cache_dir": args.cache}
+    extra: dict = {}
+    if target is None:
+        model = fit_database(db, **options)
+        score_step = args.score_step
+    else:
+        model, score_step, extra = _fit_to_target(args, db, target, options)
+    image, annex = build_image(model, db, score_step=score_step, extra_provenance=extra)
+    standalone = None
+    if args.standalone:
+        from host.model import ANNEX_SCORES, add_standalone_table
+
+        standalone = add_standalone_table(image, annex[ANNEX_SCORES])
     save_model(out, image, annex, key=key)
+    if standalone is not None:
+        print(_standalone_line(out, standalone))
     device_bytes = image_device_bytes(out)
+    int8 = image.provenance["int8"]
     print(
         f"wrote {out}: {args.method}, {db.n_views} views at "
         f"{db.image_shape[1]}x{db.image_shape[0]}, {model.grid_shape_[0]}x"
         f"{model.grid_shape_[1]} cells, {model.n_components_.mean():.2f} components/cell "
         f"(K={int(model.n_components_.sum())}), device image {device_bytes / 1e6:.2f} MB"
-        f"{', signed' if key else ''}; score step {image.score_quantization['step']:.3g}"
+        f"{', signed' if key else ''}; score step {image.score_quantization['step']:.3g}; "
+        f"int8 loss {int8['train_loss_db']:.3f} dB"
     )
     return 0
+
+
+def _fit_to_target(args: argparse.Namespace, db: CinemaDB, target, options: dict):  # noqa: ANN001
+    """Fit, search the target on held-out views, return (final model, score step, provenance)."""
+    from host.target import search_target
+
+    heldout, keep = _heldout_views(args, db)
+    print(f"target {target}: held-out views from {heldout.source}", file=sys.stderr)
+    fit_db = db if keep is None else subset_database(db, keep)
+    cache = args.cache
+    if keep is not None:
+        cache = str(Path(args.cache) / "holdout") if args.cache else str(
+            db.path / ".eigencast-cache" / "holdout")
+        try:
+            Path(cache).mkdir(parents=True, exist_ok=True)
+        except OSError:
+            cache = None  # fit_database falls back to a temporary folder
+    full = fit_database(fit_db, **{**options, "cache_dir": cache})
+    image, annex = build_image(full, fit_db, score_step=args.score_step, measure_int8=False)
+    result = search_target(HostModel.from_image(image, annex), heldout, target,
+                           score_step=args.score_step)
+    print(result.table())
+    choice = result.choice
+    kwargs = ({"threshold": choice.level} if choice.knob == "threshold"
+              else {"components": int(choice.level)})
+    if keep is None:
+        model = truncate_eigenspace(full, choice.counts, **kwargs)
+    else:  # the search model lacked the held-out views: refit on every view at the choice
+        model = fit_database(db, **{**options, **kwargs})
+    step = args.score_step if args.score_step is not None else (
+        choice.step_factor * auto_score_step(model))
+    fitted = options["threshold"] if choice.knob == "threshold" else options["components"]
+    record = {**result.provenance(), "fitted_" + choice.knob: fitted,
+              "refitted_on_all_views": keep is not None}
+    return model, step, {"target": record}
+
+
+def _heldout_views(args: argparse.Namespace, db: CinemaDB):
+    """(HeldOutViews, indices of db views to fit on or None)."""
+    from host.camera import parse_view_set
+    from host.progress import progress
+    from host.render_settings import RenderSettings, ViewRenderer
+    from host.target import HeldOutViews, holdout_indices
+
+    if args.test_db:
+        test = CinemaDB.open(args.test_db)
+        if tuple(test.image_shape) != tuple(db.image_shape):
+            raise EigencastError(
+                f"--test-db {args.test_db}: images are {test.image_shape[1]}x"
+                f"{test.image_shape[0]}, {db.path} has {db.image_shape[1]}x{db.image_shape[0]}"
+            )
+        if test.settings and db.settings:
+            differ = sorted(k for k in set(test.settings) | set(db.settings)
+                            if k not in _VIEW_KEYS and test.settings.get(k) != db.settings.get(k))
+            if differ:
+                raise EigencastError(
+                    f"--test-db {args.test_db}: rendered with other settings than {db.path} "
+                    f"({', '.join(differ)} differ)"
+                )
+        images = np.stack(list(test.iter_images()))
+        return HeldOutViews(test.phi_deg, test.theta_deg, images,
+                            f"test database {args.test_db} ({test.n_views} views)"), None
+    views = parse_view_set(args.holdout)
+    settings = None
+    if db.settings:
+        settings = RenderSettings.from_record(db.settings, what=str(db.path))
+        source = args.volume or settings.volume_source
+        loadable = args.volume is not None or source.startswith("builtin:") or Path(
+            source).exists()
+        if loadable:
+            scene = ViewRenderer.open(settings, args.volume, args, what=str(db.path))
+            angles = views.angles_deg()
+            images = np.empty((len(angles), *db.image_shape, 3), dtype=np.uint8)
+            with progress("render held-out views", len(angles), unit=" views") as bar:
+                for i, (phi, theta) in enumerate(angles):
+                    images[i] = scene.render_rgb8(phi, theta)
+                    bar.advance()
+            return HeldOutViews(angles[:, 0].copy(), angles[:, 1].copy(), images,
+                                f"{len(angles)} ray-cast views ({views.spec})"), None
+    count = len(views)
+    held = holdout_indices(db.n_views, count, seed=1)
+    keep = np.setdiff1d(np.arange(db.n_views), held)
+    images = np.stack([db.read_image(int(i)) for i in held])
+    why = "no render settings" if settings is None else "its volume is not loadable"
+    return HeldOutViews(db.phi_deg[held].copy(), db.theta_deg[held].copy(), images,
+                        f"{count} views held out of {db.path} ({why}; the search model is "
+                        "fitted without them)"), keep
+
+
+def _standalone_line(path: Path, info: dict) -> str:
+    """One line on the standalone table's size against the eigenimages' (compressed)."""
+    from device_runtime.runtime import STANDALONE_SECTION
+    from protocol.image import read_manifest
+
+    with open(path, "rb") as f:
+        sizes = {e["name"]: e["size"] for e in read_manifest(f)["sections"]}
+    table, eig = sizes[STANDALONE_SECTION], sizes["eigenimages"]
+    return (f"standalone table: {info['dtype']} {info['shape'][0]}x{info['shape'][1]} at step "
+            f"{info['step']:.3g}, {info['raw_bytes'] / 1e3:.1f} kB raw, {table / 1e3:.1f} kB "
+            f"compressed = {100 * table / max(eig, 1):.0f}% of the eigenimages "
+            f"({eig / 1e3:.1f} kB compressed)")
 
 
 def image_device_bytes(path: Path) -> int:

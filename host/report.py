@@ -1,0 +1,421 @@
+"""HTML report of an `host.evaluate.Evaluation`: a Table-1-style table, plots and images.
+
+`write_report(evaluation, folder)` writes into ``folder``:
+
+* ``index.html`` -- the model laid out like the paper's Table 1, the per-method means (whole
+  image and object pixels), the int8 loss recorded by ``fit``, the time spent per phase;
+* ``rd.png`` -- rate-distortion: SSIM and FLIP against bytes per view for the PCA model at
+  several settings (lower thresholds / fewer components, coarser score steps) and JPEG and
+  WebP at several qualities, with the model's own point and the equal-bytes codec means marked;
+* ``per_view.png`` -- SSIM and FLIP of every view against its elevation;
+* ``views/view_NN.png`` -- side by side: ray-cast | device reconstruction | equal-bytes JPEG |
+  equal-bytes WebP | FLIP error maps of the reconstruction and the JPEG (magma, 0..1);
+* ``summary.json`` -- `Evaluation.summary`.
+
+Plots use matplotlib's Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["compose_side_by_side", "write_report"]
+
+#: Side-by-side panels smaller than this are zoomed (nearest neighbour) to at least it.
+MIN_PANEL_HEIGHT = 256
+_COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp": "#2166ac",
+           "nearest": "#8c6bb1"}
+_NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
+          "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
+          "nearest": "nearest training view"}
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "–"
+        if math.isinf(value):
+            return "∞"
+        return f"{value:.{digits}f}"
+    return html.escape(str(value))
+
+
+def _bytes(n: Any) -> str:
+    if n is None or (isinstance(n, float) and not math.isfinite(n)):
+        return "–"
+    n = float(n)
+    if n >= 1e6:
+        return f"{n / 1e6:.2f} MB"
+    if n >= 1e4:
+        return f"{n / 1e3:.1f} kB"
+    return f"{n:,.0f} B"
+
+
+def _colormap(values: np.ndarray) -> np.ndarray:
+    """Magma-coloured uint8 (h, w, 3) of values in [0, 1]."""
+    from matplotlib import colormaps
+
+    rgba = colormaps["magma"](np.clip(values, 0.0, 1.0))
+    return (rgba[..., :3] * 255.0 + 0.5).astype(np.uint8)
+
+
+def _font(size: int) -> Any:
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1
+        return ImageFont.load_default()
+
+
+def compose_side_by_side(
+    panels: list[tuple[str, np.ndarray]], *, gap: int = 6, label_height: int = 0
+) -> np.ndarray:
+    """Place labelled images side by side.
+
+    Parameters
+    ----------
+    panels : list of (label, image)
+        Images uint8 (h, w, 3) of equal height.
+    gap : int
+        Pixels between panels (white).
+    label_height : int
+        Height of the caption strip above the images (0: about 5 % of the height, >= 18).
+
+    Returns
+    -------
+    ndarray of shape (label_height + h, total_width, 3), uint8
+    """
+    from PIL import Image, ImageDraw
+
+    h = panels[0][1].shape[0]
+    zoom = max(1, -(-MIN_PANEL_HEIGHT // h))  # small images: nearest-neighbour zoom
+    images = [np.repeat(np.repeat(np.ascontiguousarray(p), zoom, 0), zoom, 1) for _, p in panels]
+    h *= zoom
+    lines = max(len(label.split("\n")) for label, _ in panels)
+    line_height = max(14, min(26, images[0].shape[1] // 22))
+    label_height = label_height or line_height * lines + 8
+    width = sum(p.shape[1] for p in images) + gap * (len(panels) - 1)
+    canvas = Image.new("RGB", (width, h + label_height), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    font = _font(int(line_height * 0.8))
+    x = 0
+    for (label, _), image in zip(panels, images):
+        canvas.paste(Image.fromarray(image), (x, label_height))
+        for j, text in enumerate(label.split("\n")):
+            draw.text((x + 4, 4 + j * line_height), text, fill=(20, 20, 20), font=font)
+        x += image.shape[1] + gap
+    return np.asarray(canvas)
+
+
+def _save_png(path: Path, image: np.ndarray) -> None:
+    from PIL import Image
+
+    Image.fromarray(image).save(path, format="PNG", optimize=True)
+
+
+def _rd_plot(evaluation: Any, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = evaluation.summary()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.0), dpi=110)
+    for ax, metric, label in ((axes[0], "ssim", "SSIM (higher is better)"),
+                              (axes[1], "flip", "FLIP (lower is better)")):
+        for kind, marker in (("pca", "o"), ("jpeg", "s"), ("webp", "^")):
+            pts = [p for p in evaluation.rd if p["kind"] == kind and p["label"].startswith(
+                ("T=", "k=", "q="))]
+            pts.sort(key=lambda p: p["bytes_per_view"])
+            if pts:
+                ax.plot([p["bytes_per_view"] for p in pts], [p[metric] for p in pts],
+                        marker=marker, color=_COLORS[kind], label=_NAMES[kind].split(",")[0],
+                        linewidth=1.5, markersize=5)
+                if kind == "pca":  # alternate sides so that close points stay legible
+                    for i, p in enumerate(pts):
+                        ax.annotate(p["label"], (p["bytes_per_view"], p[metric]),
+                                    textcoords="offset points",
+                                    xytext=(4, -11) if i % 2 == 0 else (-4, -11),
+                                    ha="left" if i % 2 == 0 else "right", fontsize=7,
+                                    color=_COLORS[kind])
+        steps = [p for p in evaluation.rd if p["kind"] == "pca" and p["label"].startswith("step")]
+        if steps:
+            ax.plot([p["bytes_per_view"] for p in steps], [p[metric] for p in steps], "x",
+                    color=_COLORS["pca"], label="PCA, score step x2 x4 ...", markersize=7)
+            for p in steps:
+                ax.annotate(p["label"].replace("step ", ""), (p["bytes_per_view"], p[metric]),
+                            textcoords="offset points", xytext=(0, 6), ha="center",
+                            fontsize=7, color=_COLORS["pca"])
+        oracle = [p for p in evaluation.rd if p["kind"] == "projection"]
+        if oracle:
+            ax.plot([p["bytes_per_view"] for p in oracle], [p[metric] for p in oracle], "P",
+                    color="black", markerfacecolor="none", markersize=9,
+                    label="PCA, true views' own scores (oracle)")
+        own = summary.get("pca") or {}
+        if own:
+            ax.plot([own["bytes_per_view"]], [own[metric]], "*", color="black", markersize=13,
+                    label="this model (all views)", zorder=5)
+        for codec in ("jpeg", "webp"):
+            c = summary.get(codec) or {}
+            if c:
+                ax.plot([c["bytes_per_view"]], [c[metric]], "D", color=_COLORS[codec],
+                        markerfacecolor="white", markersize=8, zorder=5,
+                        label=f"{codec.upper()} at equal bytes (all views)")
+        ax.set_xscale("log")
+        ax.set_xlabel("bytes per view")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4, frameon=False)
+    n = evaluation.info.get("rd_views", 0)
+    fig.suptitle(f"Rate-distortion (sweep over {n} views; markers at equal bytes over all views)",
+                 fontsize=10)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _per_view_plot(evaluation: Any, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), dpi=110)
+    theta = np.array([v["theta_deg"] for v in evaluation.views])
+    for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
+        # dodge the methods sideways so that views at equal elevations stay visible
+        for dodge, method in zip((-2.25, -0.75, 0.75, 2.25), ("nearest", "jpeg", "webp", "pca")):
+            if evaluation.views and method in evaluation.views[0]:
+                vals = np.array([v[method][metric] for v in evaluation.views], dtype=float)
+                ax.scatter(theta + dodge, vals, s=10, color=_COLORS[method],
+                           label=_NAMES[method], alpha=0.7, linewidths=0)
+        ax.set_xlabel("elevation theta (degrees)")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Per-view quality against elevation", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _sample_figure(sample: dict) -> np.ndarray:
+    rec = sample["record"]
+    panels = [
+        (f"ray-cast\nphi {sample['phi_deg']:.1f}, theta {sample['theta_deg']:.1f}",
+         sample["raycast"]),
+        (f"PCA (device), {rec['pca']['bytes_per_view']} B\nSSIM {rec['pca']['ssim']:.3f}  "
+         f"FLIP {rec['pca']['flip']:.3f}", sample["pca"]),
+        (f"JPEG q{rec['jpeg']['quality']}, {rec['jpeg']['bytes_per_view']} B"
+         f"{'' if rec['jpeg']['within_budget'] else ' (over budget)'}\n"
+         f"SSIM {rec['jpeg']['ssim']:.3f}  FLIP {rec['jpeg']['flip']:.3f}", sample["jpeg"]),
+        (f"WebP q{rec['webp']['quality']}, {rec['webp']['bytes_per_view']} B"
+         f"{'' if rec['webp']['within_budget'] else ' (over budget)'}\n"
+         f"SSIM {rec['webp']['ssim']:.3f}  FLIP {rec['webp']['flip']:.3f}", sample["webp"]),
+    ]
+    if sample.get("flip_pca") is not None:
+        panels.append(("FLIP error map\nPCA", _colormap(sample["flip_pca"])))
+    if sample.get("flip_jpeg") is not None:
+        panels.append(("FLIP error map\nJPEG", _colormap(sample["flip_jpeg"])))
+    return compose_side_by_side(panels)
+
+
+_CSS = """
+body { font-family: -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif;
+       margin: 2em auto; max-width: 1200px; color: #222; padding: 0 1em; }
+h1 { font-size: 1.6em; margin-bottom: .2em; } h2 { font-size: 1.25em; margin-top: 1.6em; }
+p.sub { color: #555; margin-top: 0; }
+table { border-collapse: collapse; margin: .6em 0; font-size: .92em; }
+th, td { padding: .35em .8em; border-bottom: 1px solid #ddd; text-align: right; }
+th:first-child, td:first-child { text-align: left; }
+thead th { border-bottom: 2px solid #888; background: #f5f5f5; }
+tr.best td { font-weight: 600; }
+td.win { color: #1b7837; font-weight: 600; } td.lose { color: #b2182b; }
+img { max-width: 100%; border: 1px solid #ddd; }
+.note { color: #555; font-size: .9em; }
+code { background: #f3f3f3; padding: 0 .25em; }
+"""
+
+
+def _table(headers: list[str], rows: list[list[str]], cls: list[str] | None = None) -> str:
+    head = "".join(f"<th>{h}</th>" for h in headers)
+    body = []
+    for i, row in enumerate(rows):
+        c = f' class="{cls[i]}"' if cls and cls[i] else ""
+        body.append(f"<tr{c}>" + "".join(f"<td>{v}</td>" for v in row) + "</tr>")
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _compare_cell(value: float, reference: float, higher_better: bool, digits: int) -> str:
+    text = _fmt(value, digits)
+    if not (isinstance(value, float) and isinstance(reference, float)) or not (
+        math.isfinite(value) and math.isfinite(reference)
+    ):
+        return text
+    better = value > reference if higher_better else value < reference
+    return f'<span class="{"win" if better else "lose"}">{text}</span>'
+
+
+def write_report(evaluation: Any, folder: str | os.PathLike) -> Path:
+    """Write the HTML report (and its PNGs and summary.json) into ``folder``; returns index.html."""
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "views").mkdir(exist_ok=True)
+    summary = evaluation.summary()
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    if evaluation.rd:
+        _rd_plot(evaluation, out / "rd.png")
+    _per_view_plot(evaluation, out / "per_view.png")
+    figures = []
+    for i, sample in enumerate(evaluation.samples):
+        name = f"views/view_{i:02d}.png"
+        _save_png(out / name, _sample_figure(sample))
+        figures.append(name)
+    (out / "index.html").write_text(_html(evaluation, summary, figures), encoding="utf-8")
+    return out / "index.html"
+
+
+def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
+    info = evaluation.info
+    vol = info.get("volume") or {}
+    dims = vol.get("dims")
+    h, w = info["image_shape"]
+    name = vol.get("name") or "volume"
+    pca, jpeg, webp = summary.get("pca", {}), summary.get("jpeg", {}), summary.get("webp", {})
+    t = info.get("threshold")
+    table1 = [
+        ["volume dimensions", " × ".join(str(d) for d in dims) if dims else "–"],
+        ["image size", f"{w} × {h}"],
+        ["training views", f"{info['training_views']} ({_fmt(info.get('training_view_spec'))})"],
+        ["method, cell", f"{info['method']}, {info['cell_shape'][1]} × {info['cell_shape'][0]}"],
+        ["mean number of dimensions per cell", _fmt(info["components_per_cell"], 2)],
+        ["T", f"{100 * t:.4g}%" if t is not None else "–"],
+        ["eigenspace (device image)", _bytes(info["eigenspace_bytes"])],
+        ["bytes per view (score packet, mean)", _bytes(pca.get("bytes_per_view"))],
+        ["mean SSIM of PCA", _fmt(pca.get("ssim"), 4)],
+        ["mean SSIM of equal-bytes JPEG", _fmt(jpeg.get("ssim"), 4)],
+        ["mean SSIM of equal-bytes WebP", _fmt(webp.get("ssim"), 4)],
+        ["mean FLIP of PCA", _fmt(pca.get("flip"), 4)],
+        ["mean FLIP of equal-bytes JPEG", _fmt(jpeg.get("flip"), 4)],
+        ["mean FLIP of equal-bytes WebP", _fmt(webp.get("flip"), 4)],
+    ]
+    rows = []
+    for method in ("pca", "jpeg", "webp", "nearest"):
+        m = summary.get(method)
+        if not m:
+            continue
+        extra = ""
+        if method in ("jpeg", "webp"):
+            extra = f"q≈{m.get('quality', math.nan):.0f}"
+            if m.get("over_budget_views"):
+                extra += f", {m['over_budget_views']} views over budget at q=1"
+        elif method == "nearest":
+            extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
+        rows.append([
+            _NAMES[method],
+            _bytes(m.get("bytes_per_view")),
+            _compare_cell(m.get("psnr"), pca.get("psnr"), True, 2) if method != "pca"
+            else _fmt(m.get("psnr"), 2),
+            _compare_cell(m.get("ssim"), pca.get("ssim"), True, 4) if method != "pca"
+            else _fmt(m.get("ssim"), 4),
+            _compare_cell(m.get("flip"), pca.get("flip"), False, 4) if method != "pca"
+            else _fmt(m.get("flip"), 4),
+            _fmt(m.get("psnr_object"), 2), _fmt(m.get("ssim_object"), 4),
+            _fmt(m.get("flip_object"), 4), extra,
+        ])
+    int8 = info.get("int8") or {}
+    int8_text = "not recorded (model fitted by an older eigencast)"
+    if int8:
+        int8_text = (
+            f"measured by <code>fit</code> on {int8.get('views', '?')} training views: PSNR "
+            f"float {_fmt(int8.get('train_psnr_float_db'), 2)} dB, int8 "
+            f"{_fmt(int8.get('train_psnr_int8_db'), 2)} dB, loss "
+            f"<b>{_fmt(int8.get('train_loss_db'), 3)} dB</b>; float vs int8 at interpolated "
+            f"novel scores: {_fmt(int8.get('novel_psnr_float_vs_int8_db'), 1)} dB"
+        )
+    rd_rows = []
+    for p in evaluation.rd:
+        series = _NAMES[p["kind"]].split(",")[0] + ("  (this model)" if p.get("own") else "")
+        rd_rows.append([series,
+                        html.escape(p["label"]), _bytes(p["bytes_per_view"]),
+                        _fmt(p.get("components_per_cell"), 2) if p["kind"] == "pca" else "–",
+                        _fmt(p["psnr"], 2), _fmt(p["ssim"], 4), _fmt(p["flip"], 4)])
+    timing = evaluation.timing_s
+    total = sum(timing.values()) or 1.0
+    timing_rows = [[html.escape(k), f"{v:.1f}", f"{100 * v / total:.0f}%"]
+                   for k, v in timing.items()]
+    target = info.get("target")
+    target_html = ""
+    if target:
+        choice = target.get("choice") or {}
+        target_html = (
+            f"<p>Chosen by <code>fit --target {html.escape(str(target.get('metric')))}="
+            f"{target.get('value')}</code> on {html.escape(str(target.get('holdout')))}: "
+            f"{html.escape(json.dumps(choice))}</p>"
+        )
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'>",
+        f"<title>eigencast evaluation: {html.escape(name)}</title>",
+        f"<style>{_CSS}</style></head><body>",
+        f"<h1>eigencast evaluation: {html.escape(name)} — {html.escape(info['method'])}</h1>",
+        f"<p class='sub'>{html.escape(str(info.get('path') or 'model in memory'))} · "
+        f"{len(evaluation.views)} novel views ({html.escape(str(info.get('view_spec', '')))}) "
+        f"ray-cast with the model's own render settings · transfer function "
+        f"{html.escape(str(info.get('transfer_function')))} · interpolation "
+        f"{html.escape(str(info.get('interpolation')))}</p>",
+        "<h2>The model, laid out like the paper's Table 1</h2>",
+        _table(["", html.escape(name)], table1),
+        "<p class='note'>The paper reports HDR-VDP-2 Q-values; eigencast uses SSIM "
+        "(scikit-image) and FLIP (NVIDIA, LDR, 67 pixels per degree). Bytes per view: the real "
+        "key score packet (header + zstd-compressed varints) at the model's score step "
+        f"{info['score_step']:.4g}; equal-bytes codecs use the highest quality whose file is "
+        "not larger than that view's packet.</p>",
+        target_html,
+        "<h2>Novel views: means over all views</h2>",
+        _table(["method", "bytes/view", "PSNR dB", "SSIM", "FLIP", "PSNR obj.", "SSIM obj.",
+                "FLIP obj.", ""], rows),
+        "<p class='note'>Green: better than the PCA reconstruction, red: worse. “obj.”: over "
+        "object pixels only (ray-cast alpha ≥ 0.5/255). The nearest training view costs a "
+        "lossless PNG download and is what a client would show with no interpolation at all. "
+        f"Training images for it came from the {html.escape(str(info.get('nearest_source')))}."
+        "</p>",
+        f"<p><b>int8 quantization</b>: {int8_text}.</p>",
+    ]
+    if evaluation.rd:
+        parts += [
+            "<h2>Rate-distortion</h2>",
+            "<img src='rd.png' alt='rate-distortion plot'>",
+            "<p class='note'>PCA points truncate this model to lower thresholds (or fewer "
+            "components) through the eigenvalues kept in its annex, with the score step scaled "
+            "like the model's; crosses use coarser score steps at the model's own components. "
+            "The open plus is an oracle: the true views projected onto this eigenspace and "
+            "sent through the same packet and reconstruction; the gap between it and the star "
+            "is what interpolating between training views costs. "
+            "JPEG/WebP points encode the same ray-casts at fixed qualities.</p>",
+            _table(["series", "setting", "bytes/view", "dims/cell", "PSNR dB", "SSIM", "FLIP"],
+                   rd_rows),
+        ]
+    parts += ["<h2>Per view</h2>", "<img src='per_view.png' alt='per-view quality'>"]
+    if figures:
+        parts.append("<h2>Side by side</h2><p class='note'>ray-cast | device reconstruction | "
+                     "equal-bytes JPEG | equal-bytes WebP | FLIP error maps (black 0, yellow "
+                     "1)</p>")
+        parts += [f"<p><a href='{f}'><img src='{f}' alt='view {i}'></a></p>"
+                  for i, f in enumerate(figures)]
+    parts += [
+        "<h2>Where the time went</h2>",
+        _table(["phase", "seconds", "share"], timing_rows),
+        "</body></html>",
+    ]
+    return "\n".join(parts)

@@ -1,0 +1,313 @@
+"""Metrics, equal-bytes codecs, the device path, render settings and `eigencast evaluate`."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+from skimage.metrics import peak_signal_noise_ratio as sk_psnr
+from skimage.metrics import structural_similarity as sk_ssim
+
+from host.cinema import CinemaDB
+from host.evaluate import (
+    DevicePath,
+    compare_images,
+    encode_image,
+    encode_within_budget,
+    flip_error,
+    nearest_training_view,
+    peak_signal_noise_ratio,
+    structural_similarity,
+)
+from host.model import HostModel, build_image, fit_database, save_model
+from host.render_settings import RenderSettings, SettingsError, ViewRenderer
+from protocol.scores import encode_scores
+
+CLI = [sys.executable, "-m", "host.cli"]
+
+
+def _run(*args, check=True):
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, check=check)
+
+
+def _smooth_image(size=64, seed=0):
+    """A smooth colour image with some texture (compresses like a rendering)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    base = np.stack([0.5 + 0.4 * np.sin(6 * x + 2 * y), 0.5 + 0.4 * np.cos(5 * y),
+                     0.5 + 0.3 * np.sin(3 * x * y + 1)], axis=-1)
+    noise = rng.normal(0, 0.03, size=base.shape)
+    return np.clip((base + noise) * 255, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def small_db(tmp_path_factory):
+    db = tmp_path_factory.mktemp("eval") / "tooth.cdb"
+    _run("render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6", "--size", "40",
+         "--samples", "120")
+    return db
+
+
+@pytest.fixture(scope="module")
+def small_model(small_db, tmp_path_factory):
+    db = CinemaDB.open(small_db)
+    model = fit_database(db, method="adaptive", cell=16, threshold=0.995, progress=False)
+    image, annex = build_image(model, db)
+    path = tmp_path_factory.mktemp("model") / "m.ecs"
+    save_model(path, image, annex)
+    return path
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def test_identical_images_are_perfect():
+    a = _smooth_image()
+    assert peak_signal_noise_ratio(a, a) == math.inf
+    assert structural_similarity(a, a) == pytest.approx(1.0)
+    assert flip_error(a, a) == pytest.approx(0.0, abs=1e-7)
+    c = compare_images(a, a, mask=np.ones(a.shape[:2], bool))
+    assert c.psnr == math.inf and c.psnr_object == math.inf
+    assert c.ssim == pytest.approx(1.0) and c.ssim_object == pytest.approx(1.0)
+    assert c.flip == pytest.approx(0.0, abs=1e-7)
+
+
+def test_psnr_of_a_known_error_level():
+    a = np.full((32, 32, 3), 100, np.uint8)
+    b = a.copy()
+    b[::2] += 5  # half the rows off by 5, half exact: MSE = 12.5
+    b[1::2] -= 5  # now every pixel off by 5: MSE = 25
+    expected = 10 * math.log10(255**2 / 25.0)
+    assert peak_signal_noise_ratio(a, b) == pytest.approx(expected, abs=1e-9)
+    assert peak_signal_noise_ratio(a, b, mask=np.ones((32, 32), bool)) == pytest.approx(expected)
+    rng = np.random.default_rng(1)
+    c, d = _smooth_image(seed=2), _smooth_image(seed=3)
+    assert peak_signal_noise_ratio(c, d) == pytest.approx(sk_psnr(c, d, data_range=255))
+    assert structural_similarity(c, d) == pytest.approx(
+        sk_ssim(c, d, data_range=255, channel_axis=-1))
+    noisy = np.clip(c + rng.normal(0, 4, c.shape), 0, 255).astype(np.uint8)
+    assert compare_images(c, noisy).psnr == pytest.approx(peak_signal_noise_ratio(c, noisy))
+
+
+def test_mask_restricts_every_metric_to_its_pixels():
+    a = _smooth_image(96)
+    b = a.copy()
+    b[:, :24] = 255 - b[:, :24]  # damage only the left quarter
+    mask = np.zeros(a.shape[:2], bool)
+    mask[:, 60:] = True  # far from the damage (FLIP's filters reach a few pixels)
+    assert peak_signal_noise_ratio(a, b, mask=mask) == math.inf
+    assert structural_similarity(a, b, mask=mask) == pytest.approx(1.0)
+    assert flip_error(a, b, mask=mask) < 1e-3 < flip_error(a, b)
+    # the unmasked mean is the mask-weighted mix of both halves
+    left = np.zeros_like(mask)
+    left[:, :24] = True
+    sq = ((a.astype(float) - b) ** 2).mean(axis=2)
+    assert peak_signal_noise_ratio(a, b, mask=left) == pytest.approx(
+        10 * math.log10(255**2 / sq[left].mean()))
+    c = compare_images(a, b, mask=mask)
+    assert c.psnr_object == math.inf and c.psnr < 20
+    assert c.ssim_object == pytest.approx(1.0) and c.ssim < 0.9
+
+
+def test_metric_inputs_are_checked():
+    a = _smooth_image(32)
+    with pytest.raises(ValueError, match="shapes differ"):
+        peak_signal_noise_ratio(a, a[:16])
+    with pytest.raises(ValueError, match="outside"):
+        flip_error(a.astype(np.float32) * 2, a.astype(np.float32) * 2)
+    with pytest.raises(ValueError, match="no pixels"):
+        structural_similarity(a, a, mask=np.zeros((32, 32), bool))
+    with pytest.raises(ValueError, match="mask must be bool"):
+        flip_error(a, a, mask=np.ones((16, 16), bool))
+    # an empty object mask in compare_images gives NaN object metrics, not an error
+    c = compare_images(a, a, mask=np.zeros((32, 32), bool))
+    assert math.isnan(c.ssim_object) and c.ssim == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------------------- codecs
+
+
+@pytest.mark.parametrize("codec", ["jpeg", "webp"])
+def test_equal_bytes_search_returns_the_highest_quality_within_budget(codec):
+    image = _smooth_image(64)
+    for budget in (encode_image(image, codec, 30).size_bytes + 7,
+                   encode_image(image, codec, 75).size_bytes - 1):
+        coded = encode_within_budget(image, budget, codec=codec)
+        assert coded.within_budget and coded.size_bytes <= budget
+        assert encode_image(image, codec, coded.quality + 1).size_bytes > budget
+        assert coded.decode().shape == image.shape
+        # a hint (right, too low, too high) changes the work, not the answer's property
+        for hint in (coded.quality, 1, 100, coded.quality + 9):
+            again = encode_within_budget(image, budget, codec=codec, hint=hint)
+            assert again.size_bytes <= budget
+            assert again.quality == 100 or encode_image(
+                image, codec, again.quality + 1).size_bytes > budget
+    tiny = encode_within_budget(image, 10, codec=codec)
+    assert tiny.quality == 1 and not tiny.within_budget and tiny.size_bytes > 10
+    assert encode_within_budget(image, 10, codec=codec, hint=50).quality == 1
+    huge = encode_within_budget(image, 10**9, codec=codec)
+    assert huge.quality == 100 and huge.within_budget
+    assert encode_within_budget(image, 10**9, codec=codec, hint=3).quality == 100
+    with pytest.raises(ValueError, match="codec"):
+        encode_within_budget(image, 100, codec="gif")
+    with pytest.raises(ValueError, match="budget_bytes"):
+        encode_within_budget(image, 0, codec=codec)
+
+
+# ----------------------------------------------------------------------------- nearest
+
+
+def test_nearest_training_view_is_the_angularly_nearest():
+    rng = np.random.default_rng(5)
+    phi = rng.uniform(0, 360, 200)
+    theta = np.degrees(np.arcsin(rng.uniform(-1, 1, 200)))
+
+    def unit(p, t):
+        p, t = np.radians(p), np.radians(t)
+        return np.stack([np.cos(t) * np.cos(p), np.cos(t) * np.sin(p), np.sin(t)], axis=-1)
+
+    for q_phi, q_theta in zip(rng.uniform(-30, 400, 40), rng.uniform(-90, 90, 40)):
+        i, angle = nearest_training_view(q_phi, q_theta, phi, theta)
+        brute = np.degrees(np.arccos(np.clip(unit(phi, theta) @ unit(q_phi, q_theta), -1, 1)))
+        assert i == int(np.argmin(brute))
+        assert angle == pytest.approx(brute.min(), abs=1e-6)
+    # across the phi seam: 359.5 is nearer to 0 than to 350
+    assert nearest_training_view(359.5, 0.0, [0.0, 350.0], [0.0, 0.0])[0] == 0
+
+
+# ----------------------------------------------------------------------------- device path
+
+
+def test_device_path_is_the_device_frame_and_packet(small_model):
+    model = HostModel.load(small_model)
+    path = DevicePath(model)
+    frame, size = path.frame(123.4, 21.0)
+    packet = encode_scores(model.scores(123.4, 21.0), step=model.score_step, frame=7,
+                           view=(123.4, 21.0), image_digest=model.digest).packet
+    assert size == len(packet)
+    diff = np.abs(frame.astype(int) - model.view(123.4, 21.0).astype(int))
+    assert diff.max() <= 1  # float32 vs float64 rounding of the same quantized scores
+
+
+def test_projection_of_a_training_view_matches_its_own_scores(small_model, small_db):
+    model = HostModel.load(small_model)
+    db = CinemaDB.open(small_db)
+    path = DevicePath(model)
+    for i in (5, 90):
+        frame, _ = path.projection_frame(db.read_image(i))
+        own = model.view(db.phi_deg[i], db.theta_deg[i])  # interpolation is exact here
+        assert np.abs(frame.astype(float) - own).mean() < 1.0
+
+
+def test_metric_workers_give_the_same_results_as_inline(small_model):
+    from host.evaluate import evaluate_model
+
+    model = HostModel.load(small_model)
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
+    views = [(10.0, 5.0), (200.0, -40.0), (300.0, 70.0)]
+    inline = evaluate_model(model, scene, views, rd_views=1, metric_workers=0, progress=False,
+                            sample_views=1)
+    pooled = evaluate_model(model, scene, views, rd_views=1, metric_workers=2, progress=False,
+                            sample_views=1)
+    assert inline.views == pooled.views
+    assert [p["ssim"] for p in inline.rd] == [p["ssim"] for p in pooled.rd]
+    np.testing.assert_array_equal(inline.samples[0]["flip_pca"], pooled.samples[0]["flip_pca"])
+    # the per-view records hold what the metric functions give on the same images
+    truth, _ = scene.render(*views[0])
+    frame, size = DevicePath(model).frame(*views[0])
+    assert inline.views[0]["pca"]["bytes_per_view"] == size
+    assert inline.views[0]["pca"]["ssim"] == pytest.approx(structural_similarity(truth, frame))
+
+
+# ----------------------------------------------------------------------------- render settings
+
+
+def test_view_renderer_reproduces_training_images_bit_for_bit(small_db):
+    db = CinemaDB.open(small_db)
+    settings = RenderSettings.from_record(db.settings, what=str(small_db))
+    scene = ViewRenderer.open(settings, what="db")
+    for i in (0, 77):
+        rgb8, alpha = scene.render(db.phi_deg[i], db.theta_deg[i])
+        np.testing.assert_array_equal(rgb8, db.read_image(i))
+        assert alpha.shape == rgb8.shape[:2] and 0 < (alpha > 0).mean() < 1
+
+
+def test_render_settings_refuse_missing_or_mismatched(small_db):
+    db = CinemaDB.open(small_db)
+    with pytest.raises(SettingsError, match="no render settings"):
+        RenderSettings.from_record({}, what="x.ecs")
+    broken = {k: v for k, v in db.settings.items() if k != "camera"}
+    with pytest.raises(SettingsError, match="lack camera"):
+        RenderSettings.from_record(broken, what="x.ecs")
+    settings = RenderSettings.from_record(db.settings, what="x.ecs")
+    with pytest.raises(SettingsError, match="dims"):
+        settings.load_volume("builtin:head", what="x.ecs")
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def test_evaluate_cli_json_and_report(small_model, tmp_path):
+    report = tmp_path / "report"
+    res = _run("evaluate", str(small_model), "--views", "random:5", "--report", str(report),
+               "--json", "--rd-views", "2", "--samples-shown", "2")
+    summary = json.loads(res.stdout)  # exactly one JSON object on stdout
+    for key in ("method", "threshold", "components_per_cell", "eigenspace_bytes", "views",
+                "pca", "jpeg", "webp", "nearest"):
+        assert key in summary
+    assert summary["method"] == "adaptive" and summary["threshold"] == pytest.approx(0.995)
+    assert summary["views"] == 5
+    for method in ("pca", "jpeg", "webp", "nearest"):
+        for key in ("bytes_per_view", "psnr", "ssim", "flip"):
+            assert isinstance(summary[method][key], float), (method, key)
+    model = HostModel.load(small_model)
+    assert summary["components_per_cell"] == pytest.approx(np.mean(model.image.n_components))
+    # equal bytes: a codec file is never larger than the packet unless even q=1 is
+    if summary["jpeg"]["over_budget_views"] == 0:
+        assert summary["jpeg"]["bytes_per_view"] <= summary["pca"]["bytes_per_view"]
+    assert summary["int8"]["train_loss_db"] < 0.3
+    assert (report / "index.html").is_file() and (report / "rd.png").is_file()
+    views = sorted((report / "views").glob("*.png"))
+    assert len(views) == 2
+    with Image.open(views[0]) as im:
+        assert im.width > 4 * 40  # several panels side by side
+    html = (report / "index.html").read_text()
+    assert "Table 1" in html and "rd.png" in html and "view_00.png" in html
+    assert "Traceback" not in res.stderr and "evaluate" in res.stderr  # progress on stderr
+
+
+def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path):
+    res = _run("evaluate", str(small_model), "builtin:head", "--views", "random:2",
+               check=False)
+    assert res.returncode == 1
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "dims" in lines[0] and "builtin:head" in lines[0]
+    res = _run("evaluate", str(small_model), "--tf", "ct-bone", "--views", "random:2",
+               check=False)
+    assert res.returncode == 1 and "--tf" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_evaluate_foreign_model_needs_explicit_render_options(small_db, tmp_path):
+    foreign = tmp_path / "foreign.cdb"
+    shutil.copytree(small_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
+    (foreign / "eigencast.json").unlink()
+    db = CinemaDB.open(foreign)
+    model = fit_database(db, method="cell", cell=20, components=6, progress=False)
+    image, annex = build_image(model, db)
+    path = tmp_path / "f.ecs"
+    save_model(path, image, annex)
+    res = _run("evaluate", str(path), "--views", "random:2", check=False)
+    assert res.returncode == 1 and "--tf" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    # with the options the database was rendered with, the novel views are ray-cast
+    res = _run("evaluate", str(path), "builtin:tooth", "--tf", "tooth", "--samples", "120",
+               "--views", "random:2", "--json", "--rd-views", "0", "--no-nearest")
+    summary = json.loads(res.stdout)
+    assert summary["pca"]["ssim"] > 0.5 and "nearest" not in summary
