@@ -1,12 +1,25 @@
-"""``eigencast-device``: the device program (serve a host, print status, pair a key).
+"""``eigencast-device``: the device program (show frames, serve a host, print status, pair a key).
 
 Usage::
 
     eigencast-device (--port URL | --listen HOST:PORT) --flash DIR [--baud B]
                      [--key KEYFILE | --insecure] [--ram-budget MB] [--flash-size MB]
                      [--device-id ID] [--max-frame BYTES] [--window FRAMES]
+                     [--headless [--frames DIR [--every N]] | --display]
+                     [--standalone] [--orbit SPEC | --views LIST] [--view PHI,THETA]
+                     [--max-frames N] [--stats FILE] [--screenshots DIR] [--zoom Z]
+    eigencast-device --standalone --flash DIR [display options]     (no host at all)
     eigencast-device --flash DIR --status [--json]
     eigencast-device --pair KEYFILE --flash DIR
+
+The runtime (:mod:`device_runtime.runtime`) boots the active image from flash, shows it in
+a window (drag or arrow keys change the view, ``+``/``-`` zoom, ``h`` overlay, ``s``
+screenshot, ``Esc`` quits) or, with ``--headless``, writes every N-th frame as a PNG into
+``--frames DIR`` (with ``frames.csv``). Without ``--headless`` or ``--display`` it opens a
+window when it can and runs headless otherwise. ``--standalone`` interpolates scores
+locally from the image's table (``eigencast fit --standalone``), so no host is needed;
+``--orbit`` / ``--views`` drive the view by themselves (standalone: locally; otherwise by
+view requests to the host) and the program exits when they are done.
 
 Serving logs one line per event to stderr (``eigencast-device: ...``); with
 ``--listen`` the first lines include ``listening on tcp-listen://HOST:PORT``
@@ -23,6 +36,7 @@ runtime issue extends (``--headless --frames DIR --standalone``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -36,7 +50,6 @@ from device_runtime.device import (
     DEFAULT_DEVICE_ID,
     DEFAULT_RAM_BUDGET_BYTES,
     DEFAULT_RX_WINDOW_FRAMES,
-    Device,
     DeviceConfig,
 )
 from device_runtime.errors import DeviceError, FlashError
@@ -119,7 +132,67 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", action="store_true", help="with --status: print JSON")
     parser.add_argument("--pair", metavar="KEYFILE", type=Path,
                         help="install this key into the flash folder (mode 0600) and exit")
+    show = parser.add_argument_group("display and runtime")
+    mode = show.add_mutually_exclusive_group()
+    mode.add_argument("--headless", action="store_true",
+                      help="no window: reconstruct frames and write them with --frames")
+    mode.add_argument("--display", action="store_true",
+                      help="require a window (default: a window when one can be opened, "
+                      "else headless)")
+    show.add_argument("--frames", metavar="DIR", type=Path,
+                      help="headless: write frames as PNG (frame-NNNNNN.png, frames.csv) here")
+    show.add_argument("--every", metavar="N", type=int, default=1,
+                      help="with --frames: write every N-th frame (default 1)")
+    show.add_argument("--standalone", action="store_true",
+                      help="interpolate scores locally from the image's table (no host needed; "
+                      "fit it with eigencast fit --standalone)")
+    drive = show.add_mutually_exclusive_group()
+    drive.add_argument("--orbit", metavar="SPEC", type=_orbit,
+                       help="drive the view: turn:SECONDS[:THETA[:TURNS]] (a full turn every "
+                       "SECONDS at elevation THETA, default 15, TURNS turns, default forever) "
+                       "or steps:N[:THETA[:TURNS]] (N evenly spaced views per turn, each shown "
+                       "once, default 1 turn); exits when a finite orbit is done")
+    drive.add_argument("--views", metavar="LIST", type=_views,
+                       help="show these views one after the other, then exit: "
+                       "'PHI,THETA;PHI,THETA;...' in degrees")
+    show.add_argument("--view", metavar="PHI,THETA", type=_one_view,
+                      help="initial view in degrees (default 30,15)")
+    show.add_argument("--max-frames", metavar="N", type=int,
+                      help="exit after presenting N frames")
+    show.add_argument("--request-rate", metavar="HZ", type=float, default=60.0,
+                      help="view requests per second at most (default 60; latest wins)")
+    show.add_argument("--stats", metavar="FILE", type=Path,
+                      help="write runtime statistics as JSON here (every second and at exit)")
+    show.add_argument("--screenshots", metavar="DIR", type=Path,
+                      help="where 's' saves screenshots (default: --frames DIR or '.')")
+    show.add_argument("--zoom", metavar="Z", type=float,
+                      help="initial window zoom (default: 1, or less to fit the screen)")
     return parser
+
+
+def _orbit(text: str) -> Any:
+    from device_runtime.runtime import parse_orbit
+
+    try:
+        return parse_orbit(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _views(text: str) -> Any:
+    from device_runtime.runtime import parse_view_list
+
+    try:
+        return parse_view_list(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _one_view(text: str) -> Any:
+    views = _views(text)
+    if len(views) != 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give one PHI,THETA pair")
+    return views[0]
 
 
 def paired_key_path(flash_dir: Path) -> Path:
@@ -187,24 +260,88 @@ def _config(args: argparse.Namespace) -> DeviceConfig:
     )
 
 
-def _serve(args: argparse.Namespace) -> int:
-    config = _config(args)
-    url = args.port if args.port else f"tcp-listen://{args.listen}"
-    transport = open_transport(
-        url, baud=args.baud, max_frame_bytes=config.max_frame_bytes
-    )  # a bad URL fails here, before the flash folder is touched
-    if config.insecure:
-        _log("WARNING: --insecure: ANYONE who can reach this device can install images on it "
-             "(no authentication, unsigned images accepted)")
-    elif config.key is None:
-        _log("no key: provisioning is refused (pair one with --pair KEYFILE, or --insecure)")
-    else:
-        _log(f"key fingerprint {key_fingerprint(config.key)}")
+def _presenter(args: argparse.Namespace) -> Any:
+    from device_runtime.display import HeadlessPresenter, Window, WindowUnavailable
+
+    screenshots = args.screenshots or args.frames or Path(".")
+    if args.headless or args.frames is not None:
+        return HeadlessPresenter(args.frames, every=args.every, screenshot_dir=screenshots)
     try:
-        device = Device(config, log=_log)
+        return Window((256, 256), title=f"eigencast - {args.device_id}",
+                      screenshot_dir=screenshots, zoom=args.zoom)
+    except WindowUnavailable as exc:
+        if args.display:
+            raise _UsageError(f"--display: {exc}") from None
+        _log(f"no window ({exc}); running headless (--headless --frames DIR writes frames)")
+        return HeadlessPresenter(None, screenshot_dir=screenshots)
+
+
+def _check_runtime_args(args: argparse.Namespace) -> None:
+    if args.every < 1:
+        raise _UsageError(f"--every {args.every} must be >= 1")
+    if args.frames is not None and args.display:
+        raise _UsageError("--frames writes frames headless; it cannot be combined with --display")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise _UsageError(f"--max-frames {args.max_frames} must be >= 1")
+    if not args.request_rate > 0:
+        raise _UsageError(f"--request-rate {args.request_rate} must be > 0")
+    if args.zoom is not None and not 0.125 <= args.zoom <= 8:
+        raise _UsageError(f"--zoom {args.zoom} must be within 0.125..8")
+
+
+def _write_stats(path: Path, device: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(device.stats_dict(), indent=1))
+    os.replace(tmp, path)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from device_runtime.runtime import DEFAULT_VIEW, RuntimeDevice
+
+    _check_runtime_args(args)
+    config = _config(args)
+    url = None
+    transport = None
+    if args.port or args.listen:
+        url = args.port if args.port else f"tcp-listen://{args.listen}"
+        transport = open_transport(
+            url, baud=args.baud, max_frame_bytes=config.max_frame_bytes
+        )  # a bad URL fails here, before the flash folder is touched
+        if config.insecure:
+            _log("WARNING: --insecure: ANYONE who can reach this device can install images on "
+                 "it (no authentication, unsigned images accepted)")
+        elif config.key is None:
+            _log("no key: provisioning is refused (pair one with --pair KEYFILE, or --insecure)")
+        else:
+            _log(f"key fingerprint {key_fingerprint(config.key)}")
+    presenter = None
+    device = None
+    try:
+        presenter = _presenter(args)
+        device = RuntimeDevice(
+            config,
+            presenter=presenter,
+            standalone=args.standalone,
+            view=args.view or DEFAULT_VIEW,
+            orbit=args.orbit,
+            views=args.views,
+            request_rate_hz=args.request_rate,
+            max_frames=args.max_frames,
+            log=_log,
+        )
     except BaseException:
-        transport.close()
+        if transport is not None:
+            transport.close()
+        if presenter is not None:
+            presenter.close()
         raise
+    if args.standalone and url is None and device._decoder_model is None:
+        device.close()
+        presenter.close()
+        raise _UsageError(
+            f"--standalone: no image to show in {args.flash} (provision one made with "
+            "eigencast fit --standalone, serving --port/--listen meanwhile)"
+        )
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
 
@@ -227,13 +364,41 @@ def _serve(args: argparse.Namespace) -> int:
             device.run(url, baud=args.baud, stop=stop, on_ready=ready, transport=transport)
         except BaseException as exc:  # reported by the main thread
             failure.append(exc)
+        finally:
+            stop.set()
 
-    runner = threading.Thread(target=run, name="device", daemon=True)
-    runner.start()
-    while runner.is_alive():  # the main thread stays free for signals
-        runner.join(0.2)
+    runner = None
+    if url is not None:
+        runner = threading.Thread(target=run, name="device", daemon=True)
+        runner.start()
+    stats_stop = threading.Event()
+    if args.stats is not None:
+
+        def stats_loop() -> None:
+            while not stats_stop.wait(1.0):
+                with contextlib.suppress(OSError, ValueError, RuntimeError):
+                    _write_stats(args.stats, device)
+
+        threading.Thread(target=stats_loop, name="stats", daemon=True).start()
+    try:
+        device.run_display(stop)  # the main thread: pygame wants it
+    finally:
+        stop.set()
+        stats_stop.set()
+        if runner is not None:
+            while runner.is_alive():
+                runner.join(0.2)
+        else:
+            device.close()
+        if args.stats is not None:
+            with contextlib.suppress(OSError, ValueError):
+                _write_stats(args.stats, device)
+        device.close_display()
     if failure:
         raise failure[0]
+    stats = device.runtime_stats
+    _log(f"presented {stats.frames_presented} frames ({stats.key_frames} key, "
+         f"{stats.delta_frames} delta packets decoded)")
     _log("stopped")
     return 0
 
@@ -249,8 +414,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _status(args)
         if args.json:
             raise _UsageError("--json goes with --status")
-        if not args.port and not args.listen:
-            raise _UsageError("give --port URL or --listen HOST:PORT (or --status / --pair)")
+        if not args.port and not args.listen and not args.standalone:
+            raise _UsageError("give --port URL or --listen HOST:PORT (or --standalone, --status, "
+                              "--pair)")
         return _serve(args)
     except _UsageError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)

@@ -131,8 +131,6 @@ def test_a_corrupt_flash_folder_is_one_line(tmp_path, capsys):
     assert "corrupt flash store" in _one_error_line(capsys)
 
 
-def test_the_parser_leaves_room_for_the_runtime_flags():
-    parser = build_parser()
-    parser.add_argument("--headless", action="store_true")  # what issue 5 will add
-    args = parser.parse_args(["--flash", "x", "--listen", "h:1", "--headless"])
+def test_the_parser_takes_the_runtime_flags():
+    args = build_parser().parse_args(["--flash", "x", "--listen", "h:1", "--headless"])
     assert args.headless and args.listen == "h:1"

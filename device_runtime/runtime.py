@@ -1,0 +1,1007 @@
+"""The device runtime loop: boot from flash, receive scores, reconstruct, present.
+
+:class:`RuntimeDevice` is a :class:`~device_runtime.device.Device` (it keeps answering
+HELLO, provisioning and every other request) that also shows frames. Threads::
+
+    link reader --frames--> link dispatcher --SCORES--> on_scores: decode (bounded,
+                                                        keeps delta bases)
+                                                              |
+                                                latest-wins slot (one ScoreItem)
+                                                              v
+    main thread: display loop (~60 Hz)  <-- input (window) / orbit / scripted views
+        take the newest scores -> Reconstructor.update (changed cells only) -> present
+        view changes -> VIEW_REQUEST through a rate limiter (latest wins) -> link writer
+
+* The display never waits for the link: the dispatcher decodes every packet (so delta
+  chains stay intact) and leaves only the newest in a one-item slot; the display loop
+  takes it with a short timeout and otherwise keeps polling input. Frames the display
+  could not keep up with are *coalesced* (counted), never queued.
+* Deltas: the host codes each delta against the last packet it *sent* in this session;
+  this device keeps a few recent frames as bases (``ScoreDecoder``) and, when a delta's
+  base is missing (a packet lost on a noisy line), sends KEYFRAME_REQUEST (at most one per
+  ``KEYFRAME_RETRY_S``) and keeps showing the last frame until a key frame arrives. A new
+  session (HELLO) forgets the bases and the device immediately asks for its current view.
+* Confirm: a TEST image is confirmed in flash once a frame from it has been presented (at
+  activation the runtime presents the image's first frame: the mean image, or with
+  ``standalone`` the current view); until then it reverts at the next boot.
+* Link loss: the last frame stays on screen; :meth:`Device.run` re-accepts (TCP) or reopens
+  (serial) the port with backoff, and the new session starts with a key frame.
+* Memory is flat: one frame buffer, one slot, bounded rings for statistics.
+
+Standalone (``standalone=True``): the image carries a quantized table of the training
+views' scores (section :data:`STANDALONE_SECTION`, written by ``eigencast fit
+--standalone``) and the interpolation manifest; the runtime interpolates scores locally
+(:class:`StandaloneScores`), exactly as the host's ``eigencast view`` does for that image,
+and needs no host at all.
+
+Orbits (:func:`parse_orbit`, shared with ``eigencast serve --orbit``)::
+
+    turn:SECONDS[:THETA_DEG[:TURNS]]   a full turn of phi every SECONDS at elevation
+                                       THETA_DEG (default 15), TURNS turns (default: forever)
+    steps:N[:THETA_DEG[:TURNS]]        N evenly spaced views per turn (phi = 360 i / N),
+                                       each shown once, TURNS turns (default 1)
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import math
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from device_runtime.device import Device, DeviceConfig
+from device_runtime.display import (
+    Action,
+    HeadlessPresenter,
+    Quit,
+    Screenshot,
+    ToggleOverlay,
+    ViewDelta,
+    Zoom,
+)
+from device_runtime.errors import DeviceError, FlashError
+from device_runtime.interpolation import interpolate, interpolator_from_manifest
+from device_runtime.reconstruct import Reconstructor
+from protocol import messages as m
+from protocol.errors import ImageFormatError, ProtocolError
+from protocol.framing import Frame
+from protocol.image import EigenspaceImage
+from protocol.scores import DecodedScores, ImageMismatch, MissingBase, ScoreDecoder
+
+__all__ = [
+    "DEFAULT_VIEW",
+    "KEYFRAME_RETRY_S",
+    "STANDALONE_SECTION",
+    "LatestSlot",
+    "LoadedModel",
+    "OrbitSpec",
+    "RequestLimiter",
+    "RuntimeDevice",
+    "RuntimeStats",
+    "ScoreItem",
+    "StandaloneScores",
+    "canonical_view",
+    "parse_orbit",
+    "parse_view_list",
+    "peak_rss_bytes",
+    "standalone_table",
+]
+
+STANDALONE_SECTION = "standalone_scores"
+"""Name of the image section holding the quantized training-score table (n_views, K)."""
+DEFAULT_VIEW = (30.0, 15.0)
+"""(phi_deg, theta_deg) shown first when nothing else says which view."""
+KEYFRAME_RETRY_S = 0.1
+"""Shortest time between two KEYFRAME_REQUESTs while a delta base is missing, seconds."""
+_TICK_S = 1.0 / 60.0
+_HEADLESS_TICK_S = 0.05
+_LATENCY_SAMPLES = 512
+_RATE_WINDOW_S = 1.0
+
+
+# --------------------------------------------------------------------------- views
+
+
+def canonical_view(phi_deg: float, theta_deg: float) -> tuple[float, float]:
+    """The view both sides use: phi wrapped to [0, 360), theta clipped to [-90, 90], both
+    rounded to float32 (what a score packet's header carries).
+
+    The host interpolates at exactly these values, so the view in a packet names the
+    scores it carries bit for bit.
+    """
+    phi = float(np.float32(float(phi_deg) % 360.0))
+    if phi >= 360.0:
+        phi = 0.0
+    theta = float(np.float32(min(90.0, max(-90.0, float(theta_deg)))))
+    return phi, theta
+
+
+@dataclass(frozen=True)
+class OrbitSpec:
+    """A parsed ``--orbit`` spec (see the module docstring).
+
+    Attributes
+    ----------
+    kind : {"turn", "steps"}
+    seconds_per_turn : float or None
+        ``turn`` only.
+    steps_per_turn : int or None
+        ``steps`` only.
+    theta_deg : float
+    turns : float or None
+        None: forever (``turn`` only).
+    spec : str
+        The text it was parsed from.
+    """
+
+    kind: str
+    seconds_per_turn: float | None
+    steps_per_turn: int | None
+    theta_deg: float
+    turns: float | None
+    spec: str
+
+    @property
+    def total_steps(self) -> int | None:
+        """Views of a ``steps`` orbit (None for ``turn``)."""
+        if self.kind != "steps" or self.steps_per_turn is None:
+            return None
+        return round(self.steps_per_turn * (self.turns or 1))
+
+    def start(self, now_s: float | None = None, phi0_deg: float = 0.0) -> Orbit:
+        """A running orbit from ``now_s`` (monotonic seconds), starting at ``phi0_deg``."""
+        return Orbit(self, time.monotonic() if now_s is None else now_s, phi0_deg)
+
+
+class Orbit:
+    """A running orbit: :meth:`next_view` yields its views (None when finished)."""
+
+    def __init__(self, spec: OrbitSpec, start_s: float, phi0_deg: float) -> None:
+        self.spec = spec
+        self.start_s = start_s
+        self.phi0_deg = phi0_deg
+        self.index = 0
+
+    def next_view(self, now_s: float) -> tuple[float, float] | None:
+        """The next view: for ``turn`` where the orbit is at ``now_s``, for ``steps`` the
+        next step (each once); None once the orbit is over."""
+        spec = self.spec
+        if spec.kind == "turn":
+            assert spec.seconds_per_turn is not None
+            elapsed = max(0.0, now_s - self.start_s)
+            if spec.turns is not None and elapsed >= spec.turns * spec.seconds_per_turn:
+                return None
+            phi = self.phi0_deg + 360.0 * elapsed / spec.seconds_per_turn
+        else:
+            total = spec.total_steps
+            assert total is not None and spec.steps_per_turn is not None
+            if self.index >= total:
+                return None
+            phi = self.phi0_deg + 360.0 * self.index / spec.steps_per_turn
+        self.index += 1
+        return canonical_view(phi, spec.theta_deg)
+
+
+def parse_orbit(text: str) -> OrbitSpec:
+    """Parse ``turn:SECONDS[:THETA_DEG[:TURNS]]`` or ``steps:N[:THETA_DEG[:TURNS]]``.
+
+    Raises
+    ------
+    ValueError
+        The spec does not parse; the message gives the accepted forms.
+    """
+    forms = "turn:SECONDS[:THETA_DEG[:TURNS]] or steps:N[:THETA_DEG[:TURNS]]"
+    parts = str(text).strip().split(":")
+    kind = parts[0].lower()
+    if kind not in ("turn", "steps") or not 2 <= len(parts) <= 4:
+        raise ValueError(f"orbit {text!r}: expected {forms}, e.g. turn:12:20 or steps:72:15")
+    try:
+        values = [float(p) for p in parts[1:]]
+    except ValueError:
+        raise ValueError(f"orbit {text!r}: SECONDS/N, THETA_DEG and TURNS must be numbers "
+                         f"({forms})") from None
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"orbit {text!r}: values must be finite")
+    theta = values[1] if len(values) > 1 else 15.0
+    if not -90.0 <= theta <= 90.0:
+        raise ValueError(f"orbit {text!r}: THETA_DEG={theta:g} must be within [-90, 90]")
+    turns = values[2] if len(values) > 2 else None
+    if turns is not None and not turns > 0:
+        raise ValueError(f"orbit {text!r}: TURNS={turns:g} must be > 0")
+    if kind == "turn":
+        if not values[0] > 0:
+            raise ValueError(f"orbit {text!r}: SECONDS={values[0]:g} must be > 0")
+        return OrbitSpec("turn", values[0], None, theta, turns, str(text))
+    if values[0] != int(values[0]) or not 1 <= values[0] <= 1_000_000:
+        raise ValueError(f"orbit {text!r}: N={values[0]:g} must be an integer in 1..1000000")
+    return OrbitSpec("steps", None, int(values[0]), theta, turns if turns else 1.0, str(text))
+
+
+def parse_view_list(text: str) -> list[tuple[float, float]]:
+    """Parse ``PHI,THETA;PHI,THETA;...`` (degrees) into canonical views.
+
+    Raises
+    ------
+    ValueError
+        A pair does not parse or theta is outside [-90, 90].
+    """
+    views = []
+    for item in str(text).replace(" ", "").split(";"):
+        if not item:
+            continue
+        try:
+            phi, theta = (float(v) for v in item.split(","))
+        except ValueError:
+            raise ValueError(f"views {text!r}: {item!r} is not PHI,THETA") from None
+        if not (math.isfinite(phi) and -90.0 <= theta <= 90.0):
+            raise ValueError(f"views {text!r}: {item!r}: phi must be finite and theta within "
+                             "[-90, 90]")
+        views.append(canonical_view(phi, theta))
+    if not views:
+        raise ValueError(f"views {text!r}: no PHI,THETA pair")
+    return views
+
+
+# --------------------------------------------------------------------------- slots
+
+
+class LatestSlot:
+    """A one-item mailbox between threads: :meth:`put` replaces, :meth:`take` empties.
+
+    Attributes
+    ----------
+    replaced : int
+        Items overwritten before anyone took them (coalesced).
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._item: Any = None
+        self._full = False
+        self.replaced = 0
+
+    def put(self, item: Any) -> None:
+        """Store ``item``, replacing an untaken one."""
+        with self._cond:
+            if self._full:
+                self.replaced += 1
+            self._item = item
+            self._full = True
+            self._cond.notify_all()
+
+    def take(self, timeout_s: float = 0.0) -> Any:
+        """Return the item and empty the slot; None if nothing arrives within ``timeout_s``."""
+        with self._cond:
+            if not self._full and timeout_s > 0:
+                self._cond.wait_for(lambda: self._full, timeout_s)
+            if not self._full:
+                return None
+            item, self._item, self._full = self._item, None, False
+            return item
+
+    def wake(self) -> None:
+        """Wake a waiting :meth:`take` (it returns None)."""
+        with self._cond:
+            self._cond.notify_all()
+
+
+class RequestLimiter:
+    """At most one request per ``min_interval_s``; in between, the latest offer wins.
+
+    Parameters
+    ----------
+    rate_hz : float
+        Requests per second at most (> 0).
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"RequestLimiter: rate_hz={rate_hz} must be > 0")
+        self.min_interval_s = 1.0 / rate_hz
+        self._lock = threading.Lock()
+        self._pending: Any = None
+        self._last_s = -math.inf
+        self.coalesced = 0
+
+    def offer(self, item: Any) -> None:
+        """Queue ``item`` (replacing one not sent yet); any thread."""
+        with self._lock:
+            if self._pending is not None:
+                self.coalesced += 1
+            self._pending = item
+
+    def due(self, now_s: float) -> Any:
+        """The item to send now (and forget), or None (nothing pending, or too soon)."""
+        with self._lock:
+            if self._pending is None or now_s - self._last_s < self.min_interval_s:
+                return None
+            item, self._pending = self._pending, None
+            self._last_s = now_s
+            return item
+
+    @property
+    def pending(self) -> bool:
+        """An offer waits to be sent."""
+        return self._pending is not None
+
+
+# --------------------------------------------------------------------------- model
+
+
+def standalone_table(image: EigenspaceImage) -> tuple[np.ndarray, float] | None:
+    """The image's quantized training-score table and its step, or None when it has none.
+
+    Returns
+    -------
+    (table, step) : ndarray of shape (n_views, K), int16 or int32, and float
+        Training view ``i``'s scores are ``table[i] * step`` (orthonormal coordinates).
+
+    Raises
+    ------
+    ImageFormatError
+        The section or its step is inconsistent with the image (shape, dtype, step, views).
+    """
+    table = image.sections.get(STANDALONE_SECTION)
+    if table is None:
+        return None
+    quant = image.score_quantization or {}
+    step = quant.get("table_step")
+    n_views = (image.interpolation or {}).get("n_views")
+    if table.dtype not in (np.int16, np.int32) or table.ndim != 2 or (
+        table.shape[1] != image.n_coefficients
+    ):
+        raise ImageFormatError(
+            f"image section {STANDALONE_SECTION!r}: expected int16/int32 of shape (n_views, "
+            f"K={image.n_coefficients}), got {table.dtype} {table.shape}"
+        )
+    if not isinstance(step, (int, float)) or isinstance(step, bool) or not (
+        math.isfinite(step) and step > 0
+    ):
+        raise ImageFormatError(
+            f"image manifest: score_quantization.table_step={step!r} must be a number > 0"
+        )
+    if n_views != table.shape[0]:
+        raise ImageFormatError(
+            f"image section {STANDALONE_SECTION!r} has {table.shape[0]} views, the "
+            f"interpolation manifest {n_views!r}"
+        )
+    return table, float(step)
+
+
+class StandaloneScores:
+    """Local score interpolation from the image's quantized table (a device with no host).
+
+    The computation is the host's for the same image (``HostModel.quantized_scores``):
+    interpolate the dequantized table (``float32(q) * float32(table_step)``) with the
+    manifest's interpolator, then round to the packet step. Only the ``m`` rows a query
+    needs are dequantized, so the table stays int16 in RAM.
+
+    Parameters
+    ----------
+    image : EigenspaceImage
+        With a standalone table and interpolation manifest.
+
+    Raises
+    ------
+    ImageFormatError
+        No table, or a malformed one / malformed interpolation manifest.
+    """
+
+    def __init__(self, image: EigenspaceImage) -> None:
+        found = standalone_table(image)
+        if found is None:
+            raise ImageFormatError(
+                "the image has no standalone score table (refit with eigencast fit --standalone)"
+            )
+        if image.interpolation is None:
+            raise ImageFormatError("the image has no interpolation manifest")
+        self.table, self.table_step = found
+        try:
+            self.interpolator = interpolator_from_manifest(image.interpolation)
+        except ValueError as exc:
+            raise ImageFormatError(f"image interpolation manifest: {exc}") from None
+        self.step = float((image.score_quantization or {}).get("step", 1.0))
+        self._step32 = np.float32(self.table_step)
+
+    def scores(self, phi_deg: float, theta_deg: float) -> np.ndarray:
+        """Quantized scores (K,) float32 of a view, as the host would send them."""
+        idx, w = self.interpolator.weights(phi_deg, theta_deg)
+        rows = self.table[idx].astype(np.float32) * self._step32  # (m, K)
+        y = interpolate(rows, np.arange(rows.shape[0]), w)
+        step = self.step
+        return (np.rint(y / step) * step).astype(np.float32)
+
+
+@dataclass
+class LoadedModel:
+    """An active eigenspace ready to show: reconstruction, score decoder, standalone data."""
+
+    image: EigenspaceImage
+    reconstructor: Reconstructor
+    decoder: ScoreDecoder
+    slot: str
+    generation: int
+    test: bool
+    standalone: StandaloneScores | None = None
+    confirmed: bool = False
+
+    @classmethod
+    def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
+              max_packet_bytes: int | None = None, want_standalone: bool = False
+              ) -> LoadedModel:
+        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data."""
+        standalone = StandaloneScores(image) if want_standalone else None
+        decoder = ScoreDecoder(
+            image.n_coefficients,
+            image.digest or bytes(32),
+            n_components=image.n_components,
+            max_packet_bytes=max_packet_bytes,
+        )
+        return cls(image, Reconstructor.from_image(image), decoder, slot, generation, test,
+                   standalone)
+
+    def close(self) -> None:
+        self.reconstructor.close()
+
+
+@dataclass(frozen=True)
+class ScoreItem:
+    """One decoded packet handed from the dispatcher to the display loop."""
+
+    model: LoadedModel
+    scores: DecodedScores
+    sequence: int
+    received_s: float
+
+
+# --------------------------------------------------------------------------- stats
+
+
+def peak_rss_bytes() -> int:
+    """Peak resident set size of this process, bytes (0 where unknown)."""
+    try:
+        import resource
+
+        return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+    except (ImportError, OSError):
+        return 0
+
+
+def current_rss_bytes() -> int:
+    """Resident set size of this process now, bytes (0 where unknown)."""
+    try:
+        with open("/proc/self/statm", "rb") as handle:
+            return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+class _Ema:
+    __slots__ = ("alpha", "value")
+
+    def __init__(self, alpha: float = 0.1) -> None:
+        self.alpha = alpha
+        self.value: float | None = None
+
+    def add(self, x: float) -> None:
+        self.value = x if self.value is None else self.value + self.alpha * (x - self.value)
+
+
+@dataclass
+class RuntimeStats:
+    """Counters and recent timings of the runtime (bounded; read them any time)."""
+
+    frames_presented: int = 0
+    packets: int = 0
+    packet_bytes: int = 0
+    key_frames: int = 0
+    delta_frames: int = 0
+    missing_base: int = 0
+    keyframe_requests: int = 0
+    decode_errors: int = 0
+    wrong_image: int = 0
+    dropped_no_image: int = 0
+    view_requests: int = 0
+    coalesced: int = 0
+    sessions: int = 0
+    decode_s: _Ema = field(default_factory=_Ema)
+    reconstruct_s: _Ema = field(default_factory=_Ema)
+    present_s: _Ema = field(default_factory=_Ema)
+    latencies_s: collections.deque = field(
+        default_factory=lambda: collections.deque(maxlen=_LATENCY_SAMPLES))
+    stage_samples: collections.deque = field(
+        default_factory=lambda: collections.deque(maxlen=_LATENCY_SAMPLES))
+    _present_times: collections.deque = field(default_factory=lambda: collections.deque(
+        maxlen=256))
+    _bytes_ring: collections.deque = field(default_factory=lambda: collections.deque(maxlen=64))
+
+    def fps(self, now_s: float | None = None) -> float:
+        """Frames presented per second over the last second."""
+        now_s = time.monotonic() if now_s is None else now_s
+        recent = [t for t in self._present_times if now_s - t <= _RATE_WINDOW_S]
+        if len(recent) < 2:
+            return 0.0
+        return (len(recent) - 1) / max(recent[-1] - recent[0], 1e-9)
+
+    def bytes_per_frame(self) -> float:
+        """Mean score-packet size over the last 64 packets, bytes."""
+        return float(np.mean(self._bytes_ring)) if self._bytes_ring else 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able summary (latency percentiles in milliseconds)."""
+        lat = sorted(self.latencies_s)
+
+        def pct(p: float) -> float | None:
+            return None if not lat else 1e3 * lat[min(len(lat) - 1, int(p * len(lat)))]
+
+        def ms(e: _Ema) -> float | None:
+            return None if e.value is None else 1e3 * e.value
+
+        return {
+            "frames_presented": self.frames_presented,
+            "packets": self.packets,
+            "packet_bytes": self.packet_bytes,
+            "key_frames": self.key_frames,
+            "delta_frames": self.delta_frames,
+            "missing_base": self.missing_base,
+            "keyframe_requests": self.keyframe_requests,
+            "decode_errors": self.decode_errors,
+            "wrong_image": self.wrong_image,
+            "view_requests": self.view_requests,
+            "coalesced": self.coalesced,  # frames decoded but never presented
+            "sessions": self.sessions,
+            "fps": self.fps(),
+            "bytes_per_frame": self.bytes_per_frame(),
+            "decode_ms": ms(self.decode_s),
+            "reconstruct_ms": ms(self.reconstruct_s),
+            "present_ms": ms(self.present_s),
+            "latency_ms_p50": pct(0.5),
+            "latency_ms_p90": pct(0.9),
+            "latency_samples": len(lat),
+            "rss_bytes": current_rss_bytes(),
+            "peak_rss_bytes": peak_rss_bytes(),
+        }
+
+
+# --------------------------------------------------------------------------- runtime
+
+
+class RuntimeDevice(Device):
+    """A device that shows frames: the issue-5 runtime around :class:`Device`.
+
+    Parameters
+    ----------
+    config : DeviceConfig
+    presenter : Window or HeadlessPresenter, optional
+        Default: a :class:`HeadlessPresenter` that writes nothing.
+    standalone : bool
+        Interpolate scores locally from the image's table (no host needed); SCORES from a
+        host are then ignored.
+    view : (float, float)
+        Initial ``(phi_deg, theta_deg)``.
+    orbit : OrbitSpec, optional
+        Drive the view by itself (standalone: locally; otherwise by VIEW_REQUESTs); the
+        runtime stops when a finite orbit is done and its last frame is presented.
+    views : list of (float, float), optional
+        Scripted views, shown one after another (each once its frame was presented).
+    request_rate_hz : float
+        VIEW_REQUESTs per second at most (latest wins in between).
+    max_frames : int, optional
+        Stop after presenting this many frames.
+    on_frame : callable, optional
+        ``on_frame(frame, info)`` after each present (tests, benchmarks).
+    log : callable, optional
+    """
+
+    def __init__(
+        self,
+        config: DeviceConfig,
+        *,
+        presenter: Any = None,
+        standalone: bool = False,
+        view: tuple[float, float] = DEFAULT_VIEW,
+        orbit: OrbitSpec | None = None,
+        views: Iterable[tuple[float, float]] | None = None,
+        request_rate_hz: float = 60.0,
+        max_frames: int | None = None,
+        on_frame: Callable[[np.ndarray, dict], None] | None = None,
+        log: Callable[[str], None] | None = None,
+    ) -> None:
+        self.presenter = presenter if presenter is not None else HeadlessPresenter(None)
+        self.standalone = standalone
+        self.view = canonical_view(*view)
+        self.orbit_spec = orbit
+        self._script = collections.deque(canonical_view(*v) for v in (views or ()))
+        self.limiter = RequestLimiter(request_rate_hz)
+        self.max_frames = max_frames
+        self.on_frame = on_frame
+        self.runtime_stats = RuntimeStats()
+        self._scores = LatestSlot()
+        self._models = LatestSlot()
+        self._decoder_model: LoadedModel | None = None  # dispatcher's
+        self._model: LoadedModel | None = None  # display loop's
+        self._sequence = 0
+        self._request_times: collections.OrderedDict[int, float] = collections.OrderedDict()
+        self._last_keyframe_request = -math.inf
+        self._need_key = False
+        self._wrong_image_logged = False
+        self.stop_event = threading.Event()
+        self._view_dirty = False
+        self._redraw = False
+        self._overlay_s = 0.0
+        self._last_y: np.ndarray | None = None
+        self._shown_view: tuple[Any, Any] = (None, None)
+        self._link_bytes: collections.deque = collections.deque(maxlen=64)
+        super().__init__(config, log=log)
+
+    # ------------------------------------------------------------------ boot / images
+    def boot(self) -> Any:
+        """Boot the flash store and load the active image (confirmed after its first frame)."""
+        result = self.store.boot()
+        self.log(f"boot: {result.reason}")
+        if result.ok:
+            self._activate("boot")
+        else:
+            self.log("no image to show yet: provision one (eigencast provision MODEL.ecs)")
+        return result
+
+    def on_image_committed(self) -> None:
+        """A new TEST image is active: load it; it is confirmed after its first frame."""
+        self._activate("commit")
+
+    def _activate(self, why: str, *, depth: int = 0) -> bool:
+        slot = self.store.active_slot
+        info = self.store.slots[0 if slot == "A" else 1] if slot else None
+        test = info is not None and info.state.name == "TEST"
+        try:
+            image = self.load_active_image()
+            model = LoadedModel.build(
+                image,
+                slot=slot or "?",
+                generation=info.image_generation if info else 0,
+                test=test,
+                max_packet_bytes=None,
+                want_standalone=self.standalone,
+            )
+        except (ProtocolError, DeviceError, OSError, ValueError) as exc:
+            text = " ".join(str(exc).split())[:200]
+            self.log(f"{why}: slot {slot}: the image does not load ({text})")
+            if not test:
+                return False
+            try:
+                self.store.revert()
+            except FlashError as revert_exc:
+                self.log(f"{why}: cannot revert: {revert_exc}")
+                self.notice(2, f"slot {slot}: image failed to load",
+                            {"event": "load-failed", "slot": slot or "?"})
+                return False
+            self.log(f"{why}: reverted to slot {self.store.active_slot}")
+            self.notice(2, f"slot {slot}: image failed to load; reverted",
+                        {"event": "load-failed", "slot": slot or "?"})
+            return depth == 0 and self._activate(why, depth=1)
+        self.log(f"{why}: slot {slot}: image generation {model.generation} loaded "
+                 f"({image.image_shape[1]}x{image.image_shape[0]}, K={image.n_coefficients}"
+                 f"{', test: confirmed after the first frame' if test else ''})")
+        self._decoder_model = model
+        self._models.put(model)
+        self._scores.wake()
+        return True
+
+    def _confirm(self, model: LoadedModel) -> None:
+        """Confirm ``model``'s TEST slot (on the dispatcher when a host is connected)."""
+        if not model.test or model.confirmed:
+            return
+        model.confirmed = True
+
+        def confirm() -> None:
+            if self.store.active_slot != model.slot:
+                return
+            try:
+                self.store.confirm()
+            except FlashError as exc:
+                self.log(f"confirm: {exc}")
+                return
+            self.log(f"slot {model.slot}: image generation {model.generation} shown and "
+                     "confirmed")
+            self.notice(0, f"slot {model.slot}: image confirmed",
+                        {"event": "confirmed", "slot": model.slot,
+                         "generation": model.generation})
+
+        link = self.link
+        if link is not None and not link.closed:
+            link.defer(confirm)
+        else:
+            confirm()
+
+    # ------------------------------------------------------------------ link side
+    def handle_hello(self, msg: m.Hello, frame: Frame) -> m.Message:
+        """A new session: forget delta bases, then ask the host for the current view."""
+        reply = super().handle_hello(msg, frame)
+        self.runtime_stats.sessions += 1
+        model = self._decoder_model
+        if model is not None:
+            model.decoder.reset()
+        self._need_key = False
+        if not self.standalone:
+            self.limiter.offer(self.view)  # sent by the display loop after the reply
+        return reply
+
+    def on_scores(self, msg: m.Scores) -> None:
+        """Decode a SCORES packet (every one: delta chains stay intact); keep the newest."""
+        stats = self.runtime_stats
+        stats.packets += 1
+        stats.packet_bytes += len(msg.packet)
+        model = self._decoder_model
+        if model is None or self.standalone:
+            stats.dropped_no_image += 1
+            return
+        t0 = time.perf_counter()
+        try:
+            decoded = model.decoder.decode(msg.packet)
+        except MissingBase as exc:
+            stats.missing_base += 1
+            self._need_key = True
+            self._request_keyframe(exc.base_frame)
+            return
+        except ImageMismatch as exc:
+            stats.wrong_image += 1
+            if not self._wrong_image_logged:
+                self._wrong_image_logged = True
+                self.log(f"scores for another image dropped ({exc}); provision the host's "
+                         "image")
+            return
+        except ProtocolError as exc:
+            stats.decode_errors += 1
+            self.log(f"bad score packet dropped: {' '.join(str(exc).split())[:160]}")
+            return
+        decode_s = time.perf_counter() - t0
+        stats.decode_s.add(decode_s)
+        self._need_key = False
+        if decoded.is_key:
+            stats.key_frames += 1
+        else:
+            stats.delta_frames += 1
+        stats._bytes_ring.append(decoded.packet_bytes)
+        self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
+
+    def _session_link(self) -> Any:
+        """The link when a host session is up (HELLO done), else None."""
+        link = self.link
+        if link is None or link.closed or not self.session.hello_done:
+            return None
+        return link
+
+    def _request_keyframe(self, base_frame: int | None = None) -> None:
+        now = time.monotonic()
+        if now - self._last_keyframe_request < KEYFRAME_RETRY_S:
+            return
+        link = self._session_link()
+        if link is None:
+            return
+        self._last_keyframe_request = now
+        held = self._decoder_model.decoder.base_frames if self._decoder_model else []
+        with contextlib.suppress(ProtocolError, ValueError):
+            link.send(m.KeyframeRequest(sequence=self._sequence,
+                                        last_frame=held[-1] if held else None))
+            self.runtime_stats.keyframe_requests += 1
+
+    def _send_view_request(self, view: tuple[float, float], now_s: float) -> None:
+        link = self._session_link()
+        if link is None:
+            return
+        self._sequence = (self._sequence % 0xFFFFFFFF) + 1
+        with contextlib.suppress(ProtocolError, ValueError):
+            link.send(m.ViewRequest(phi_deg=view[0], theta_deg=view[1],
+                                    sequence=self._sequence))
+            self.runtime_stats.view_requests += 1
+            self._request_times[self._sequence] = now_s
+            while len(self._request_times) > 64:
+                self._request_times.popitem(last=False)
+
+    # ------------------------------------------------------------------ display loop
+    def set_view(self, phi_deg: float, theta_deg: float) -> None:
+        """Change the view (display thread): standalone shows it, otherwise it is requested."""
+        self.view = canonical_view(phi_deg, theta_deg)
+        self._view_dirty = True
+
+    def apply(self, action: Action) -> None:
+        """Apply one input action (display thread)."""
+        if isinstance(action, ViewDelta):
+            phi, theta = self.view
+            self.set_view(phi + action.dphi_deg, max(-90.0, min(90.0, theta + action.dtheta_deg)))
+        elif isinstance(action, Zoom):
+            set_zoom = getattr(self.presenter, "set_zoom", None)
+            if set_zoom is not None:
+                set_zoom(self.presenter.zoom * action.factor)
+        elif isinstance(action, ToggleOverlay):
+            self.presenter.overlay = not self.presenter.overlay
+            self._redraw = True
+        elif isinstance(action, Screenshot):
+            path = self.presenter.screenshot()
+            if path is not None:
+                self.log(f"screenshot saved to {path}")
+        elif isinstance(action, Quit):
+            self.stop_event.set()
+
+    def overlay_lines(self) -> list[str]:
+        """The overlay's text: fps, bytes per frame, link rate, the current view."""
+        stats = self.runtime_stats
+        link = self.link
+        rate = 0.0
+        if link is not None:
+            now = time.monotonic()
+            self._link_bytes.append((now, link.stats.bytes_received))
+            old = next((s for s in self._link_bytes if now - s[0] <= 2.0), None)
+            if old is not None and now > old[0]:
+                rate = (link.stats.bytes_received - old[1]) / (now - old[0])
+        mode = "standalone" if self.standalone else ("link up" if link else "no host")
+        phi, theta = self.view
+        return [
+            f"{stats.fps():5.1f} fps   frame {stats.frames_presented}",
+            f"{stats.bytes_per_frame():6.0f} B/frame  key {stats.key_frames} "
+            f"delta {stats.delta_frames}",
+            f"link {rate / 1024:6.1f} KiB/s  ({mode})",
+            f"view phi {phi:6.1f}  theta {theta:5.1f}",
+        ]
+
+    def _present(self, model: LoadedModel, y: np.ndarray, info: dict) -> None:
+        stats = self.runtime_stats
+        t0 = time.perf_counter()
+        frame = model.reconstructor.update(y)
+        t1 = time.perf_counter()
+        overlay = self.overlay_lines() if self.presenter.overlay else None
+        self.presenter.present(frame, info, overlay_lines=overlay)
+        t2 = time.perf_counter()
+        now = time.monotonic()
+        stats.reconstruct_s.add(t1 - t0)
+        stats.present_s.add(t2 - t1)
+        stats.stage_samples.append((info.get("decode_s", 0.0), t1 - t0, t2 - t1))
+        stats.frames_presented += 1
+        stats._present_times.append(now)
+        seq = info.get("sequence", 0)
+        if seq and seq in self._request_times:
+            stats.latencies_s.append(now - self._request_times[seq])
+            while self._request_times and next(iter(self._request_times)) <= seq:
+                self._request_times.popitem(last=False)
+        self._shown_view = (info.get("phi_deg"), info.get("theta_deg"))
+        self._last_y = y
+        self._confirm(model)
+        if self.on_frame is not None:
+            self.on_frame(frame, info)
+        if self.max_frames is not None and stats.frames_presented >= self.max_frames:
+            self.stop_event.set()
+
+    def _swap_model(self, model: LoadedModel) -> None:
+        old = self._model
+        self._model = model
+        if old is not None and old is not model:
+            old.close()
+        resize = getattr(self.presenter, "set_image_shape", None)
+        if resize is not None:
+            resize(model.image.image_shape)
+        self._last_y = None
+        if model.standalone is not None:
+            y = model.standalone.scores(*self.view)
+            self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
+                                     "key": True, "frame": 0})
+        else:  # the image's own first frame (the mean), while the host is asked for the view
+            y = np.zeros(model.image.n_coefficients, dtype=np.float32)
+            self._present(model, y, {"frame": 0})
+            self.limiter.offer(self.view)
+
+    def run_display(self, stop: threading.Event | None = None) -> None:
+        """The display loop (call on the main thread); returns when stopped or finished.
+
+        Stops on ``stop`` / :attr:`stop_event`, Esc or a closed window, ``max_frames``, or
+        when a finite orbit or view script has shown its last view.
+        """
+        stop_events = [self.stop_event] + ([stop] if stop is not None else [])
+        headless = getattr(self.presenter, "headless", True)
+        tick = _HEADLESS_TICK_S if headless else _TICK_S
+        orbit = self.orbit_spec.start(phi0_deg=0.0) if self.orbit_spec else None
+        waiting_for: tuple[float, float] | None = None  # steps/script: view not shown yet
+        try:
+            while not any(e.is_set() for e in stop_events):
+                now = time.monotonic()
+                for action in self.presenter.poll():
+                    self.apply(action)
+                model = self._models.take(0.0)
+                if model is not None:
+                    self._swap_model(model)
+                model = self._model
+                # orbit / scripted views: "steps" and scripts advance once the previous
+                # view was presented, "turn" follows the clock
+                if model is not None and (orbit is not None or self._script or waiting_for):
+                    shown = waiting_for is None or self._shown_view == waiting_for
+                    if orbit is not None and orbit.spec.kind == "turn":
+                        view = orbit.next_view(now)
+                        if view is None:
+                            break
+                        if view != self.view:
+                            self.set_view(*view)
+                    elif shown:
+                        view = (orbit.next_view(now) if orbit is not None
+                                else self._script.popleft() if self._script else None)
+                        if view is None:
+                            break
+                        self.set_view(*view)
+                        waiting_for = view
+                if self._view_dirty and model is not None:
+                    self._view_dirty = False
+                    if model.standalone is not None:
+                        y = model.standalone.scores(*self.view)
+                        self._present(model, y, {"phi_deg": self.view[0],
+                                                 "theta_deg": self.view[1], "key": True})
+                    else:
+                        self.limiter.offer(self.view)
+                if not self.standalone:
+                    view = self.limiter.due(now)
+                    if view is not None:
+                        self._send_view_request(view, now)
+                    if self._need_key:
+                        self._request_keyframe()
+                wait = tick if not self.limiter.pending else min(tick,
+                                                                 self.limiter.min_interval_s)
+                item = self._scores.take(wait if model is not None else tick)
+                if item is not None and item.model is self._model:
+                    d = item.scores
+                    self._present(item.model, d.y, {
+                        "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg,
+                        "key": d.is_key, "packet_bytes": d.packet_bytes,
+                        "sequence": item.sequence, "decode_s": 0.0,
+                    })
+                elif self._redraw and self._model is not None and self._last_y is not None:
+                    self._redraw = False
+                    overlay = self.overlay_lines() if self.presenter.overlay else None
+                    self.presenter.present(self._model.reconstructor.frame, None,
+                                           overlay_lines=overlay)
+                elif (not headless and self.presenter.overlay and self._model is not None
+                      and now - self._overlay_s > 0.25):
+                    # keep the overlay's numbers fresh a few times a second
+                    self._overlay_s = now
+                    self.presenter.present(self._model.reconstructor.frame, None,
+                                           overlay_lines=self.overlay_lines())
+        finally:
+            self.stop_event.set()
+
+    def stats_dict(self) -> dict[str, Any]:
+        """Runtime statistics (:meth:`RuntimeStats.as_dict`) plus the current view and image."""
+        self.runtime_stats.coalesced = self._scores.replaced
+        out = self.runtime_stats.as_dict()
+        model = self._model
+        out["view"] = list(self.view)
+        out["standalone"] = self.standalone
+        out["image"] = None if model is None else {
+            "slot": model.slot, "generation": model.generation,
+            "shape": list(model.image.image_shape), "n_coefficients":
+            model.image.n_coefficients,
+            "eigenspace_bytes": int(model.image.eigenimages.nbytes + model.image.mean.nbytes
+                                    + model.image.scales.nbytes),
+        }
+        return out
+
+    def close_display(self) -> None:
+        """Close the presenter and the models (on the display thread, after the loop)."""
+        with contextlib.suppress(Exception):
+            self.presenter.close()
+        for model in {id(x): x for x in (self._model, self._decoder_model) if x}.values():
+            model.close()
+
+
+def make_presenter(*, headless: bool, frames_dir: Any = None, every: int = 1,
+                   screenshot_dir: Any = None, image_shape: tuple[int, int] | None = None,
+                   zoom: float | None = None) -> Any:
+    """A :class:`~device_runtime.display.Window` or a headless presenter (window raises
+    :class:`~device_runtime.display.WindowUnavailable` when none can be opened)."""
+    if headless:
+        return HeadlessPresenter(frames_dir, every=every, screenshot_dir=screenshot_dir)
+    from device_runtime.display import Window
+
+    return Window(image_shape or (256, 256), screenshot_dir=screenshot_dir or ".", zoom=zoom)

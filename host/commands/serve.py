@@ -1,0 +1,106 @@
+"""``eigencast serve MODEL.ecs --port URL [--key KEYFILE] [--orbit SPEC] ...``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import threading
+from pathlib import Path
+
+from host.errors import EigencastError
+
+HELP = "stream score packets to a device: answer its view requests, or drive an orbit"
+
+_ORBIT_HELP = (
+    "drive the view from the host instead of the device's requests: "
+    "turn:SECONDS[:THETA[:TURNS]] = a full turn of phi every SECONDS seconds at elevation "
+    "THETA degrees (default 15), TURNS turns (default: until interrupted); "
+    "steps:N[:THETA[:TURNS]] = N evenly spaced views per turn, each sent once, as fast as "
+    "--fps and the link allow (default 1 turn). Examples: turn:12:20, steps:72:15:2"
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Model, ``--port``, ``--key``, ``--orbit`` and pacing options."""
+    parser.add_argument("model", metavar="MODEL.ecs", type=Path, help="eigenspace image")
+    parser.add_argument("--port", required=True, metavar="URL",
+                        help="device port: socket://HOST:PORT (a device started with "
+                        "--listen), /dev/ttyUSB0, rfc2217://...")
+    parser.add_argument("--baud", type=int, default=115200,
+                        help="serial line rate (default 115200)")
+    parser.add_argument("--key", metavar="KEYFILE", type=Path,
+                        help="device key (needed when the device holds one)")
+    parser.add_argument("--orbit", metavar="SPEC", help=_ORBIT_HELP)
+    parser.add_argument("--fps", type=float, default=60.0,
+                        help="packets per second at most (default 60; 0: as fast as the link "
+                        "carries them)")
+    parser.add_argument("--keyframe-interval", metavar="N", type=int, default=0,
+                        help="0: delta frames, key frames only at a (re)connect or when the "
+                        "device asks (default); 1: key frames only; N: a key frame at least "
+                        "every N frames")
+    parser.add_argument("--provision", action="store_true",
+                        help="install the image first when the device lacks it")
+    parser.add_argument("--max-frames", metavar="N", type=int,
+                        help="stop after sending N packets")
+    parser.add_argument("--duration", metavar="S", type=float,
+                        help="stop after S seconds of streaming")
+    parser.add_argument("--no-reconnect", action="store_true",
+                        help="exit when the link is lost instead of reconnecting")
+    parser.add_argument("--stats-every", metavar="S", type=float, default=5.0,
+                        help="log a statistics line every S seconds (default 5; 0: never)")
+    parser.add_argument("--json", action="store_true", help="print the final statistics as JSON")
+    parser.add_argument("--quiet", action="store_true", help="no log lines")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve until interrupted, the orbit ends, or a --max-frames/--duration limit."""
+    from device_runtime.runtime import parse_orbit
+    from host.serve import serve
+    from protocol.keys import load_key
+
+    if args.baud <= 0:
+        raise EigencastError(f"--baud {args.baud}: must be positive")
+    if args.fps < 0:
+        raise EigencastError(f"--fps {args.fps}: must be >= 0")
+    if args.keyframe_interval < 0:
+        raise EigencastError(f"--keyframe-interval {args.keyframe_interval}: must be >= 0")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise EigencastError(f"--max-frames {args.max_frames}: must be >= 1")
+    if args.duration is not None and not args.duration > 0:
+        raise EigencastError(f"--duration {args.duration}: must be > 0")
+    orbit = None
+    if args.orbit is not None:
+        try:
+            orbit = parse_orbit(args.orbit)
+        except ValueError as exc:
+            raise EigencastError(f"--orbit: {exc}") from None
+    if not args.model.is_file():
+        raise EigencastError(f"{args.model}: no such eigenspace image")
+    key = load_key(args.key) if args.key is not None else None
+    quiet = args.quiet or args.json
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends serving cleanly
+            signal.signal(signum, lambda *_: stop.set())
+    stats = serve(
+        args.model,
+        args.port,
+        key=key,
+        baud=args.baud,
+        orbit=orbit,
+        fps=args.fps,
+        keyframe_interval=args.keyframe_interval,
+        provision_missing=args.provision,
+        max_frames=args.max_frames,
+        duration_s=args.duration,
+        reconnect=not args.no_reconnect,
+        stats_every_s=args.stats_every,
+        stop=stop,
+        log=(lambda line: None) if quiet else None,
+    )
+    if args.json:
+        print(json.dumps(stats.as_dict()))
+    else:
+        print(f"served {args.model} to device '{stats.device_id}': {stats.line()}")
+    return 0

@@ -1,0 +1,337 @@
+"""``eigencast demo``: render, fit, start a device process, provision it, serve it.
+
+One command on a fresh clone (``make demo``), every step cached in a work folder
+(``./demo-out`` by default) so a second run starts showing frames in seconds:
+
+1. **render** the volume (default the built-in head) from ``grid:72x9`` at 192 px with
+   300 samples per ray into ``WORK/NAME.cdb`` (an interrupted or finished render resumes or
+   skips: the Cinema writer keeps valid images);
+2. **fit** an adaptive eigenspace (cells of 16 px, T = 0.98) signed with ``WORK/device.key``
+   into ``WORK/NAME.ecs``, skipped when the model is newer than the database;
+3. start **eigencast-device** as a separate process listening on TCP loopback
+   (``tcp-listen://127.0.0.1:PORT``, printed) with its flash in ``WORK/flash``: a window
+   when a display exists, headless otherwise;
+4. **provision** it with a progress bar (skipped when it already holds the image);
+5. **serve**: with a window, the device's drags and key presses drive the view until the
+   window is closed; headless, the host drives an orbit (``steps:120:15``), the device writes
+   every 10th frame to ``WORK/frames`` and a short summary follows: frames, the device's
+   frame rate, bytes per frame beside the JPEG of equal quality (same SSIM against the
+   ray-cast) and the link rate.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from host.errors import EigencastError
+
+__all__ = [
+    "DemoSettings",
+    "display_available",
+    "equal_quality_jpeg",
+    "run_demo",
+]
+
+_LISTEN = re.compile(r"listening on tcp-listen://([^:\s]+):(\d+)")
+
+
+@dataclass(frozen=True)
+class DemoSettings:
+    """What the demo renders and fits (the defaults finish in a few minutes on 2 cores)."""
+
+    volume: str = "builtin:head"
+    views: str = "grid:72x9"
+    size: int = 192
+    samples: int = 300
+    cell: int = 16
+    threshold: float = 0.98
+    orbit: str = "steps:120:15"
+    every: int = 10
+    jpeg_views: int = 4
+
+
+def display_available() -> bool:
+    """True when a window can be opened here (DISPLAY/WAYLAND set and pygame opens it)."""
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return False
+    if os.environ.get("SDL_VIDEODRIVER", "") in ("dummy", "offscreen"):
+        return False
+    code = "import pygame; pygame.display.init(); pygame.display.set_mode((8, 8)); print('ok')"
+    try:
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=30, env=dict(os.environ, PYGAME_HIDE_SUPPORT_PROMPT="1"))
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return run.returncode == 0 and "ok" in run.stdout
+
+
+def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, float]:
+    """The smallest JPEG of ``reference`` whose SSIM against it reaches ``test``'s.
+
+    Parameters
+    ----------
+    reference : ndarray of shape (height, width, 3), uint8
+        The ray-cast.
+    test : ndarray of shape (height, width, 3), uint8
+        The device's reconstruction.
+
+    Returns
+    -------
+    dict
+        ``ssim`` of ``test`` vs ``reference``; ``jpeg_quality`` (PIL 1..95), ``jpeg_bytes``
+        and ``jpeg_ssim`` of the smallest JPEG with SSIM >= that (quality 95 if none).
+    """
+    from PIL import Image
+    from skimage.metrics import structural_similarity
+
+    def ssim(a: np.ndarray, b: np.ndarray) -> float:
+        return float(structural_similarity(a, b, data_range=255, channel_axis=-1))
+
+    target = ssim(reference, test)
+
+    def jpeg(quality: int) -> tuple[int, float]:
+        buf = io.BytesIO()
+        Image.fromarray(reference).save(buf, format="JPEG", quality=quality)
+        decoded = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
+        return len(buf.getvalue()), ssim(reference, decoded)
+
+    low, high = 1, 95
+    best = (95, *jpeg(95))
+    while low <= high:  # SSIM grows with quality (close enough to monotone for a search)
+        mid = (low + high) // 2
+        size, quality_ssim = jpeg(mid)
+        if quality_ssim >= target:
+            best = (mid, size, quality_ssim)
+            high = mid - 1
+        else:
+            low = mid + 1
+    return {"ssim": target, "jpeg_quality": best[0], "jpeg_bytes": best[1],
+            "jpeg_ssim": best[2]}
+
+
+class _DeviceProcess:
+    """``eigencast-device --listen 127.0.0.1:0`` as a child; its log goes to a file."""
+
+    def __init__(self, args: list[str], log_path: Path) -> None:
+        cmd = [sys.executable, "-m", "device_runtime.cli", "--listen", "127.0.0.1:0", *args]
+        env = dict(os.environ, PYTHONUNBUFFERED="1", PYGAME_HIDE_SUPPORT_PROMPT="1")
+        self.proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                     text=True, env=env)
+        self.log = open(log_path, "a", encoding="utf-8")  # noqa: SIM115 (closed in stop())
+        self.port: int | None = None
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.log.write(line)
+            found = _LISTEN.search(line)
+            if found:
+                self.port = int(found.group(2))
+                break
+        self.log.flush()
+        if self.port is None:
+            self.proc.wait(timeout=10)
+            raise EigencastError(f"the device process did not start (see {log_path})")
+        self._drain = threading.Thread(target=self._copy, daemon=True)
+        self._drain.start()
+
+    def _copy(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.log.write(line)
+            self.log.flush()
+
+    @property
+    def url(self) -> str:
+        return f"socket://127.0.0.1:{self.port}"
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        self._drain.join(timeout=5)
+        self.log.close()
+        return int(self.proc.returncode or 0)
+
+
+def _step(n: int, text: str) -> None:
+    print(f"[{n}/5] {text}", file=sys.stderr, flush=True)
+
+
+def run_demo(
+    work: str | os.PathLike = "demo-out",
+    *,
+    settings: DemoSettings = DemoSettings(),
+    headless: bool | None = None,
+) -> dict[str, Any]:
+    """Run the demo; return its summary (see the module docstring).
+
+    Parameters
+    ----------
+    work : path-like
+        Work folder (created; kept between runs as the cache).
+    settings : DemoSettings
+    headless : bool, optional
+        Force headless (True) or a window (False); default: a window when one can be opened.
+
+    Returns
+    -------
+    dict
+        ``model``, ``device_url``, ``provision`` outcome, serving statistics and, headless,
+        the device's statistics and the equal-quality JPEG comparison.
+    """
+    from host.cli import main as eigencast
+    from host.model import HostModel
+    from host.provision import provision
+    from host.serve import serve
+    from protocol.keys import load_key, write_key
+
+    work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    name = settings.volume.split(":", 1)[-1] if settings.volume.startswith("builtin:") else (
+        Path(settings.volume).stem or "volume")
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)
+    db = work / f"{name}.cdb"
+    model_path = work / f"{name}.ecs"
+    key_path = work / "device.key"
+    if headless is None:
+        headless = not display_available()
+
+    _step(1, f"render {settings.volume} from {settings.views} at {settings.size} px into {db} "
+             "(resumes; skipped when complete)")
+    code = eigencast(["render", settings.volume, "-o", str(db), "--views", settings.views,
+                      "--size", str(settings.size), "--samples", str(settings.samples)])
+    if code != 0:
+        raise EigencastError(f"rendering {settings.volume} failed (exit {code})")
+
+    if not key_path.exists():
+        write_key(key_path)
+    key = load_key(key_path)
+    data_csv = db / "data.csv"
+    fresh = model_path.exists() and model_path.stat().st_mtime > data_csv.stat().st_mtime and (
+        model_path.stat().st_mtime > key_path.stat().st_mtime)
+    if fresh:
+        _step(2, f"fit: {model_path} is newer than the database; kept")
+    else:
+        _step(2, f"fit an adaptive eigenspace (cells {settings.cell} px, T={settings.threshold})"
+                 f" into {model_path}")
+        code = eigencast(["fit", str(db), "-o", str(model_path), "--method", "adaptive",
+                          "--cell", str(settings.cell), "--threshold", str(settings.threshold),
+                          "--key", str(key_path)])
+        if code != 0:
+            raise EigencastError(f"fitting {db} failed (exit {code})")
+
+    frames = work / "frames"
+    stats_path = work / "device-stats.json"
+    device_args = ["--flash", str(work / "flash"), "--key", str(key_path), "--stats",
+                   str(stats_path)]
+    if headless:
+        device_args += ["--headless", "--frames", str(frames), "--every", str(settings.every)]
+    else:
+        device_args += ["--display", "--screenshots", str(work)]
+    device = _DeviceProcess(device_args, work / "device.log")
+    summary: dict[str, Any] = {"model": str(model_path), "device_url": device.url,
+                               "headless": headless}
+    try:
+        _step(3, f"device runtime started as a separate process (pid {device.proc.pid}), "
+                 f"listening on tcp-listen://127.0.0.1:{device.port}; the host connects to "
+                 f"{device.url} (log: {work / 'device.log'})")
+        _step(4, f"provision {model_path.name} on the device")
+        result = provision(model_path, device.url, key=key, show_progress=True)
+        summary["provision"] = result.outcome
+        print(f"      {result.outcome}: {result.size_bytes} bytes in slot {result.slot}",
+              file=sys.stderr)
+        model = HostModel.load(model_path, key=key)
+        if headless:
+            from device_runtime.runtime import parse_orbit
+
+            orbit = parse_orbit(settings.orbit)
+            _step(5, f"serve an orbit ({settings.orbit}); the device writes every "
+                     f"{settings.every}th frame to {frames}")
+            stats = serve(model_path, device.url, key=key, orbit=orbit, fps=0, model=model,
+                          stats_every_s=0, log=lambda line: None)
+            time.sleep(1.2)  # the device's statistics file is refreshed every second
+        else:
+            _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
+                     "s screenshot, Esc quits")
+            stop = threading.Event()
+
+            def watch() -> None:
+                device.proc.wait()
+                stop.set()
+
+            threading.Thread(target=watch, daemon=True).start()
+            stats = serve(model_path, device.url, key=key, model=model, stop=stop,
+                          stats_every_s=10.0, max_reconnects=3)
+        summary["serve"] = stats.as_dict()
+    finally:
+        device.stop()
+    if stats_path.exists():
+        summary["device"] = json.loads(stats_path.read_text())
+    if headless:
+        summary["jpeg"] = _jpeg_comparison(settings, model, summary)
+        _print_summary(summary, frames)
+    return summary
+
+
+def _jpeg_comparison(settings: DemoSettings, model: Any, summary: dict) -> dict[str, float]:
+    """Ray-cast a few orbit views; compare the delta packets with equal-SSIM JPEGs."""
+    from device_runtime.runtime import parse_orbit
+    from host.render_settings import RenderSettings, ViewRenderer
+
+    orbit = parse_orbit(settings.orbit).start(now_s=0.0)
+    views = [orbit.next_view(0.0) for _ in range(parse_orbit(settings.orbit).total_steps or 1)]
+    pick = views[:: max(1, len(views) // settings.jpeg_views)][: settings.jpeg_views]
+    record = model.render_settings
+    renderer = ViewRenderer.open(RenderSettings.from_record(record, what="demo model"), None,
+                                 None, what="demo model")
+    rows = []
+    for phi, theta in pick:
+        truth = renderer.render_rgb8(phi, theta)
+        rows.append(equal_quality_jpeg(truth, model.view(phi, theta)))
+    return {key: float(np.mean([r[key] for r in rows])) for key in rows[0]}
+
+
+def _print_summary(summary: dict, frames: Path) -> None:
+    serve_stats = summary["serve"]
+    device = summary.get("device") or {}
+    jpeg = summary.get("jpeg") or {}
+    delta = serve_stats.get("mean_delta_bytes") or serve_stats["bytes_per_frame"]
+    lines = [
+        "",
+        "demo summary",
+        f"  frames sent      {serve_stats['frames']} ({serve_stats['key_frames']} key, "
+        f"{serve_stats['delta_frames']} delta); device presented "
+        f"{device.get('frames_presented', '?')}",
+        f"  device           reconstruct {device.get('reconstruct_ms') or 0:.2f} ms/frame "
+        f"(~{1e3 / max(device.get('reconstruct_ms') or 1e9, 1e-9):.0f} fps possible), "
+        f"host sent {serve_stats['fps']:.0f} frames/s",
+        f"  bytes per frame  {serve_stats['bytes_per_frame']:.0f} (key "
+        f"{serve_stats.get('mean_key_bytes', 0):.0f}, delta {delta:.0f})",
+    ]
+    if jpeg:
+        lines.append(
+            f"  equal-quality JPEG  {jpeg['jpeg_bytes']:.0f} bytes (quality "
+            f"{jpeg['jpeg_quality']:.0f}, SSIM {jpeg['jpeg_ssim']:.3f} vs the reconstruction's "
+            f"{jpeg['ssim']:.3f} against the ray-cast): delta frames are "
+            f"{delta / max(jpeg['jpeg_bytes'], 1):.2f}x its size")
+    lines += [
+        f"  link rate        {serve_stats['link_bytes_per_s'] / 1024:.1f} KiB/s while streaming",
+        f"  frames           {frames}",
+    ]
+    print("\n".join(lines))

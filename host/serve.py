@@ -1,0 +1,504 @@
+"""Serving: answer a device's view requests with score packets (``eigencast serve``).
+
+:func:`serve` connects to a device, says HELLO (and AUTH when the device holds a key),
+checks that the device's active image is the model's (provisions it first with
+``provision_missing``, else stops with one line telling the user to provision), then
+streams one SCORES packet per view:
+
+* **Which view.** Without an orbit, the device's VIEW_REQUESTs drive it; requests that
+  arrive while a packet is still on its way are *coalesced* (only the newest is answered).
+  With an orbit (:func:`device_runtime.runtime.parse_orbit`: ``turn:SECONDS[:THETA[:TURNS]]``
+  or ``steps:N[:THETA[:TURNS]]``) the host drives the view itself, for unattended demos
+  and benchmarks.
+* **What is sent.** ``HostModel.quantized_scores`` at the canonical view (phi wrapped to
+  [0, 360), both angles rounded to float32: exactly what the packet header carries),
+  quantized at the model's score step, coded as a key or delta packet, zstd-compressed
+  (`protocol.scores.encode_scores`). The device's frame is therefore bit-identical to
+  ``eigencast view`` at the same view.
+* **Deltas.** Each delta is coded against the last packet *sent* in this session (the
+  writer hands a packet to the transport before the next one is encoded, so none is
+  replaced unsent). A device that misses a base (a packet lost on a noisy line) sends
+  KEYFRAME_REQUEST and gets a key frame; a new session (reconnect, device reboot) always
+  starts with a key frame, and its frame numbers start at a random offset so a stale base
+  from an earlier session can never match.
+* **Pacing.** At most one packet waits in the link at a time (the next is encoded when the
+  previous has left, so on a slow serial line views are coalesced instead of queued), and
+  at most ``fps`` packets per second (0: as fast as the link carries them).
+* **Link loss.** The host reconnects with exponential backoff (50 ms doubling to 2 s) and
+  carries on with a key frame; it logs frames sent, bytes per frame, the achieved frame
+  rate and the link rate every few seconds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from device_runtime.runtime import OrbitSpec, canonical_view
+from host.errors import EigencastError
+from host.model import HostModel
+from protocol import messages as m
+from protocol.errors import (
+    RemoteError,
+    TransportClosed,
+    TransportError,
+    TransportTimeout,
+)
+from protocol.link import HostSession, Link
+from protocol.scores import EncodedScores, encode_scores
+from protocol.transport import open_transport
+
+__all__ = [
+    "FrameEncoder",
+    "ServeError",
+    "ServeStats",
+    "serve",
+]
+
+_BACKOFF_S = (0.05, 2.0)
+_WAIT_S = 0.1
+_LINGER_S = 0.5
+"""After an orbit's last packet, key-frame requests are still answered until the device has
+been quiet this long (a lost last delta would otherwise never be repaired), seconds."""
+
+
+class ServeError(EigencastError):
+    """Serving cannot go on (the device lacks the image, ...): one line for the user."""
+
+
+# --------------------------------------------------------------------------- stats
+
+
+@dataclass
+class ServeStats:
+    """What :func:`serve` did (all sessions).
+
+    Attributes
+    ----------
+    frames, key_frames, delta_frames : int
+        Score packets sent.
+    packet_bytes, key_bytes, delta_bytes : int
+        Their sizes (score packets, before framing).
+    wire_bytes : int
+        Bytes the links wrote (all frames, framing included) and read.
+    requests, coalesced, keyframe_requests : int
+        VIEW_REQUESTs received, those superseded before they were answered, KEYFRAME_REQUESTs.
+    sessions, reconnects : int
+    stream_seconds : float
+        Time spent streaming (sessions, not connecting).
+    device_id : str
+    provisioned : bool
+        The image was installed first (``provision_missing``).
+    """
+
+    frames: int = 0
+    key_frames: int = 0
+    delta_frames: int = 0
+    packet_bytes: int = 0
+    key_bytes: int = 0
+    delta_bytes: int = 0
+    wire_bytes_sent: int = 0
+    wire_bytes_received: int = 0
+    requests: int = 0
+    coalesced: int = 0
+    keyframe_requests: int = 0
+    sessions: int = 0
+    reconnects: int = 0
+    stream_seconds: float = 0.0
+    device_id: str = ""
+    provisioned: bool = False
+    last_view: tuple[float, float] | None = None
+    views: list = field(default_factory=list, repr=False)
+
+    @property
+    def bytes_per_frame(self) -> float:
+        """Mean score-packet size, bytes."""
+        return self.packet_bytes / self.frames if self.frames else 0.0
+
+    @property
+    def fps(self) -> float:
+        """Frames sent per second of streaming."""
+        return self.frames / self.stream_seconds if self.stream_seconds > 0 else 0.0
+
+    @property
+    def link_bytes_per_s(self) -> float:
+        """Wire bytes sent per second of streaming."""
+        return self.wire_bytes_sent / self.stream_seconds if self.stream_seconds > 0 else 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able summary."""
+        out = {k: v for k, v in self.__dict__.items() if k != "views"}
+        out["last_view"] = list(self.last_view) if self.last_view else None
+        out.update(bytes_per_frame=self.bytes_per_frame, fps=self.fps,
+                   link_bytes_per_s=self.link_bytes_per_s,
+                   mean_key_bytes=self.key_bytes / self.key_frames if self.key_frames else 0.0,
+                   mean_delta_bytes=(self.delta_bytes / self.delta_frames
+                                     if self.delta_frames else 0.0))
+        return out
+
+    def line(self) -> str:
+        """One human line: frames, bytes per frame (key / delta), fps, link rate."""
+        key = self.key_bytes / self.key_frames if self.key_frames else 0.0
+        delta = self.delta_bytes / self.delta_frames if self.delta_frames else 0.0
+        return (f"{self.frames} frames ({self.key_frames} key, {self.delta_frames} delta), "
+                f"{self.bytes_per_frame:.0f} B/frame (key {key:.0f} B, delta {delta:.0f} B), "
+                f"{self.fps:.1f} fps, link {self.link_bytes_per_s / 1024:.1f} KiB/s")
+
+
+# --------------------------------------------------------------------------- encoding
+
+
+class FrameEncoder:
+    """Score packets of one session: frame numbers, key/delta choice, the delta base.
+
+    Parameters
+    ----------
+    model : HostModel
+    keyframe_interval : int
+        0: deltas whenever possible (key frames only at the start and when asked);
+        1: key frames only; N: at least one key frame every N frames.
+    level : int
+        zstd level of the packet payload.
+    first_frame : int, optional
+        Frame number of the first packet (default: random in 1..2**31).
+    """
+
+    def __init__(self, model: HostModel, *, keyframe_interval: int = 0, level: int = 3,
+                 first_frame: int | None = None) -> None:
+        if keyframe_interval < 0:
+            raise ValueError(f"keyframe_interval={keyframe_interval} must be >= 0")
+        self.model = model
+        self.keyframe_interval = keyframe_interval
+        self.level = level
+        self.next_frame = first_frame if first_frame is not None else (
+            1 + secrets.randbelow(1 << 31))
+        self.base: EncodedScores | None = None
+        self.last_was_key = False
+        self._since_key = 0
+
+    def reset(self) -> None:
+        """Forget the base: the next packet is a key frame."""
+        self.base = None
+
+    def encode(self, view: tuple[float, float], *, key: bool = False) -> EncodedScores:
+        """The packet for ``view`` (canonical), as a delta against the last one unless
+        ``key``, the interval or a wrap of the frame number asks for a key frame."""
+        frame = self.next_frame
+        if frame > 0xFFFFFFFF:
+            frame = 1
+            self.base = None
+        self.next_frame = frame + 1
+        interval = self.keyframe_interval
+        if interval == 1 or (interval > 1 and self._since_key + 1 >= interval):
+            key = True
+        model = self.model
+        y = model.quantized_scores(*view)
+        base = None if key else self.base
+        encoded = encode_scores(
+            y, step=model.score_step, frame=frame, view=view, image_digest=model.digest,
+            base=base, level=self.level,
+        )
+        self.last_was_key = base is None
+        self._since_key = 0 if base is None else self._since_key + 1
+        self.base = encoded
+        return encoded
+
+
+# --------------------------------------------------------------------------- events
+
+
+class _DeviceEvents:
+    """The host link's handler: newest VIEW_REQUEST, KEYFRAME_REQUESTs, NOTICEs."""
+
+    def __init__(self, stats: ServeStats, say: Callable[[str], None]) -> None:
+        self._cond = threading.Condition()
+        self.view: tuple[float, float] | None = None
+        self.sequence = 0
+        self.fresh = False
+        self.keyframe = False
+        self.stats = stats
+        self.say = say
+
+    def __call__(self, msg: m.Message, frame: Any) -> None:
+        with self._cond:
+            if isinstance(msg, m.ViewRequest):
+                self.stats.requests += 1
+                if self.fresh:
+                    self.stats.coalesced += 1
+                self.view = canonical_view(msg.phi_deg, msg.theta_deg)
+                self.sequence = msg.sequence
+                self.fresh = True
+            elif isinstance(msg, m.KeyframeRequest):
+                self.stats.keyframe_requests += 1
+                self.keyframe = True
+            elif isinstance(msg, m.Notice):
+                self.say(f"device: {msg.text}")
+            self._cond.notify_all()
+        return None
+
+    def wait(self, timeout_s: float) -> None:
+        with self._cond:
+            if not (self.fresh or self.keyframe):
+                self._cond.wait(timeout_s)
+
+    def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
+        """(view, sequence, fresh, keyframe wanted) and clear the flags."""
+        with self._cond:
+            out = (self.view, self.sequence, self.fresh, self.keyframe)
+            self.fresh = False
+            self.keyframe = False
+            return out
+
+
+# --------------------------------------------------------------------------- serve
+
+
+def _active_digest(hello: m.HelloReply) -> bytes | None:
+    for slot in hello.slots:
+        if slot.active and slot.state in (m.SlotState.TEST, m.SlotState.CONFIRMED):
+            return bytes(slot.digest)
+    return None
+
+
+def serve(
+    model_path: str | os.PathLike,
+    url: str,
+    *,
+    key: bytes | None = None,
+    baud: int = 115200,
+    orbit: OrbitSpec | None = None,
+    fps: float = 60.0,
+    keyframe_interval: int = 0,
+    provision_missing: bool = False,
+    max_frames: int | None = None,
+    duration_s: float | None = None,
+    reconnect: bool = True,
+    max_reconnects: int | None = None,
+    stop: threading.Event | None = None,
+    transport_factory: Callable[[int], Any] | None = None,
+    log: Callable[[str], None] | None = None,
+    stats_every_s: float = 5.0,
+    request_timeout_s: float = 1.0,
+    model: HostModel | None = None,
+    on_frame: Callable[[EncodedScores, tuple[float, float]], None] | None = None,
+    host_id: str = "eigencast serve",
+) -> ServeStats:
+    """Serve score packets for ``model_path`` to the device at ``url``.
+
+    Parameters
+    ----------
+    model_path : path-like
+        The ``.ecs`` (with its host annex).
+    url : str
+        The device's port: ``socket://HOST:PORT``, ``/dev/ttyUSB0``, ``mem://...``.
+    key : bytes, optional
+        Device key (needed when the device holds one; also verifies the image's tag).
+    baud : int
+        Serial line rate.
+    orbit : OrbitSpec, optional
+        Drive the view from the host (VIEW_REQUESTs are then only counted).
+    fps : float
+        Packets per second at most (0: as fast as the link carries them).
+    keyframe_interval : int
+        See :class:`FrameEncoder` (1: key frames only).
+    provision_missing : bool
+        Install the image first when the device's active image is another one.
+    max_frames, duration_s : optional
+        Stop after this many packets / seconds of streaming.
+    reconnect : bool
+        Reconnect after a lost link (with backoff); False: return.
+    max_reconnects : int, optional
+        Give up after this many failed connection attempts in a row (default: never).
+    stop : threading.Event, optional
+        Set it to end serving (the session ends with BYE).
+    transport_factory : callable, optional
+        ``factory(attempt) -> Transport`` instead of ``open_transport(url, baud=baud)``.
+    log : callable, optional
+        One line per event (default: stderr).
+    stats_every_s : float
+        Period of the statistics line (0: none).
+    model : HostModel, optional
+        Already loaded from ``model_path``.
+    on_frame : callable, optional
+        ``on_frame(encoded, view)`` after each packet is queued.
+
+    Returns
+    -------
+    ServeStats
+
+    Raises
+    ------
+    ServeError
+        The device holds another image (and ``provision_missing`` is off).
+    RemoteError, AuthenticationError
+        The device refused the session.
+    TransportError
+        The device cannot be reached (``reconnect`` off, or ``max_reconnects`` exceeded).
+    """
+    from host.provision import inspect_image, provision
+
+    say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
+    stop = stop or threading.Event()
+    if fps < 0:
+        raise ValueError(f"fps={fps} must be >= 0")
+    info = inspect_image(model_path, key=key)
+    model = model or HostModel.load(model_path, key=key)
+    factory = transport_factory or (
+        lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s)))
+    stats = ServeStats()
+    encoder = FrameEncoder(model, keyframe_interval=keyframe_interval)
+    running_orbit = orbit.start() if orbit is not None else None
+    started = time.monotonic()
+    last_stats = [started]
+    failures = 0
+    attempt = 0
+    current: list[Any] = [None, 0]  # the view being shown, its request sequence
+
+    def done() -> bool:
+        if stop.is_set():
+            return True
+        if max_frames is not None and stats.frames >= max_frames:
+            return True
+        return duration_s is not None and stats.stream_seconds >= duration_s
+
+    while not done():
+        link: Link | None = None
+        try:
+            transport = factory(attempt)
+            attempt += 1
+            events = _DeviceEvents(stats, say)
+            link = Link(transport, handler=events, owns_transport=True).start()
+            session = HostSession(link, key=key, host_id=host_id,
+                                  request_timeout_s=request_timeout_s)
+            hello = session.start()
+            stats.device_id = hello.device_id
+            if _active_digest(hello) != info.digest:
+                if not provision_missing:
+                    held = _active_digest(hello)
+                    raise ServeError(
+                        f"device '{hello.device_id}' does not hold {model_path} (active image: "
+                        f"{held.hex()[:16] + '...' if held else 'none'}); run eigencast "
+                        f"provision {model_path} --port {url} first, or pass --provision"
+                    )
+                session.bye("provisioning")
+                link.close(flush_timeout_s=0.5)
+                link = None
+                say(f"device '{hello.device_id}' lacks the image: provisioning it")
+                provision(model_path, url, baud=baud, key=key, log=say,
+                          transport_factory=transport_factory)
+                stats.provisioned = True
+                continue
+            stats.sessions += 1
+            if stats.sessions > 1:
+                stats.reconnects += 1
+            failures = 0
+            say(f"serving {Path(model_path).name} to device '{hello.device_id}' "
+                f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
+                f"{hello.display_width}x{hello.display_height} display)")
+            encoder.reset()
+            sent = threading.Event()
+            sent.set()
+            session_start = time.monotonic()
+            base_sent, base_recv = 0, 0
+            next_due = 0.0
+            linger_until: float | None = None
+            while not done():
+                now = time.monotonic()
+                stats.stream_seconds += now - session_start
+                session_start = now
+                stats.wire_bytes_sent += link.stats.bytes_sent - base_sent
+                stats.wire_bytes_received += link.stats.bytes_received - base_recv
+                base_sent, base_recv = link.stats.bytes_sent, link.stats.bytes_received
+                if link.closed:
+                    raise TransportClosed(f"{url}: link lost")
+                if stats_every_s and now - last_stats[0] >= stats_every_s:
+                    last_stats[0] = now
+                    say(stats.line())
+                # one packet in flight at most, and at most fps per second
+                if not sent.wait(_WAIT_S):
+                    continue
+                if fps > 0 and now < next_due:
+                    stop.wait(min(next_due - now, _WAIT_S))
+                    continue
+                view, sequence, fresh, want_key = events.take()
+                if running_orbit is not None and linger_until is None:
+                    view = running_orbit.next_view(now)
+                    if view is None:  # done: still answer key-frame requests a moment
+                        linger_until = now + _LINGER_S
+                        say("orbit done")
+                        continue
+                    sequence = 0
+                elif linger_until is not None:
+                    if now >= linger_until:
+                        break
+                    if not want_key or current[0] is None:
+                        events.wait(_WAIT_S)
+                        continue
+                    view, sequence = current[0], current[1]
+                    linger_until = max(linger_until, now + _LINGER_S)
+                elif not fresh:
+                    if want_key and current[0] is not None:
+                        view, sequence = current[0], current[1]
+                    else:
+                        events.wait(_WAIT_S)
+                        continue
+                current[0], current[1] = view, sequence
+                encoded = encoder.encode(view, key=want_key)
+                sent.clear()
+                link.send(m.Scores(sequence=sequence, packet=encoded.packet),
+                          after_sent=sent.set)
+                next_due = now + (1.0 / fps if fps > 0 else 0.0)
+                size = len(encoded.packet)
+                stats.frames += 1
+                stats.packet_bytes += size
+                if encoder.last_was_key:
+                    stats.key_frames += 1
+                    stats.key_bytes += size
+                else:
+                    stats.delta_frames += 1
+                    stats.delta_bytes += size
+                stats.last_view = view
+                if on_frame is not None:
+                    on_frame(encoded, view)
+            # finished: let the last packet leave, say goodbye
+            sent.wait(2.0)
+            link.wait_writer_idle(2.0)
+            session.bye("done")
+            link.close(flush_timeout_s=1.0)
+            link = None
+            break
+        except (TransportClosed, TransportTimeout, TransportError) as exc:
+            if isinstance(exc, RemoteError):
+                raise
+            if link is not None:
+                with contextlib.suppress(Exception):
+                    link.close(flush_timeout_s=0.0)
+                link = None
+            failures += 1
+            if not reconnect or (max_reconnects is not None and failures > max_reconnects):
+                if stats.sessions == 0:
+                    raise
+                say(f"link lost ({_short(exc)}); not reconnecting")
+                break
+            delay = min(_BACKOFF_S[0] * 2 ** (failures - 1), _BACKOFF_S[1])
+            say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
+            stop.wait(delay)  # reconnect backoff (a protocol timer)
+        finally:
+            if link is not None:
+                with contextlib.suppress(Exception):
+                    link.close(flush_timeout_s=0.5)
+    say(f"done: {stats.line()}")
+    return stats
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 120 else text[:117] + "..."

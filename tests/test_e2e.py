@@ -1,0 +1,245 @@
+"""End to end: host and device as separate processes over TCP loopback and a pty pair.
+
+Provision, stream an orbit, and check every frame the device wrote against ``eigencast
+view`` for the same view (identical pixels); a link cut mid-stream recovers with a key
+frame; a device killed mid-stream reboots from flash and resumes without re-provisioning;
+a standalone device with no host shows any view.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+from PIL import Image
+from provision_helpers import KEY, REPO, DeviceProcess
+from runtime_helpers import check_frames, key_file, read_frames, tiny_model, wait_until
+
+from device_runtime.runtime import parse_orbit
+from host.model import HostModel
+from host.provision import provision
+from host.serve import serve
+from protocol.transport import FdTransport, open_pty_pair
+
+CLI = [sys.executable, "-m", "host.cli"]
+DEVICE = [sys.executable, "-m", "device_runtime.cli"]
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    return tiny_model(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def model(model_path):
+    return HostModel.load(model_path)
+
+
+def _quiet(line: str) -> None:
+    pass
+
+
+def _has_view(folder, phi, theta):
+    return any(float(r["phi_deg"]) == phi and float(r["theta_deg"]) == theta
+               for r in read_frames(folder))
+
+
+def test_tcp_provision_and_orbit_frames_equal_eigencast_view(tmp_path, model_path, model):
+    frames = tmp_path / "frames"
+    keyf = key_file(model_path)
+    device = DeviceProcess(tmp_path / "flash", "--headless", "--frames", str(frames),
+                           key_file=keyf)
+    try:
+        run = subprocess.run([*CLI, "provision", str(model_path), "--port", device.url,
+                              "--key", str(keyf)], capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, run.stderr
+        assert "installed" in run.stdout and "confirmed" in run.stderr
+        run = subprocess.run([*CLI, "serve", str(model_path), "--port", device.url, "--key",
+                              str(keyf), "--orbit", "steps:12:10", "--fps", "0"],
+                             capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, run.stderr
+        assert "12 frames (1 key, 11 delta)" in run.stdout
+        wait_until(lambda: _has_view(frames, 330.0, 10.0), 20, "the orbit's last frame")
+    finally:
+        assert device.stop() == 0
+    assert check_frames(model, frames) >= 2
+    # and literally against the `eigencast view` command for one of them
+    row = read_frames(frames)[-1]
+    png = tmp_path / "view.png"
+    run = subprocess.run([*CLI, "view", str(model_path), "--phi", row["phi_deg"], "--theta",
+                          row["theta_deg"], "-o", str(png)], capture_output=True, text=True,
+                         timeout=60)
+    assert run.returncode == 0, run.stderr
+    np.testing.assert_array_equal(np.asarray(Image.open(frames / row["file"])),
+                                  np.asarray(Image.open(png)))
+
+
+def test_pty_pair_provision_and_stream(tmp_path, model_path, model):
+    frames = tmp_path / "frames"
+    pty = open_pty_pair()
+    proc = subprocess.Popen(
+        [*DEVICE, "--port", pty.slave_path, "--flash", str(tmp_path / "flash"), "--key",
+         str(key_file(model_path)), "--headless", "--frames", str(frames)],
+        cwd=REPO, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+    def master(attempt):  # a fresh descriptor per connection; the pty stays open
+        return FdTransport(os.dup(pty.master_fd), url=f"pty:{pty.slave_path}",
+                           max_frame_bytes=4096)
+
+    try:
+        result = provision(model_path, pty.slave_path, key=KEY, show_progress=False,
+                           log=_quiet, transport_factory=master)
+        assert result.outcome == "installed" and result.confirmed
+        stats = serve(model_path, pty.slave_path, key=KEY, orbit=parse_orbit("steps:10:-20"),
+                      fps=0, log=_quiet, transport_factory=master)
+        assert stats.frames == 10
+        wait_until(lambda: _has_view(frames, 324.0, -20.0), 20, "the orbit's last frame")
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=20)
+        pty.close()
+    assert proc.returncode == 0, err
+    assert check_frames(model, frames) >= 2
+
+
+class CuttingProxy:
+    """TCP proxy 127.0.0.1:port -> the device; :meth:`cut` drops the current connection."""
+
+    def __init__(self, target_port: int):
+        self.target = ("127.0.0.1", target_port)
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.pairs: list[tuple[socket.socket, socket.socket]] = []
+        self.accepted = 0
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while True:
+            try:
+                client, _ = self.server.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(self.target)
+            self.pairs.append((client, upstream))
+            self.accepted += 1
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(src, dst):
+        try:
+            while data := src.recv(65536):
+                dst.sendall(data)
+        except OSError:
+            pass
+        for s in (src, dst):
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)
+
+    def cut(self):
+        for client, upstream in self.pairs:
+            for s in (client, upstream):
+                with contextlib.suppress(OSError):
+                    s.shutdown(socket.SHUT_RDWR)
+                s.close()
+        self.pairs.clear()
+
+    def close(self):
+        self.cut()
+        self.server.close()
+
+
+def _provisioned_process(tmp_path, model_path, frames):
+    device = DeviceProcess(tmp_path / "flash", "--headless", "--frames", str(frames),
+                           key_file=key_file(model_path))
+    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    return device
+
+
+def test_link_cut_mid_stream_recovers_with_a_key_frame(tmp_path, model_path, model):
+    frames = tmp_path / "frames"
+    device = _provisioned_process(tmp_path, model_path, frames)
+    proxy = CuttingProxy(device.port)
+    cut_done = threading.Event()
+
+    def on_frame(encoded, view):
+        if stats_box.get("n", 0) == 15 and not cut_done.is_set():
+            cut_done.set()
+            proxy.cut()
+        stats_box["n"] = stats_box.get("n", 0) + 1
+
+    stats_box: dict = {}
+    try:
+        stats = serve(model_path, f"socket://127.0.0.1:{proxy.port}", key=KEY,
+                      orbit=parse_orbit("steps:40:30"), fps=40, log=_quiet, on_frame=on_frame)
+        wait_until(lambda: _has_view(frames, 351.0, 30.0), 20, "the orbit's last frame")
+    finally:
+        proxy.close()
+        device.stop()
+    assert cut_done.is_set() and stats.sessions == 2 and stats.reconnects == 1
+    assert proxy.accepted == 2
+    rows = read_frames(frames)
+    keys = [r for r in rows if r["key"] == "1"]
+    assert len(keys) >= 2  # the stream resumed with a key frame after the cut
+    assert rows.index(keys[-1]) > 0
+    assert check_frames(model, frames, rows) >= 5
+
+
+def test_device_restarted_mid_stream_boots_from_flash_and_resumes(tmp_path, model_path, model):
+    frames = tmp_path / "frames"
+    device = _provisioned_process(tmp_path, model_path, frames)
+    port = device.port
+    frames2 = tmp_path / "frames2"
+    restarted = {}
+
+    def on_frame(encoded, view):
+        count = restarted.setdefault("n", 0)
+        restarted["n"] = count + 1
+        if count == 10:  # power cut: SIGKILL, then start again on the same port and flash
+            device.kill()
+            restarted["device"] = DeviceProcess(tmp_path / "flash", "--headless", "--frames",
+                                                str(frames2), port=port,
+                                                key_file=key_file(model_path))
+
+    try:
+        stats = serve(model_path, f"socket://127.0.0.1:{port}", key=KEY,
+                      orbit=parse_orbit("steps:36:-5"), fps=30, log=_quiet, on_frame=on_frame)
+        wait_until(lambda: _has_view(frames2, 350.0, -5.0), 20, "the orbit's last frame")
+    finally:
+        device.stop()
+        second = restarted.get("device")
+        if second is not None:
+            second.stop()
+    assert second is not None and not stats.provisioned and stats.sessions == 2
+    log = "\n".join(second.lines)
+    assert "boot: slot A: confirmed image" in log and "image begin" not in log
+    rows = read_frames(frames2)
+    assert rows and rows[0]["key"] == "1"
+    assert check_frames(model, frames2, rows) >= 3
+
+
+def test_standalone_device_shows_views_with_no_host(tmp_path, model_path, model):
+    frames = tmp_path / "frames"
+    device = _provisioned_process(tmp_path, model_path, tmp_path / "unused")
+    device.stop()
+    views = "12.5,3;100,-44;250,60;359,0"
+    run = subprocess.run([*DEVICE, "--standalone", "--flash", str(tmp_path / "flash"), "--key",
+                          str(key_file(model_path)), "--headless", "--frames", str(frames),
+                          "--views", views], capture_output=True, text=True, timeout=60,
+                         cwd=REPO)
+    assert run.returncode == 0, run.stderr
+    rows = read_frames(frames)
+    assert [(float(r["phi_deg"]), float(r["theta_deg"])) for r in rows[1:]] == [
+        (12.5, 3.0), (100.0, -44.0), (250.0, 60.0), (359.0, 0.0)]
+    assert check_frames(model, frames, rows) == 5
+    run = subprocess.run([*DEVICE, "--standalone", "--flash", str(tmp_path / "empty"),
+                          "--headless"], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert run.returncode == 1 and "no image" in run.stderr
+    assert len(run.stderr.strip().splitlines()) <= 3 and "Traceback" not in run.stderr

@@ -1,0 +1,266 @@
+"""The device runtime: orbits, latest-wins slots, confirm-after-frame, deltas, memory."""
+
+from __future__ import annotations
+
+import threading
+import tracemalloc
+
+import numpy as np
+import pytest
+from provision_helpers import KEY, mem_name
+from runtime_helpers import RuntimeThread, tiny_model, wait_until
+
+from device_runtime.device import DeviceConfig
+from device_runtime.display import HeadlessPresenter, ViewDelta
+from device_runtime.runtime import (
+    STANDALONE_SECTION,
+    LatestSlot,
+    RequestLimiter,
+    RuntimeDevice,
+    StandaloneScores,
+    canonical_view,
+    parse_orbit,
+    parse_view_list,
+    standalone_table,
+)
+from host.model import HostModel
+from host.provision import provision
+from protocol import messages as m
+from protocol.errors import ImageFormatError
+from protocol.image import read_image
+from protocol.scores import encode_scores
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    return tiny_model(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def model(model_path):
+    return HostModel.load(model_path)
+
+
+def test_parse_orbit_forms_and_errors():
+    turn = parse_orbit("turn:12:20:2")
+    assert (turn.kind, turn.seconds_per_turn, turn.theta_deg, turn.turns) == ("turn", 12, 20, 2)
+    assert parse_orbit("turn:5").turns is None and parse_orbit("turn:5").theta_deg == 15.0
+    steps = parse_orbit("steps:4:-30")
+    orbit = steps.start(now_s=0.0)
+    views = [orbit.next_view(0.0) for _ in range(5)]
+    assert views == [(0.0, -30.0), (90.0, -30.0), (180.0, -30.0), (270.0, -30.0), None]
+    assert parse_orbit("steps:3:0:2").total_steps == 6
+    running = turn.start(now_s=100.0)
+    assert running.next_view(103.0) == (90.0, 20.0)  # a quarter of 12 s
+    assert running.next_view(100.0 + 24.0) is None  # two turns done
+    for bad, text in [("spin:3", "turn:SECONDS"), ("turn:0", "SECONDS=0"),
+                      ("steps:2.5", "integer"), ("steps:4:95", "THETA_DEG=95"),
+                      ("turn:3:10:-1", "TURNS=-1"), ("steps:x", "numbers"), ("turn", "expected")]:
+        with pytest.raises(ValueError, match=text):
+            parse_orbit(bad)
+
+
+def test_views_are_canonical_float32_wrapped():
+    phi, theta = canonical_view(-30.1, 95.0)
+    assert phi == float(np.float32(329.9)) and theta == 90.0
+    assert canonical_view(720.0, 0.0) == (0.0, 0.0)
+    assert canonical_view(359.99999999, 0.0)[0] < 360.0
+    assert parse_view_list("10,5; 370,-5") == [(10.0, 5.0), (10.0, -5.0)]
+    for bad in ("10", "10,100", "a,b", ""):
+        with pytest.raises(ValueError):
+            parse_view_list(bad)
+
+
+def test_latest_slot_and_request_limiter_keep_only_the_newest():
+    slot = LatestSlot()
+    assert slot.take(0.0) is None
+    for i in range(5):
+        slot.put(i)
+    assert slot.take(0.0) == 4 and slot.replaced == 4 and slot.take(0.01) is None
+    limiter = RequestLimiter(10.0)  # one per 0.1 s
+    limiter.offer("a")
+    assert limiter.due(0.0) == "a" and limiter.due(0.01) is None
+    limiter.offer("b")
+    limiter.offer("c")
+    assert limiter.due(0.05) is None  # too soon
+    assert limiter.due(0.11) == "c" and limiter.coalesced == 1 and not limiter.pending
+
+
+class FakeLink:
+    """Captures what the runtime sends; looks like an open link with a session."""
+
+    closed = False
+
+    def __init__(self):
+        self.sent = []
+
+    def send(self, msg, **kwargs):
+        self.sent.append(msg)
+
+    def defer(self, task):
+        task()
+
+
+def _device(tmp_path, model_path, **kwargs):
+    """A RuntimeDevice with the tiny model provisioned (confirmed) and a fake link."""
+    name = mem_name("rt")
+    with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0"):
+        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+                  log=lambda line: None)
+    presenter = kwargs.pop("presenter", None) or HeadlessPresenter(None)
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
+                           presenter=presenter, log=lambda line: None, **kwargs)
+    device.link = FakeLink()
+    device.session.device_nonce = bytes(16)  # as after HELLO
+    return device
+
+
+def test_a_test_image_is_confirmed_only_once_a_frame_was_shown(tmp_path, model_path):
+    name = mem_name("confirm")
+    # a device whose display loop does not run: provisioning commits a TEST image ...
+    rt = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", display=False)
+    try:
+        result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                           show_progress=False, log=lambda line: None, confirm_timeout_s=0.3)
+        assert result.outcome == "installed" and result.confirmed is None
+        assert rt.device.store.slots[0].state.name == "TEST"
+        # ... which the first presented frame confirms
+        frames = []
+        rt.device.on_frame = lambda frame, info: frames.append(frame.copy())
+        rt.device.max_frames = 1
+        rt.device.run_display()
+        assert len(frames) == 1
+        wait_until(lambda: rt.device.store.slots[0].state.name == "CONFIRMED", 5, "confirm")
+        # the first frame of an image is its mean (no scores yet)
+        image = read_image(model_path)
+        mean = np.zeros(image.n_coefficients, np.float32)
+        np.testing.assert_array_equal(frames[0], HostModel.load(model_path).reconstruct(mean))
+    finally:
+        rt.stop()
+
+
+def test_packets_are_decoded_in_order_and_only_the_newest_is_shown(tmp_path, model_path, model):
+    shown = []
+    device = _device(tmp_path, model_path, max_frames=2,
+                     on_frame=lambda frame, info: shown.append((info.get("frame"), frame.copy())))
+    base = None
+    for i, phi in enumerate((10.0, 11.0, 12.0, 13.0)):
+        view = canonical_view(phi, 0.0)
+        base = encode_scores(model.quantized_scores(*view), step=model.score_step, frame=50 + i,
+                             view=view, image_digest=model.digest, base=base)
+        device.on_scores(m.Scores(sequence=0, packet=base.packet))  # display not running
+    device.run_display()  # shows the mean, then the newest packet only
+    assert [f for f, _ in shown] == [0, 53]
+    np.testing.assert_array_equal(shown[1][1], model.view(13.0, 0.0))
+    stats = device.stats_dict()
+    assert stats["key_frames"] == 1 and stats["delta_frames"] == 3 and stats["coalesced"] == 3
+    device.close_display()
+    device.close()
+
+
+def test_a_delta_without_its_base_asks_for_a_key_frame(tmp_path, model_path, model):
+    device = _device(tmp_path, model_path)
+    view = canonical_view(40.0, 10.0)
+    key = encode_scores(model.quantized_scores(*view), step=model.score_step, frame=7,
+                        view=view, image_digest=model.digest)
+    lost = encode_scores(model.quantized_scores(41.0, 10.0), step=model.score_step, frame=8,
+                         view=(41.0, 10.0), image_digest=model.digest, base=key)
+    orphan = encode_scores(model.quantized_scores(42.0, 10.0), step=model.score_step, frame=9,
+                           view=(42.0, 10.0), image_digest=model.digest, base=lost)
+    device.on_scores(m.Scores(sequence=0, packet=key.packet))
+    device.on_scores(m.Scores(sequence=0, packet=orphan.packet))  # frame 8 never arrived
+    requests = [msg for msg in device.link.sent if isinstance(msg, m.KeyframeRequest)]
+    assert len(requests) == 1 and requests[0].last_frame == 7
+    assert device.runtime_stats.missing_base == 1
+    # a new session forgets every base: a delta against frame 7 is refused now
+    device.handle_hello(m.Hello(min_version=1, max_version=1, nonce=bytes(16)), None)
+    device._last_keyframe_request = -1e9
+    again = encode_scores(model.quantized_scores(43.0, 10.0), step=model.score_step, frame=10,
+                          view=(43.0, 10.0), image_digest=model.digest, base=key)
+    device.on_scores(m.Scores(sequence=0, packet=again.packet))
+    assert device.runtime_stats.missing_base == 2
+    other = encode_scores(model.quantized_scores(*view), step=model.score_step, frame=11,
+                          view=view, image_digest=bytes(32))
+    device.on_scores(m.Scores(sequence=0, packet=other.packet))  # another image's packet
+    assert device.runtime_stats.wrong_image == 1
+    device.close_display()
+    device.close()
+
+
+def test_input_becomes_rate_limited_view_requests(tmp_path, model_path):
+    device = _device(tmp_path, model_path, view=(350.0, 85.0), request_rate_hz=5.0,
+                     max_frames=1)
+    device.run_display()  # shows the mean and requests the initial view
+    first = [msg for msg in device.link.sent if isinstance(msg, m.ViewRequest)]
+    assert [(r.phi_deg, r.theta_deg) for r in first] == [(350.0, 85.0)]
+    device.link.sent.clear()
+    for _ in range(4):  # a drag within one request interval: only the newest view is sent
+        device.apply(ViewDelta(5.0, 5.0))
+    device.max_frames = None
+    device.stop_event.clear()
+    timer = threading.Timer(0.5, device.stop_event.set)
+    timer.start()
+    device.run_display()
+    sent = [msg for msg in device.link.sent if isinstance(msg, m.ViewRequest)]
+    assert [(r.phi_deg, r.theta_deg) for r in sent] == [(10.0, 90.0)]  # wrapped and clamped
+    assert sent[0].sequence == first[0].sequence + 1
+    device.close_display()
+    device.close()
+
+
+def test_standalone_scores_match_the_host_and_bad_tables_are_refused(model_path, model):
+    image = read_image(model_path)
+    standalone = StandaloneScores(image)
+    for view in [(0.0, 0.0), (33.3, 12.0), (359.0, -40.0), (181.0, 89.0)]:
+        view = canonical_view(*view)
+        np.testing.assert_array_equal(standalone.scores(*view), model.quantized_scores(*view))
+    table, step = standalone_table(image)
+    assert table.dtype == np.int16 and step == model.score_step
+    image.sections[STANDALONE_SECTION] = table.astype(np.float32)
+    with pytest.raises(ImageFormatError, match="int16/int32"):
+        standalone_table(image)
+    image.sections[STANDALONE_SECTION] = table[:, :-1]
+    with pytest.raises(ImageFormatError, match="shape"):
+        standalone_table(image)
+    image.sections[STANDALONE_SECTION] = table
+    image.score_quantization = {"step": 1.0, "table_step": -1}
+    with pytest.raises(ImageFormatError, match="table_step"):
+        standalone_table(image)
+    del image.sections[STANDALONE_SECTION]
+    with pytest.raises(ImageFormatError, match="fit --standalone"):
+        StandaloneScores(image)
+
+
+def test_memory_stays_flat_over_many_frames(tmp_path, model_path, model):
+    device = _device(tmp_path, model_path)
+    device._models.take(0.0)
+    loaded = device._decoder_model
+    device._model = loaded
+    packets = []
+    base = None
+    for i in range(50):
+        view = canonical_view(7.2 * i, 10.0)
+        base = encode_scores(model.quantized_scores(*view), step=model.score_step, frame=i + 1,
+                             view=view, image_digest=model.digest, base=base)
+        packets.append(base.packet)
+
+    def run(n, start):
+        for k in range(n):
+            device.on_scores(m.Scores(sequence=0, packet=packets[(start + k) % 50]))
+            item = device._scores.take(0.0)
+            device._present(item.model, item.scores.y, {"frame": item.scores.frame,
+                                                        "sequence": start + k + 1})
+            device._request_times[start + k + 2] = 0.0  # as if a request were outstanding
+
+    run(300, 0)  # warm up (caches, rings fill)
+    tracemalloc.start()
+    before = tracemalloc.take_snapshot()
+    run(2000, 300)
+    after = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    grown = sum(s.size_diff for s in after.compare_to(before, "filename"))
+    assert grown < 64 * 1024, f"grew {grown} bytes over 2000 frames"
+    assert len(device._request_times) <= 64
+    assert device.runtime_stats.frames_presented == 2300
+    device.close_display()
+    device.close()

@@ -1,0 +1,144 @@
+"""A real window under Xvfb: input injected with xdotool, screenshots checked against
+``eigencast view``, and the X server's own framebuffer checked too.
+
+Needs Debian's ``xvfb`` and ``xdotool`` (``make xvfb`` installs them, as root); skipped with
+that reason when they are absent.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from provision_helpers import REPO, DeviceProcess
+from runtime_helpers import key_file, tiny_model, wait_until
+
+from host.model import HostModel
+from host.provision import provision
+
+pytestmark = pytest.mark.skipif(
+    shutil.which("Xvfb") is None or shutil.which("xdotool") is None,
+    reason="Xvfb and xdotool are not installed (make xvfb installs them; needs root)",
+)
+
+
+def _free_display() -> int:
+    for n in range(91, 200):
+        if not Path(f"/tmp/.X{n}-lock").exists() and not Path(f"/tmp/.X11-unix/X{n}").exists():
+            return n
+    pytest.skip("no free X display number in :91..:199")
+
+
+@pytest.fixture
+def xvfb(tmp_path):
+    n = _free_display()
+    fbdir = tmp_path / "fb"
+    fbdir.mkdir()
+    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "320x240x24", "-fbdir",
+                             str(fbdir), "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        wait_until(lambda: Path(f"/tmp/.X11-unix/X{n}").exists() or proc.poll() is not None,
+                   20, "Xvfb to start")
+        if proc.poll() is not None:
+            pytest.skip(f"Xvfb did not start: {proc.stderr.read().decode()[-200:]}")
+        yield f":{n}", fbdir / "Xvfb_screen0"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def _xdotool(display, *args) -> str:
+    run = subprocess.run(["xdotool", *args], capture_output=True, text=True, timeout=20,
+                         env=dict(os.environ, DISPLAY=display))
+    return run.stdout.strip()
+
+
+def _find_window(display: str, title: str) -> str:
+    """Id of a window whose name starts with ``title`` ("" if none yet).
+
+    (``xdotool search --name`` misses windows that no window manager has managed; a search by
+    class finds every window, and its name is then checked.)
+    """
+    for wid in _xdotool(display, "search", "--class", ".").split():
+        if _xdotool(display, "getwindowname", wid).startswith(title):
+            return wid
+    return ""
+
+
+def read_xwd(path: Path) -> np.ndarray:
+    """The X screen as uint8 (height, width, 3) from Xvfb's -fbdir XWD file (24/32 bpp)."""
+    data = path.read_bytes()
+    fields = struct.unpack(">25I", data[:100])
+    header_size, width, height = fields[0], fields[4], fields[5]
+    byte_order, bits_per_pixel, bytes_per_line, ncolors = (fields[7], fields[11], fields[12],
+                                                           fields[19])
+    assert bits_per_pixel == 32, bits_per_pixel
+    start = header_size + 12 * ncolors
+    raw = np.frombuffer(data, np.uint8, count=height * bytes_per_line, offset=start)
+    pixels = raw.reshape(height, bytes_per_line)[:, : 4 * width].reshape(height, width, 4)
+    return pixels[..., [2, 1, 0]] if byte_order == 0 else pixels[..., [1, 2, 3]]
+
+
+def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_path_factory,
+                                                                    xvfb):
+    display, screen = xvfb
+    model_path = tiny_model(tmp_path_factory)
+    model = HostModel.load(model_path)
+    device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
+    provision(model_path, device.url, key=bytes(range(32)), show_progress=False,
+              log=lambda line: None)
+    device.stop()
+    shots = tmp_path / "shots"
+    env = dict(os.environ, DISPLAY=display, SDL_VIDEODRIVER="x11",
+               SDL_VIDEO_WINDOW_POS="0,0", PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "device_runtime.cli", "--standalone", "--display", "--flash",
+         str(tmp_path / "flash"), "--key", str(key_file(model_path)), "--view", "30,15",
+         "--screenshots", str(shots)],
+        cwd=REPO, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        wid = ""
+        deadline = time.monotonic() + 30
+        while not wid and time.monotonic() < deadline and proc.poll() is None:
+            wid = _find_window(display, "eigencast")
+            time.sleep(0.1)
+        assert wid, f"no window appeared: {proc.poll()} {proc.stderr.read() if proc.poll() else ''}"
+        _xdotool(display, "windowfocus", "--sync", wid)
+
+        def shot(n: int) -> np.ndarray:
+            _xdotool(display, "key", "--window", wid, "s")
+            path = shots / f"screenshot-{n:04d}.png"
+            wait_until(path.exists, 10, f"{path.name}")
+            return np.asarray(Image.open(path))
+
+        np.testing.assert_array_equal(shot(1), model.view(30.0, 15.0))
+        _xdotool(display, "key", "--window", wid, "Left")  # phi + 5
+        np.testing.assert_array_equal(shot(2), model.view(35.0, 15.0))
+        # drag 20 px to the right with the left button: phi - 10
+        _xdotool(display, "mousemove", "--window", wid, "10", "20")
+        _xdotool(display, "mousedown", "1")
+        for x in (15, 20, 25, 30):
+            _xdotool(display, "mousemove", "--window", wid, str(x), "20")
+            time.sleep(0.05)
+        _xdotool(display, "mouseup", "1")
+        want = model.view(25.0, 15.0)
+        np.testing.assert_array_equal(shot(3), want)
+        # what the X server itself shows at the window's place
+        h, w = want.shape[:2]
+        wait_until(lambda: np.array_equal(read_xwd(screen)[:h, :w], want), 10,
+                   "the X framebuffer to show the frame")
+        _xdotool(display, "key", "--window", wid, "Escape")
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
