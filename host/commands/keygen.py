@@ -7,7 +7,7 @@ import json
 
 from protocol.keys import key_fingerprint, write_key
 
-HELP = "Create a device key file (32 random bytes, hex, mode 0600) for signing images."
+HELP = "create a device key file (32 random bytes, hex, mode 0600) for signing images"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -10,7 +10,7 @@ from host.provision import provision
 from protocol.keys import load_key
 from protocol.link import RETRANSMIT_STRATEGIES
 
-HELP = "Install an eigenspace image on a device (resumable, verified, authenticated)."
+HELP = "install an eigenspace image on a device (resumable, verified, authenticated)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
