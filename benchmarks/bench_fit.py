@@ -22,7 +22,7 @@ a volume rendering's; the black corners give zero-variance cells.
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_fit.py [--sizes 300,512] [--big] [--views 1500]
+    .venv/bin/python benchmarks/bench_fit.py [--sizes 300,512] [--big] [--views 1500] [--quick]
         [--method adaptive] [--cell 30] [--threshold 0.98] [--components 100]
         [--db DB.cdb] [--workdir DIR] [--json]
 """
@@ -242,11 +242,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", type=Path, help="where the stacks go (default: a temp dir)")
     ap.add_argument("--keep", action="store_true", help="keep the stack files")
     ap.add_argument("--json", action="store_true", help="print one JSON object at the end")
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run: 128x128, 300 views (overrides --sizes/--views/--big)")
     ap.add_argument("--child-fit", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child_fit:
         child_fit(args)
         return 0
+    if args.quick:
+        args.sizes, args.views, args.big = "128", 300, False
 
     sizes = [int(s) for s in args.sizes.split(",") if s]
     if args.big:

@@ -17,7 +17,7 @@ and the ratios frame / floor (target <= 3 at 1080) and frame / JPEG decode.
 Targets (issue 3): 512x512 >= 100 fps, 1080x1080 >= 30 fps on 2 cores.
 
 Run: ``.venv/bin/python benchmarks/bench_reconstruct.py [--sizes 256,512,1080] [--frames 30]``
-(``--json`` prints one JSON object per size).
+(``--json`` prints one JSON object per size; ``--quick``: 256 and 512, 5 frames).
 """
 
 from __future__ import annotations
@@ -120,7 +120,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--scratch-bytes", type=int, default=DEFAULT_SCRATCH_BYTES)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 256 and 512, 5 frames")
     args = parser.parse_args()
+    if args.quick:
+        args.sizes, args.frames = "256,512", 5
     for size in (int(s) for s in args.sizes.split(",")):
         space = make_eigenspace(size)
         e = space["eigenimages"]

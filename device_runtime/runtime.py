@@ -78,6 +78,7 @@ from protocol.scores import DecodedScores, ImageMismatch, MissingBase, ScoreDeco
 __all__ = [
     "DEFAULT_VIEW",
     "KEYFRAME_RETRY_S",
+    "STANDALONE_DELTA_SECTION",
     "STANDALONE_SECTION",
     "LatestSlot",
     "LoadedModel",
@@ -91,10 +92,19 @@ __all__ = [
     "parse_orbit",
     "parse_view_list",
     "peak_rss_bytes",
+    "standalone_order",
     "standalone_table",
 ]
 
 STANDALONE_SECTION = "standalone_scores"
+#: The same table stored smaller (``fit --standalone`` since issue 6): uint8 of shape
+#: (K, 2, n_views). Per component, the views are taken in `standalone_order` (theta rings,
+#: phi ascending: neighbours on the paper's grid are 3.6 degrees apart), each value minus the
+#: previous one as int16 (wrapping), zigzag-mapped to uint16 and split into a plane of low
+#: bytes and a plane of high bytes (zstd packs the planes far better than interleaved int16).
+#: `standalone_table` restores the int16 table in place when the image is loaded.
+STANDALONE_DELTA_SECTION = "standalone_scores_delta"
+_DELTA_BLOCK_ROWS = 256
 """Name of the image section holding the quantized training-score table (n_views, K)."""
 DEFAULT_VIEW = (30.0, 15.0)
 """(phi_deg, theta_deg) shown first when nothing else says which view."""
@@ -347,7 +357,17 @@ def standalone_table(image: EigenspaceImage) -> tuple[np.ndarray, float] | None:
     ------
     ImageFormatError
         The section or its step is inconsistent with the image (shape, dtype, step, views).
+
+    Notes
+    -----
+    An image written with the delta-coded table (:data:`STANDALONE_DELTA_SECTION`) is decoded
+    here once, in place, a block of components at a time (no second table is allocated), and
+    the section is replaced in ``image.sections`` by the int16 table itself under
+    :data:`STANDALONE_SECTION` (a transposed view of the same memory).
     """
+    coded = image.sections.get(STANDALONE_DELTA_SECTION)
+    if coded is not None:
+        _decode_delta_table(image, coded)
     table = image.sections.get(STANDALONE_SECTION)
     if table is None:
         return None
@@ -373,6 +393,63 @@ def standalone_table(image: EigenspaceImage) -> tuple[np.ndarray, float] | None:
             f"interpolation manifest {n_views!r}"
         )
     return table, float(step)
+
+
+def standalone_order(image: EigenspaceImage, n_views: int) -> np.ndarray:
+    """The order in which a delta-coded table runs through the training views.
+
+    ``np.lexsort((phi mod 360, theta))`` of the manifest's ``views``: theta rings from the
+    bottom up, phi ascending within each (the writer and the device compute it alike).
+
+    Raises
+    ------
+    ImageFormatError
+        The manifest lacks the views' angles or has another number of them.
+    """
+    views = image.views or {}
+    try:
+        phi = np.mod(np.asarray(views["phi_deg"], dtype=np.float64), 360.0)
+        theta = np.asarray(views["theta_deg"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise ImageFormatError(
+            "image manifest: a delta-coded standalone table needs views.phi_deg and "
+            "views.theta_deg"
+        ) from None
+    if phi.shape != (n_views,) or theta.shape != (n_views,):
+        raise ImageFormatError(
+            f"image manifest: views has {phi.size} / {theta.size} angles, the standalone "
+            f"table {n_views} views"
+        )
+    return np.lexsort((phi, theta))
+
+
+def _decode_delta_table(image: EigenspaceImage, coded: np.ndarray) -> None:
+    """Undo :data:`STANDALONE_DELTA_SECTION` in place (see `standalone_table`)."""
+    if STANDALONE_SECTION in image.sections:
+        raise ImageFormatError(
+            f"image sections {STANDALONE_SECTION!r} and {STANDALONE_DELTA_SECTION!r} are "
+            "both present; an image holds one standalone table"
+        )
+    n_views = (image.interpolation or {}).get("n_views")
+    k = image.n_coefficients
+    if coded.dtype != np.uint8 or coded.shape != (k, 2, n_views):
+        raise ImageFormatError(
+            f"image section {STANDALONE_DELTA_SECTION!r}: expected uint8 of shape "
+            f"(K={k}, 2, n_views={n_views}), got {coded.dtype} {coded.shape}"
+        )
+    order = standalone_order(image, int(n_views))
+    if not coded.flags.writeable or not coded.flags.c_contiguous:
+        coded = np.ascontiguousarray(coded).copy()
+    table = coded.reshape(k, 2 * int(n_views)).view("<i2")  # (K, n_views), same memory
+    for start in range(0, k, _DELTA_BLOCK_ROWS):
+        block = coded[start:start + _DELTA_BLOCK_ROWS]
+        z = block[:, 0, :].astype(np.uint16) | (block[:, 1, :].astype(np.uint16) << 8)
+        d = (z >> 1).astype(np.int16) ^ -(z & 1).astype(np.int16)
+        np.cumsum(d, axis=1, dtype=np.int16, out=d)
+        rows = table[start:start + _DELTA_BLOCK_ROWS]
+        rows[:, order] = d
+    del image.sections[STANDALONE_DELTA_SECTION]
+    image.sections[STANDALONE_SECTION] = table.T
 
 
 class StandaloneScores:
@@ -436,7 +513,11 @@ class LoadedModel:
     def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
               max_packet_bytes: int | None = None, want_standalone: bool = False
               ) -> LoadedModel:
-        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data."""
+        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data.
+
+        The reconstructor runs on two threads when the machine has two CPUs and the
+        eigenspace is large (``threads="auto"``); its frames are the same bit for bit.
+        """
         standalone = StandaloneScores(image) if want_standalone else None
         decoder = ScoreDecoder(
             image.n_coefficients,
@@ -444,8 +525,8 @@ class LoadedModel:
             n_components=image.n_components,
             max_packet_bytes=max_packet_bytes,
         )
-        return cls(image, Reconstructor.from_image(image), decoder, slot, generation, test,
-                   standalone)
+        return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
+                   generation, test, standalone)
 
     def close(self) -> None:
         self.reconstructor.close()
@@ -465,7 +546,16 @@ class ScoreItem:
 
 
 def peak_rss_bytes() -> int:
-    """Peak resident set size of this process, bytes (0 where unknown)."""
+    """Peak resident set size of this process, bytes (0 where unknown).
+
+    Linux's ``VmHWM`` where there is one: ``getrusage``'s ``ru_maxrss`` survives ``exec``, so
+    in a process started from a large parent (the demo's host) it reports the parent's size.
+    """
+    with contextlib.suppress(OSError, ValueError, IndexError), open("/proc/self/status",
+                                                                     "rb") as handle:
+        for line in handle:
+            if line.startswith(b"VmHWM:"):
+                return int(line.split()[1]) * 1024
     try:
         import resource
 
@@ -564,6 +654,9 @@ class RuntimeStats:
             "present_ms": ms(self.present_s),
             "latency_ms_p50": pct(0.5),
             "latency_ms_p90": pct(0.9),
+            "latency_ms_p99": pct(0.99),
+            "latency_ms_max": 1e3 * lat[-1] if lat else None,
+            "latency_ms_mean": 1e3 * float(np.mean(lat)) if lat else None,
             "latency_samples": len(lat),
             "rss_bytes": current_rss_bytes(),
             "peak_rss_bytes": peak_rss_bytes(),

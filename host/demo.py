@@ -7,13 +7,15 @@ One command on a fresh clone (``make demo``), every step cached in a work folder
    300 samples per ray into ``WORK/NAME.cdb`` (an interrupted or finished render resumes or
    skips: the Cinema writer keeps valid images);
 2. **fit** an adaptive eigenspace (cells of 16 px, T = 0.98) signed with ``WORK/device.key``
-   into ``WORK/NAME.ecs``, skipped when the model is newer than the database;
+   into ``WORK/NAME.ecs``, skipped when ``WORK/NAME.fit-stamp`` shows it was fitted from
+   this database (index and image sizes), key and settings;
 3. start **eigencast-device** as a separate process listening on TCP loopback
    (``tcp-listen://127.0.0.1:PORT``, printed) with its flash in ``WORK/flash``: a window
    when a display exists, headless otherwise;
 4. **provision** it with a progress bar (skipped when it already holds the image);
 5. **serve**: with a window, the device's drags and key presses drive the view until the
-   window is closed; headless, the host drives an orbit (``steps:120:15``), the device writes
+   window is closed; headless, the host drives an orbit (``steps:120:15``, at most 60 frames
+   per second, the rate of a display), the device writes
    every 10th frame to ``WORK/frames`` and a short summary follows: frames, the device's
    frame rate, bytes per frame beside the JPEG of equal quality (same SSIM against the
    ray-cast) and the link rate.
@@ -21,10 +23,12 @@ One command on a fresh clone (``make demo``), every step cached in a work folder
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -81,6 +85,10 @@ def display_available() -> bool:
 def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, float]:
     """The smallest JPEG of ``reference`` whose SSIM against it reaches ``test``'s.
 
+    Every Pillow quality 1..95 is tried: at low qualities JPEG's SSIM is far from monotone in
+    the quality (on the dark, noisy background of a ray-cast, quality 10 can beat quality 15
+    by 0.1), so a bisection would miss the smallest file.
+
     Parameters
     ----------
     reference : ndarray of shape (height, width, 3), uint8
@@ -92,7 +100,8 @@ def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, flo
     -------
     dict
         ``ssim`` of ``test`` vs ``reference``; ``jpeg_quality`` (PIL 1..95), ``jpeg_bytes``
-        and ``jpeg_ssim`` of the smallest JPEG with SSIM >= that (quality 95 if none).
+        and ``jpeg_ssim`` of the smallest JPEG with SSIM >= that (the best quality if none
+        reaches it).
     """
     from PIL import Image
     from skimage.metrics import structural_similarity
@@ -101,25 +110,24 @@ def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, flo
         return float(structural_similarity(a, b, data_range=255, channel_axis=-1))
 
     target = ssim(reference, test)
-
-    def jpeg(quality: int) -> tuple[int, float]:
+    best: tuple[int, int, float] | None = None  # (bytes, quality, ssim)
+    top: tuple[int, int, float] | None = None  # the highest SSIM seen
+    for quality in range(1, 96):
         buf = io.BytesIO()
         Image.fromarray(reference).save(buf, format="JPEG", quality=quality)
+        size = len(buf.getvalue())
+        if best is not None and size >= best[0]:
+            continue  # cannot be smaller than the best so far
         decoded = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
-        return len(buf.getvalue()), ssim(reference, decoded)
-
-    low, high = 1, 95
-    best = (95, *jpeg(95))
-    while low <= high:  # SSIM grows with quality (close enough to monotone for a search)
-        mid = (low + high) // 2
-        size, quality_ssim = jpeg(mid)
-        if quality_ssim >= target:
-            best = (mid, size, quality_ssim)
-            high = mid - 1
-        else:
-            low = mid + 1
-    return {"ssim": target, "jpeg_quality": best[0], "jpeg_bytes": best[1],
-            "jpeg_ssim": best[2]}
+        value = ssim(reference, decoded)
+        if top is None or value > top[2]:
+            top = (size, quality, value)
+        if value >= target:
+            best = (size, quality, value)
+    chosen = best or top
+    assert chosen is not None
+    return {"ssim": target, "jpeg_quality": chosen[1], "jpeg_bytes": chosen[0],
+            "jpeg_ssim": chosen[2]}
 
 
 class _DeviceProcess:
@@ -167,6 +175,23 @@ class _DeviceProcess:
         self._drain.join(timeout=5)
         self.log.close()
         return int(self.proc.returncode or 0)
+
+
+def _fit_stamp(db: Path, key_path: Path, settings: DemoSettings) -> str:
+    """What the model depends on: the database's index and images, the key, the fit settings.
+
+    (Not modification times: a resumed render rewrites ``data.csv`` even when it renders
+    nothing, which would refit the model on every run.)
+    """
+    digest = hashlib.sha256()
+    digest.update((db / "data.csv").read_bytes())
+    for path in sorted(db.rglob("*")):
+        if path.is_file() and path.name != "data.csv" and ".eigencast-cache" not in path.parts:
+            stat = path.stat()
+            digest.update(f"{path.relative_to(db)}:{stat.st_size}\n".encode())
+    digest.update(hashlib.sha256(key_path.read_bytes()).digest())
+    digest.update(f"adaptive cell={settings.cell} threshold={settings.threshold!r}".encode())
+    return digest.hexdigest()
 
 
 def _step(n: int, text: str) -> None:
@@ -222,12 +247,13 @@ def run_demo(
     if not key_path.exists():
         write_key(key_path)
     key = load_key(key_path)
-    data_csv = db / "data.csv"
-    fresh = model_path.exists() and model_path.stat().st_mtime > data_csv.stat().st_mtime and (
-        model_path.stat().st_mtime > key_path.stat().st_mtime)
+    stamp_path = work / f"{name}.fit-stamp"
+    stamp = _fit_stamp(db, key_path, settings)
+    fresh = model_path.exists() and stamp_path.exists() and stamp_path.read_text() == stamp
     if fresh:
-        _step(2, f"fit: {model_path} is newer than the database; kept")
+        _step(2, f"fit: {model_path} was fitted from this database with these settings; kept")
     else:
+        stamp_path.unlink(missing_ok=True)
         _step(2, f"fit an adaptive eigenspace (cells {settings.cell} px, T={settings.threshold})"
                  f" into {model_path}")
         code = eigencast(["fit", str(db), "-o", str(model_path), "--method", "adaptive",
@@ -235,8 +261,11 @@ def run_demo(
                           "--key", str(key_path)])
         if code != 0:
             raise EigencastError(f"fitting {db} failed (exit {code})")
+        stamp_path.write_text(stamp)
 
     frames = work / "frames"
+    if headless and frames.is_dir():  # this run's frames only (frames.csv is appended to)
+        shutil.rmtree(frames)
     stats_path = work / "device-stats.json"
     device_args = ["--flash", str(work / "flash"), "--key", str(key_path), "--stats",
                    str(stats_path)]
@@ -261,9 +290,9 @@ def run_demo(
             from device_runtime.runtime import parse_orbit
 
             orbit = parse_orbit(settings.orbit)
-            _step(5, f"serve an orbit ({settings.orbit}); the device writes every "
+            _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s); the device writes every "
                      f"{settings.every}th frame to {frames}")
-            stats = serve(model_path, device.url, key=key, orbit=orbit, fps=0, model=model,
+            stats = serve(model_path, device.url, key=key, orbit=orbit, fps=60, model=model,
                           stats_every_s=0, log=lambda line: None)
             time.sleep(1.2)  # the device's statistics file is refreshed every second
         else:

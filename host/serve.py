@@ -53,7 +53,8 @@ from protocol.errors import (
     TransportTimeout,
 )
 from protocol.link import HostSession, Link
-from protocol.scores import EncodedScores, encode_scores
+from protocol.scores import DEFAULT_LEVEL as SCORE_LEVEL
+from protocol.scores import EncodedScores, encode_scores, max_packet_size
 from protocol.transport import open_transport
 
 __all__ = [
@@ -171,8 +172,8 @@ class FrameEncoder:
         Frame number of the first packet (default: random in 1..2**31).
     """
 
-    def __init__(self, model: HostModel, *, keyframe_interval: int = 0, level: int = 3,
-                 first_frame: int | None = None) -> None:
+    def __init__(self, model: HostModel, *, keyframe_interval: int = 0,
+                 level: int = SCORE_LEVEL, first_frame: int | None = None) -> None:
         if keyframe_interval < 0:
             raise ValueError(f"keyframe_interval={keyframe_interval} must be >= 0")
         self.model = model
@@ -204,7 +205,7 @@ class FrameEncoder:
         base = None if key else self.base
         encoded = encode_scores(
             y, step=model.score_step, frame=frame, view=view, image_digest=model.digest,
-            base=base, level=self.level,
+            base=base, level=self.level, n_components=model.image.n_components,
         )
         self.last_was_key = base is None
         self._since_key = 0 if base is None else self._since_key + 1
@@ -351,8 +352,13 @@ def serve(
         raise ValueError(f"fps={fps} must be >= 0")
     info = inspect_image(model_path, key=key)
     model = model or HostModel.load(model_path, key=key)
+    # this end sends frames as large as the model's largest score packet; the device's own
+    # limit (HELLO's max_frame_bytes, eigencast-device --max-frame) is the one that binds
+    k, n_cells = model.image.n_coefficients, model.image.n_cells
+    frame_limit = max(16384, max_packet_size(k, max(k, n_cells), n_cells=n_cells) + 256)
     factory = transport_factory or (
-        lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s)))
+        lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s),
+                                       max_frame_bytes=frame_limit))
     stats = ServeStats()
     encoder = FrameEncoder(model, keyframe_interval=keyframe_interval)
     running_orbit = orbit.start() if orbit is not None else None
@@ -453,8 +459,16 @@ def serve(
                 current[0], current[1] = view, sequence
                 encoded = encoder.encode(view, key=want_key)
                 sent.clear()
-                link.send(m.Scores(sequence=sequence, packet=encoded.packet),
-                          after_sent=sent.set)
+                try:
+                    link.send(m.Scores(sequence=sequence, packet=encoded.packet),
+                              after_sent=sent.set)
+                except ValueError as exc:  # the packet does not fit the device's frames
+                    kind = "key" if encoder.last_was_key else "delta"
+                    raise ServeError(
+                        f"{' '.join(str(exc).split())}: a {kind} score packet of this model "
+                        f"({len(encoded.packet)} bytes) does not fit the device's frames; "
+                        "start eigencast-device with a larger --max-frame (e.g. --max-frame "
+                        "65536)") from None
                 next_due = now + (1.0 / fps if fps > 0 else 0.0)
                 size = len(encoded.packet)
                 stats.frames += 1

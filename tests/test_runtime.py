@@ -264,3 +264,55 @@ def test_memory_stays_flat_over_many_frames(tmp_path, model_path, model):
     assert device.runtime_stats.frames_presented == 2300
     device.close_display()
     device.close()
+
+
+def test_large_eigenspace_runs_on_two_threads_with_identical_frames():
+    """LoadedModel picks 2 reconstruction threads for a large eigenspace on a 2-CPU machine;
+    its frames equal the 1-thread reconstruction's bit for bit (what `eigencast view` shows)."""
+    import os
+
+    from device_runtime.reconstruct import Reconstructor
+    from device_runtime.runtime import LoadedModel
+    from protocol.image import EigenspaceImage
+
+    rng = np.random.default_rng(4)
+    cell = (30, 30)
+    n_cells = 5 * 5
+    values = 30 * 30 * 3
+    # > 8 MB of int8; k * 2700 stays under OpenBLAS's own threading threshold (~460800)
+    counts = rng.integers(110, 160, n_cells).astype(np.int32)
+    counts[3] = 0
+    k = int(counts.sum())
+    image = EigenspaceImage(
+        image_shape=(150, 150), cell_shape=cell,
+        mean=rng.integers(0, 256, (n_cells, values), dtype=np.uint8),
+        eigenimages=rng.integers(-127, 128, (k, values), dtype=np.int8),
+        scales=np.full(k, 0.02, dtype=np.float32), n_components=counts, method="adaptive")
+    assert image.eigenimages.nbytes > 8_000_000
+    loaded = LoadedModel.build(image, slot="A", generation=1, test=False)
+    single = Reconstructor.from_image(image, threads=1)
+    try:
+        assert loaded.reconstructor.threads == (2 if (os.cpu_count() or 1) >= 2 else 1)
+        for _ in range(3):
+            y = (rng.standard_normal(k) * 200).astype(np.float32)
+            np.testing.assert_array_equal(loaded.reconstructor.update(y), single.update(y))
+    finally:
+        loaded.close()
+        single.close()
+
+
+def test_peak_rss_is_this_process_not_the_parent_before_exec():
+    """ru_maxrss survives exec (a child of a big host would report the host's size); the
+    runtime's peak RSS is VmHWM, this process's own."""
+    import subprocess
+    import sys
+
+    from device_runtime.runtime import peak_rss_bytes
+
+    ballast = np.ones(200 * 2**20, dtype=np.uint8)  # this process: > 200 MB resident
+    code = "from device_runtime.runtime import peak_rss_bytes; print(peak_rss_bytes())"
+    child = int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                               check=True).stdout)
+    assert peak_rss_bytes() > 200 * 2**20
+    assert 0 < child < 150 * 2**20, child
+    del ballast

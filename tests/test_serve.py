@@ -161,3 +161,39 @@ def test_serve_cli_errors_are_one_line(tmp_path, model_path):
         res = subprocess.run([*cli, *args], capture_output=True, text=True, timeout=60)
         assert res.returncode == 1, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1 and text in res.stderr, res.stderr
+
+
+def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, model_path,
+                                                                     monkeypatch):
+    """A device on a serial line takes 4 KiB frames by default; a model whose key packets are
+    larger must not crash serve with a traceback but say what to change."""
+    import dataclasses
+
+    from device_runtime.device import DeviceConfig
+
+    name = mem_name("bigpkt")
+    config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=1024)
+    with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", config=config):
+        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+                  log=_quiet)
+        real = FrameEncoder.encode
+
+        def padded(self, view, *, key=False):  # a model with 2 kB score packets
+            encoded = real(self, view, key=key)
+            return dataclasses.replace(encoded, packet=encoded.packet + bytes(2000))
+
+        monkeypatch.setattr(FrameEncoder, "encode", padded)
+        with pytest.raises(ServeError, match=r"max_frame_bytes=1024.*--max-frame"):
+            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                  orbit=parse_orbit("steps:2"), log=_quiet)
+    # a device that takes large frames gets them, although the host's serial line would
+    # default to 4 KiB frames
+    name = mem_name("bigpkt2")
+    config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=16384)
+    with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", config=config):
+        monkeypatch.setattr(FrameEncoder, "encode", lambda self, view, *, key=False: (
+            dataclasses.replace(real(self, view, key=key), packet=real(
+                self, view, key=key).packet + bytes(6000))))
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                      orbit=parse_orbit("steps:2"), log=_quiet)
+    assert stats.frames == 2 and stats.packet_bytes > 12000

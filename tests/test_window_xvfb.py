@@ -115,13 +115,22 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
         _xdotool(display, "windowfocus", "--sync", wid)
 
         def shot(n: int) -> np.ndarray:
-            _xdotool(display, "key", "--window", wid, "s")
+            # keys go to the focused window through XTEST: events sent to a window id
+            # (XSendEvent) can be lost while the server is busy
+            _xdotool(display, "windowfocus", "--sync", wid)
+            _xdotool(display, "key", "s")
             path = shots / f"screenshot-{n:04d}.png"
-            wait_until(path.exists, 10, f"{path.name}")
+            wait_until(path.exists, 30, f"{path.name}")
             return np.asarray(Image.open(path))
 
-        np.testing.assert_array_equal(shot(1), model.view(30.0, 15.0))
-        _xdotool(display, "key", "--window", wid, "Left")  # phi + 5
+        # input is only meaningful once the first frame is up (under load the model may
+        # still be loading when the window appears, and a screenshot of nothing is no file)
+        first = model.view(30.0, 15.0)
+        fh, fw = first.shape[:2]
+        wait_until(lambda: np.array_equal(read_xwd(screen)[:fh, :fw], first), 30,
+                   "the first frame on the X framebuffer")
+        np.testing.assert_array_equal(shot(1), first)
+        _xdotool(display, "key", "Left")  # phi + 5
         np.testing.assert_array_equal(shot(2), model.view(35.0, 15.0))
         # drag 20 px to the right with the left button: phi - 10
         _xdotool(display, "mousemove", "--window", wid, "10", "20")
@@ -134,9 +143,9 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
         np.testing.assert_array_equal(shot(3), want)
         # what the X server itself shows at the window's place
         h, w = want.shape[:2]
-        wait_until(lambda: np.array_equal(read_xwd(screen)[:h, :w], want), 10,
+        wait_until(lambda: np.array_equal(read_xwd(screen)[:h, :w], want), 30,
                    "the X framebuffer to show the frame")
-        _xdotool(display, "key", "--window", wid, "Escape")
+        _xdotool(display, "key", "Escape")
         assert proc.wait(timeout=20) == 0
     finally:
         if proc.poll() is None:

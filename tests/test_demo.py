@@ -1,0 +1,88 @@
+"""``eigencast demo``: the equal-quality JPEG search, and a tiny headless demo run twice (the
+second run reuses the render, the fit and the device's flash)."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+from runtime_helpers import check_frames
+from skimage.metrics import structural_similarity
+
+from host.demo import DemoSettings, equal_quality_jpeg, run_demo
+from host.model import HostModel
+
+
+def _ssim(a, b):
+    return structural_similarity(a, b, data_range=255, channel_axis=-1)
+
+
+def _jpeg(image, quality):
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="JPEG", quality=quality)
+    return len(buf.getvalue()), np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
+
+
+@pytest.fixture(scope="module")
+def head_view(tmp_path_factory):
+    """A 96 px ray-cast of the built-in head (dark, noisy background: where JPEG's SSIM jumps
+    up and down with the quality)."""
+    from host.cli import main as eigencast
+
+    db = tmp_path_factory.mktemp("head") / "head.cdb"
+    assert eigencast(["render", "builtin:head", "-o", str(db), "--views", "list:30,15",
+                      "--size", "96", "--samples", "120"]) == 0
+    return np.asarray(Image.open(next((db / "images").iterdir())).convert("RGB"))
+
+
+@pytest.mark.parametrize("quality", [10, 30])
+def test_equal_quality_jpeg_is_the_smallest_file_reaching_the_ssim(head_view, quality):
+    """Checked against every quality: JPEG's SSIM is not monotone in the quality on a
+    ray-cast, so a bisection picks a file 20-30 % too large here."""
+    ref = head_view
+    test = _jpeg(ref, quality)[1]  # a reconstruction exactly as good as that JPEG
+    got = equal_quality_jpeg(ref, test)
+    target = _ssim(ref, test)
+    assert got["ssim"] == pytest.approx(target)
+    smallest = min(_jpeg(ref, q)[0] for q in range(1, 96) if _ssim(ref, _jpeg(ref, q)[1])
+                   >= target)
+    assert got["jpeg_bytes"] == smallest <= _jpeg(ref, quality)[0]
+    assert got["jpeg_ssim"] >= target
+
+
+def test_equal_quality_jpeg_reports_the_best_jpeg_when_none_reaches(head_view):
+    perfect = equal_quality_jpeg(head_view, head_view)
+    assert perfect["ssim"] == pytest.approx(1.0) and perfect["jpeg_ssim"] < 1.0
+    assert perfect["jpeg_ssim"] == pytest.approx(max(_ssim(head_view, _jpeg(head_view, q)[1])
+                                                     for q in range(1, 96)))
+
+
+def test_headless_demo_runs_and_reuses_its_cache(tmp_path, capsys):
+    settings = DemoSettings(volume="builtin:tooth", views="grid:8x3", size=36, samples=40,
+                            cell=12, orbit="steps:6:15", every=1, jpeg_views=2)
+    work = tmp_path / "demo"
+    first = run_demo(work, settings=settings, headless=True)
+    out = capsys.readouterr()
+    assert first["provision"] == "installed"
+    assert first["serve"]["frames"] == 6 and first["serve"]["key_frames"] == 1
+    assert first["device"]["frames_presented"] >= 6
+    assert {"ssim", "jpeg_bytes", "jpeg_quality"} <= set(first["jpeg"])
+    assert "demo summary" in out.out and "equal-quality JPEG" in out.out
+    assert "tcp-listen://127.0.0.1:" in out.err  # the local link is shown to the user
+    model = work / "tooth.ecs"
+    fitted = model.stat().st_mtime_ns
+    # every frame the device wrote is what `eigencast view` shows for its view
+    assert check_frames(HostModel.load(model), work / "frames") >= 6
+
+    second = run_demo(work, settings=settings, headless=True)
+    err = capsys.readouterr().err
+    assert "0 to render" in err
+    assert "fitted from this database with these settings; kept" in err
+    assert model.stat().st_mtime_ns == fitted
+    assert second["provision"] == "already-active"
+    assert second["device"]["frames_presented"] >= 6
+    # this run's frames only (the folder is cleared, frames.csv does not pile up)
+    assert check_frames(HostModel.load(model), work / "frames") == second[
+        "device"]["frames_presented"] - 1  # the image's first (mean) frame has no view
