@@ -24,6 +24,16 @@ Methods (`INTERPOLATORS`, keyed by the manifest's ``method``):
     blending towards the pole average is the alternative to measure later.
     Four entries per query. (Manifest field ``poles``: ``"clamp"``, the only
     mode so far.)
+``bicubic`` (`GridCubicInterpolator`)
+    The same grids, interpolated with cubic Hermite splines whose slopes are
+    the central differences of the neighbouring nodes (Catmull-Rom; on
+    unevenly spaced theta rows the slope at row j is ``(y[j+1] - y[j-1]) /
+    (t[j+1] - t[j-1])``): periodic in phi, and in theta the slope at the
+    outermost rows is the one-sided difference. It reproduces linear
+    functions, is exact at the nodes, C1 inside the grid and continuous
+    across the phi seam. Weights are the tensor product of 4 weights in phi
+    and 4 in theta (16 entries; some are negative, they still sum to 1).
+    theta beyond the outermost rows is clamped as for ``bilinear``.
 ``barycentric`` (`TriangleInterpolator`)
     Scattered views: a triangulation of the unit directions (the spherical
     Delaunay triangulation = the convex hull's faces). Inside a triangle
@@ -40,8 +50,10 @@ Methods (`INTERPOLATORS`, keyed by the manifest's ``method``):
     boundary. Three entries per query. (Manifest field ``outside``:
     ``"clamp"``.)
 
-Both return a fixed number ``m`` of entries per query (repeated indices with
-zero weight where fewer are needed), so many queries vectorise.
+Each returns a fixed number ``m`` of entries per query (repeated indices with
+zero weight where fewer are needed), so many queries vectorise. A method name
+is never reused for different weights: a device that does not know a method
+refuses the manifest (`interpolator_from_manifest`) instead of guessing.
 """
 
 from __future__ import annotations
@@ -57,6 +69,7 @@ __all__ = [
     "INTERPOLATORS",
     "MANIFEST_VERSION",
     "GridAxes",
+    "GridCubicInterpolator",
     "GridInterpolator",
     "InterpolationError",
     "InterpolationWeights",
@@ -269,6 +282,38 @@ class GridInterpolator:
         self.n_views = int(axes.view_index.size)
         self._step = 360.0 / axes.n_phi
 
+    def _locate(
+        self, phi: np.ndarray, theta: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Grid cell and fractions of checked queries.
+
+        Returns ``(i0, f, j0, g)``: the column ``i0`` (int64, in [0, n_phi)) left of the
+        query and the fraction ``f`` in [0, 1) towards the next column (phi wraps); the row
+        ``j0`` (int64) below and the fraction ``g`` in [0, 1] towards row ``j0 + 1`` (theta
+        clamped to the outermost rows; ``j0 = 0, g = 0`` for a single row). Queries within
+        the grid tolerance of a node get fraction 0 (or 1 on the last row), so every method
+        is exact there.
+        """
+        axes = self.axes
+        u = np.mod(phi - axes.phi0_deg, 360.0) / self._step
+        i0 = np.floor(u)
+        f = u - i0
+        # queries within the grid tolerance of a node are that node (exact there)
+        up = (1.0 - f) * self._step < _GRID_TOL_DEG
+        i0 = np.where(up, i0 + 1.0, i0)
+        f = np.where(up | (f * self._step < _GRID_TOL_DEG), 0.0, f)
+        i0 = i0.astype(np.int64) % axes.n_phi
+        rows = axes.theta_deg
+        if rows.size == 1:
+            return i0, f, np.zeros(theta.shape, dtype=np.int64), np.zeros(theta.shape)
+        tc = np.clip(theta, rows[0], rows[-1])
+        j0 = np.clip(np.searchsorted(rows, tc, side="right") - 1, 0, rows.size - 2)
+        gap = rows[j0 + 1] - rows[j0]
+        g = (tc - rows[j0]) / gap
+        g = np.where(g * gap < _GRID_TOL_DEG, 0.0, g)
+        g = np.where((1.0 - g) * gap < _GRID_TOL_DEG, 1.0, g)
+        return i0, f, j0.astype(np.int64), g
+
     @classmethod
     def from_axes(cls, axes: GridAxes) -> GridInterpolator:
         """Build from explicit axes (checked)."""
@@ -308,31 +353,11 @@ class GridInterpolator:
             ``indices`` int32 and ``weights`` float32 of shape (..., 4).
         """
         phi, theta = _check_query(phi_deg, theta_deg)
-        axes = self.axes
-        n_phi = axes.n_phi
-        u = np.mod(phi - axes.phi0_deg, 360.0) / self._step
-        i0 = np.floor(u)
-        f = u - i0
-        # queries within the grid tolerance of a node are that node (exact there)
-        up = (1.0 - f) * self._step < _GRID_TOL_DEG
-        i0 = np.where(up, i0 + 1.0, i0)
-        f = np.where(up | (f * self._step < _GRID_TOL_DEG), 0.0, f)
-        i0 = i0.astype(np.int64) % n_phi
+        i0, f, j0, g = self._locate(phi, theta)
+        n_phi = self.axes.n_phi
         i1 = (i0 + 1) % n_phi
-        rows = axes.theta_deg
-        if rows.size == 1:
-            j0 = np.zeros(theta.shape, dtype=np.int64)
-            j1 = j0
-            g = np.zeros(theta.shape)
-        else:
-            tc = np.clip(theta, rows[0], rows[-1])
-            j0 = np.clip(np.searchsorted(rows, tc, side="right") - 1, 0, rows.size - 2)
-            j1 = j0 + 1
-            gap = rows[j1] - rows[j0]
-            g = (tc - rows[j0]) / gap
-            g = np.where(g * gap < _GRID_TOL_DEG, 0.0, g)
-            g = np.where((1.0 - g) * gap < _GRID_TOL_DEG, 1.0, g)
-        vi = axes.view_index
+        j1 = np.minimum(j0 + 1, self.axes.theta_deg.size - 1)
+        vi = self.axes.view_index
         indices = np.stack([vi[i0, j0], vi[i1, j0], vi[i0, j1], vi[i1, j1]], axis=-1)
         weights = np.stack([(1 - f) * (1 - g), f * (1 - g), (1 - f) * g, f * g], axis=-1)
         return InterpolationWeights(indices.astype(np.int32), weights.astype(np.float32))
@@ -372,6 +397,73 @@ class GridInterpolator:
         )
         _check_n_views(manifest, self.n_views)
         return self
+
+
+class GridCubicInterpolator(GridInterpolator):
+    """Bicubic (Catmull-Rom) interpolation in (phi, theta) over a full grid of training views.
+
+    Same grids, checks, clamping and manifest fields as `GridInterpolator` (manifest
+    ``method`` ``"bicubic"``); 16 entries per query: 4 columns (periodic in phi) times 4
+    rows. See the module docstring for the slopes.
+
+    Parameters
+    ----------
+    phi_deg, theta_deg : array-like of shape (n_views,)
+        The training views, in the score table's row order (any grid order).
+    """
+
+    method = "bicubic"
+    entries = 16
+
+    def weights(self, phi_deg: Any, theta_deg: Any) -> InterpolationWeights:
+        """Training views and weights for query views.
+
+        Parameters
+        ----------
+        phi_deg, theta_deg : float or ndarray of shape (...)
+
+        Returns
+        -------
+        InterpolationWeights
+            ``indices`` int32 and ``weights`` float32 of shape (..., 16): column-major over
+            the 4 columns ``i0 - 1 .. i0 + 2`` and the 4 rows ``j0 - 1 .. j0 + 2`` (clamped
+            at the outermost rows, so indices may repeat). Weights sum to 1; some are
+            negative.
+        """
+        phi, theta = _check_query(phi_deg, theta_deg)
+        i0, f, j0, g = self._locate(phi, theta)
+        axes = self.axes
+        n_phi = axes.n_phi
+        cols = (i0[..., None] + np.arange(-1, 3)) % n_phi  # (..., 4)
+        f2, f3 = f * f, f * f * f
+        wphi = 0.5 * np.stack(
+            [-f + 2 * f2 - f3, 2 - 5 * f2 + 3 * f3, f + 4 * f2 - 3 * f3, f3 - f2], axis=-1
+        )
+        rows_t = axes.theta_deg
+        last = rows_t.size - 1
+        if last == 0:
+            rows = np.zeros((*theta.shape, 4), dtype=np.int64)
+            wtheta = np.zeros((*theta.shape, 4))
+            wtheta[..., 1] = 1.0
+        else:
+            j1 = j0 + 1
+            jm, jp = np.maximum(j0 - 1, 0), np.minimum(j1 + 1, last)
+            h = rows_t[j1] - rows_t[j0]
+            # slopes times h, as multiples of node differences: one-sided at the ends
+            a = h / (rows_t[j1] - rows_t[jm])
+            b = h / (rows_t[jp] - rows_t[j0])
+            g2, g3 = g * g, g * g * g
+            h00, h10 = 2 * g3 - 3 * g2 + 1, g3 - 2 * g2 + g
+            h01, h11 = 3 * g2 - 2 * g3, g3 - g2
+            rows = np.stack([jm, j0, j1, jp], axis=-1)
+            wtheta = np.stack([-a * h10, h00 - b * h11, h01 + a * h10, b * h11], axis=-1)
+        vi = axes.view_index
+        indices = vi[cols[..., :, None], rows[..., None, :]]  # (..., 4, 4)
+        weights = wphi[..., :, None] * wtheta[..., None, :]
+        shape = (*phi.shape, 16)
+        return InterpolationWeights(
+            indices.reshape(shape).astype(np.int32), weights.reshape(shape).astype(np.float32)
+        )
 
 
 # --------------------------------------------------------------------------
@@ -616,11 +708,14 @@ def _clean(w: np.ndarray) -> np.ndarray:
 #: method name -> interpolator class (each has ``from_manifest``).
 INTERPOLATORS: dict[str, type] = {
     GridInterpolator.method: GridInterpolator,
+    GridCubicInterpolator.method: GridCubicInterpolator,
     TriangleInterpolator.method: TriangleInterpolator,
 }
 
 
-def interpolator_from_manifest(manifest: Mapping) -> GridInterpolator | TriangleInterpolator:
+def interpolator_from_manifest(
+    manifest: Mapping,
+) -> GridInterpolator | GridCubicInterpolator | TriangleInterpolator:
     """Rebuild the interpolator a host described with ``to_manifest()``.
 
     Parameters

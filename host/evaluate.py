@@ -35,7 +35,10 @@ The evaluation engine
 ---------------------
 `evaluate_model` ray-casts novel views with the model's own render settings
 (`host.render_settings.ViewRenderer`) and compares, per view, the device frame, the
-equal-bytes JPEG and WebP and the angularly nearest training view with the ray-cast; then a
+equal-bytes JPEG and WebP, the angularly nearest training view and the *WebP image database*
+(`WebPDatabase`: every training view stored as WebP on the device, the novel view blended from
+the decoded training images with the model's own interpolation weights; zero bytes per frame)
+with the ray-cast; then a
 rate-distortion sweep over a subset of the views (the model truncated to lower thresholds /
 fewer components through the annexed eigenvalues, coarser score steps, the *projection* of the
 true views onto the eigenspace -- an oracle that shows what the eigenspace could do without
@@ -66,11 +69,13 @@ __all__ = [
     "DEFAULT_QUALITIES",
     "DEFAULT_STEP_FACTORS",
     "DEFAULT_THRESHOLDS",
+    "DEFAULT_WEBP_DB_QUALITY",
     "METRICS",
     "CodedImage",
     "DevicePath",
     "Evaluation",
     "ImageComparison",
+    "WebPDatabase",
     "compare_images",
     "decode_image",
     "default_metric_workers",
@@ -95,6 +100,8 @@ DEFAULT_THRESHOLDS = (0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.998, 0.999)
 DEFAULT_STEP_FACTORS = (2.0, 4.0, 8.0, 16.0)
 #: Codec qualities of the rate-distortion sweep.
 DEFAULT_QUALITIES = (2, 5, 10, 20, 35, 50, 70, 90)
+#: WebP quality of the on-device image database baseline (``webp_db``).
+DEFAULT_WEBP_DB_QUALITY = 80
 _NOT_AVERAGED = {"index"}  # per-view entries whose mean means nothing
 _SSIM_WIN = 7  # scikit-image's default window; its mean crops (win - 1) // 2 pixels
 _PIL_FORMAT = {"jpeg": "JPEG", "webp": "WEBP"}
@@ -520,10 +527,10 @@ class DevicePath:
         from protocol.scores import encode_scores
 
         self._frame = (self._frame + 1) & 0xFFFFFFFF
-        y = self.model.scores(phi_deg, theta_deg)
+        y = self.model.quantized_scores(phi_deg, theta_deg)  # as serve sends (water-filled)
         return encode_scores(
             y, step=self.model.score_step, frame=self._frame, view=(phi_deg, theta_deg),
-            image_digest=self.digest,
+            image_digest=self.digest, n_components=self.model.image.n_components,
         ).packet
 
     def frame(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, int]:
@@ -552,7 +559,8 @@ class DevicePath:
         y = np.einsum("kd,kd->k", v, centred[cell_of]) / norm2
         self._frame = (self._frame + 1) & 0xFFFFFFFF
         packet = encode_scores(y, step=self.model.score_step, frame=self._frame, view=(0.0, 0.0),
-                               image_digest=self.digest).packet
+                               image_digest=self.digest,
+                               n_components=self.model.image.n_components).packet
         return self.model.reconstruct(self.decoder.decode(packet).y), len(packet)
 
 
@@ -637,6 +645,88 @@ class _TrainingImages:
         return self._cache[index]
 
 
+class WebPDatabase:
+    """The on-device image database baseline: training views as WebP files, blended locally.
+
+    Every training view is stored as a WebP file at ``quality`` (what a device would hold
+    instead of the eigenspace image); a novel view is the blend of the decoded training images
+    with the *same interpolation weights* the model uses for its scores
+    (``model.interpolator.weights``), rounded to uint8. Nothing is sent per frame.
+
+    Parameters
+    ----------
+    model : host.model.HostModel
+    training : _TrainingImages
+        Where the training images come from.
+    quality : int
+        WebP quality 1..100 (`encode_image`, ``method=6``).
+    encode_all : bool, optional
+        Encode every training view now, so `storage_bytes` is the exact sum of the files
+        (default: when the images come from the training database; re-rendering all of
+        them would cost a full database render, so then only the views used are encoded and
+        the storage is estimated from their mean size, ``storage_estimated`` True).
+    progress : bool
+        Progress on stderr while encoding.
+    """
+
+    def __init__(self, model: Any, training: _TrainingImages, quality: int, *,
+                 encode_all: bool | None = None, progress: bool = False) -> None:
+        encode_image(np.zeros((8, 8, 3), np.uint8), "webp", quality)  # checks the quality
+        self.model = model
+        self.training = training
+        self.quality = int(quality)
+        self.n_views = int(training.phi.size)
+        self._files: dict[int, int] = {}  # index -> file size
+        self._decoded: dict[int, np.ndarray] = {}
+        if encode_all is None:
+            encode_all = training.db is not None
+        self.storage_estimated = not encode_all
+        if encode_all:
+            with _progress("webp database", self.n_views, unit=" views",
+                           quiet=not progress) as bar:
+                for i in range(self.n_views):
+                    self._encode(i, keep=False)
+                    bar.advance()
+
+    def _encode(self, index: int, *, keep: bool) -> np.ndarray | None:
+        if index in self._decoded:
+            return self._decoded[index]
+        if self.training.db is not None:
+            image = self.training.db.read_image(index)
+        else:
+            image = self.training.get(index)[0]
+        coded = encode_image(image, "webp", self.quality)
+        self._files[index] = coded.size_bytes
+        if not keep:
+            return None
+        if len(self._decoded) > 64:
+            self._decoded.clear()
+        self._decoded[index] = coded.decode()
+        return self._decoded[index]
+
+    @property
+    def storage_bytes(self) -> int:
+        """Sum of the WebP files of every training view (estimated: see the class notes)."""
+        if not self._files:
+            return 0
+        if self.storage_estimated:
+            return round(float(np.mean(list(self._files.values()))) * self.n_views)
+        return int(sum(self._files.values()))
+
+    def frame(self, phi_deg: float, theta_deg: float) -> np.ndarray:
+        """The blended novel view, uint8 (height, width, 3)."""
+        idx, w = self.model.interpolator.weights(phi_deg, theta_deg)
+        acc: np.ndarray | None = None
+        for i, wi in zip(np.asarray(idx).ravel().tolist(), np.asarray(w).ravel().tolist()):
+            if wi == 0.0:
+                continue
+            image = self._encode(int(i), keep=True).astype(np.float32)
+            acc = image * np.float32(wi) if acc is None else acc + image * np.float32(wi)
+        if acc is None:  # cannot happen: weights sum to 1
+            raise EigencastError("webp database: interpolation gave no training view")
+        return np.clip(np.rint(acc), 0, 255).astype(np.uint8)
+
+
 # =========================================================================== engine
 
 
@@ -710,9 +800,12 @@ class Evaluation:
             "score_step": info["score_step"],
             "int8": info.get("int8"),
         }
-        for method in ("pca", "jpeg", "webp", "nearest"):
+        for method in ("pca", "jpeg", "webp", "nearest", "webp_db"):
             if self.views and method in self.views[0]:
                 out[method] = self.means(method)
+        if "webp_db" in out:
+            out["webp_db"]["storage_bytes"] = info.get("webp_db_storage_bytes")
+            out["webp_db"]["storage_estimated"] = info.get("webp_db_storage_estimated")
         out["rate_distortion"] = [
             {k: v for k, v in p.items() if k != "model"} for p in self.rd
         ]
@@ -868,6 +961,7 @@ def evaluate_model(
     thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
     step_factors: Sequence[float] = DEFAULT_STEP_FACTORS,
     qualities: Sequence[int] = DEFAULT_QUALITIES,
+    webp_db_quality: int | None = DEFAULT_WEBP_DB_QUALITY,
     metric_workers: int | None = None,
     progress: bool = True,
     info: dict | None = None,
@@ -889,6 +983,9 @@ def evaluate_model(
         Views whose images are kept for side-by-side figures.
     thresholds, step_factors, qualities
         The rate-distortion sweep's settings (see `DEFAULT_THRESHOLDS` ...).
+    webp_db_quality : int or None
+        WebP quality of the on-device image database baseline (`WebPDatabase`, method
+        ``webp_db``); None skips it.
     metric_workers : int, optional
         Processes computing the metrics (default `default_metric_workers`; 0: inline).
     progress : bool
@@ -912,14 +1009,20 @@ def evaluate_model(
             f"the model is {model.image.image_shape[1]}x{model.image.image_shape[0]}"
         )
     workers = default_metric_workers() if metric_workers is None else int(metric_workers)
-    timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "codecs": 0.0,
+    timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "codecs": 0.0, "webp_db": 0.0,
               "metrics_wait": 0.0, "rate_distortion": 0.0}
     evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
     evaluation.info["metric_workers"] = workers
     device = DevicePath(model)
-    training = _TrainingImages(model, scene) if nearest else None
+    training = _TrainingImages(model, scene) if nearest or webp_db_quality is not None else None
     if training is not None:
         evaluation.info["nearest_source"] = training.source
+    webp_db = None
+    if webp_db_quality is not None:
+        t0 = time.perf_counter()
+        webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
+        timing["webp_db"] += time.perf_counter() - t0
+        evaluation.info["webp_db_quality"] = webp_db.quality
     rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
     metrics = _Metrics(workers)
     hints: dict[str, int | None] = {c: None for c in CODECS}
@@ -934,7 +1037,7 @@ def evaluate_model(
             record[name].update(c.values())
         if sample is not None:
             sample.update({f"flip_{name}": results[name].flip_map
-                           for name in ("pca", "jpeg", "webp")})
+                           for name in ("pca", "jpeg", "webp", "webp_db") if name in results})
             evaluation.samples.append(sample)
         evaluation.views.append(record)
         if on_view is not None:
@@ -968,7 +1071,14 @@ def evaluate_model(
                                  "quality": coded[c].quality,
                                  "within_budget": coded[c].within_budget}
                     futures[c] = metrics.submit(truth, decoded[c], mask, keep)
-                if training is not None:
+                if webp_db is not None:
+                    t4 = time.perf_counter()
+                    blended = webp_db.frame(phi, theta)
+                    timing["webp_db"] += time.perf_counter() - t4
+                    record["webp_db"] = {"bytes_per_view": 0, "quality": webp_db.quality}
+                    futures["webp_db"] = metrics.submit(truth, blended, mask, keep)
+                t3 = time.perf_counter()
+                if nearest and training is not None:
                     index, angle = nearest_training_view(phi, theta, training.phi,
                                                          training.theta)
                     near, png_bytes = training.get(index)
@@ -981,6 +1091,8 @@ def evaluate_model(
                     sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
                               "pca": frame, "jpeg": decoded["jpeg"], "webp": decoded["webp"],
                               "record": record}
+                    if webp_db is not None:
+                        sample["webp_db"] = blended
                 if i < rd_views:
                     rd_refs.append((truth, mask, phi, theta))
                 in_flight.append((i, record, futures, sample))
@@ -996,13 +1108,17 @@ def evaluate_model(
             evaluation.info["rd_views"] = len(rd_refs)
     finally:
         metrics.close()
+    if webp_db is not None:
+        evaluation.info["webp_db_storage_bytes"] = webp_db.storage_bytes
+        evaluation.info["webp_db_storage_estimated"] = webp_db.storage_estimated
     evaluation.timing_s = {k: round(v, 3) for k, v in timing.items()}
     return evaluation
 
 
 def _mean_point(rows: list[dict]) -> dict:
     out = {}
-    for k in ("bytes_per_view", "psnr", "ssim", "flip"):
+    for k in ("bytes_per_view", "psnr", "ssim", "flip", "psnr_object", "ssim_object",
+              "flip_object"):
         vals = np.array([r[k] for r in rows], dtype=np.float64)
         vals = vals[np.isfinite(vals)]
         out[k] = float(vals.mean()) if vals.size else math.nan
@@ -1030,25 +1146,25 @@ def _rate_distortion(
                      "own": s["own"], "score_step": s["step"],
                      "components_per_cell": float(np.mean(s["counts"]))}
             rows = []
-            for truth, _mask, phi, theta in refs:
+            for truth, mask, phi, theta in refs:
                 frame, size = path.frame(phi, theta)
-                rows.append((size, metrics.submit(truth, frame, None, False)))
+                rows.append((size, metrics.submit(truth, frame, mask, False)))
             jobs.append((point, rows))
             if s["own"]:  # the oracle: this eigenspace fed the true views' own scores
                 rows = []
-                for truth, _mask, _phi, _theta in refs:
+                for truth, mask, _phi, _theta in refs:
                     frame, size = path.projection_frame(truth)
-                    rows.append((size, metrics.submit(truth, frame, None, False)))
+                    rows.append((size, metrics.submit(truth, frame, mask, False)))
                 jobs.append(({**point, "kind": "projection", "label": "projection",
                               "own": False}, rows))
             bar.advance()
         for codec in CODECS:
             for q in qualities:
                 rows = []
-                for truth, _mask, _phi, _theta in refs:
+                for truth, mask, _phi, _theta in refs:
                     coded = encode_image(truth, codec, int(q))
                     rows.append((coded.size_bytes,
-                                 metrics.submit(truth, coded.decode(), None, False)))
+                                 metrics.submit(truth, coded.decode(), mask, False)))
                 jobs.append(({"kind": codec, "label": f"q={q}", "setting": {"quality": int(q)},
                               "own": False}, rows))
                 bar.advance()
@@ -1057,7 +1173,6 @@ def _rate_distortion(
         values = []
         for size, future in rows:
             c = future.result()
-            values.append({"bytes_per_view": size, "psnr": c.psnr, "ssim": c.ssim,
-                           "flip": c.flip})
+            values.append({"bytes_per_view": size, **c.values()})
         points.append({**point, **_mean_point(values)})
     return points

@@ -11,8 +11,9 @@ so what the host measures is what a device shows.
 The annex also keeps, per kept component, its eigenvalue and, per cell, the
 total variance (the trace), so `HostModel.truncated` can cut a model to any
 lower threshold T (or fewer components per cell) without refitting: the
-quantization scale is per component, so truncating the int8 model equals
-quantizing the truncated float model.
+quantization scale is per component, so at 8 bits truncating the int8 model equals
+quantizing the truncated float model (with bit allocation, `host.quantize.allocate_bits`,
+the kept rows keep the bits chosen for the whole model).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from host.cinema import CinemaDB
 from host.errors import FitError
 from host.interpolate import ScoreInterpolator
 from host.pca import SIGN_CONVENTION, CellEigenspace, CellStack
-from host.quantize import quantize_eigenspace
+from host.quantize import DEFAULT_BIT_BUDGET, quantize_eigenspace, residual_mse
 from protocol.image import EigenspaceImage, read_image, write_image
 
 __all__ = [
@@ -60,8 +61,11 @@ __all__ = [
 
 #: Default score quantization: the step whose uniform rounding noise adds this
 #: mean squared error (in 0..255 pixel units) to a cell with the mean number
-#: of components. 0.25 is ~54 dB: invisible next to the interpolation error.
-DEFAULT_SCORE_MSE = 0.25
+#: of components. Measured (docs/rate-distortion-packets.md, tooth and head at 256 and 512,
+#: object pixels of held-out views): 1.0 is the coarsest of 0.25 x 4**n whose object SSIM
+#: stays within 0.005 of unquantized scores, and its packets are ~20 % smaller than at the
+#: former 0.25; coarser steps keep shrinking packets (4.0: -43 %) but cost 0.006-0.01 SSIM.
+DEFAULT_SCORE_MSE = 1.0
 
 #: Views `int8_report` uses (training views for the loss, novel views for float vs int8).
 INT8_CHECK_VIEWS = 16
@@ -187,7 +191,8 @@ def truncate_eigenspace(
     return out
 
 
-def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHECK_VIEWS) -> dict:
+def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHECK_VIEWS,
+                quantized: Any = None) -> dict:
     """Measure what int8 quantization costs (recorded in provenance["int8"] by ``fit``).
 
     The float components exist only while fitting, so the measurement is made here:
@@ -198,6 +203,8 @@ def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHEC
     * ``novel_psnr_float_vs_int8_db``: the two reconstructions against each other at
       interpolated scores of ``n_views`` novel views (``random:N:7`` directions).
 
+    ``quantized`` is the device model measured (default: `quantize_eigenspace` at 8 bits).
+
     Returns
     -------
     dict
@@ -207,7 +214,8 @@ def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHEC
     from host.camera import parse_view_set
     from host.quantize import int8_loss_db, quantize_eigenspace
 
-    quantized = quantize_eigenspace(model)
+    if quantized is None:
+        quantized = quantize_eigenspace(model)
     count = min(int(n_views), db.n_views)
     idx = np.unique(np.linspace(0, db.n_views - 1, count).round().astype(np.int64))
     images = np.stack([db.read_image(int(i)) for i in idx])
@@ -318,6 +326,7 @@ def build_image(
     interpolation: str = "auto",
     extra_provenance: dict | None = None,
     measure_int8: bool = True,
+    bit_budget: float = DEFAULT_BIT_BUDGET,
 ) -> tuple[EigenspaceImage, dict[str, np.ndarray]]:
     """Quantize ``model`` into an `EigenspaceImage` plus its host annex.
 
@@ -334,11 +343,22 @@ def build_image(
     -----
     With ``measure_int8`` the quality lost to int8 is measured now, while the float model
     exists (`int8_report`), and recorded as ``provenance["int8"]``.
+
+    ``bit_budget`` is `host.quantize.quantize_eigenspace`'s bit allocation (a fraction of the
+    model's residual MSE; 0: 8 bits for every component); the bits chosen are summarised in
+    ``provenance["eigen_bits"]`` and the int8 measurement covers them.
     """
     step = float(score_step) if score_step is not None else auto_score_step(model)
     if not step > 0:
         raise FitError(f"--score-step {score_step}: must be positive")
     interp = ScoreInterpolator(db.phi_deg, db.theta_deg, model.scores_, method=interpolation)
+    quantized = quantize_eigenspace(model, bit_budget=bit_budget)
+    bits = quantized.bits if quantized.bits is not None else np.zeros(0, np.int8)
+    eigen_bits = {"bit_budget": float(bit_budget),
+                  "mse_budget": float(bit_budget * residual_mse(model)),
+                  "mean_bits": float(bits.mean()) if bits.size else 8.0,
+                  "histogram": {str(int(b)): int(n) for b, n in
+                                zip(*np.unique(bits, return_counts=True))}}
     settings = db.settings or {}
     views = {
         "spec": (settings.get("views") or {}).get("spec", "cinema"),
@@ -360,10 +380,11 @@ def build_image(
             "mean_components_per_cell": float(np.mean(model.n_components_)),
         },
         "render": settings,
-        **({"int8": int8_report(model, db)} if measure_int8 else {}),
+        "eigen_bits": eigen_bits,
+        **({"int8": int8_report(model, db, quantized=quantized)} if measure_int8 else {}),
         **(extra_provenance or {}),
     }
-    image = quantize_eigenspace(model).to_image(
+    image = quantized.to_image(
         method=model.method,
         image_generation=time.time_ns() // 1_000_000,
         score_quantization={"step": step},
@@ -503,9 +524,42 @@ class HostModel:
         return self.interpolator(phi_deg, theta_deg)
 
     def quantized_scores(self, phi_deg: float, theta_deg: float) -> np.ndarray:
-        """Scores as a device receives them: rounded to the score step."""
+        """Scores as a device receives them: rounded to the score step, with the components
+        below the water level sent as 0 (`waterfill_mask`)."""
         step = self.score_step
-        return (np.rint(self.scores(phi_deg, theta_deg) / step) * step).astype(np.float32)
+        q = np.rint(self.scores(phi_deg, theta_deg) / step)
+        zero = self.waterfill_mask()
+        if zero is not None:
+            q[zero] = 0.0
+        return (q * step).astype(np.float32)
+
+    def waterfill_mask(self, step: float | None = None) -> np.ndarray | None:
+        """Components a packet at ``step`` sends as 0 (reverse water-filling), or None.
+
+        Rounding at step ``s`` costs each coefficient ``s**2 / 12`` of squared error; a
+        component whose eigenvalue (its scores' variance over the training views) is below
+        that costs less when it is not sent at all, and its zeros shorten the packet
+        (per-cell end-of-block coding). Only images whose annex holds the eigenvalues
+        (every ``fit`` since they were added) have a mask; ``score_quantization["waterfill"]
+        = False`` in the manifest turns it off. Images with a standalone table have none: a
+        standalone device cannot apply it (`add_standalone_table` zeroes those columns of
+        the table instead, so both show the same frames).
+
+        Returns
+        -------
+        ndarray of shape (K,), bool, or None
+        """
+        quant = self.image.score_quantization
+        if self.eigenvalues is None or not quant.get("waterfill", True):
+            return None
+        if "table_step" in quant:  # standalone: the device rounds the table's rows only
+            return None
+        s = self.score_step if step is None else float(step)
+        cached = getattr(self, "_waterfill", None)
+        if cached is None or cached[0] != s:
+            cached = (s, np.asarray(self.eigenvalues) < s * s / 12.0)
+            self._waterfill = cached
+        return cached[1]
 
     def reconstruct(self, scores: np.ndarray) -> np.ndarray:
         """uint8 (H, W, 3) frame for coefficient vector ``scores`` (a copy)."""
@@ -589,6 +643,9 @@ class HostModel:
             score_quantization=quant,
             provenance=prov,
             annex=None,
+            # a standalone score table has the old K columns: the truncated model has none
+            sections={k: v for k, v in self.image.sections.items()
+                      if k not in ("standalone_scores", "standalone_scores_delta")},
         )
         annex = {ANNEX_SCORES: np.ascontiguousarray(self.training_scores[:, keep])}
         if self.eigenvalues is not None:
@@ -612,28 +669,54 @@ class HostModel:
 # --------------------------------------------------------------------------- standalone
 
 
-def add_standalone_table(image: EigenspaceImage, training_scores: np.ndarray) -> dict:
+def add_standalone_table(
+    image: EigenspaceImage,
+    training_scores: np.ndarray,
+    *,
+    eigenvalues: np.ndarray | None = None,
+    table_step: float | None = None,
+    delta: bool | None = None,
+) -> dict:
     """Store the training views' scores in ``image`` for a standalone device (in place).
 
-    The scores are quantized at the image's score step (``score_quantization["step"]``,
-    recorded again as ``"table_step"``) into int16 when every value fits, else int32, and
-    kept as the device section ``device_runtime.runtime.STANDALONE_SECTION`` (the ``.ecs``
-    compresses it with zstd). A device then interpolates locally
-    (`device_runtime.runtime.StandaloneScores`); `HostModel` interpolates the same table,
-    so ``eigencast view`` and ``serve`` show what a standalone device shows.
+    The scores are quantized at ``table_step`` (default: the image's packet step
+    ``score_quantization["step"]``; recorded as ``"table_step"``) into int16 when every value
+    fits, else int32. With ``eigenvalues``, the components a packet at the image's step sends
+    as 0 (reverse water-filling, `HostModel.waterfill_mask`) are 0 in the table too, so a
+    standalone device shows what a served one shows. With ``delta`` an int16 table is stored
+    as `device_runtime.runtime.STANDALONE_DELTA_SECTION`: per component, the differences
+    between consecutive views along theta rings (phi ascending: 3.6 degrees apart on the
+    paper's grid), zigzag-mapped, in a low-byte and a high-byte plane, which zstd packs
+    ~30 % smaller than the plain table (docs/rate-distortion-packets.md); the device undoes
+    it once when it loads the image (`device_runtime.runtime.standalone_table`).
+    ``delta=False`` writes the plain table (`device_runtime.runtime.STANDALONE_SECTION`)
+    that older devices read; ``None`` (default) compresses both and keeps the smaller
+    (sparse view sets, whose neighbours differ a lot, can favour the plain table; int32
+    tables are always plain).
 
     Parameters
     ----------
     image : EigenspaceImage
         With its interpolation manifest (views in the order of ``training_scores``).
     training_scores : ndarray of shape (n_views, K), float
+    eigenvalues : ndarray of shape (K,), optional
+        The annex's eigenvalues (enables the water-filled zero columns).
+    table_step : float, optional
+        Quantization step of the table (> 0).
+    delta : bool or None
+        Store the delta-coded section (True), the plain one (False), or the smaller (None).
 
     Returns
     -------
     dict
-        ``dtype``, ``shape``, ``raw_bytes`` (uncompressed) and ``step``.
+        ``dtype``, ``shape``, ``raw_bytes`` (uncompressed), ``step``, ``section`` and
+        ``zero_columns``.
     """
-    from device_runtime.runtime import STANDALONE_SECTION
+    from device_runtime.runtime import (
+        STANDALONE_DELTA_SECTION,
+        STANDALONE_SECTION,
+        standalone_order,
+    )
 
     scores = np.asarray(training_scores, dtype=np.float64)
     n_views = (image.interpolation or {}).get("n_views")
@@ -642,17 +725,53 @@ def add_standalone_table(image: EigenspaceImage, training_scores: np.ndarray) ->
             f"standalone table: training scores {scores.shape} do not match the image "
             f"(n_views={n_views}, K={image.n_coefficients})"
         )
-    step = float(image.score_quantization.get("step", 1.0))
+    packet_step = float(image.score_quantization.get("step", 1.0))
+    step = packet_step if table_step is None else float(table_step)
+    if not (math.isfinite(step) and step > 0):
+        raise FitError(f"standalone table: table step {table_step!r} must be > 0")
     q = np.rint(scores / step)
+    zero = np.zeros(scores.shape[1], dtype=bool)
+    if eigenvalues is not None:
+        lam = np.asarray(eigenvalues, dtype=np.float64)
+        if lam.shape != (scores.shape[1],):
+            raise FitError(f"standalone table: eigenvalues {lam.shape} do not match "
+                           f"K={scores.shape[1]}")
+        if image.score_quantization.get("waterfill", True):
+            zero = lam < packet_step * packet_step / 12.0
+            q[:, zero] = 0.0
     limit = float(np.abs(q).max()) if q.size else 0.0
     if limit > 2**31 - 1:
         raise FitError(f"standalone table: |score / step| reaches {limit:.3g}, over int32")
     dtype = np.int16 if limit <= 32767 else np.int32
-    table = np.ascontiguousarray(q.astype(dtype))
-    image.sections[STANDALONE_SECTION] = table
+    table = q.astype(dtype)
+    for name in (STANDALONE_SECTION, STANDALONE_DELTA_SECTION):
+        image.sections.pop(name, None)
+    plain = np.ascontiguousarray(table)
+    coded = None
+    if dtype == np.int16 and delta is not False:
+        order = standalone_order(image, scores.shape[0])
+        diffs = np.ascontiguousarray(table[order].T)  # (K, n_views) in coding order
+        diffs[:, 1:] = diffs[:, 1:] - diffs[:, :-1]  # wraps in int16, like the decoder
+        wide = diffs.astype(np.int32)
+        z = ((wide << 1) ^ (wide >> 15)).astype(np.uint16)
+        coded = np.stack([(z & 0xFF).astype(np.uint8), (z >> 8).astype(np.uint8)], axis=1)
+    if coded is not None and delta is None:
+        import zstandard
+
+        from protocol.image import DEFAULT_LEVEL
+
+        cctx = zstandard.ZstdCompressor(level=DEFAULT_LEVEL)
+        if len(cctx.compress(coded.tobytes())) >= len(cctx.compress(plain.tobytes())):
+            coded = None
+    if coded is not None:
+        section = STANDALONE_DELTA_SECTION
+    else:
+        coded, section = plain, STANDALONE_SECTION
+    image.sections[section] = coded
     image.score_quantization = {**image.score_quantization, "table_step": step}
     return {"dtype": np.dtype(dtype).name, "shape": list(table.shape),
-            "raw_bytes": int(table.nbytes), "step": step}
+            "raw_bytes": int(table.nbytes), "step": step, "section": section,
+            "zero_columns": int(zero.sum())}
 
 
 def standalone_scores(image: EigenspaceImage) -> np.ndarray | None:

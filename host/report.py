@@ -31,10 +31,11 @@ __all__ = ["compose_side_by_side", "write_report"]
 #: Side-by-side panels smaller than this are zoomed (nearest neighbour) to at least it.
 MIN_PANEL_HEIGHT = 256
 _COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp": "#2166ac",
-           "nearest": "#8c6bb1"}
+           "nearest": "#8c6bb1", "webp_db": "#e08214"}
 _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
           "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
-          "nearest": "nearest training view"}
+          "nearest": "nearest training view",
+          "webp_db": "WebP image database on the device"}
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
@@ -165,6 +166,11 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
         if own:
             ax.plot([own["bytes_per_view"]], [own[metric]], "*", color="black", markersize=13,
                     label="this model (all views)", zorder=5)
+        db = summary.get("webp_db") or {}
+        if db and db.get(metric) is not None:
+            ax.axhline(db[metric], color=_COLORS["webp_db"], linestyle="--", linewidth=1.2,
+                       label=f"WebP database q{db['quality']:.0f} on the device (0 B/frame, "
+                             f"{_bytes(db.get('storage_bytes'))} stored)")
         for codec in ("jpeg", "webp"):
             c = summary.get(codec) or {}
             if c:
@@ -195,7 +201,8 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
     theta = np.array([v["theta_deg"] for v in evaluation.views])
     for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
         # dodge the methods sideways so that views at equal elevations stay visible
-        for dodge, method in zip((-2.25, -0.75, 0.75, 2.25), ("nearest", "jpeg", "webp", "pca")):
+        for dodge, method in zip((-3.0, -1.5, 0.0, 1.5, 3.0),
+                                 ("nearest", "jpeg", "webp", "webp_db", "pca")):
             if evaluation.views and method in evaluation.views[0]:
                 vals = np.array([v[method][metric] for v in evaluation.views], dtype=float)
                 ax.scatter(theta + dodge, vals, s=10, color=_COLORS[method],
@@ -224,6 +231,10 @@ def _sample_figure(sample: dict) -> np.ndarray:
          f"{'' if rec['webp']['within_budget'] else ' (over budget)'}\n"
          f"SSIM {rec['webp']['ssim']:.3f}  FLIP {rec['webp']['flip']:.3f}", sample["webp"]),
     ]
+    if sample.get("webp_db") is not None and "webp_db" in rec:
+        db = rec["webp_db"]
+        panels.append((f"WebP database q{db['quality']}, 0 B\n"
+                       f"SSIM {db['ssim']:.3f}  FLIP {db['flip']:.3f}", sample["webp_db"]))
     if sample.get("flip_pca") is not None:
         panels.append(("FLIP error map\nPCA", _colormap(sample["flip_pca"])))
     if sample.get("flip_jpeg") is not None:
@@ -311,11 +322,15 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         ["mean FLIP of equal-bytes WebP", _fmt(webp.get("flip"), 4)],
     ]
     rows = []
-    for method in ("pca", "jpeg", "webp", "nearest"):
+    for method in ("pca", "jpeg", "webp", "nearest", "webp_db"):
         m = summary.get(method)
         if not m:
             continue
         extra = ""
+        if method == "webp_db":
+            extra = (f"q={m.get('quality', math.nan):.0f}, device storage "
+                     f"{_bytes(m.get('storage_bytes'))}"
+                     f"{' (estimated)' if m.get('storage_estimated') else ''}")
         if method in ("jpeg", "webp"):
             extra = f"q≈{m.get('quality', math.nan):.0f}"
             if m.get("over_budget_views"):

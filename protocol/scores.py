@@ -7,8 +7,8 @@ A packet is a fixed 32-byte header followed by a payload (little-endian througho
     2      1    version (1)
     3      1    flags: bit 0 DELTA; bit 1 ZSTD (payload is one zstd frame, content size
                 recorded); bits 2-3 STEP_MODE (0 scalar, 1 per cell, 2 per component,
-                3 reserved); bits 4-5 CODING (0 zigzag LEB128 varint; others reserved);
-                bits 6-7 reserved, 0
+                3 reserved); bits 4-5 CODING (0 zigzag LEB128 varints; 1 per-cell
+                end-of-block varints, below; 2-3 reserved); bits 6-7 reserved, 0
     4      4    frame number u32
     8      4    base frame number u32 (the frame a DELTA packet is relative to; 0 in a key)
     12     4    phi_deg float32
@@ -17,7 +17,11 @@ A packet is a fixed 32-byte header followed by a payload (little-endian througho
     24     4    image tag: the first 4 bytes of the eigenspace image's SHA-256 digest
     28     4    step float32 (STEP_MODE 0; 0.0 otherwise)
     32     ..   payload (zstd-compressed when ZSTD is set):
-                [float32 step array: n_cells (mode 1) or K (mode 2) entries] then K varints
+                [float32 step array: n_cells (mode 1) or K (mode 2) entries] then the
+                coded integers: CODING 0: K varints; CODING 1 (needs the image's per-cell
+                component counts n_c): n_cells varints m_c (0 <= m_c <= n_c: how many of cell
+                c's leading coefficients follow), then sum(m_c) varints, cell after cell; the
+                last n_c - m_c coefficients of each cell are 0
 
 Quantization: ``q_j = rint(y_j / step_j)`` as int32; the device uses ``y_j = q_j * step_j``
 (float32), so ``|y_j - y'_j| <= step_j / 2``. A key packet codes q; a delta packet codes
@@ -35,8 +39,20 @@ zigzag varint + zstd was the smallest in all 24 cases: 15-40 % smaller than int1
 vs 930 bytes, delta 596 vs 853 vs 785), and int16 also cannot hold the scores of a standard
 eigenspace at fine steps. Delta packets were 15-30 % smaller than key packets.
 
+Why end-of-block coding (CODING 1): a cell's components are sorted by eigenvalue, and at the
+coarse steps that are worth sending (docs/rate-distortion-packets.md) the tail of every cell
+quantizes to 0 -- the encoder also zeroes components whose eigenvalue is below the rounding
+noise (reverse water-filling, `host.model.HostModel.quantized_scores`). Sending each cell's
+count and dropping its trailing zeros cut key packets by 10-30 % at 4-32 times the 0.25-MSE
+step (tooth and head, 256 and 512); at fine steps plain varints can be smaller, so the encoder
+codes both and keeps the smaller. The encoder's zstd level is 19 (default `DEFAULT_LEVEL`):
+10-25 % smaller than level 3 on these sub-10 kB payloads, about a millisecond per packet, and
+decoding cost does not depend on the level. CODING 1 was a reserved value of version 1, which
+decoders without it refuse with a clear error, so the packet version stays 1.
+
 Decoding is bounded: a packet longer than ``max_packet_bytes`` is refused before it is parsed;
-the payload bound is computed from K (5 bytes per varint plus the step array) and a zstd frame
+the payload bound is computed from K (5 bytes per varint plus the step array, plus 5 bytes
+per cell count with CODING 1) and a zstd frame
 whose recorded content size is unknown or larger is refused before decompression, which then
 runs with ``max_output_size`` on one reused ``ZstdDecompressor``; trailing bytes are refused.
 """
@@ -55,6 +71,9 @@ import zstandard as zstd
 from protocol.errors import LimitExceeded, MalformedMessage, ProtocolError
 
 __all__ = [
+    "CODING_EOB",
+    "CODING_VARINT",
+    "DEFAULT_LEVEL",
     "HEADER_SIZE",
     "MAGIC",
     "VERSION",
@@ -80,11 +99,15 @@ FLAG_ZSTD = 0x02
 _STEP_SHIFT = 2
 _STEP_MASK = 0x0C
 STEP_SCALAR, STEP_PER_CELL, STEP_PER_COMPONENT = 0, 1, 2
+_CODING_SHIFT = 4
 _CODING_MASK = 0x30
+CODING_VARINT, CODING_EOB = 0, 1
 _RESERVED_MASK = 0xC0
 _MAX_VARINT_BYTES = 5
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
-_DEFAULT_LEVEL = 3
+#: zstd level of the encoder (decoding cost does not depend on it; see the module docstring).
+DEFAULT_LEVEL = 19
+_DEFAULT_LEVEL = DEFAULT_LEVEL
 _local = threading.local()  # one reused ZstdCompressor per (thread, level)
 
 
@@ -189,10 +212,16 @@ class PacketHeader:
     def step_mode(self) -> int:
         return (self.flags & _STEP_MASK) >> _STEP_SHIFT
 
+    @property
+    def coding(self) -> int:
+        """CODING field: `CODING_VARINT` or `CODING_EOB`."""
+        return (self.flags & _CODING_MASK) >> _CODING_SHIFT
 
-def max_packet_size(n_coefficients: int, n_step_values: int = 0) -> int:
-    """Largest packet the encoder can produce for K coefficients (and a step array)."""
-    raw = _MAX_VARINT_BYTES * n_coefficients + 4 * n_step_values
+
+def max_packet_size(n_coefficients: int, n_step_values: int = 0, n_cells: int = 0) -> int:
+    """Largest packet the encoder can produce for K coefficients (and a step array; with
+    ``n_cells`` the end-of-block coding's cell counts)."""
+    raw = _MAX_VARINT_BYTES * (n_coefficients + n_cells) + 4 * n_step_values
     return HEADER_SIZE + raw
 
 
@@ -244,6 +273,19 @@ def _zigzag_varints(values: np.ndarray) -> bytes:
     return out.tobytes()
 
 
+def _eob_integers(coded: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Per-cell counts up to the last nonzero coefficient, then those coefficients."""
+    offsets = np.zeros(counts.size + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    cell_of = np.repeat(np.arange(counts.size), counts)
+    rank = np.arange(coded.size) - offsets[cell_of]
+    last = np.zeros(counts.size, dtype=np.int64)  # 1 + rank of the last nonzero, per cell
+    nz = coded != 0
+    np.maximum.at(last, cell_of[nz], rank[nz] + 1)
+    keep = rank < last[cell_of]
+    return np.concatenate([last, coded[keep]])
+
+
 def encode_scores(
     y: np.ndarray,
     *,
@@ -255,6 +297,7 @@ def encode_scores(
     n_components: np.ndarray | None = None,
     per_cell: bool = False,
     level: int = _DEFAULT_LEVEL,
+    coding: int | None = None,
 ) -> EncodedScores:
     """Quantize a score vector and encode it as a key or delta packet.
 
@@ -279,6 +322,9 @@ def encode_scores(
         ``step`` holds one entry per cell.
     level : int
         zstd level for the payload.
+    coding : {None, 0, 1}
+        `CODING_VARINT`, `CODING_EOB` (needs ``n_components``), or None: with
+        ``n_components`` both are tried and the smaller packet is kept, else varints.
 
     Returns
     -------
@@ -324,12 +370,23 @@ def encode_scores(
         flags |= FLAG_DELTA
         base_frame = base.frame
         coded = coded - base.q.astype(np.int64)
-    payload = b"" if step_sent is None else step_sent.astype("<f4").tobytes()
-    payload += _zigzag_varints(coded)
-    compressed = _compressor(level).compress(payload)
-    if len(compressed) < len(payload):
-        payload = compressed
-        flags |= FLAG_ZSTD
+    if coding not in (None, CODING_VARINT, CODING_EOB):
+        raise ValueError(f"encode_scores: coding={coding!r} must be None, 0 or 1")
+    if coding == CODING_EOB and counts is None:
+        raise ValueError("encode_scores: end-of-block coding needs n_components")
+    tries = [coding] if coding is not None else (
+        [CODING_VARINT] if counts is None else [CODING_VARINT, CODING_EOB])
+    prefix = b"" if step_sent is None else step_sent.astype("<f4").tobytes()
+    best: tuple[int, bytes] | None = None
+    for mode_ in tries:
+        ints = coded if mode_ == CODING_VARINT else _eob_integers(coded, counts)
+        raw = prefix + _zigzag_varints(ints)
+        for zflag, body in ((0, raw), (FLAG_ZSTD, _compressor(level).compress(raw))):
+            if best is None or len(body) < len(best[1]):
+                best = (zflag | (mode_ << _CODING_SHIFT), body)
+    assert best is not None
+    flags |= best[0]
+    payload = best[1]
     header = _HEADER.pack(
         MAGIC,
         VERSION,
@@ -373,9 +430,14 @@ def decode_header(packet: bytes) -> PacketHeader:
         raise ScorePacketError(
             f"decode scores: unsupported packet version {version} (supported: {VERSION})"
         )
-    if flags & (_RESERVED_MASK | _CODING_MASK):
+    if flags & _RESERVED_MASK:
         raise ScorePacketError(
-            f"decode scores: unknown flags 0x{flags:02x} (coding and reserved bits must be 0)"
+            f"decode scores: unknown flags 0x{flags:02x} (reserved bits 6-7 must be 0)"
+        )
+    if (flags & _CODING_MASK) >> _CODING_SHIFT > CODING_EOB:
+        raise ScorePacketError(
+            f"decode scores: unsupported coding {(flags & _CODING_MASK) >> _CODING_SHIFT} "
+            f"(flags 0x{flags:02x}; supported: 0 varints, 1 end-of-block)"
         )
     header = PacketHeader(flags, frame, base_frame, phi, theta, n_coeff, tag, step)
     if header.step_mode > STEP_PER_COMPONENT:
@@ -466,7 +528,8 @@ class ScoreDecoder:
             self.n_components = counts
         n_cells = 0 if self.n_components is None else len(self.n_components)
         n_step_values = max(self.n_coefficients, n_cells)
-        self.max_payload_bytes = _MAX_VARINT_BYTES * self.n_coefficients + 4 * n_step_values
+        self.max_payload_bytes = (_MAX_VARINT_BYTES * (self.n_coefficients + n_cells)
+                                  + 4 * n_step_values)
         bound = HEADER_SIZE + self.max_payload_bytes
         self.max_packet_bytes = bound if max_packet_bytes is None else int(max_packet_bytes)
         window = 1 << max(10, int(self.max_payload_bytes).bit_length())
@@ -517,7 +580,10 @@ class ScoreDecoder:
         payload = self._payload(packet[HEADER_SIZE:], header.flags & FLAG_ZSTD)
         data = np.frombuffer(payload, dtype=np.uint8)
         steps, per_coeff, data = self._steps(header, data)
-        coded = _decode_varints(data, self.n_coefficients)
+        if header.coding == CODING_EOB:
+            coded = self._decode_eob(data)
+        else:
+            coded = _decode_varints(data, self.n_coefficients)
         base_frame = None
         if header.is_delta:
             base_frame = header.base_frame
@@ -553,6 +619,35 @@ class ScoreDecoder:
             step=steps,
             packet_bytes=len(packet),
         )
+
+    def _decode_eob(self, data: np.ndarray) -> np.ndarray:
+        """CODING 1: n_cells counts, then the leading coefficients of each cell."""
+        counts = self.n_components
+        if counts is None:
+            raise ScorePacketError(
+                "decode scores: end-of-block coding needs the image's n_components"
+            )
+        n_cells = counts.size
+        ends = np.flatnonzero(data < 0x80)
+        if ends.size < n_cells:
+            raise ScorePacketError(
+                f"decode scores: payload holds {ends.size} varints, fewer than the "
+                f"{n_cells} cell counts"
+            )
+        split = int(ends[n_cells - 1]) + 1 if n_cells else 0
+        sent = _decode_varints(data[:split], n_cells)
+        if sent.size and (sent.min() < 0 or np.any(sent > counts)):
+            raise ScorePacketError(
+                "decode scores: an end-of-block count is negative or over its cell's components"
+            )
+        values = _decode_varints(data[split:], int(sent.sum()))
+        offsets = np.zeros(n_cells + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        cell_of = np.repeat(np.arange(n_cells), counts)
+        keep = (np.arange(self.n_coefficients) - offsets[cell_of]) < sent[cell_of]
+        coded = np.zeros(self.n_coefficients, dtype=np.int64)
+        coded[keep] = values
+        return coded
 
     def _payload(self, body: bytes, compressed: int) -> bytes:
         if not compressed:

@@ -188,8 +188,9 @@ def test_device_path_is_the_device_frame_and_packet(small_model):
     model = HostModel.load(small_model)
     path = DevicePath(model)
     frame, size = path.frame(123.4, 21.0)
-    packet = encode_scores(model.scores(123.4, 21.0), step=model.score_step, frame=7,
-                           view=(123.4, 21.0), image_digest=model.digest).packet
+    packet = encode_scores(model.quantized_scores(123.4, 21.0), step=model.score_step,
+                           frame=7, view=(123.4, 21.0), image_digest=model.digest,
+                           n_components=model.image.n_components).packet
     assert size == len(packet)
     diff = np.abs(frame.astype(int) - model.view(123.4, 21.0).astype(int))
     assert diff.max() <= 1  # float32 vs float64 rounding of the same quantized scores
@@ -259,13 +260,22 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
                "--json", "--rd-views", "2", "--samples-shown", "2")
     summary = json.loads(res.stdout)  # exactly one JSON object on stdout
     for key in ("method", "threshold", "components_per_cell", "eigenspace_bytes", "views",
-                "pca", "jpeg", "webp", "nearest"):
+                "pca", "jpeg", "webp", "nearest", "webp_db"):
         assert key in summary
     assert summary["method"] == "adaptive" and summary["threshold"] == pytest.approx(0.995)
     assert summary["views"] == 5
-    for method in ("pca", "jpeg", "webp", "nearest"):
-        for key in ("bytes_per_view", "psnr", "ssim", "flip"):
+    for method in ("pca", "jpeg", "webp", "nearest", "webp_db"):
+        for key in ("bytes_per_view", "psnr", "ssim", "flip", "psnr_object", "ssim_object",
+                    "flip_object"):
             assert isinstance(summary[method][key], float), (method, key)
+    # the on-device WebP database: nothing per frame, every training view stored
+    db = summary["webp_db"]
+    assert db["bytes_per_view"] == 0 and db["quality"] == 80
+    assert db["storage_estimated"] is False and db["storage_bytes"] > 144 * 60
+    assert 0 < db["ssim_object"] <= 1 and all(
+        v["webp_db"]["bytes_per_view"] == 0 for v in summary["per_view"])
+    for point in summary["rate_distortion"]:  # object metrics on the sweep too
+        assert "ssim_object" in point and "flip_object" in point
     model = HostModel.load(small_model)
     assert summary["components_per_cell"] == pytest.approx(np.mean(model.image.n_components))
     # equal bytes: a codec file is never larger than the packet unless even q=1 is
@@ -280,6 +290,35 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
     html = (report / "index.html").read_text()
     assert "Table 1" in html and "rd.png" in html and "view_00.png" in html
     assert "Traceback" not in res.stderr and "evaluate" in res.stderr  # progress on stderr
+
+
+def test_webp_database_blends_decoded_training_views_with_the_model_weights(small_model):
+    from host.evaluate import WebPDatabase, _TrainingImages, decode_image
+
+    model = HostModel.load(small_model)
+    training = _TrainingImages(model, None)
+    assert training.db is not None
+    q = 70
+    webp_db = WebPDatabase(model, training, q)
+    coded = [encode_image(training.db.read_image(i), "webp", q) for i in range(training.db.n_views)]
+    assert webp_db.storage_bytes == sum(c.size_bytes for c in coded)
+    # at a training view the blend is that view's decoded WebP, bit for bit
+    i = 31
+    np.testing.assert_array_equal(webp_db.frame(training.phi[i], training.theta[i]),
+                                  coded[i].decode())
+    # between views: the model's interpolation weights applied to the decoded files
+    phi, theta = 100.0, 10.0
+    idx, w = model.interpolator.weights(phi, theta)
+    expected = sum(np.float32(wi) * decode_image(coded[j].data).astype(np.float32)
+                   for j, wi in zip(idx.tolist(), w.tolist()) if wi != 0)
+    np.testing.assert_array_equal(webp_db.frame(phi, theta),
+                                  np.clip(np.rint(expected), 0, 255).astype(np.uint8))
+    assert np.count_nonzero(w) > 1
+    lazy = WebPDatabase(model, training, q, encode_all=False)
+    lazy.frame(phi, theta)
+    assert lazy.storage_estimated and lazy.storage_bytes > 0
+    with pytest.raises(ValueError, match="quality"):
+        WebPDatabase(model, training, 0)
 
 
 def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path):

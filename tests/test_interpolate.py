@@ -18,7 +18,7 @@ from device_runtime.interpolation import (
     interpolator_from_manifest,
 )
 from host.errors import ViewSpecError
-from host.interpolate import ScoreInterpolator, triangulate_views
+from host.interpolate import GRID_DEFAULT, ScoreInterpolator, triangulate_views
 
 
 def grid_views(n_phi=100, n_theta=15, shuffle_seed=None):
@@ -62,7 +62,7 @@ def grid_set():
 def grid_pair(grid_set):
     phi, theta, table = grid_set
     return (
-        ScoreInterpolator(phi, theta, table),
+        ScoreInterpolator(phi, theta, table, method="bilinear"),
         ScoreInterpolator(phi, theta, table, method="barycentric"),
     )
 
@@ -78,7 +78,10 @@ def fib_set():
 # method choice and grid detection
 
 
-def test_auto_picks_bilinear_for_a_shuffled_grid_and_barycentric_otherwise(grid_pair, fib_set):
+def test_auto_picks_the_grid_default_for_a_shuffled_grid_and_barycentric_otherwise(
+    grid_set, grid_pair, fib_set
+):
+    assert ScoreInterpolator(*grid_set).method_ == GRID_DEFAULT
     assert grid_pair[0].method_ == "bilinear"
     assert grid_pair[1].method_ == "barycentric"
     assert fib_set[3].method_ == "barycentric"
@@ -112,10 +115,11 @@ def test_grid_with_rounded_angles_is_still_exact_at_nodes():
     noisy_phi = np.where(phi == 0.0, 360.0 - 1e-7, phi + rng.uniform(-1e-7, 1e-7, phi.size))
     noisy_theta = theta + rng.uniform(-1e-7, 1e-7, theta.size)
     table = smooth_table(phi, theta)
-    interp = ScoreInterpolator(noisy_phi, noisy_theta, table)
-    assert interp.method_ == "bilinear"
-    np.testing.assert_array_equal(interp(noisy_phi, noisy_theta), table)
-    np.testing.assert_array_equal(interp(phi, theta), table)
+    for method in ("auto", "bilinear", "bicubic"):
+        interp = ScoreInterpolator(noisy_phi, noisy_theta, table, method=method)
+        assert interp.method_ == (GRID_DEFAULT if method == "auto" else method)
+        np.testing.assert_array_equal(interp(noisy_phi, noisy_theta), table)
+        np.testing.assert_array_equal(interp(phi, theta), table)
 
 
 def test_bilinear_on_scattered_views_is_refused(fib_set):
@@ -447,8 +451,9 @@ def test_degenerate_view_sets():
     phi = np.arange(12) * 30.0
     theta = np.zeros(12)
     table = np.arange(24, dtype=np.float32).reshape(12, 2)
-    ring = ScoreInterpolator(phi, theta, table)
+    ring = ScoreInterpolator(phi, theta, table, method="bilinear")
     assert ring.method_ == "bilinear"
+    assert ScoreInterpolator(phi, theta, table).method_ == GRID_DEFAULT
     np.testing.assert_allclose(ring(15.0, 40.0), (table[0] + table[1]) / 2)
     with pytest.raises(ViewSpecError, match="span no 3-D hull"):
         ScoreInterpolator(phi, theta, table, method="barycentric")

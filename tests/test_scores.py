@@ -248,7 +248,8 @@ def test_lying_content_size_is_caught():
         ({"magic": b"XX"}, "bad magic"),
         ({"version": 9}, "unsupported packet version 9"),
         ({"flags": 0x40}, "unknown flags"),
-        ({"flags": 0x10}, "unknown flags"),
+        ({"flags": 0x20}, "unsupported coding 2"),
+        ({"flags": 0x30}, "unsupported coding 3"),
         ({"flags": 0x0C}, "unsupported step mode 3"),
         ({"step": float("nan")}, "step nan"),
         ({"step": -1.0}, "must be finite and > 0"),
@@ -310,6 +311,93 @@ def test_fuzz_never_raises_anything_but_protocol_errors(data):
     assert out.y.shape == (40,) and np.all(np.isfinite(out.y))
 
 
+# ----------------------------------------------------------------------------- end-of-block
+
+
+def eob_scores(counts, seed=0, step=4.0):
+    """Per-cell decaying scores whose tails quantize to 0 at ``step``."""
+    rng = np.random.default_rng(seed)
+    parts = [rng.standard_normal(c) * np.geomspace(200.0, 0.5, c) if c else np.zeros(0)
+             for c in counts]
+    return np.concatenate(parts).astype(np.float32)
+
+
+def test_eob_round_trip_key_and_delta_and_zero_cells():
+    counts = np.array([5, 0, 3, 8, 1, 0, 12], np.int32)
+    y = eob_scores(counts)
+    y[5:8] = 0.0  # a cell whose coefficients are all 0 sends a count of 0
+    dec = ScoreDecoder(int(counts.sum()), DIGEST, n_components=counts)
+    key = encode(y, step=4.0, n_components=counts, coding=1)
+    assert (key.packet[3] >> 4) & 3 == 1
+    out = dec.decode(key.packet)
+    assert np.array_equal(out.q, np.rint(y / 4.0).astype(np.int32))
+    y2 = y + np.float32(3.0)
+    delta = encode(y2, step=4.0, n_components=counts, coding=1, frame=2, base=key)
+    out2 = dec.decode(delta.packet)
+    assert out2.base_frame == 1 and np.array_equal(out2.q, np.rint(y2 / 4.0).astype(np.int32))
+
+
+def test_encoder_keeps_the_smaller_coding():
+    counts = np.full(50, 20, np.int32)
+    y = eob_scores(counts, step=8.0)
+    sizes = {c: len(encode(y, step=8.0, n_components=counts, coding=c).packet) for c in (0, 1)}
+    auto = encode(y, step=8.0, n_components=counts).packet
+    assert len(auto) == min(sizes.values())
+    assert sizes[1] < sizes[0]  # tails of zeros: end-of-block wins here
+    assert (auto[3] >> 4) & 3 == 1
+    # without n_components only varints are possible
+    assert (encode(y, step=8.0).packet[3] >> 4) & 3 == 0
+    with pytest.raises(ValueError, match="needs n_components"):
+        encode(y, step=8.0, coding=1)
+    with pytest.raises(ValueError, match="coding"):
+        encode(y, step=8.0, n_components=counts, coding=2)
+
+
+def test_level_19_is_the_default_and_smaller_than_level_3():
+    counts = np.full(200, 20, np.int32)
+    y = eob_scores(counts, seed=3, step=2.0)
+    default = encode(y, step=2.0, n_components=counts).packet
+    level3 = encode(y, step=2.0, n_components=counts, level=3).packet
+    assert len(default) < len(level3)
+    dec = ScoreDecoder(int(counts.sum()), DIGEST, n_components=counts)
+    assert np.array_equal(dec.decode(default).q, dec.decode(level3).q)
+
+
+def test_hostile_eob_packets_are_refused():
+    counts = np.array([3, 2], np.int32)
+    head = with_header(encode(np.zeros(5, np.float32)).packet[:HEADER_SIZE], flags=0x10)
+    dec = ScoreDecoder(5, DIGEST, n_components=counts)
+    with pytest.raises(ScorePacketError, match="over its cell's components"):
+        dec.decode(head + bytes([8, 0]) + bytes(4))  # zigzag 8 -> 4 > 3
+    with pytest.raises(ScorePacketError, match="over its cell's components"):
+        dec.decode(head + bytes([1, 0]))  # zigzag 1 -> -1
+    with pytest.raises(ScorePacketError, match="fewer than the 2 cell counts"):
+        dec.decode(head + bytes([2]))
+    with pytest.raises(ScorePacketError, match="expected 1"):
+        dec.decode(head + bytes([2, 0]) + bytes(3))  # count 1, three values
+    with pytest.raises(ScorePacketError, match="needs the image's n_components"):
+        ScoreDecoder(5, DIGEST).decode(head + bytes([0, 0]))
+    ok = dec.decode(head + bytes([2, 4]) + bytes([3, 5, 7]))  # counts 1, 2; values -2, -3, -4
+    assert ok.q.tolist() == [-2, 0, 0, -3, -4]
+
+
+@settings(max_examples=100, deadline=None)
+@given(data=st.data())
+def test_eob_fuzz_never_raises_anything_but_protocol_errors(data):
+    counts = np.array([6, 0, 9, 3, 12], np.int32)
+    valid = encode(eob_scores(counts, seed=2), step=2.0, n_components=counts, coding=1).packet
+    packet = bytearray(valid)
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(HEADER_SIZE - 29, len(packet) - 1))
+        packet[i] ^= data.draw(st.integers(1, 255))
+    dec = ScoreDecoder(int(counts.sum()), DIGEST, n_components=counts)
+    try:
+        out = dec.decode(bytes(packet))
+    except ProtocolError:
+        return
+    assert out.y.shape == (30,) and np.all(np.isfinite(out.y))
+
+
 # ----------------------------------------------------------------------------- golden vectors
 
 
@@ -350,7 +438,36 @@ def golden_cases():
             "frame": 4294967295,
             "view": [90.0, 45.0],
         },
+        {
+            "name": "key_eob",
+            "y": [40.0, -9.0, 0.2, 0.0, 7.0, 0.4, 3.0, -1.0, 0.0, 0.0, 25.0],
+            "step": 2.0,
+            "n_components": [4, 0, 2, 5],
+            "coding": 1,
+            "frame": 5,
+            "view": [12.0, -30.0],
+        },
+        {
+            "name": "delta_eob_zstd",
+            "y": [float(((i * 5) % 11) - 5) * (3 if i % 9 < 3 else 0) for i in range(180)],
+            "step": 1.0,
+            "n_components": [9] * 20,
+            "coding": 1,
+            "level": 19,
+            "base": "key_eob_base",
+            "frame": 7,
+            "view": [13.0, -30.0],
+        },
     ]
+    cases.insert(len(cases) - 1, {
+        "name": "key_eob_base",
+        "y": [float(((i * 5) % 11) - 5) * (3 if i % 9 < 2 else 0) for i in range(180)],
+        "step": 1.0,
+        "n_components": [9] * 20,
+        "coding": 1,
+        "frame": 6,
+        "view": [12.0, -30.0],
+    })
     return cases
 
 
@@ -365,10 +482,12 @@ def encode_case(case, encoded):
         base=base,
         n_components=np.array(case["n_components"]) if "n_components" in case else None,
         per_cell=case.get("per_cell", False),
+        level=case.get("level", 3),
+        coding=case.get("coding", 0),
     )
 
 
-def independent_parse(packet, n_cells=None):
+def independent_parse(packet, n_cells=None, counts=None):
     """Parse a packet from the documented layout alone (no codec code)."""
     fields = struct.unpack_from("<2sBBIIffI4sf", packet)
     magic, version, flags, frame, base, phi, theta, k, tag, step = fields
@@ -386,6 +505,12 @@ def independent_parse(packet, n_cells=None):
         if byte < 0x80:
             values.append((acc >> 1) if acc % 2 == 0 else -((acc + 1) >> 1))
             acc, shift = 0, 0
+    if (flags >> 4) & 3 == 1:  # end-of-block: per-cell counts, then each cell's leading values
+        sent, rest, values = values[:len(counts)], values[len(counts):], []
+        for n_c, m_c in zip(counts, sent):
+            values += rest[:m_c] + [0] * (n_c - m_c)
+            rest = rest[m_c:]
+        assert not rest
     return {
         "delta": bool(flags & 1),
         "frame": frame,
@@ -415,13 +540,14 @@ def test_golden_packets():
             assert enc.packet == expected, rec["name"]
         # independent reading of the documented layout
         counts = rec.get("n_components")
-        parsed = independent_parse(expected, n_cells=len(counts) if counts else None)
+        parsed = independent_parse(expected, n_cells=len(counts) if counts else None,
+                                   counts=counts)
         assert parsed["frame"] == rec["frame"] and parsed["delta"] == bool(rec.get("base"))
         assert parsed["tag"] == bytes.fromhex(rec["digest"])[:4]
         assert parsed["k"] == len(rec["y"])
         per_coeff = (
             np.repeat(parsed["steps"], counts)
-            if counts
+            if rec.get("per_cell")
             else np.broadcast_to(parsed["steps"], (len(rec["y"]),))
         ).astype(np.float32)
         q = np.rint(np.array(rec["y"], np.float32) / per_coeff).astype(np.int64)

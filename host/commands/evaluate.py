@@ -42,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="views shown side by side in the report (default 4)")
     parser.add_argument("--no-nearest", action="store_true",
                         help="skip the nearest-training-view comparison")
+    parser.add_argument("--webp-db-quality", type=int, default=80, metavar="Q",
+                        help="the on-device image database baseline (webp_db): every training "
+                             "view stored as WebP at quality Q and blended with the model's "
+                             "interpolation weights; 0 skips it (default 80)")
     parser.add_argument("--metric-workers", type=int, metavar="N",
                         help="processes computing the metrics alongside the ray-caster "
                              "(default: 2 on a multi-core machine; 0 computes them inline)")
@@ -114,6 +118,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.rd_views < 0 or args.samples_shown < 0:
         raise EigencastError("--rd-views and --samples-shown must be >= 0")
+    if not 0 <= args.webp_db_quality <= 100:
+        raise EigencastError(f"--webp-db-quality {args.webp_db_quality}: must be within 0..100 "
+                             "(0 skips the WebP database baseline)")
     if args.metric_workers is not None and not 0 <= args.metric_workers <= 64:
         raise EigencastError(f"--metric-workers {args.metric_workers}: must be within 0..64")
     views = parse_view_set(args.views)
@@ -126,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         model, scene, views.views, nearest=not args.no_nearest, rd_views=args.rd_views,
         sample_views=args.samples_shown if report is not None else 0,
         metric_workers=args.metric_workers,
+        webp_db_quality=args.webp_db_quality or None,
         info={"view_spec": views.spec},
     )
     if report is not None:
@@ -171,11 +179,19 @@ def _text_summary(s: dict) -> str:
         f"({s.get('view_spec')}), score step {s['score_step']:.4g}",
         f"{'method':<10} {'bytes/view':>10} {'PSNR':>7} {'SSIM':>7} {'FLIP':>7}",
     ]
-    for m in ("pca", "jpeg", "webp", "nearest"):
+    lines[-1] += f" {'SSIM obj':>8} {'FLIP obj':>8}"
+    for m in ("pca", "jpeg", "webp", "nearest", "webp_db"):
         if m in s:
             r = s[m]
             lines.append(f"{m:<10} {r['bytes_per_view']:>10.0f} {f(r['psnr'], 2):>7} "
-                         f"{f(r['ssim'], 4):>7} {f(r['flip'], 4):>7}")
+                         f"{f(r['ssim'], 4):>7} {f(r['flip'], 4):>7} "
+                         f"{f(r.get('ssim_object'), 4):>8} {f(r.get('flip_object'), 4):>8}")
+    if "webp_db" in s:
+        db = s["webp_db"]
+        lines.append(f"webp_db: training views as WebP q{db['quality']:.0f}, device storage "
+                     f"{db['storage_bytes'] / 1e6:.2f} MB"
+                     f"{' (estimated)' if db.get('storage_estimated') else ''} vs eigenspace "
+                     f"image {s['eigenspace_bytes'] / 1e6:.2f} MB")
     int8 = s.get("int8") or {}
     if int8.get("train_loss_db") is not None:
         lines.append(f"int8 loss vs float (fit, training views): {int8['train_loss_db']:.3f} dB")

@@ -12,6 +12,7 @@ search model is fitted without them, the written model is refitted on every view
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from host.model import (
     subset_database,
     truncate_eigenspace,
 )
+from host.quantize import DEFAULT_BIT_BUDGET
 
 HELP = "fit a PCA eigenspace to a Cinema database and write the eigenspace image (MODEL.ecs)"
 
@@ -57,11 +59,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"default {TARGET_FIT_THRESHOLD})")
     parser.add_argument("--score-step", type=float, metavar="S",
                         help="score quantization step in orthonormal coordinates "
-                             "(default: from a 0.25 MSE budget; with --target it is searched)")
+                             "(default: the step whose rounding adds MSE 1.0 to a mean cell, "
+                             "docs/rate-distortion-packets.md; with --target it is searched)")
+    parser.add_argument("--bit-budget", type=float, default=DEFAULT_BIT_BUDGET, metavar="F",
+                        help="eigenimage bit allocation: low-variance components get fewer "
+                             "levels (2..8 bits) while the added error stays within F times "
+                             f"the model's own residual MSE (default {DEFAULT_BIT_BUDGET}; "
+                             "0: 8 bits for all)")
     parser.add_argument("--key", metavar="KEYFILE", help="sign the image with this device key")
     parser.add_argument("--standalone", action="store_true",
                         help="also store the training views' quantized scores in the image so a "
                              "device interpolates by itself (eigencast-device --standalone)")
+    parser.add_argument("--interpolation", choices=("auto", "bilinear", "bicubic", "barycentric"),
+                        default="auto",
+                        help="how novel views' scores are interpolated between training views "
+                             "(auto: the measured best for the view set; see "
+                             "docs/rate-distortion.md)")
     parser.add_argument("--cache", metavar="DIR",
                         help="where to keep the memory-mapped image stack "
                              "(default DB.cdb/.eigencast-cache)")
@@ -97,11 +110,20 @@ def run(args: argparse.Namespace) -> int:
         raise EigencastError(f"--threshold {threshold}: must be within (0, 1]")
     if args.score_step is not None and not args.score_step > 0:
         raise EigencastError(f"--score-step {args.score_step}: must be positive")
+    if not (math.isfinite(args.bit_budget) and args.bit_budget >= 0):
+        raise EigencastError(f"--bit-budget {args.bit_budget}: must be a number >= 0")
     key = load_key(args.key) if args.key else None
     out = Path(args.output)
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
     db = CinemaDB.open(args.database)
+    if args.interpolation in ("bilinear", "bicubic"):  # refuse before the (long) fit
+        from device_runtime.interpolation import detect_grid
+
+        reason = detect_grid(db.phi_deg, db.theta_deg)[1]
+        if reason:
+            raise EigencastError(f"--interpolation {args.interpolation} needs a full phi x theta "
+                                 f"grid of views: {reason}; use auto or barycentric")
     options = {"method": args.method, "cell": args.cell, "components": args.components,
                "threshold": threshold, "cache_dir": args.cache}
     extra: dict = {}
@@ -110,12 +132,14 @@ def run(args: argparse.Namespace) -> int:
         score_step = args.score_step
     else:
         model, score_step, extra = _fit_to_target(args, db, target, options)
-    image, annex = build_image(model, db, score_step=score_step, extra_provenance=extra)
+    image, annex = build_image(model, db, score_step=score_step, extra_provenance=extra,
+                               interpolation=args.interpolation, bit_budget=args.bit_budget)
     standalone = None
     if args.standalone:
-        from host.model import ANNEX_SCORES, add_standalone_table
+        from host.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
 
-        standalone = add_standalone_table(image, annex[ANNEX_SCORES])
+        standalone = add_standalone_table(image, annex[ANNEX_SCORES],
+                                          eigenvalues=annex.get(ANNEX_EIGENVALUES))
     save_model(out, image, annex, key=key)
     if standalone is not None:
         print(_standalone_line(out, standalone))
@@ -148,7 +172,8 @@ def _fit_to_target(args: argparse.Namespace, db: CinemaDB, target, options: dict
         except OSError:
             cache = None  # fit_database falls back to a temporary folder
     full = fit_database(fit_db, **{**options, "cache_dir": cache})
-    image, annex = build_image(full, fit_db, score_step=args.score_step, measure_int8=False)
+    image, annex = build_image(full, fit_db, score_step=args.score_step, measure_int8=False,
+                               interpolation=args.interpolation, bit_budget=args.bit_budget)
     result = search_target(HostModel.from_image(image, annex), heldout, target,
                            score_step=args.score_step)
     print(result.table())
@@ -221,12 +246,11 @@ def _heldout_views(args: argparse.Namespace, db: CinemaDB):
 
 def _standalone_line(path: Path, info: dict) -> str:
     """One line on the standalone table's size against the eigenimages' (compressed)."""
-    from device_runtime.runtime import STANDALONE_SECTION
     from protocol.image import read_manifest
 
     with open(path, "rb") as f:
         sizes = {e["name"]: e["size"] for e in read_manifest(f)["sections"]}
-    table, eig = sizes[STANDALONE_SECTION], sizes["eigenimages"]
+    table, eig = sizes[info["section"]], sizes["eigenimages"]
     return (f"standalone table: {info['dtype']} {info['shape'][0]}x{info['shape'][1]} at step "
             f"{info['step']:.3g}, {info['raw_bytes'] / 1e3:.1f} kB raw, {table / 1e3:.1f} kB "
             f"compressed = {100 * table / max(eig, 1):.0f}% of the eigenimages "
