@@ -223,7 +223,7 @@ def run_demo(
     from host.cli import main as eigencast
     from host.model import HostModel
     from host.provision import provision
-    from host.serve import serve
+    from host.serve import open_true_view_scores, serve
     from protocol.keys import load_key, write_key
 
     work = Path(work)
@@ -297,7 +297,7 @@ def run_demo(
             time.sleep(1.2)  # the device's statistics file is refreshed every second
         else:
             _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
-                     "s screenshot, Esc quits")
+                     "s screenshot, Esc quits; a view you stop on is ray-cast and sharpens")
             stop = threading.Event()
 
             def watch() -> None:
@@ -306,7 +306,8 @@ def run_demo(
 
             threading.Thread(target=watch, daemon=True).start()
             stats = serve(model_path, device.url, key=key, model=model, stop=stop,
-                          stats_every_s=10.0, max_reconnects=3)
+                          stats_every_s=10.0, max_reconnects=3, scores="refine",
+                          true_views=open_true_view_scores(model))
         summary["serve"] = stats.as_dict()
     finally:
         device.stop()

@@ -542,21 +542,15 @@ class DevicePath:
     def projection_frame(self, image: np.ndarray) -> tuple[np.ndarray, int]:
         """The frame from the *true* view's own scores (an oracle: no interpolation).
 
-        ``image`` (uint8 (height, width, 3)) is projected onto the int8 eigenimages
-        (``y_j = v_j . (x_c - mean_c) / |v_j|**2`` with ``v_j = scales[j] * eigenimages[j]``),
-        then sent through the same packet, decoder and reconstruction. It separates what the
-        eigenspace can represent from what view interpolation loses.
+        ``image`` (uint8 (height, width, 3)) is fitted onto the device's eigenimages
+        (`host.model.HostModel.project`, least squares per cell), then sent through the same
+        packet (water-filled, the model's step), decoder and reconstruction. It separates
+        what the eigenspace can represent from what view interpolation loses, and it is the
+        frame ``eigencast serve --scores render`` streams.
         """
-        from host.pca import split_cells
         from protocol.scores import encode_scores
 
-        img = self.model.image
-        cells = split_cells(np.asarray(image)[None], img.cell_shape)[0].astype(np.float32)
-        centred = cells - img.mean.astype(np.float32)
-        cell_of = np.repeat(np.arange(img.n_cells), np.asarray(img.n_components, np.int64))
-        v = img.eigenimages.astype(np.float32) * img.scales[:, None]
-        norm2 = np.maximum(np.einsum("kd,kd->k", v, v), np.float32(1e-30))
-        y = np.einsum("kd,kd->k", v, centred[cell_of]) / norm2
+        y = self.model.quantize(self.model.project(image))
         self._frame = (self._frame + 1) & 0xFFFFFFFF
         packet = encode_scores(y, step=self.model.score_step, frame=self._frame, view=(0.0, 0.0),
                                image_digest=self.digest,

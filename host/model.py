@@ -526,12 +526,66 @@ class HostModel:
     def quantized_scores(self, phi_deg: float, theta_deg: float) -> np.ndarray:
         """Scores as a device receives them: rounded to the score step, with the components
         below the water level sent as 0 (`waterfill_mask`)."""
+        return self.quantize(self.scores(phi_deg, theta_deg))
+
+    def quantize(self, scores: np.ndarray) -> np.ndarray:
+        """Float scores (K,) as a packet carries them: rounded to the score step, the
+        components below the water level (`waterfill_mask`) set to 0; float32."""
         step = self.score_step
-        q = np.rint(self.scores(phi_deg, theta_deg) / step)
+        q = np.rint(np.asarray(scores) / step)
         zero = self.waterfill_mask()
         if zero is not None:
             q[zero] = 0.0
         return (q * step).astype(np.float32)
+
+    def project(self, image: np.ndarray) -> np.ndarray:
+        """The scores (K,) float32 that best reproduce ``image`` on the device.
+
+        ``image`` (uint8 (height, width, 3), e.g. a fresh ray-cast of any view) is fitted,
+        per cell, by least squares onto the device's own basis -- the quantized eigenimages
+        times their scales, which bit allocation leaves slightly non-orthogonal -- so
+        ``reconstruct(project(x))`` is the closest frame to ``x`` this eigenspace can show
+        (before score quantization and the uint8 clip). It is what `host.serve` streams in
+        its ``render``/``refine`` modes: the true view's scores, with no interpolation error.
+
+        Raises
+        ------
+        ValueError
+            ``image`` is not (height, width, 3) of the model's image size.
+        """
+        from host.pca import split_cells
+
+        img = self.image
+        x = np.asarray(image)
+        h, w = img.image_shape
+        if x.shape != (h, w, 3):
+            raise ValueError(f"project: image of shape {x.shape}, the model's is {(h, w, 3)}")
+        gram = self._projector()
+        cells = split_cells(x[None], img.cell_shape)[0]
+        out = np.zeros(img.n_coefficients, dtype=np.float32)
+        for c, (lo, hi, inv) in enumerate(gram):
+            if hi == lo:
+                continue
+            d = cells[c].astype(np.float32) - img.mean[c].astype(np.float32)
+            v = img.eigenimages[lo:hi]
+            out[lo:hi] = (inv @ (v.astype(np.float32) @ d)) / img.scales[lo:hi]
+        return out
+
+    def _projector(self) -> list[tuple[int, int, np.ndarray]]:
+        """Per cell (first row, end row, inverse Gram matrix of its int8 rows); cached."""
+        cached = getattr(self, "_gram", None)
+        if cached is not None:
+            return cached
+        img = self.image
+        counts = np.asarray(img.n_components, dtype=np.int64)
+        ends = np.cumsum(counts)
+        out = []
+        for c in range(img.n_cells):
+            lo, hi = int(ends[c] - counts[c]), int(ends[c])
+            v = img.eigenimages[lo:hi].astype(np.float64)
+            out.append((lo, hi, np.linalg.pinv(v @ v.T).astype(np.float32)))
+        self._gram = out
+        return out
 
     def waterfill_mask(self, step: float | None = None) -> np.ndarray | None:
         """Components a packet at ``step`` sends as 0 (reverse water-filling), or None.

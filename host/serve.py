@@ -37,10 +37,13 @@ import secrets
 import sys
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from device_runtime.runtime import OrbitSpec, canonical_view
 from host.errors import EigencastError
@@ -92,6 +95,10 @@ class ServeStats:
         Bytes the links wrote (all frames, framing included) and read.
     requests, coalesced, keyframe_requests : int
         VIEW_REQUESTs received, those superseded before they were answered, KEYFRAME_REQUESTs.
+    rendered_frames, refined_frames : int
+        Packets of ray-cast views (``scores="render"``), refinement packets (``"refine"``).
+    rendered_views, render_seconds : int, float
+        Views ray-cast and projected, and the time it took.
     sessions, reconnects : int
     stream_seconds : float
         Time spent streaming (sessions, not connecting).
@@ -117,6 +124,10 @@ class ServeStats:
     device_id: str = ""
     provisioned: bool = False
     last_view: tuple[float, float] | None = None
+    rendered_frames: int = 0
+    refined_frames: int = 0
+    rendered_views: int = 0
+    render_seconds: float = 0.0
     views: list = field(default_factory=list, repr=False)
 
     @property
@@ -189,9 +200,13 @@ class FrameEncoder:
         """Forget the base: the next packet is a key frame."""
         self.base = None
 
-    def encode(self, view: tuple[float, float], *, key: bool = False) -> EncodedScores:
+    def encode(self, view: tuple[float, float], *, key: bool = False,
+               scores: np.ndarray | None = None) -> EncodedScores:
         """The packet for ``view`` (canonical), as a delta against the last one unless
-        ``key``, the interval or a wrap of the frame number asks for a key frame."""
+        ``key``, the interval or a wrap of the frame number asks for a key frame.
+
+        ``scores`` (float (K,)): send these (e.g. `HostModel.project` of a fresh ray-cast)
+        instead of the model's interpolated scores at ``view``; quantized the same way."""
         frame = self.next_frame
         if frame > 0xFFFFFFFF:
             frame = 1
@@ -201,7 +216,7 @@ class FrameEncoder:
         if interval == 1 or (interval > 1 and self._since_key + 1 >= interval):
             key = True
         model = self.model
-        y = model.quantized_scores(*view)
+        y = model.quantized_scores(*view) if scores is None else model.quantize(scores)
         base = None if key else self.base
         encoded = encode_scores(
             y, step=model.score_step, frame=frame, view=view, image_digest=model.digest,
@@ -211,6 +226,151 @@ class FrameEncoder:
         self._since_key = 0 if base is None else self._since_key + 1
         self.base = encoded
         return encoded
+
+
+# --------------------------------------------------------------------------- true views
+
+#: What ``serve`` streams: interpolated training scores, the scores of a fresh ray-cast of
+#: every view, or interpolated scores at once and the ray-cast's when the view rests.
+SCORE_MODES = ("interpolate", "render", "refine")
+#: ``refine``: how long a view must rest (no newer request) before it is ray-cast, seconds.
+DEFAULT_REFINE_DELAY_S = 0.15
+
+
+class TrueViewScores:
+    """Scores of freshly ray-cast views: ``model.project(renderer.render(view)[0])``.
+
+    The frame a device makes from them is the eigenspace's best approximation of the true
+    view (the *projection*, docs/rate-distortion.md), with no view-interpolation error.
+    The last ``cache`` views are remembered (a device asking for a key frame, or going back
+    and forth, costs no new ray-cast).
+
+    Parameters
+    ----------
+    model : HostModel
+    renderer : host.render_settings.ViewRenderer
+        Built from the model's recorded render settings (`open_true_view_scores`).
+    cache : int
+    """
+
+    def __init__(self, model: HostModel, renderer: Any, *, cache: int = 64) -> None:
+        if tuple(renderer.image_shape) != tuple(model.image.image_shape):
+            raise ServeError(
+                f"the renderer makes {renderer.image_shape[1]}x{renderer.image_shape[0]} "
+                f"images, the model is {model.image.image_shape[1]}x"
+                f"{model.image.image_shape[0]}")
+        self.model = model
+        self.renderer = renderer
+        self._cache: OrderedDict[tuple[float, float], np.ndarray] = OrderedDict()
+        self._size = max(1, int(cache))
+        self._lock = threading.Lock()
+        self.renders = 0
+        self.render_seconds = 0.0
+
+    def __call__(self, view: tuple[float, float]) -> np.ndarray:
+        """Float32 scores (K,) of ``view`` (canonical: phi in [0, 360), degrees)."""
+        key = (float(view[0]), float(view[1]))
+        with self._lock:
+            hit = self._cache.get(key)
+            if hit is not None:
+                self._cache.move_to_end(key)
+                return hit
+        t0 = time.perf_counter()
+        rgb, _alpha = self.renderer.render(*key)
+        y = self.model.project(rgb)
+        with self._lock:
+            self.renders += 1
+            self.render_seconds += time.perf_counter() - t0
+            self._cache[key] = y
+            while len(self._cache) > self._size:
+                self._cache.popitem(last=False)
+        return y
+
+
+def open_true_view_scores(
+    model: HostModel, volume: str | None = None, *, workers: int | None = None
+) -> TrueViewScores:
+    """`TrueViewScores` for ``model``, ray-casting with its recorded render settings.
+
+    ``volume`` replaces the recorded volume source (a moved file); the model's render
+    settings check that it is the same volume (dims, spacing).
+
+    Raises
+    ------
+    EigencastError
+        The model records no render settings, or the volume cannot be loaded or is
+        another one (one line for the user).
+    """
+    from host.render_settings import RenderSettings, ViewRenderer
+
+    recorded = model.render_settings
+    if not recorded:
+        raise ServeError(
+            f"{model.path or 'the model'} records no render settings (its training database "
+            "was not made by eigencast render), so its views cannot be ray-cast")
+    settings = RenderSettings.from_record(recorded, what=str(model.path or "the model"))
+    renderer = ViewRenderer.open(settings, volume, workers=workers,
+                                 what=str(model.path or "the model"))
+    return TrueViewScores(model, renderer)
+
+
+class _Refiner:
+    """A worker thread that ray-casts the newest submitted view (older ones are dropped)."""
+
+    def __init__(self, source: TrueViewScores, notify: Callable[[], None]) -> None:
+        self.source = source
+        self.notify = notify
+        self._cond = threading.Condition()
+        self._pending: tuple[float, float] | None = None
+        self._busy: tuple[float, float] | None = None
+        self._done: dict[tuple[float, float], np.ndarray] = {}
+        self.error: BaseException | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="eigencast-refine", daemon=True)
+        self._thread.start()
+
+    def submit(self, view: tuple[float, float]) -> None:
+        with self._cond:
+            if view != self._busy and view not in self._done:
+                self._pending = view
+                self._cond.notify_all()
+
+    def wanted(self, view: tuple[float, float]) -> bool:
+        """``view`` is queued, being ray-cast or done."""
+        with self._cond:
+            return view in (self._pending, self._busy) or view in self._done
+
+    def take(self, view: tuple[float, float]) -> np.ndarray | None:
+        """The scores of ``view`` once ray-cast (each result is handed out once)."""
+        with self._cond:
+            return self._done.pop(view, None)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._closed:
+                    self._cond.wait()
+                if self._closed:
+                    return
+                view, self._pending = self._pending, None
+                self._busy = view
+            try:
+                y = self.source(view)
+            except BaseException as exc:  # reported by serve, which stops refining
+                with self._cond:
+                    self.error = exc
+                    self._busy = None
+                self.notify()
+                return
+            with self._cond:
+                self._busy = None
+                self._done = {view: y}  # only the newest result is worth sending
+            self.notify()
 
 
 # --------------------------------------------------------------------------- events
@@ -225,6 +385,7 @@ class _DeviceEvents:
         self.sequence = 0
         self.fresh = False
         self.keyframe = False
+        self.poked = False
         self.stats = stats
         self.say = say
 
@@ -247,8 +408,15 @@ class _DeviceEvents:
 
     def wait(self, timeout_s: float) -> None:
         with self._cond:
-            if not (self.fresh or self.keyframe):
+            if not (self.fresh or self.keyframe or self.poked):
                 self._cond.wait(timeout_s)
+            self.poked = False
+
+    def poke(self) -> None:
+        """Wake `wait` (a refined view is ready)."""
+        with self._cond:
+            self.poked = True
+            self._cond.notify_all()
 
     def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
         """(view, sequence, fresh, keyframe wanted) and clear the flags."""
@@ -291,6 +459,9 @@ def serve(
     model: HostModel | None = None,
     on_frame: Callable[[EncodedScores, tuple[float, float]], None] | None = None,
     host_id: str = "eigencast serve",
+    scores: str = "interpolate",
+    true_views: TrueViewScores | None = None,
+    refine_delay_s: float = DEFAULT_REFINE_DELAY_S,
 ) -> ServeStats:
     """Serve score packets for ``model_path`` to the device at ``url``.
 
@@ -330,6 +501,20 @@ def serve(
         Already loaded from ``model_path``.
     on_frame : callable, optional
         ``on_frame(encoded, view)`` after each packet is queued.
+    scores : {"interpolate", "render", "refine"}
+        What the packets carry. ``"interpolate"``: the training views' scores interpolated
+        at the view (instant; the frame shows the blend of neighbouring views).
+        ``"render"``: the scores of a fresh ray-cast of every view (`TrueViewScores`: the
+        eigenspace's best frame of the true view; one ray-cast per packet, requests that
+        arrive meanwhile are coalesced). ``"refine"``: interpolated at once, then, once the
+        view has rested ``refine_delay_s`` with no newer request, the ray-cast's scores as
+        one more (delta) packet. Orbits are host-driven and never rest: ``refine`` sends
+        their views interpolated.
+    true_views : TrueViewScores, optional
+        The ray-caster for ``render``/``refine`` (default: `open_true_view_scores` with the
+        model's recorded volume).
+    refine_delay_s : float
+        ``refine``: how long a view must rest before it is ray-cast.
 
     Returns
     -------
@@ -350,8 +535,14 @@ def serve(
     stop = stop or threading.Event()
     if fps < 0:
         raise ValueError(f"fps={fps} must be >= 0")
+    if scores not in SCORE_MODES:
+        raise ValueError(f"scores={scores!r}: expected one of {', '.join(SCORE_MODES)}")
+    if refine_delay_s < 0:
+        raise ValueError(f"refine_delay_s={refine_delay_s} must be >= 0")
     info = inspect_image(model_path, key=key)
     model = model or HostModel.load(model_path, key=key)
+    if scores != "interpolate" and true_views is None:
+        true_views = open_true_view_scores(model)
     # this end sends frames as large as the model's largest score packet; the device's own
     # limit (HELLO's max_frame_bytes, eigencast-device --max-frame) is the one that binds
     k, n_cells = model.image.n_coefficients, model.image.n_cells
@@ -366,7 +557,10 @@ def serve(
     last_stats = [started]
     failures = 0
     attempt = 0
-    current: list[Any] = [None, 0]  # the view being shown, its request sequence
+    # the view being shown, its request sequence, the true-view scores it was sent with
+    # (None: interpolated), when it was requested
+    current: list[Any] = [None, 0, None, 0.0]
+    refiner: _Refiner | None = None
 
     def done() -> bool:
         if stop.is_set():
@@ -410,6 +604,10 @@ def serve(
                 f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
                 f"{hello.display_width}x{hello.display_height} display)")
             encoder.reset()
+            if scores == "refine" and refiner is None and true_views is not None:
+                refiner = _Refiner(true_views, events.poke)
+            elif refiner is not None:
+                refiner.notify = events.poke
             sent = threading.Event()
             sent.set()
             session_start = time.monotonic()
@@ -435,6 +633,13 @@ def serve(
                     stop.wait(min(next_due - now, _WAIT_S))
                     continue
                 view, sequence, fresh, want_key = events.take()
+                y: np.ndarray | None = None  # interpolated unless set
+                refined = False
+                if refiner is not None and refiner.error is not None:
+                    say(f"ray-casting failed ({_short(refiner.error)}); sending interpolated "
+                        "scores only")
+                    refiner.close()
+                    refiner = None
                 if running_orbit is not None and linger_until is None:
                     view = running_orbit.next_view(now)
                     if view is None:  # done: still answer key-frame requests a moment
@@ -448,16 +653,33 @@ def serve(
                     if not want_key or current[0] is None:
                         events.wait(_WAIT_S)
                         continue
-                    view, sequence = current[0], current[1]
+                    view, sequence, y = current[0], current[1], current[2]
                     linger_until = max(linger_until, now + _LINGER_S)
                 elif not fresh:
-                    if want_key and current[0] is not None:
-                        view, sequence = current[0], current[1]
+                    ready = (refiner.take(current[0]) if refiner is not None
+                             and current[0] is not None and current[2] is None else None)
+                    if ready is not None:  # the resting view, ray-cast: send its own scores
+                        view, sequence, y, refined = current[0], current[1], ready, True
+                    elif want_key and current[0] is not None:
+                        view, sequence, y = current[0], current[1], current[2]
                     else:
-                        events.wait(_WAIT_S)
+                        wait = _WAIT_S
+                        if (refiner is not None and current[0] is not None
+                                and current[2] is None and not refiner.wanted(current[0])):
+                            rest = current[3] + refine_delay_s - now
+                            if rest <= 0:
+                                refiner.submit(current[0])
+                            else:
+                                wait = min(wait, rest)
+                        events.wait(wait)
                         continue
-                current[0], current[1] = view, sequence
-                encoded = encoder.encode(view, key=want_key)
+                if fresh:
+                    current[3] = now
+                if scores == "render" and y is None:
+                    y = true_views(view)
+                    stats.rendered_frames += 1
+                current[0], current[1], current[2] = view, sequence, y
+                encoded = encoder.encode(view, key=want_key, scores=y)
                 sent.clear()
                 try:
                     link.send(m.Scores(sequence=sequence, packet=encoded.packet),
@@ -480,6 +702,8 @@ def serve(
                     stats.delta_frames += 1
                     stats.delta_bytes += size
                 stats.last_view = view
+                if refined:
+                    stats.refined_frames += 1
                 if on_frame is not None:
                     on_frame(encoded, view)
             # finished: let the last packet leave, say goodbye
@@ -509,6 +733,11 @@ def serve(
             if link is not None:
                 with contextlib.suppress(Exception):
                     link.close(flush_timeout_s=0.5)
+    if refiner is not None:
+        refiner.close()
+    if true_views is not None:
+        stats.rendered_views = true_views.renders
+        stats.render_seconds = true_views.render_seconds
     say(f"done: {stats.line()}")
     return stats
 

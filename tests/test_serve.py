@@ -178,8 +178,8 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
                   log=_quiet)
         real = FrameEncoder.encode
 
-        def padded(self, view, *, key=False):  # a model with 2 kB score packets
-            encoded = real(self, view, key=key)
+        def padded(self, view, *, key=False, scores=None):  # a model with 2 kB packets
+            encoded = real(self, view, key=key, scores=scores)
             return dataclasses.replace(encoded, packet=encoded.packet + bytes(2000))
 
         monkeypatch.setattr(FrameEncoder, "encode", padded)
@@ -191,7 +191,8 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
     name = mem_name("bigpkt2")
     config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=16384)
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", config=config):
-        monkeypatch.setattr(FrameEncoder, "encode", lambda self, view, *, key=False: (
+        monkeypatch.setattr(FrameEncoder, "encode", lambda self, view, *, key=False,
+                            scores=None: (
             dataclasses.replace(real(self, view, key=key), packet=real(
                 self, view, key=key).packet + bytes(6000))))
         stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import sys
 import threading
 from pathlib import Path
 
@@ -39,6 +40,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="0: delta frames, key frames only at a (re)connect or when the "
                         "device asks (default); 1: key frames only; N: a key frame at least "
                         "every N frames")
+    parser.add_argument("--scores", choices=("auto", "interpolate", "render", "refine"),
+                        default="auto",
+                        help="what the packets carry: interpolate = the training views' "
+                        "scores blended at the view (instant, shows the neighbouring views "
+                        "cross-faded); render = the scores of a fresh ray-cast of every view "
+                        "(the eigenspace's best frame; one ray-cast per packet); refine = "
+                        "interpolated at once, the ray-cast's scores when the view rests; "
+                        "auto (default) = refine when the model's volume can be loaded, "
+                        "else interpolate")
+    parser.add_argument("--volume", metavar="PATH",
+                        help="the volume to ray-cast for render/refine (default: the source "
+                        "recorded in the model; it must be the same volume)")
+    parser.add_argument("--refine-delay", metavar="S", type=float, default=None,
+                        help="refine: seconds a view must rest before it is ray-cast "
+                        "(default 0.15)")
     parser.add_argument("--provision", action="store_true",
                         help="install the image first when the device lacks it")
     parser.add_argument("--max-frames", metavar="N", type=int,
@@ -56,7 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Serve until interrupted, the orbit ends, or a --max-frames/--duration limit."""
     from device_runtime.runtime import parse_orbit
-    from host.serve import serve
+    from host.model import HostModel
+    from host.serve import DEFAULT_REFINE_DELAY_S, open_true_view_scores, serve
     from protocol.keys import load_key
 
     if args.baud <= 0:
@@ -75,10 +92,27 @@ def run(args: argparse.Namespace) -> int:
             orbit = parse_orbit(args.orbit)
         except ValueError as exc:
             raise EigencastError(f"--orbit: {exc}") from None
+    if args.refine_delay is not None and not args.refine_delay >= 0:
+        raise EigencastError(f"--refine-delay {args.refine_delay}: must be >= 0")
     if not args.model.is_file():
         raise EigencastError(f"{args.model}: no such eigenspace image")
     key = load_key(args.key) if args.key is not None else None
     quiet = args.quiet or args.json
+    say = (lambda line: None) if quiet else None
+    model = HostModel.load(args.model, key=key)
+    mode, true_views = args.scores, None
+    if mode != "interpolate":
+        try:
+            true_views = open_true_view_scores(model, args.volume)
+        except EigencastError as exc:
+            if mode != "auto":
+                raise EigencastError(f"--scores {mode}: {exc}") from None
+            if not quiet:
+                print(f"eigencast serve: sending interpolated scores only ({exc})",
+                      file=sys.stderr, flush=True)
+            mode = "interpolate"
+        else:
+            mode = "refine" if mode == "auto" else mode
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends serving cleanly
@@ -97,7 +131,12 @@ def run(args: argparse.Namespace) -> int:
         reconnect=not args.no_reconnect,
         stats_every_s=args.stats_every,
         stop=stop,
-        log=(lambda line: None) if quiet else None,
+        log=say,
+        model=model,
+        scores=mode,
+        true_views=true_views,
+        refine_delay_s=(DEFAULT_REFINE_DELAY_S if args.refine_delay is None
+                        else args.refine_delay),
     )
     if args.json:
         print(json.dumps(stats.as_dict()))
