@@ -130,7 +130,8 @@ def fit_database(
             raise FitError(f"--cell {cell!r}: must be a positive integer")
         cell_shape = (min(cell, db.image_shape[0]), min(cell, db.image_shape[1]))
     stack = stack_for(db, cell_shape, cache_dir=cache_dir, progress=progress)
-    model = CellEigenspace(method, cell=cell, components=components, threshold=threshold)
+    model = CellEigenspace(method, cell=cell, components=components, threshold=threshold,
+                           progress=progress)
     return model.fit(stack)
 
 

@@ -60,6 +60,39 @@ def with_step(model: HostModel, factor: float) -> HostModel:
                            * factor)
 
 
+def save_figure(path: str, truth: np.ndarray, mask: np.ndarray, shown: dict, spec: str,
+                view: tuple[float, float]) -> None:
+    """Truth | interpolated | ray-cast scores | WebP of the ray-cast at the render frame's
+    quality, each titled with its bytes and object SSIM / FLIP."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cell = shown["render"][1]
+    size, qual, m = smallest_codec_file(truth, mask, "webp", ssim=cell["ssim"], flip=cell["flip"])
+    webp = encode_image(truth, "webp", qual).decode()
+    panels = [("ray-cast (truth)", truth, ""),
+              ("interpolated scores", shown["interpolate"][0],
+               f"{shown['interpolate'][1]['bytes']} B"),
+              ("ray-cast view's scores", shown["render"][0], f"{cell['bytes']} B"),
+              (f"WebP q{qual}, equal quality", webp, f"{size} B")]
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.6))
+    for ax, (title, img, size_text) in zip(axes, panels, strict=True):
+        ax.imshow(img)
+        ax.set_axis_off()
+        q = (shown["interpolate"][1] if title.startswith("interp") else cell
+             if title.startswith("ray-cast view") else m if title.startswith("WebP") else None)
+        sub = f"\n{size_text}, SSIM {q['ssim']:.3f}, FLIP {q['flip']:.3f}" if q else ""
+        ax.set_title(title + sub, fontsize=10)
+    fig.suptitle(f"{spec}, view phi {view[0]:.1f}, theta {view[1]:.1f} (object-pixel metrics; "
+                 "packet bytes as sent in the key+delta stream)", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
@@ -68,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--factors", default="1,2,4,8")
     ap.add_argument("--match-every", type=int, default=8)
     ap.add_argument("--frames", type=int, default=None, help="first N views of each orbit")
+    ap.add_argument("--figure", default=None, metavar="PNG",
+                    help="a side-by-side figure of one view (truth, interpolated, ray-cast "
+                    "scores, equal-quality WebP) at the default step")
+    ap.add_argument("--figure-view", type=int, default=8, help="orbit view index of --figure")
     args = ap.parse_args(argv)
     t = Timer()
     base = HostModel.load(args.model)
@@ -85,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
                                     n_components=base.image.n_components) for k in encoders}
         rows = []
         render_s = []
+        shown: dict = {}
+        figure_done = bool(out["orbits"])  # one figure, from the first orbit
         for i, view in enumerate(views):
             t0 = time.perf_counter()
             truth, alpha = true_views.renderer.render(*view)
@@ -109,6 +148,11 @@ def main(argv: list[str] | None = None) -> int:
                         cell[f"{codec}_equal_bytes"] = size
                         cell[f"{codec}_equal_quality"] = qual
                 row[f"{mode}@{f:g}"] = cell
+                if args.figure and i == args.figure_view and f == factors[0]:
+                    shown[mode] = (frame, cell)
+            if args.figure and i == args.figure_view and not figure_done:
+                figure_done = True
+                save_figure(args.figure, truth, mask, shown, spec, view)
             if match:
                 row["webp_curve"] = []
                 for qv in WEBP_CURVE:

@@ -141,7 +141,8 @@ def test_full_rank_reconstruction_is_exact():
         rec = model.inverse_transform(model.scores_)
         assert rec.shape == images.shape and rec.dtype == np.float32
         np.testing.assert_allclose(rec, images, atol=2e-3)
-        np.testing.assert_allclose(model.transform(images), model.scores_, atol=2e-3)
+        # float32 scores ~2000: the summation order (BLAS threads) moves the last bits
+        np.testing.assert_allclose(model.transform(images), model.scores_, atol=2e-3, rtol=1e-5)
 
 
 @pytest.mark.parametrize("solver", ["gram", "randomized"])
