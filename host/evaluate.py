@@ -34,15 +34,16 @@ The device path
 The evaluation engine
 ---------------------
 `evaluate_model` ray-casts novel views with the model's own render settings
-(`host.render_settings.ViewRenderer`) and compares, per view, the device frame, the
-equal-bytes JPEG and WebP, the angularly nearest training view and the *WebP image database*
-(`WebPDatabase`: every training view stored as WebP on the device, the novel view blended from
-the decoded training images with the model's own interpolation weights; zero bytes per frame)
-with the ray-cast; then a
-rate-distortion sweep over a subset of the views (the model truncated to lower thresholds /
-fewer components through the annexed eigenvalues, coarser score steps, the *projection* of the
-true views onto the eigenspace -- an oracle that shows what the eigenspace could do without
-view interpolation -- and JPEG/WebP at several qualities). `Evaluation.summary` is the JSON of
+(`host.render_settings.ViewRenderer`) and compares, per view, the device frame (from
+interpolated scores, and from the ray-cast's own scores as ``serve --scores render`` sends
+them), the equal-bytes JPEG and WebP, the angularly nearest training view and the *WebP
+image database* (`WebPDatabase`: every training view stored as WebP on the device, the novel
+view blended from the decoded training images with the model's own interpolation weights;
+zero bytes per frame) with the ray-cast; then a rate-distortion sweep over a subset of the
+views (the model truncated to lower thresholds / fewer components through the annexed
+eigenvalues, coarser score steps, the *projection* of the true views onto the eigenspace --
+what the eigenspace can do without view interpolation -- and JPEG/WebP at several
+qualities). `Evaluation.summary` is the JSON of
 ``eigencast evaluate --json``; `host.report.write_report` turns an `Evaluation` into HTML.
 """
 
@@ -70,6 +71,7 @@ __all__ = [
     "DEFAULT_STEP_FACTORS",
     "DEFAULT_THRESHOLDS",
     "DEFAULT_WEBP_DB_QUALITY",
+    "METHODS",
     "METRICS",
     "CodedImage",
     "DevicePath",
@@ -93,6 +95,11 @@ METRICS = ("psnr", "ssim", "flip")
 #: Whether a larger value is better, per metric.
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "flip": False}
 CODECS = ("jpeg", "webp")
+#: Methods an evaluation reports: the device frame from interpolated scores (``pca``), the
+#: device frame from the ray-cast's own scores (``pca_render``: what ``serve --scores
+#: render`` sends, and ``refine`` once a view rests), equal-bytes codecs, the nearest
+#: training view and the on-device WebP image database.
+METHODS = ("pca", "pca_render", "jpeg", "webp", "nearest", "webp_db")
 MAX_QUALITY = 100
 #: Thresholds tried by the rate-distortion sweep of an adaptive model (those below its own T).
 DEFAULT_THRESHOLDS = (0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.998, 0.999)
@@ -777,8 +784,9 @@ class Evaluation:
     def summary(self) -> dict:
         """The ``--json`` object of ``eigencast evaluate``.
 
-        Model facts, the per-method means over the views (``pca``, ``jpeg``, ``webp``,
-        ``nearest``), the rate-distortion points, the time per phase and the per-view records;
+        Model facts, the per-method means over the views (`METHODS`: ``pca``,
+        ``pca_render``, ``jpeg``, ``webp``, ``nearest``, ``webp_db``), the rate-distortion
+        points, the time per phase and the per-view records;
         non-finite floats are ``None``.
         """
         info = self.info
@@ -794,7 +802,7 @@ class Evaluation:
             "score_step": info["score_step"],
             "int8": info.get("int8"),
         }
-        for method in ("pca", "jpeg", "webp", "nearest", "webp_db"):
+        for method in METHODS:
             if self.views and method in self.views[0]:
                 out[method] = self.means(method)
         if "webp_db" in out:
@@ -1047,6 +1055,8 @@ def evaluate_model(
                 t1 = time.perf_counter()
                 timing["raycast"] += t1 - t0
                 frame, packet_bytes = device.frame(phi, theta)
+                # what `serve --scores render|refine` sends: the ray-cast's own scores
+                render_frame, render_bytes = device.projection_frame(truth)
                 t2 = time.perf_counter()
                 timing["device"] += t2 - t1
                 coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=hints[c])
@@ -1060,6 +1070,8 @@ def evaluate_model(
                                           "object_fraction": float(mask.mean()),
                                           "pca": {"bytes_per_view": packet_bytes}}
                 futures = {"pca": metrics.submit(truth, frame, mask, keep)}
+                record["pca_render"] = {"bytes_per_view": render_bytes}
+                futures["pca_render"] = metrics.submit(truth, render_frame, mask, False)
                 for c in CODECS:
                     record[c] = {"bytes_per_view": coded[c].size_bytes,
                                  "quality": coded[c].quality,
@@ -1083,7 +1095,8 @@ def evaluate_model(
                 sample = None
                 if keep:
                     sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
-                              "pca": frame, "jpeg": decoded["jpeg"], "webp": decoded["webp"],
+                              "pca": frame, "pca_render": render_frame,
+                              "jpeg": decoded["jpeg"], "webp": decoded["webp"],
                               "record": record}
                     if webp_db is not None:
                         sample["webp_db"] = blended

@@ -26,13 +26,16 @@ from typing import Any
 
 import numpy as np
 
+from host.evaluate import METHODS
+
 __all__ = ["compose_side_by_side", "write_report"]
 
 #: Side-by-side panels smaller than this are zoomed (nearest neighbour) to at least it.
 MIN_PANEL_HEIGHT = 256
 _COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp": "#2166ac",
-           "nearest": "#8c6bb1", "webp_db": "#e08214"}
+           "nearest": "#8c6bb1", "webp_db": "#e08214", "pca_render": "#35978f"}
 _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
+          "pca_render": "PCA, ray-cast scores (serve --scores render)",
           "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
           "nearest": "nearest training view",
           "webp_db": "WebP image database on the device"}
@@ -166,6 +169,11 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
         if own:
             ax.plot([own["bytes_per_view"]], [own[metric]], "*", color="black", markersize=13,
                     label="this model (all views)", zorder=5)
+        rendered = summary.get("pca_render") or {}
+        if rendered:
+            ax.plot([rendered["bytes_per_view"]], [rendered[metric]], "*",
+                    color=_COLORS["pca_render"], markersize=13, zorder=5,
+                    label="this model, ray-cast scores (all views)")
         db = summary.get("webp_db") or {}
         if db and db.get(metric) is not None:
             ax.axhline(db[metric], color=_COLORS["webp_db"], linestyle="--", linewidth=1.2,
@@ -201,8 +209,8 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
     theta = np.array([v["theta_deg"] for v in evaluation.views])
     for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
         # dodge the methods sideways so that views at equal elevations stay visible
-        for dodge, method in zip((-3.0, -1.5, 0.0, 1.5, 3.0),
-                                 ("nearest", "jpeg", "webp", "webp_db", "pca")):
+        for dodge, method in zip((-3.0, -1.8, -0.6, 0.6, 1.8, 3.0),
+                                 ("nearest", "jpeg", "webp", "webp_db", "pca", "pca_render")):
             if evaluation.views and method in evaluation.views[0]:
                 vals = np.array([v[method][metric] for v in evaluation.views], dtype=float)
                 ax.scatter(theta + dodge, vals, s=10, color=_COLORS[method],
@@ -224,6 +232,12 @@ def _sample_figure(sample: dict) -> np.ndarray:
          sample["raycast"]),
         (f"PCA (device), {rec['pca']['bytes_per_view']} B\nSSIM {rec['pca']['ssim']:.3f}  "
          f"FLIP {rec['pca']['flip']:.3f}", sample["pca"]),
+    ]
+    if sample.get("pca_render") is not None and "pca_render" in rec:
+        r = rec["pca_render"]
+        panels.append((f"PCA, ray-cast scores, {r['bytes_per_view']} B\n"
+                       f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_render"]))
+    panels += [
         (f"JPEG q{rec['jpeg']['quality']}, {rec['jpeg']['bytes_per_view']} B"
          f"{'' if rec['jpeg']['within_budget'] else ' (over budget)'}\n"
          f"SSIM {rec['jpeg']['ssim']:.3f}  FLIP {rec['jpeg']['flip']:.3f}", sample["jpeg"]),
@@ -322,7 +336,7 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         ["mean FLIP of equal-bytes WebP", _fmt(webp.get("flip"), 4)],
     ]
     rows = []
-    for method in ("pca", "jpeg", "webp", "nearest", "webp_db"):
+    for method in METHODS:
         m = summary.get(method)
         if not m:
             continue
@@ -337,6 +351,8 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
                 extra += f", {m['over_budget_views']} views over budget at q=1"
         elif method == "nearest":
             extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
+        elif method == "pca_render":
+            extra = "key packets of the ray-cast's own scores (no view interpolation)"
         rows.append([
             _NAMES[method],
             _bytes(m.get("bytes_per_view")),

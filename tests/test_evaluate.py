@@ -260,11 +260,15 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
                "--json", "--rd-views", "2", "--samples-shown", "2")
     summary = json.loads(res.stdout)  # exactly one JSON object on stdout
     for key in ("method", "threshold", "components_per_cell", "eigenspace_bytes", "views",
-                "pca", "jpeg", "webp", "nearest", "webp_db"):
+                "pca", "pca_render", "jpeg", "webp", "nearest", "webp_db"):
         assert key in summary
     assert summary["method"] == "adaptive" and summary["threshold"] == pytest.approx(0.995)
     assert summary["views"] == 5
-    for method in ("pca", "jpeg", "webp", "nearest", "webp_db"):
+    # the ray-cast's own scores (serve --scores render) beat interpolated ones, view by view
+    for v in summary["per_view"]:
+        assert v["pca_render"]["psnr_object"] > v["pca"]["psnr_object"], v
+        assert v["pca_render"]["bytes_per_view"] > 16  # a real key packet
+    for method in ("pca", "pca_render", "jpeg", "webp", "nearest", "webp_db"):
         for key in ("bytes_per_view", "psnr", "ssim", "flip", "psnr_object", "ssim_object",
                     "flip_object"):
             assert isinstance(summary[method][key], float), (method, key)
@@ -289,6 +293,7 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
         assert im.width > 4 * 40  # several panels side by side
     html = (report / "index.html").read_text()
     assert "Table 1" in html and "rd.png" in html and "view_00.png" in html
+    assert "ray-cast scores" in html
     assert "Traceback" not in res.stderr and "evaluate" in res.stderr  # progress on stderr
 
 

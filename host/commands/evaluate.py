@@ -168,6 +168,8 @@ def _write_report_atomically(evaluation, folder: Path) -> None:  # noqa: ANN001
 
 
 def _text_summary(s: dict) -> str:
+    from host.evaluate import METHODS
+
     def f(v, d=3):  # noqa: ANN001
         return "-" if v is None else f"{v:.{d}f}"
 
@@ -180,7 +182,7 @@ def _text_summary(s: dict) -> str:
         f"{'method':<10} {'bytes/view':>10} {'PSNR':>7} {'SSIM':>7} {'FLIP':>7}",
     ]
     lines[-1] += f" {'SSIM obj':>8} {'FLIP obj':>8}"
-    for m in ("pca", "jpeg", "webp", "nearest", "webp_db"):
+    for m in METHODS:
         if m in s:
             r = s[m]
             lines.append(f"{m:<10} {r['bytes_per_view']:>10.0f} {f(r['psnr'], 2):>7} "
