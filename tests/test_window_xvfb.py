@@ -12,17 +12,19 @@ import shutil
 import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
-from provision_helpers import REPO, DeviceProcess
+from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import key_file, tiny_model, wait_until
 
 from host.model import HostModel
 from host.provision import provision
+from host.serve import open_true_view_scores, serve
 
 pytestmark = pytest.mark.skipif(
     shutil.which("Xvfb") is None or shutil.which("xdotool") is None,
@@ -151,3 +153,66 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
+
+
+def test_window_drag_then_rest_shows_the_ray_cast_views_own_frame(tmp_path, tmp_path_factory,
+                                                                  xvfb, monkeypatch):
+    """serve --scores refine against a real window: after a drag, the view that rests is
+    ray-cast and the window ends up showing the frame of the ray-cast's own scores."""
+    display, screen = xvfb
+    model_path = tiny_model(tmp_path_factory)
+    model = HostModel.load(model_path)
+    true_views = open_true_view_scores(model)
+    for name, value in (("DISPLAY", display), ("SDL_VIDEODRIVER", "x11"),
+                        ("SDL_VIDEO_WINDOW_POS", "0,0")):
+        monkeypatch.setenv(name, value)
+    device = DeviceProcess(tmp_path / "flash", "--display", key_file=key_file(model_path))
+    stop = threading.Event()
+    sent: list[tuple[float, float]] = []
+    result: dict = {}
+
+    def host() -> None:
+        result["stats"] = serve(model_path, device.url, key=KEY, model=model, stop=stop,
+                                log=lambda line: None, provision_missing=True,
+                                scores="refine", true_views=true_views, refine_delay_s=0.05,
+                                on_frame=lambda encoded, view: sent.append(view))
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    h, w = model.image.image_shape
+
+    def shows_refined() -> bool:
+        if not sent:
+            return False
+        want = model.reconstruct(model.quantize(true_views(sent[-1])))
+        return np.array_equal(read_xwd(screen)[:h, :w], want)
+
+    try:
+        wid = ""
+        deadline = time.monotonic() + 60
+        while not wid and time.monotonic() < deadline and device.proc.poll() is None:
+            wid = _find_window(display, "eigencast")
+            time.sleep(0.1)
+        assert wid, "no window appeared:\n" + "\n".join(device.lines[-5:])
+        wait_until(shows_refined, 60, "the first view, refined, on the X framebuffer")
+        first = sent[-1]
+        # the window is made again at the image's size once the image is loaded
+        wid = _find_window(display, "eigencast")
+        _xdotool(display, "windowfocus", "--sync", wid)
+        _xdotool(display, "mousemove", "--window", wid, "10", "20")
+        _xdotool(display, "mousedown", "1")
+        for x in (15, 20, 25, 30):
+            _xdotool(display, "mousemove", "--window", wid, str(x), "20")
+            time.sleep(0.05)
+        _xdotool(display, "mouseup", "1")
+        wait_until(lambda: sent and sent[-1] != first and shows_refined(), 60,
+                   "the dragged-to view, refined, on the X framebuffer")
+        view = sent[-1]
+        assert view[1] == first[1] and view[0] < first[0]  # dragged right: phi decreased
+        # the refined frame is not the interpolated one the drag showed
+        assert not np.array_equal(read_xwd(screen)[:h, :w], model.view(*view))
+    finally:
+        stop.set()
+        thread.join(20)
+        device.stop()
+    assert result["stats"].refined_frames >= 2
