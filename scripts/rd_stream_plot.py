@@ -38,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     runs = [json.loads(Path(p).read_text()) for p in args.results]
     fig, axes = plt.subplots(2, len(runs), figsize=(4.6 * len(runs), 7.5), squeeze=False)
@@ -48,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
         name = Path(path).stem.replace("stream-", "").replace("vismale_head", "head")
         summary, curve = pooled(run)
         for mode, colour in (("interpolate", "tab:orange"), ("render", "tab:blue")):
-            keys = [k for k in summary if k.startswith(mode + "@")]
+            keys = sorted((k for k in summary if k.startswith(mode + "@")),
+                          key=lambda k: float(k.split("@")[1]))
             pts = [summary[k] for k in keys]
             for row, metric in enumerate(("ssim", "flip")):
                 axes[row][col].plot([p["bytes"] for p in pts], [p[metric] for p in pts], "o-",
@@ -65,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             ax.plot([curve[q]["bytes"] for q in qs], [curve[q][metric] for q in qs], "s--",
                     color="tab:green", label="WebP of the ray-cast (q 1..95)")
             ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             ax.set_xlabel("bytes per frame")
             ax.set_ylabel(f"object {metric.upper()}" + (" (lower is better)"
                                                         if metric == "flip" else ""))
