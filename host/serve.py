@@ -160,7 +160,12 @@ class ServeStats:
         """One human line: frames, bytes per frame (key / delta), fps, link rate."""
         key = self.key_bytes / self.key_frames if self.key_frames else 0.0
         delta = self.delta_bytes / self.delta_frames if self.delta_frames else 0.0
-        return (f"{self.frames} frames ({self.key_frames} key, {self.delta_frames} delta), "
+        kinds = f"{self.key_frames} key, {self.delta_frames} delta"
+        if self.rendered_frames:
+            kinds += f", {self.rendered_frames} ray-cast"
+        if self.refined_frames:
+            kinds += f", {self.refined_frames} refined"
+        return (f"{self.frames} frames ({kinds}), "
                 f"{self.bytes_per_frame:.0f} B/frame (key {key:.0f} B, delta {delta:.0f} B), "
                 f"{self.fps:.1f} fps, link {self.link_bytes_per_s / 1024:.1f} KiB/s")
 
@@ -602,7 +607,7 @@ def serve(
             failures = 0
             say(f"serving {Path(model_path).name} to device '{hello.device_id}' "
                 f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
-                f"{hello.display_width}x{hello.display_height} display)")
+                f"{hello.display_width}x{hello.display_height} display; {scores} scores)")
             encoder.reset()
             if scores == "refine" and refiner is None and true_views is not None:
                 refiner = _Refiner(true_views, events.poke)

@@ -1,4 +1,4 @@
-"""Shared test setup: no display, deterministic threads, real-data skips."""
+"""Shared test setup: no display, deterministic threads, real-data skips, the tiny model."""
 
 from __future__ import annotations
 
@@ -26,3 +26,20 @@ def shared_path():
         return path
 
     return get
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    """The signed, standalone tiny tooth model of `runtime_helpers.tiny_model` (built once
+    per session; a module may define its own ``model_path``)."""
+    from runtime_helpers import tiny_model
+
+    return tiny_model(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def model(model_path):
+    """`host.model.HostModel` of ``model_path``."""
+    from host.model import HostModel
+
+    return HostModel.load(model_path)

@@ -13,6 +13,7 @@ import pytest
 from provision_helpers import KEY, DeviceThread, mem_name
 
 from protocol import messages as m
+from protocol.errors import RemoteError
 from protocol.framing import encode_frame
 from protocol.link import HostSession, Link
 from protocol.transport import open_transport
@@ -118,6 +119,26 @@ def _fuzz_frames(rng: random.Random, count: int) -> list[bytes]:
     return out
 
 
+def _ping_past_stale_replies(session: HostSession, tries: int = 5) -> float:
+    """PING the device; an ERROR that names another request is skipped.
+
+    The fuzzed requests carry random request ids, and the device answers the last of them
+    while the ping is under way: a late ERROR to a fuzzed SLOT_SET whose id happens to be the
+    one the ping drew is delivered to the ping. That is the 16-bit id space, not a device
+    fault; an ERROR about the PING itself still fails the test.
+    """
+    last: RemoteError | None = None
+    for _ in range(tries):
+        try:
+            return session.ping(payload=b"still here", retries=3)
+        except RemoteError as exc:
+            if getattr(exc, "where", "") in ("", "PING"):
+                raise
+            last = exc
+    assert last is not None
+    raise last
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_fuzzed_device_stays_up_answers_ping_and_stays_bounded(tmp_path, seed):
     name = mem_name("fuzz")
@@ -138,7 +159,7 @@ def test_fuzzed_device_stays_up_answers_ping_and_stays_bounded(tmp_path, seed):
                 host.send_raw(b"\x00")  # end a partial frame
                 assert host.wait_writer_idle(30)
                 # The device still answers, and correctly.
-                assert session.ping(payload=b"still here", retries=3) < 5.0
+                assert _ping_past_stale_replies(session) < 5.0
                 _, peak = tracemalloc.get_traced_memory()
             finally:
                 tracemalloc.stop()

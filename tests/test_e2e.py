@@ -16,29 +16,17 @@ import sys
 import threading
 
 import numpy as np
-import pytest
 from PIL import Image
 from provision_helpers import KEY, REPO, DeviceProcess
-from runtime_helpers import check_frames, key_file, read_frames, tiny_model, wait_until
+from runtime_helpers import check_frames, key_file, read_frames, wait_until
 
 from device_runtime.runtime import parse_orbit
-from host.model import HostModel
 from host.provision import provision
 from host.serve import serve
 from protocol.transport import FdTransport, open_pty_pair
 
 CLI = [sys.executable, "-m", "host.cli"]
 DEVICE = [sys.executable, "-m", "device_runtime.cli"]
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
-
-
-@pytest.fixture(scope="module")
-def model(model_path):
-    return HostModel.load(model_path)
 
 
 def _quiet(line: str) -> None:

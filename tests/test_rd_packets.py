@@ -7,7 +7,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from runtime_helpers import tiny_model
 
 from device_runtime.runtime import (
     STANDALONE_DELTA_SECTION,
@@ -27,11 +26,6 @@ from host.quantize import (
 )
 from protocol.errors import ImageFormatError
 from protocol.image import read_image, read_manifest, write_image
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import tracemalloc
 import numpy as np
 import pytest
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, tiny_model, wait_until
+from runtime_helpers import RuntimeThread, wait_until
 
 from device_runtime.device import DeviceConfig
 from device_runtime.display import HeadlessPresenter, ViewDelta
@@ -29,16 +29,6 @@ from protocol import messages as m
 from protocol.errors import ImageFormatError
 from protocol.image import read_image
 from protocol.scores import encode_scores
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
-
-
-@pytest.fixture(scope="module")
-def model(model_path):
-    return HostModel.load(model_path)
 
 
 def test_parse_orbit_forms_and_errors():

@@ -9,23 +9,12 @@ import threading
 import numpy as np
 import pytest
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, check_frames, read_frames, tiny_model, wait_until
+from runtime_helpers import RuntimeThread, check_frames, read_frames, wait_until
 
 from device_runtime.runtime import parse_orbit
-from host.model import HostModel
 from host.provision import provision
 from host.serve import FrameEncoder, ServeError, serve
 from protocol.scores import ScoreDecoder
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
-
-
-@pytest.fixture(scope="module")
-def model(model_path):
-    return HostModel.load(model_path)
 
 
 def _quiet(line: str) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, read_frames, tiny_model, wait_until
+from runtime_helpers import RuntimeThread, read_frames, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
 from host.cinema import CinemaDB
@@ -27,16 +27,6 @@ from host.render_settings import RenderSettings, ViewRenderer
 from host.serve import TrueViewScores, open_true_view_scores, serve
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
-
-
-@pytest.fixture(scope="module")
-def model(model_path):
-    return HostModel.load(model_path)
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +108,7 @@ def test_render_mode_streams_the_projection_of_every_orbit_view(tmp_path, model_
                       orbit=parse_orbit("steps:5:25"), fps=0, log=_quiet, scores="render",
                       true_views=true_views)
         assert stats.frames == 5 and stats.rendered_frames == 5 and stats.key_frames == 1
+        assert "5 ray-cast" in stats.line()
         wait_until(lambda: any(float(r["phi_deg"]) == 288.0 for r in read_frames(frames)), 10,
                    "the orbit's last view")
     rows = read_frames(frames)
@@ -160,6 +151,8 @@ def test_refine_sends_the_interpolated_frame_then_the_ray_cast_one(tmp_path, mod
         device.stop()
     stats = result["stats"]
     assert stats.refined_frames >= 1 and stats.rendered_views >= 1, logs
+    assert f"{stats.refined_frames} refined" in stats.line()
+    assert any("refine scores" in line for line in logs)  # the mode is logged
     rows = shown()
     np.testing.assert_array_equal(_frame(frames, rows[0]), model.view(*view))
     np.testing.assert_array_equal(_frame(frames, rows[-1]), _projected(model, true_views, view))

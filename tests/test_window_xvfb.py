@@ -90,6 +90,16 @@ def read_xwd(path: Path) -> np.ndarray:
     return pixels[..., [2, 1, 0]] if byte_order == 0 else pixels[..., [1, 2, 3]]
 
 
+def _drag_right(display: str, wid: str) -> None:
+    """Drag 20 px to the right with the left button (the device turns phi by -10)."""
+    _xdotool(display, "mousemove", "--window", wid, "10", "20")
+    _xdotool(display, "mousedown", "1")
+    for x in (15, 20, 25, 30):
+        _xdotool(display, "mousemove", "--window", wid, str(x), "20")
+        time.sleep(0.05)  # pointer motion spread over time, as a hand drags
+    _xdotool(display, "mouseup", "1")
+
+
 def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_path_factory,
                                                                     xvfb):
     display, screen = xvfb
@@ -134,13 +144,7 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
         np.testing.assert_array_equal(shot(1), first)
         _xdotool(display, "key", "Left")  # phi + 5
         np.testing.assert_array_equal(shot(2), model.view(35.0, 15.0))
-        # drag 20 px to the right with the left button: phi - 10
-        _xdotool(display, "mousemove", "--window", wid, "10", "20")
-        _xdotool(display, "mousedown", "1")
-        for x in (15, 20, 25, 30):
-            _xdotool(display, "mousemove", "--window", wid, str(x), "20")
-            time.sleep(0.05)
-        _xdotool(display, "mouseup", "1")
+        _drag_right(display, wid)  # phi - 10
         want = model.view(25.0, 15.0)
         np.testing.assert_array_equal(shot(3), want)
         # what the X server itself shows at the window's place
@@ -199,12 +203,7 @@ def test_window_drag_then_rest_shows_the_ray_cast_views_own_frame(tmp_path, tmp_
         # the window is made again at the image's size once the image is loaded
         wid = _find_window(display, "eigencast")
         _xdotool(display, "windowfocus", "--sync", wid)
-        _xdotool(display, "mousemove", "--window", wid, "10", "20")
-        _xdotool(display, "mousedown", "1")
-        for x in (15, 20, 25, 30):
-            _xdotool(display, "mousemove", "--window", wid, str(x), "20")
-            time.sleep(0.05)
-        _xdotool(display, "mouseup", "1")
+        _drag_right(display, wid)
         wait_until(lambda: sent and sent[-1] != first and shows_refined(), 60,
                    "the dragged-to view, refined, on the X framebuffer")
         view = sent[-1]
