@@ -574,172 +574,174 @@ def serve(
             return True
         return duration_s is not None and stats.stream_seconds >= duration_s
 
-    while not done():
-        link: Link | None = None
-        try:
-            transport = factory(attempt)
-            attempt += 1
-            events = _DeviceEvents(stats, say)
-            link = Link(transport, handler=events, owns_transport=True).start()
-            session = HostSession(link, key=key, host_id=host_id,
-                                  request_timeout_s=request_timeout_s)
-            hello = session.start()
-            stats.device_id = hello.device_id
-            if _active_digest(hello) != info.digest:
-                if not provision_missing:
-                    held = _active_digest(hello)
-                    raise ServeError(
-                        f"device '{hello.device_id}' does not hold {model_path} (active image: "
-                        f"{held.hex()[:16] + '...' if held else 'none'}); run eigencast "
-                        f"provision {model_path} --port {url} first, or pass --provision"
-                    )
-                session.bye("provisioning")
-                link.close(flush_timeout_s=0.5)
-                link = None
-                say(f"device '{hello.device_id}' lacks the image: provisioning it")
-                provision(model_path, url, baud=baud, key=key, log=say,
-                          transport_factory=transport_factory)
-                stats.provisioned = True
-                continue
-            stats.sessions += 1
-            if stats.sessions > 1:
-                stats.reconnects += 1
-            failures = 0
-            say(f"serving {Path(model_path).name} to device '{hello.device_id}' "
-                f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
-                f"{hello.display_width}x{hello.display_height} display; {scores} scores)")
-            encoder.reset()
-            if scores == "refine" and refiner is None and true_views is not None:
-                refiner = _Refiner(true_views, events.poke)
-            elif refiner is not None:
-                refiner.notify = events.poke
-            sent = threading.Event()
-            sent.set()
-            session_start = time.monotonic()
-            base_sent, base_recv = 0, 0
-            next_due = 0.0
-            linger_until: float | None = None
-            while not done():
-                now = time.monotonic()
-                stats.stream_seconds += now - session_start
-                session_start = now
-                stats.wire_bytes_sent += link.stats.bytes_sent - base_sent
-                stats.wire_bytes_received += link.stats.bytes_received - base_recv
-                base_sent, base_recv = link.stats.bytes_sent, link.stats.bytes_received
-                if link.closed:
-                    raise TransportClosed(f"{url}: link lost")
-                if stats_every_s and now - last_stats[0] >= stats_every_s:
-                    last_stats[0] = now
-                    say(stats.line())
-                # one packet in flight at most, and at most fps per second
-                if not sent.wait(_WAIT_S):
-                    continue
-                if fps > 0 and now < next_due:
-                    stop.wait(min(next_due - now, _WAIT_S))
-                    continue
-                view, sequence, fresh, want_key = events.take()
-                y: np.ndarray | None = None  # interpolated unless set
-                refined = False
-                if refiner is not None and refiner.error is not None:
-                    say(f"ray-casting failed ({_short(refiner.error)}); sending interpolated "
-                        "scores only")
-                    refiner.close()
-                    refiner = None
-                if running_orbit is not None and linger_until is None:
-                    view = running_orbit.next_view(now)
-                    if view is None:  # done: still answer key-frame requests a moment
-                        linger_until = now + _LINGER_S
-                        say("orbit done")
-                        continue
-                    sequence = 0
-                elif linger_until is not None:
-                    if now >= linger_until:
-                        break
-                    if not want_key or current[0] is None:
-                        events.wait(_WAIT_S)
-                        continue
-                    view, sequence, y = current[0], current[1], current[2]
-                    linger_until = max(linger_until, now + _LINGER_S)
-                elif not fresh:
-                    ready = (refiner.take(current[0]) if refiner is not None
-                             and current[0] is not None and current[2] is None else None)
-                    if ready is not None:  # the resting view, ray-cast: send its own scores
-                        view, sequence, y, refined = current[0], current[1], ready, True
-                    elif want_key and current[0] is not None:
-                        view, sequence, y = current[0], current[1], current[2]
-                    else:
-                        wait = _WAIT_S
-                        if (refiner is not None and current[0] is not None
-                                and current[2] is None and not refiner.wanted(current[0])):
-                            rest = current[3] + refine_delay_s - now
-                            if rest <= 0:
-                                refiner.submit(current[0])
-                            else:
-                                wait = min(wait, rest)
-                        events.wait(wait)
-                        continue
-                if fresh:
-                    current[3] = now
-                if scores == "render" and y is None:
-                    y = true_views(view)
-                    stats.rendered_frames += 1
-                current[0], current[1], current[2] = view, sequence, y
-                encoded = encoder.encode(view, key=want_key, scores=y)
-                sent.clear()
-                try:
-                    link.send(m.Scores(sequence=sequence, packet=encoded.packet),
-                              after_sent=sent.set)
-                except ValueError as exc:  # the packet does not fit the device's frames
-                    kind = "key" if encoder.last_was_key else "delta"
-                    raise ServeError(
-                        f"{' '.join(str(exc).split())}: a {kind} score packet of this model "
-                        f"({len(encoded.packet)} bytes) does not fit the device's frames; "
-                        "start eigencast-device with a larger --max-frame (e.g. --max-frame "
-                        "65536)") from None
-                next_due = now + (1.0 / fps if fps > 0 else 0.0)
-                size = len(encoded.packet)
-                stats.frames += 1
-                stats.packet_bytes += size
-                if encoder.last_was_key:
-                    stats.key_frames += 1
-                    stats.key_bytes += size
-                else:
-                    stats.delta_frames += 1
-                    stats.delta_bytes += size
-                stats.last_view = view
-                if refined:
-                    stats.refined_frames += 1
-                if on_frame is not None:
-                    on_frame(encoded, view)
-            # finished: let the last packet leave, say goodbye
-            sent.wait(2.0)
-            link.wait_writer_idle(2.0)
-            session.bye("done")
-            link.close(flush_timeout_s=1.0)
-            link = None
-            break
-        except (TransportClosed, TransportTimeout, TransportError) as exc:
-            if isinstance(exc, RemoteError):
-                raise
-            if link is not None:
-                with contextlib.suppress(Exception):
-                    link.close(flush_timeout_s=0.0)
-                link = None
-            failures += 1
-            if not reconnect or (max_reconnects is not None and failures > max_reconnects):
-                if stats.sessions == 0:
-                    raise
-                say(f"link lost ({_short(exc)}); not reconnecting")
-                break
-            delay = min(_BACKOFF_S[0] * 2 ** (failures - 1), _BACKOFF_S[1])
-            say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
-            stop.wait(delay)  # reconnect backoff (a protocol timer)
-        finally:
-            if link is not None:
-                with contextlib.suppress(Exception):
+    try:
+        while not done():
+            link: Link | None = None
+            try:
+                transport = factory(attempt)
+                attempt += 1
+                events = _DeviceEvents(stats, say)
+                link = Link(transport, handler=events, owns_transport=True).start()
+                session = HostSession(link, key=key, host_id=host_id,
+                                      request_timeout_s=request_timeout_s)
+                hello = session.start()
+                stats.device_id = hello.device_id
+                if _active_digest(hello) != info.digest:
+                    if not provision_missing:
+                        held = _active_digest(hello)
+                        raise ServeError(
+                            f"device '{hello.device_id}' does not hold {model_path} (active image: "
+                            f"{held.hex()[:16] + '...' if held else 'none'}); run eigencast "
+                            f"provision {model_path} --port {url} first, or pass --provision"
+                        )
+                    session.bye("provisioning")
                     link.close(flush_timeout_s=0.5)
-    if refiner is not None:
-        refiner.close()
+                    link = None
+                    say(f"device '{hello.device_id}' lacks the image: provisioning it")
+                    provision(model_path, url, baud=baud, key=key, log=say,
+                              transport_factory=transport_factory)
+                    stats.provisioned = True
+                    continue
+                stats.sessions += 1
+                if stats.sessions > 1:
+                    stats.reconnects += 1
+                failures = 0
+                say(f"serving {Path(model_path).name} to device '{hello.device_id}' "
+                    f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
+                    f"{hello.display_width}x{hello.display_height} display; {scores} scores)")
+                encoder.reset()
+                if scores == "refine" and refiner is None and true_views is not None:
+                    refiner = _Refiner(true_views, events.poke)
+                elif refiner is not None:
+                    refiner.notify = events.poke
+                sent = threading.Event()
+                sent.set()
+                session_start = time.monotonic()
+                base_sent, base_recv = 0, 0
+                next_due = 0.0
+                linger_until: float | None = None
+                while not done():
+                    now = time.monotonic()
+                    stats.stream_seconds += now - session_start
+                    session_start = now
+                    stats.wire_bytes_sent += link.stats.bytes_sent - base_sent
+                    stats.wire_bytes_received += link.stats.bytes_received - base_recv
+                    base_sent, base_recv = link.stats.bytes_sent, link.stats.bytes_received
+                    if link.closed:
+                        raise TransportClosed(f"{url}: link lost")
+                    if stats_every_s and now - last_stats[0] >= stats_every_s:
+                        last_stats[0] = now
+                        say(stats.line())
+                    # one packet in flight at most, and at most fps per second
+                    if not sent.wait(_WAIT_S):
+                        continue
+                    if fps > 0 and now < next_due:
+                        stop.wait(min(next_due - now, _WAIT_S))
+                        continue
+                    view, sequence, fresh, want_key = events.take()
+                    y: np.ndarray | None = None  # interpolated unless set
+                    refined = False
+                    if refiner is not None and refiner.error is not None:
+                        say(f"ray-casting failed ({_short(refiner.error)}); sending interpolated "
+                            "scores only")
+                        refiner.close()
+                        refiner, scores = None, "interpolate"
+                    if running_orbit is not None and linger_until is None:
+                        view = running_orbit.next_view(now)
+                        if view is None:  # done: still answer key-frame requests a moment
+                            linger_until = now + _LINGER_S
+                            say("orbit done")
+                            continue
+                        sequence = 0
+                    elif linger_until is not None:
+                        if now >= linger_until:
+                            break
+                        if not want_key or current[0] is None:
+                            events.wait(_WAIT_S)
+                            continue
+                        view, sequence, y = current[0], current[1], current[2]
+                        linger_until = max(linger_until, now + _LINGER_S)
+                    elif not fresh:
+                        ready = (refiner.take(current[0]) if refiner is not None
+                                 and current[0] is not None and current[2] is None else None)
+                        if ready is not None:  # the resting view, ray-cast: send its own scores
+                            view, sequence, y, refined = current[0], current[1], ready, True
+                        elif want_key and current[0] is not None:
+                            view, sequence, y = current[0], current[1], current[2]
+                        else:
+                            wait = _WAIT_S
+                            if (refiner is not None and current[0] is not None
+                                    and current[2] is None and not refiner.wanted(current[0])):
+                                rest = current[3] + refine_delay_s - now
+                                if rest <= 0:
+                                    refiner.submit(current[0])
+                                else:
+                                    wait = min(wait, rest)
+                            events.wait(wait)
+                            continue
+                    if fresh:
+                        current[3] = now
+                    if scores == "render" and y is None:
+                        y = true_views(view)
+                        stats.rendered_frames += 1
+                    current[0], current[1], current[2] = view, sequence, y
+                    encoded = encoder.encode(view, key=want_key, scores=y)
+                    sent.clear()
+                    try:
+                        link.send(m.Scores(sequence=sequence, packet=encoded.packet),
+                                  after_sent=sent.set)
+                    except ValueError as exc:  # the packet does not fit the device's frames
+                        kind = "key" if encoder.last_was_key else "delta"
+                        raise ServeError(
+                            f"{' '.join(str(exc).split())}: a {kind} score packet of this model "
+                            f"({len(encoded.packet)} bytes) does not fit the device's frames; "
+                            "start eigencast-device with a larger --max-frame (e.g. --max-frame "
+                            "65536)") from None
+                    next_due = now + (1.0 / fps if fps > 0 else 0.0)
+                    size = len(encoded.packet)
+                    stats.frames += 1
+                    stats.packet_bytes += size
+                    if encoder.last_was_key:
+                        stats.key_frames += 1
+                        stats.key_bytes += size
+                    else:
+                        stats.delta_frames += 1
+                        stats.delta_bytes += size
+                    stats.last_view = view
+                    if refined:
+                        stats.refined_frames += 1
+                    if on_frame is not None:
+                        on_frame(encoded, view)
+                # finished: let the last packet leave, say goodbye
+                sent.wait(2.0)
+                link.wait_writer_idle(2.0)
+                session.bye("done")
+                link.close(flush_timeout_s=1.0)
+                link = None
+                break
+            except (TransportClosed, TransportTimeout, TransportError) as exc:
+                if isinstance(exc, RemoteError):
+                    raise
+                if link is not None:
+                    with contextlib.suppress(Exception):
+                        link.close(flush_timeout_s=0.0)
+                    link = None
+                failures += 1
+                if not reconnect or (max_reconnects is not None and failures > max_reconnects):
+                    if stats.sessions == 0:
+                        raise
+                    say(f"link lost ({_short(exc)}); not reconnecting")
+                    break
+                delay = min(_BACKOFF_S[0] * 2 ** (failures - 1), _BACKOFF_S[1])
+                say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
+                stop.wait(delay)  # reconnect backoff (a protocol timer)
+            finally:
+                if link is not None:
+                    with contextlib.suppress(Exception):
+                        link.close(flush_timeout_s=0.5)
+    finally:
+        if refiner is not None:
+            refiner.close()
     if true_views is not None:
         stats.rendered_views = true_views.renders
         stats.render_seconds = true_views.render_seconds
