@@ -37,6 +37,7 @@ __all__ = [
     "SIDECAR",
     "CinemaDB",
     "CinemaWriter",
+    "absolute_source",
     "atomic_write_bytes",
     "format_float",
 ]
@@ -242,7 +243,8 @@ class CinemaWriter:
         if self.path.exists() and not self.path.is_dir():
             raise CinemaError(f"{self.path}: exists and is not a folder")
         if sidecar.is_file():
-            same = sidecar.read_text(encoding="utf-8") == text
+            old_text = sidecar.read_text(encoding="utf-8")
+            same = old_text == text or _same_settings(old_text, self.settings)
             if not same and not overwrite:
                 raise CinemaError(
                     f"{self.path}: holds a database rendered with different settings; "
@@ -301,3 +303,31 @@ class CinemaWriter:
             w.writerow([format_float(phi), format_float(theta),
                         *(format_float(v) for v in vec), self.files[i]])
         atomic_write_bytes(self.path / DATA_CSV, buf.getvalue().encode("utf-8"))
+
+
+def absolute_source(source: str | None) -> str | None:
+    """A volume source as recorded in a sidecar: ``builtin:NAME`` as is, a path absolute.
+
+    A relative path would only resolve from the folder ``render`` ran in, while `serve`,
+    `evaluate` and `fit --target` load the recorded volume from wherever they run.
+    """
+    if not source or source.startswith("builtin:"):
+        return source
+    return str(Path(source).expanduser().resolve())
+
+
+def _same_settings(old_text: str, settings: dict) -> bool:
+    """The sidecar ``old_text`` records ``settings`` once both volume sources are made
+    absolute (a database rendered before sources were recorded absolute resumes)."""
+    try:
+        old = json.loads(old_text)
+    except ValueError:
+        return False
+    if not isinstance(old, dict) or not isinstance(old.get("volume"), dict):
+        return False
+    new = json.loads(json.dumps(settings))
+    for record in (old, new):
+        volume = record.get("volume")
+        if isinstance(volume, dict) and isinstance(volume.get("source"), str):
+            volume["source"] = absolute_source(volume["source"])
+    return old == new

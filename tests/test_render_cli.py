@@ -105,3 +105,49 @@ def test_bad_input_is_one_line_and_exit_1(tmp_path, args, message):
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_the_sidecar_records_an_absolute_volume_path_and_old_relative_ones_resume(tmp_path):
+    import json
+
+    from data_builders import write_mha
+
+    from host.model import HostModel
+
+    vol_dir = tmp_path / "volumes"
+    vol_dir.mkdir()
+    data = np.zeros((24, 24, 24), np.uint8)
+    data[6:18, 6:18, 6:18] = 200
+    write_mha(vol_dir / "cube.mha", data)
+    db = tmp_path / "cube.cdb"
+    views = ["--views", "grid:4x3", *SMALL, "--tf", "generic"]
+    run = subprocess.run([*CLI, "render", "volumes/cube.mha", "-o", str(db), *views],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    sidecar = db / "eigencast.json"
+    recorded = json.loads(sidecar.read_text())["volume"]["source"]
+    assert recorded == str((vol_dir / "cube.mha").resolve())  # usable from any folder
+    # a model fitted from it finds its volume from elsewhere (serve --scores auto, evaluate)
+    model = tmp_path / "cube.ecs"
+    assert subprocess.run([*CLI, "fit", str(db), "-o", str(model), "--cell", "20"],
+                          capture_output=True, text=True, cwd=vol_dir).returncode == 0
+    from host.serve import open_true_view_scores
+
+    assert open_true_view_scores(HostModel.load(model)).renderer is not None
+    # a database written before sources were absolute (a path relative to the folder it
+    # was rendered in) still resumes from that folder, whatever the spelling
+    old = json.loads(sidecar.read_text())
+    old["volume"]["source"] = "volumes/cube.mha"
+    sidecar.write_text(json.dumps(old, indent=2, sort_keys=True) + "\n")
+    before = _png_count(db)
+    (db / "images" / "view_00000.png").unlink()
+    run = subprocess.run([*CLI, "render", "./volumes/../volumes/cube.mha", "-o", str(db),
+                          *views], capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert _png_count(db) == before
+    assert json.loads(sidecar.read_text())["volume"]["source"] == recorded
+    # a really different volume is still refused
+    write_mha(vol_dir / "other.mha", data[:, :, ::-1].copy() // 2)
+    run = subprocess.run([*CLI, "render", "other.mha", "-o", str(db), *views],
+                         capture_output=True, text=True, cwd=vol_dir)
+    assert run.returncode != 0 and "different settings" in run.stderr

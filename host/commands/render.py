@@ -8,7 +8,7 @@ import time
 
 from host import __version__
 from host.camera import orbit_camera, parse_view_set
-from host.cinema import CinemaWriter
+from host.cinema import CinemaWriter, absolute_source
 from host.commands._render_options import (
     add_render_arguments,
     camera_settings,
@@ -43,7 +43,7 @@ def database_settings(volume, tf, renderer, view_set, size, camera_opts) -> dict
     return {
         "eigencast": __version__,
         "volume": {
-            "source": volume.source,
+            "source": absolute_source(volume.source),
             "name": volume.name,
             "modality": volume.modality,
             "dims": list(volume.dims),
