@@ -936,8 +936,9 @@ class RuntimeDevice(Device):
                 rate = (link.stats.bytes_received - old[1]) / (now - old[0])
         mode = "standalone" if self.standalone else ("link up" if link else "no host")
         phi, theta = self.view
+        fps = stats.fps()  # frames over the last second: 0 while the view rests
         return [
-            f"{stats.fps():5.1f} fps   frame {stats.frames_presented}",
+            (f"{fps:5.1f} fps" if fps > 0 else " idle    ") + f"   frame {stats.frames_presented}",
             f"{stats.bytes_per_frame():6.0f} B/frame  key {stats.key_frames} "
             f"delta {stats.delta_frames}",
             f"link {rate / 1024:6.1f} KiB/s  ({mode})",

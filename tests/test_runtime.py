@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 import tracemalloc
 
 import numpy as np
@@ -144,6 +145,17 @@ def test_packets_are_decoded_in_order_and_only_the_newest_is_shown(tmp_path, mod
     np.testing.assert_array_equal(shown[1][1], model.view(13.0, 0.0))
     stats = device.stats_dict()
     assert stats["key_frames"] == 1 and stats["delta_frames"] == 3 and stats["coalesced"] == 3
+    # the overlay: a rate while frames flow, "idle" (not "0.0 fps") once the view rests
+    rt = device.runtime_stats
+    link, device.link = device.link, None  # the fake link keeps no byte counters
+    rt._present_times.clear()
+    rt._present_times.extend([time.monotonic() - 0.2, time.monotonic() - 0.1])
+    assert device.overlay_lines()[0].lstrip().startswith("10.0 fps")
+    rt._present_times.clear()
+    rt._present_times.extend([time.monotonic() - 5.1, time.monotonic() - 5.0])
+    first = device.overlay_lines()[0]
+    assert first.split()[0] == "idle" and "fps" not in first and "frame 2" in first
+    device.link = link
     device.close_display()
     device.close()
 
