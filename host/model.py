@@ -569,7 +569,9 @@ class HostModel:
                 continue
             d = cells[c].astype(np.float32) - img.mean[c].astype(np.float32)
             v = img.eigenimages[lo:hi]
-            out[lo:hi] = (inv @ (v.astype(np.float32) @ d)) / img.scales[lo:hi]
+            scale = img.scales[lo:hi]
+            fit = inv @ (v.astype(np.float32) @ d)
+            out[lo:hi] = np.divide(fit, scale, out=np.zeros_like(fit), where=scale != 0)
         return out
 
     def _projector(self) -> list[tuple[int, int, np.ndarray]]:
