@@ -328,7 +328,7 @@ class _Refiner:
         self._cond = threading.Condition()
         self._pending: tuple[float, float] | None = None
         self._busy: tuple[float, float] | None = None
-        self._done: dict[tuple[float, float], np.ndarray] = {}
+        self._done: tuple[tuple[float, float], np.ndarray] | None = None  # the newest result
         self.error: BaseException | None = None
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="eigencast-refine", daemon=True)
@@ -336,19 +336,25 @@ class _Refiner:
 
     def submit(self, view: tuple[float, float]) -> None:
         with self._cond:
-            if view != self._busy and view not in self._done:
+            if view != self._busy and not self._holds(view):
                 self._pending = view
                 self._cond.notify_all()
 
     def wanted(self, view: tuple[float, float]) -> bool:
         """``view`` is queued, being ray-cast or done."""
         with self._cond:
-            return view in (self._pending, self._busy) or view in self._done
+            return view in (self._pending, self._busy) or self._holds(view)
 
     def take(self, view: tuple[float, float]) -> np.ndarray | None:
         """The scores of ``view`` once ray-cast (each result is handed out once)."""
         with self._cond:
-            return self._done.pop(view, None)
+            if not self._holds(view):
+                return None
+            y, self._done = self._done[1], None
+            return y
+
+    def _holds(self, view: tuple[float, float]) -> bool:
+        return self._done is not None and self._done[0] == view
 
     def close(self) -> None:
         with self._cond:
@@ -374,7 +380,7 @@ class _Refiner:
                 return
             with self._cond:
                 self._busy = None
-                self._done = {view: y}  # only the newest result is worth sending
+                self._done = (view, y)  # only the newest result is worth sending
             self.notify()
 
 
@@ -433,6 +439,17 @@ class _DeviceEvents:
 
 
 # --------------------------------------------------------------------------- serve
+
+
+@dataclass
+class _Shown:
+    """The view the device was last sent: its request sequence, the ray-cast scores it was
+    sent with (None: interpolated) and when it was requested (monotonic seconds)."""
+
+    view: tuple[float, float] | None = None
+    sequence: int = 0
+    scores: np.ndarray | None = None
+    requested_at: float = 0.0
 
 
 def _active_digest(hello: m.HelloReply) -> bytes | None:
@@ -562,9 +579,7 @@ def serve(
     last_stats = [started]
     failures = 0
     attempt = 0
-    # the view being shown, its request sequence, the true-view scores it was sent with
-    # (None: interpolated), when it was requested
-    current: list[Any] = [None, 0, None, 0.0]
+    current = _Shown()
     refiner: _Refiner | None = None
 
     def done() -> bool:
@@ -612,7 +627,7 @@ def serve(
                 encoder.reset()
                 if scores == "refine" and refiner is None and true_views is not None:
                     refiner = _Refiner(true_views, events.poke)
-                elif refiner is not None:
+                elif refiner is not None:  # one refiner for all sessions: wake this one's
                     refiner.notify = events.poke
                 sent = threading.Event()
                 sent.set()
@@ -656,35 +671,35 @@ def serve(
                     elif linger_until is not None:
                         if now >= linger_until:
                             break
-                        if not want_key or current[0] is None:
+                        if not want_key or current.view is None:
                             events.wait(_WAIT_S)
                             continue
-                        view, sequence, y = current[0], current[1], current[2]
+                        view, sequence, y = current.view, current.sequence, current.scores
                         linger_until = max(linger_until, now + _LINGER_S)
                     elif not fresh:
-                        ready = (refiner.take(current[0]) if refiner is not None
-                                 and current[0] is not None and current[2] is None else None)
+                        unrefined = (refiner is not None and current.view is not None
+                                     and current.scores is None)
+                        ready = refiner.take(current.view) if unrefined else None
                         if ready is not None:  # the resting view, ray-cast: send its own scores
-                            view, sequence, y, refined = current[0], current[1], ready, True
-                        elif want_key and current[0] is not None:
-                            view, sequence, y = current[0], current[1], current[2]
+                            view, sequence, y, refined = current.view, current.sequence, ready, True
+                        elif want_key and current.view is not None:
+                            view, sequence, y = current.view, current.sequence, current.scores
                         else:
                             wait = _WAIT_S
-                            if (refiner is not None and current[0] is not None
-                                    and current[2] is None and not refiner.wanted(current[0])):
-                                rest = current[3] + refine_delay_s - now
+                            if unrefined and not refiner.wanted(current.view):
+                                rest = current.requested_at + refine_delay_s - now
                                 if rest <= 0:
-                                    refiner.submit(current[0])
+                                    refiner.submit(current.view)
                                 else:
                                     wait = min(wait, rest)
                             events.wait(wait)
                             continue
                     if fresh:
-                        current[3] = now
+                        current.requested_at = now
                     if scores == "render" and y is None:
                         y = true_views(view)
                         stats.rendered_frames += 1
-                    current[0], current[1], current[2] = view, sequence, y
+                    current.view, current.sequence, current.scores = view, sequence, y
                     encoded = encoder.encode(view, key=want_key, scores=y)
                     sent.clear()
                     try:
