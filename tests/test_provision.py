@@ -380,16 +380,18 @@ def test_device_without_a_key_refuses_provisioning_unless_insecure(device, tmp_p
 
 
 def _record_received(dev: DeviceThread, *types: m.MessageType) -> list[m.MessageType]:
-    """Count what the device is sent of ``types`` (then handle it as usual)."""
+    """Count what the device is sent of ``types`` (then handle it as usual: the per-message
+    handler method is wrapped on the instance, so authorization still runs before it)."""
     seen: list[m.MessageType] = []
     for msg_type in types:
-        original = getattr(dev.device, Device.HANDLERS[msg_type])
+        name = Device.HANDLERS[msg_type]
+        original = getattr(dev.device, name)
 
         def handler(msg, frame, original=original, msg_type=msg_type):
             seen.append(msg_type)
             return original(msg, frame)
 
-        dev.device.on(msg_type, handler)
+        setattr(dev.device, name, handler)
     return seen
 
 
