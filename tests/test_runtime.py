@@ -175,7 +175,8 @@ def test_a_delta_without_its_base_asks_for_a_key_frame(tmp_path, model_path, mod
     assert len(requests) == 1 and requests[0].last_frame == 7
     assert device.runtime_stats.missing_base == 1
     # a new session forgets every base: a delta against frame 7 is refused now
-    device.handle_hello(m.Hello(min_version=1, max_version=1, nonce=bytes(16)), None)
+    version = m.PROTOCOL_VERSION
+    device.handle_hello(m.Hello(min_version=version, max_version=version, nonce=bytes(16)), None)
     device._last_keyframe_request = -1e9
     again = encode_scores(model.quantized_scores(43.0, 10.0), step=model.score_step, frame=10,
                           view=(43.0, 10.0), image_digest=model.digest, base=key)
