@@ -1552,9 +1552,14 @@ def verify(msg: SignedRequest, session_key: bytes, last_counter: int) -> int:
 
 
 def _event_tag(msg: TaggedEvent, session_key: bytes, counter: int) -> bytes:
-    unsigned = dataclasses.replace(msg, session_counter=counter, session_tag=None)
-    data = _TAG_PREFIX.pack(counter, int(msg.TYPE)) + unsigned.to_body()
-    return hmac.new(session_key, data, hashlib.sha256).digest()[:EVENT_TAG_BYTES]
+    # The canonical body with key 22 = counter and without key 23, built from the checked
+    # fields directly (no re-validation of the payload: this runs for every frame).
+    body = msg._to_map()
+    body.pop(SESSION_TAG_KEY, None)
+    body[SESSION_COUNTER_KEY] = counter
+    mac = hmac.new(session_key, _TAG_PREFIX.pack(counter, int(msg.TYPE)), hashlib.sha256)
+    mac.update(cbor2.dumps(body, canonical=True))
+    return mac.digest()[:EVENT_TAG_BYTES]
 
 
 def tag_event(msg: TaggedEvent, session_key: bytes, counter: int) -> TaggedEvent:
