@@ -859,9 +859,10 @@ class RuntimeDevice(Device):
                 self.log(f"scores for another image dropped ({exc}); provision the host's "
                          "image")
             return
-        except ProtocolError as exc:
+        except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.decode_errors += 1
-            self.log(f"bad score packet dropped: {' '.join(str(exc).split())[:160]}")
+            self._log_drop("bad-scores", f"bad score packet dropped: "
+                           f"{' '.join(str(exc).split())[:160]} ({stats.decode_errors} so far)")
             return
         decode_s = time.perf_counter() - t0
         stats.decode_s.add(decode_s)
