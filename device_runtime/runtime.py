@@ -831,8 +831,15 @@ class RuntimeDevice(Device):
         if model is not None:
             model.decoder.reset()
         self._need_key = False
-        if not self.standalone:
+        if not self.standalone and self.config.key is None:
             self.limiter.offer(self.view)  # sent by the display loop after the reply
+        return reply
+
+    def handle_auth_challenge(self, msg: m.AuthChallenge, frame: Frame) -> m.Message:
+        """A keyed device asks for its view once the host has authenticated (not before)."""
+        reply = super().handle_auth_challenge(msg, frame)
+        if not self.standalone:
+            self.limiter.offer(self.view)
         return reply
 
     def on_scores(self, msg: m.Scores) -> None:
@@ -875,9 +882,12 @@ class RuntimeDevice(Device):
         self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
 
     def _session_link(self) -> Any:
-        """The link when a host session is up (HELLO done), else None."""
+        """The link when a host session is up (HELLO done; a keyed device: AUTH done), else
+        None: an unauthenticated peer learns nothing from view or key-frame requests."""
         link = self.link
         if link is None or link.closed or not self.session.hello_done:
+            return None
+        if self.config.key is not None and not self.session.authenticated:
             return None
         return link
 
