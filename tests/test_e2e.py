@@ -231,3 +231,40 @@ def test_standalone_device_shows_views_with_no_host(tmp_path, model_path, model)
                           "--headless"], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert run.returncode == 1 and "no image" in run.stderr
     assert len(run.stderr.strip().splitlines()) <= 3 and "Traceback" not in run.stderr
+
+
+def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, model_path,
+                                                                      model):
+    """Issue 11 item 1 as reported: step 3e38 and q = 2**31 - 1 made ``eigencast-device``
+    exit with status 1. Now the packet is refused at decode and a later frame is shown."""
+    from test_scores import overflow_packet
+
+    from protocol import messages as m
+    from protocol.link import HostSession, Link
+    from protocol.scores import encode_scores
+    from protocol.transport import open_transport
+
+    frames = tmp_path / "frames"
+    device = DeviceProcess(tmp_path / "flash", "--insecure", "--headless", "--frames",
+                           str(frames))
+    try:
+        provision(model_path, device.url, key=None, show_progress=False, log=_quiet)
+        link = Link(open_transport(device.url, timeout_s=5), owns_transport=True).start()
+        session = HostSession(link, key=None, request_timeout_s=1.0)
+        session.start()
+        k = model.image.n_coefficients
+        for mode in (0, 2):
+            session.send_scores(m.Scores(sequence=0, packet=overflow_packet(k, model.digest,
+                                                                            mode=mode)))
+        good = encode_scores(model.quantized_scores(33.0, 12.0), step=model.score_step,
+                             frame=9, view=(33.0, 12.0), image_digest=model.digest)
+        session.send_scores(m.Scores(sequence=0, packet=good.packet))
+        wait_until(lambda: _has_view(frames, 33.0, 12.0), 20, "the good frame")
+        session.ping()  # still answering
+        assert device.proc.poll() is None
+        link.close()
+    finally:
+        assert device.stop() == 0
+    assert any("bad score packet dropped" in line and "over the bound" in line
+               for line in device.lines)
+    check_frames(model, frames)
