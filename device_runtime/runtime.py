@@ -1104,6 +1104,16 @@ class RuntimeDevice(Device):
         model = self._model
         out["view"] = list(self.view)
         out["standalone"] = self.standalone
+        guard = self.stats
+        out["link_guard"] = {  # what the device refused from its peers (issue 11)
+            "dropped_no_session": guard.dropped_no_session,
+            "dropped_unauthenticated": guard.dropped_unauthenticated,
+            "dropped_bad_tag": guard.dropped_bad_tag,
+            "dropped_replayed": guard.dropped_replayed,
+            "auth_timeouts": guard.auth_timeouts,
+            "preempted": guard.preempted,
+            "errors_sent": guard.errors_sent,
+        }
         out["image"] = None if model is None else {
             "slot": model.slot, "generation": model.generation,
             "shape": list(model.image.image_shape), "n_coefficients":

@@ -9,6 +9,7 @@ a standalone device with no host shows any view.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import subprocess
@@ -245,10 +246,20 @@ def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, 
     from protocol.transport import open_transport
 
     frames = tmp_path / "frames"
+    stats = tmp_path / "stats.json"
     device = DeviceProcess(tmp_path / "flash", "--insecure", "--headless", "--frames",
-                           str(frames))
+                           str(frames), "--stats", str(stats))
     try:
         provision(model_path, device.url, key=None, show_progress=False, log=_quiet)
+        # item 2: a packet from a peer that never sent HELLO is not shown
+        stranger = Link(open_transport(device.url, timeout_s=5), owns_transport=True).start()
+        stray = encode_scores(model.quantized_scores(44.0, 0.0), step=model.score_step,
+                              frame=3, view=(44.0, 0.0), image_digest=model.digest)
+        sent = threading.Event()
+        stranger.send(m.Scores(sequence=0, packet=stray.packet), after_sent=sent.set)
+        assert sent.wait(10)  # on the wire before the PING (control frames go first)
+        stranger.request(m.Ping(sent_us=1))  # answered in order: the SCORES was handled
+        stranger.close()
         link = Link(open_transport(device.url, timeout_s=5), owns_transport=True).start()
         session = HostSession(link, key=None, request_timeout_s=1.0)
         session.start()
@@ -268,3 +279,7 @@ def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, 
     assert any("bad score packet dropped" in line and "over the bound" in line
                for line in device.lines)
     check_frames(model, frames)
+    assert not _has_view(frames, 44.0, 0.0)
+    summary = json.loads(stats.read_text())
+    assert summary["link_guard"]["dropped_no_session"] == 1
+    assert summary["decode_errors"] == 2
