@@ -265,8 +265,11 @@ def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, 
         session.start()
         k = model.image.n_coefficients
         for mode in (0, 2):
+            sent = threading.Event()  # each one on the wire (scores are latest-wins)
             session.send_scores(m.Scores(sequence=0, packet=overflow_packet(k, model.digest,
-                                                                            mode=mode)))
+                                                                            mode=mode)),
+                                after_sent=sent.set)
+            assert sent.wait(10)
         good = encode_scores(model.quantized_scores(33.0, 12.0), step=model.score_step,
                              frame=9, view=(33.0, 12.0), image_digest=model.digest)
         session.send_scores(m.Scores(sequence=0, packet=good.packet))
