@@ -73,7 +73,13 @@ from protocol import messages as m
 from protocol.errors import ImageFormatError, ProtocolError
 from protocol.framing import Frame
 from protocol.image import EigenspaceImage
-from protocol.scores import DecodedScores, ImageMismatch, MissingBase, ScoreDecoder
+from protocol.scores import (
+    DecodedScores,
+    ImageMismatch,
+    MissingBase,
+    ScoreDecoder,
+    score_bound,
+)
 
 __all__ = [
     "DEFAULT_VIEW",
@@ -524,6 +530,7 @@ class LoadedModel:
             image.digest or bytes(32),
             n_components=image.n_components,
             max_packet_bytes=max_packet_bytes,
+            max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
         )
         return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
                    generation, test, standalone)
@@ -601,6 +608,7 @@ class RuntimeStats:
     view_requests: int = 0
     coalesced: int = 0
     sessions: int = 0
+    frame_failures: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     reconstruct_s: _Ema = field(default_factory=_Ema)
     present_s: _Ema = field(default_factory=_Ema)
@@ -646,6 +654,7 @@ class RuntimeStats:
             "wrong_image": self.wrong_image,
             "view_requests": self.view_requests,
             "coalesced": self.coalesced,  # frames decoded but never presented
+            "frame_failures": self.frame_failures,  # frames the display could not show
             "sessions": self.sessions,
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
@@ -832,8 +841,15 @@ class RuntimeDevice(Device):
         if model is not None:
             model.decoder.reset()
         self._need_key = False
-        if not self.standalone:
+        if not self.standalone and self.config.key is None:
             self.limiter.offer(self.view)  # sent by the display loop after the reply
+        return reply
+
+    def handle_auth_challenge(self, msg: m.AuthChallenge, frame: Frame) -> m.Message:
+        """A keyed device asks for its view once the host has authenticated (not before)."""
+        reply = super().handle_auth_challenge(msg, frame)
+        if not self.standalone:
+            self.limiter.offer(self.view)
         return reply
 
     def on_scores(self, msg: m.Scores) -> None:
@@ -860,9 +876,10 @@ class RuntimeDevice(Device):
                 self.log(f"scores for another image dropped ({exc}); provision the host's "
                          "image")
             return
-        except ProtocolError as exc:
+        except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.decode_errors += 1
-            self.log(f"bad score packet dropped: {' '.join(str(exc).split())[:160]}")
+            self._log_drop("bad-scores", f"bad score packet dropped: "
+                           f"{' '.join(str(exc).split())[:160]} ({stats.decode_errors} so far)")
             return
         decode_s = time.perf_counter() - t0
         stats.decode_s.add(decode_s)
@@ -875,9 +892,12 @@ class RuntimeDevice(Device):
         self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
 
     def _session_link(self) -> Any:
-        """The link when a host session is up (HELLO done), else None."""
+        """The link when a host session is up (HELLO done; a keyed device: AUTH done), else
+        None: an unauthenticated peer learns nothing from view or key-frame requests."""
         link = self.link
         if link is None or link.closed or not self.session.hello_done:
+            return None
+        if self.config.key is not None and not self.session.authenticated:
             return None
         return link
 
@@ -1056,11 +1076,15 @@ class RuntimeDevice(Device):
                 item = self._scores.take(wait if model is not None else tick)
                 if item is not None and item.model is self._model:
                     d = item.scores
-                    self._present(item.model, d.y, {
-                        "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg,
-                        "key": d.is_key, "packet_bytes": d.packet_bytes,
-                        "sequence": item.sequence, "decode_s": 0.0,
-                    })
+                    try:
+                        self._present(item.model, d.y, {
+                            "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg,
+                            "key": d.is_key, "packet_bytes": d.packet_bytes,
+                            "sequence": item.sequence, "decode_s": 0.0,
+                        })
+                    except Exception as exc:
+                        # A frame that cannot be shown must not stop the device: skip it.
+                        self._frame_failed(d.frame, exc)
                 elif self._redraw and self._model is not None and self._last_y is not None:
                     self._redraw = False
                     overlay = self.overlay_lines() if self.presenter.overlay else None
@@ -1075,6 +1099,14 @@ class RuntimeDevice(Device):
         finally:
             self.stop_event.set()
 
+    def _frame_failed(self, frame: int, exc: BaseException) -> None:
+        """Count a frame the display could not show; log the first one of a run of them."""
+        stats = self.runtime_stats
+        stats.frame_failures += 1
+        if stats.frame_failures == 1 or stats.frame_failures % 1000 == 0:
+            self.log(f"frame {frame} skipped ({' '.join(str(exc).split())[:160]}); "
+                     f"{stats.frame_failures} skipped so far")
+
     def stats_dict(self) -> dict[str, Any]:
         """Runtime statistics (:meth:`RuntimeStats.as_dict`) plus the current view and image."""
         self.runtime_stats.coalesced = self._scores.replaced
@@ -1082,6 +1114,16 @@ class RuntimeDevice(Device):
         model = self._model
         out["view"] = list(self.view)
         out["standalone"] = self.standalone
+        guard = self.stats
+        out["link_guard"] = {  # what the device refused from its peers (issue 11)
+            "dropped_no_session": guard.dropped_no_session,
+            "dropped_unauthenticated": guard.dropped_unauthenticated,
+            "dropped_bad_tag": guard.dropped_bad_tag,
+            "dropped_replayed": guard.dropped_replayed,
+            "auth_timeouts": guard.auth_timeouts,
+            "preempted": guard.preempted,
+            "errors_sent": guard.errors_sent,
+        }
         out["image"] = None if model is None else {
             "slot": model.slot, "generation": model.generation,
             "shape": list(model.image.image_shape), "n_coefficients":
