@@ -114,6 +114,10 @@ SUPPORTED_BAUDS = (
 PROTOCOL_VERSIONS = (m.PROTOCOL_VERSION, m.PROTOCOL_VERSION)
 """(min, max) protocol versions this device speaks."""
 SOFTWARE = "eigencast-device 0.1"
+PREEMPT_GRACE_S = 1.0
+"""A keyed TCP device lets a waiting connection replace an unauthenticated one only after
+the current one had this long (or ``auth_timeout_s`` if shorter) to finish HELLO and AUTH,
+which a real host does in two round trips."""
 _DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
 
 
@@ -757,13 +761,17 @@ class Device:
                 if not (listening and keyed):
                     continue
                 # Fair use of the single TCP slot on a keyed device: whatever it sends, an
-                # unauthenticated peer gets auth_timeout_s, and a newer connection replaces it.
+                # unauthenticated peer gets auth_timeout_s, and a newer connection replaces it
+                # once the peer has had PREEMPT_GRACE_S (so a host between HELLO and AUTH is
+                # not displaced by a peer that reconnects in a loop).
                 if self.session.authenticated:
                     unauth_since = None
                     continue
                 if unauth_since is None:
                     unauth_since = now
-                if transport.pending():
+                if transport.pending() and now - unauth_since >= min(
+                    PREEMPT_GRACE_S, self.config.auth_timeout_s
+                ):
                     self.stats.preempted += 1
                     self.log("a new connection replaces the unauthenticated one")
                     break

@@ -783,6 +783,31 @@ def test_a_new_connection_preempts_an_unauthenticated_one(tmp_path, model):
         _check_device_holds(tmp_path / "flash", image)
 
 
+def test_a_reconnecting_peer_does_not_displace_a_host_between_hello_and_auth(tmp_path):
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=600) as dev:
+        host = _open_session(_tcp(dev), auth=False)
+        newcomers = []
+        authenticate = host.authenticate
+
+        def slow_authenticate() -> None:  # the hog connects after our HELLO, before AUTH
+            newcomers.append(_open_session(_tcp(dev), auth=False))
+            _wait(dev.transport.pending, "the newcomer waits in the backlog")
+            threading.Event().wait(0.3)  # a slow host: well within PREEMPT_GRACE_S
+            authenticate()
+
+        host.authenticate = slow_authenticate
+        try:
+            host.start()
+            assert host.authenticated
+            host.ping(timeout_s=1.0, retries=0)
+            assert dev.device.stats.preempted == 0
+        finally:
+            for newcomer in newcomers:
+                newcomer.link.close()
+            host.link.close()
+
+
 def test_an_authenticated_host_is_not_displaced_by_a_newcomer(tmp_path):
     with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
                       auth_timeout_s=0.3) as dev:
@@ -797,3 +822,19 @@ def test_an_authenticated_host_is_not_displaced_by_a_newcomer(tmp_path):
         finally:
             newcomer.link.close()
             host.link.close()
+
+
+def test_a_signed_request_with_an_added_handler_still_needs_authentication(tmp_path):
+    calls = []
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash") as dev:
+        dev.device.on(m.MessageType.RESET, lambda msg, frame: calls.append(msg) or m.Ok())
+        raw = _open_session(_tcp(dev), auth=False)
+        try:
+            version = m.PROTOCOL_VERSION
+            raw.link.request(m.Hello(min_version=version, max_version=version,
+                                     nonce=bytes(16)))
+            with pytest.raises(RemoteNotAuthenticated):
+                raw.link.request(m.Reset(), timeout_s=2.0, retries=0)
+            assert calls == []
+        finally:
+            raw.link.close()
