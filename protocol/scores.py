@@ -87,6 +87,7 @@ __all__ = [
     "decode_header",
     "encode_scores",
     "max_packet_size",
+    "zigzag_varints",
 ]
 
 MAGIC = b"\xecS"
@@ -254,7 +255,23 @@ def _steps_array(
     return STEP_PER_COMPONENT, 0.0, arr, arr
 
 
-def _zigzag_varints(values: np.ndarray) -> bytes:
+def zigzag_varints(values: np.ndarray) -> bytes:
+    """Zig-zag LEB128 varints of integers: the body of a varint-coded score packet.
+
+    Each value ``v`` maps to ``(v << 1) ^ (v >> 63)`` (small magnitudes, either sign, become
+    small unsigned numbers), written 7 bits per byte, least significant first, the top bit set
+    on every byte but the last. Public because the rate-distortion scripts size other
+    layouts of the same integers with it.
+
+    Parameters
+    ----------
+    values : ndarray of int
+        Any shape; read in C order.
+
+    Returns
+    -------
+    bytes
+    """
     v = values.astype(np.int64)
     z = ((v << 1) ^ (v >> 63)).astype(np.uint64)
     nbytes = np.ones(z.shape, dtype=np.int64)
@@ -380,7 +397,7 @@ def encode_scores(
     best: tuple[int, bytes] | None = None
     for mode_ in tries:
         ints = coded if mode_ == CODING_VARINT else _eob_integers(coded, counts)
-        raw = prefix + _zigzag_varints(ints)
+        raw = prefix + zigzag_varints(ints)
         for zflag, body in ((0, raw), (FLAG_ZSTD, _compressor(level).compress(raw))):
             if best is None or len(body) < len(best[1]):
                 best = (zflag | (mode_ << _CODING_SHIFT), body)

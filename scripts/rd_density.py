@@ -25,11 +25,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from host.camera import parse_view_set
-from host.cinema import CinemaDB
 from host.evaluate import compare_images
-from host.interpolate import ScoreInterpolator
-from host.render_settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
+from host.fit.interpolate import ScoreInterpolator
+from host.render.camera import parse_view_set
+from host.render.cinema import CinemaDB
+from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from rdp_common import Timer, load_case, quality, save_json, smallest_codec_file
 
-from protocol.scores import HEADER_SIZE, EncodedScores, _zigzag_varints, encode_scores
+from protocol.scores import HEADER_SIZE, EncodedScores, encode_scores, zigzag_varints
 
 LEVEL = 3
 
@@ -74,8 +74,8 @@ def payloads(q: np.ndarray, perm: np.ndarray) -> dict[str, bytes]:
     cm = q[perm]
     c16 = np.clip(q, -32768, 32767).astype("<i2")
     return {
-        "cell_varint": _zigzag_varints(q),
-        "comp_varint": _zigzag_varints(cm),
+        "cell_varint": zigzag_varints(q),
+        "comp_varint": zigzag_varints(cm),
         "cell_int16": c16.tobytes(),
         "cell_planar16": c16.view(np.uint8).reshape(-1, 2).T.tobytes(),
         "comp_planar16": np.clip(cm, -32768, 32767).astype("<i2").view(np.uint8)
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
                 comp = zstd.ZstdCompressor(level=LEVEL, write_content_size=True)
 
                 def size(v: np.ndarray, c: zstd.ZstdCompressor = comp) -> int:
-                    p = _zigzag_varints(v)
+                    p = zigzag_varints(v)
                     return HEADER_SIZE + min(len(p), len(c.compress(p)))
 
                 pred = [size(q[0]), size(q[1] - q[0])] + [
