@@ -43,7 +43,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from host.pca import CellEigenspace, CellStack
+from host.fit.pca import CellEigenspace, CellStack
 
 
 def grid_views(n_views: int) -> list[tuple[float, float]]:

@@ -39,7 +39,7 @@ def model_path(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def model(model_path):
-    """`host.model.HostModel` of ``model_path``."""
-    from host.model import HostModel
+    """`host.fit.model.HostModel` of ``model_path``."""
+    from host.fit.model import HostModel
 
     return HostModel.load(model_path)

@@ -14,7 +14,6 @@ from PIL import Image
 from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
 
-from host.cinema import CinemaDB
 from host.evaluate import (
     DevicePath,
     compare_images,
@@ -25,8 +24,9 @@ from host.evaluate import (
     peak_signal_noise_ratio,
     structural_similarity,
 )
-from host.model import HostModel, build_image, fit_database, save_model
-from host.render_settings import RenderSettings, SettingsError, ViewRenderer
+from host.fit.model import HostModel, build_image, fit_database, save_model
+from host.render.cinema import CinemaDB
+from host.render.settings import RenderSettings, SettingsError, ViewRenderer
 from protocol.scores import encode_scores
 
 CLI = [sys.executable, "-m", "host.cli"]
@@ -298,10 +298,11 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
 
 
 def test_webp_database_blends_decoded_training_views_with_the_model_weights(small_model):
-    from host.evaluate import WebPDatabase, _TrainingImages, decode_image
+    from host.evaluate import WebPDatabase, decode_image
+    from host.evaluate.baselines import TrainingImages
 
     model = HostModel.load(small_model)
-    training = _TrainingImages(model, None)
+    training = TrainingImages(model, None)
     assert training.db is not None
     q = 70
     webp_db = WebPDatabase(model, training, q)

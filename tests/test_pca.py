@@ -1,4 +1,4 @@
-"""Tests of host/pca.py: eigenspace fitting, the threshold rule, CellStack streaming."""
+"""Tests of host/fit/pca.py: eigenspace fitting, the threshold rule, CellStack streaming."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from host.errors import EigencastError, FitError
-from host.pca import (
+from host.fit.pca import (
     CellEigenspace,
     CellStack,
     InvalidParameterError,

@@ -16,8 +16,8 @@ from device_runtime.runtime import (
     standalone_table,
 )
 from host.errors import FitError
-from host.model import ANNEX_SCORES, HostModel, add_standalone_table
-from host.quantize import (
+from host.fit.model import ANNEX_SCORES, HostModel, add_standalone_table
+from host.fit.quantize import (
     MAX_BITS,
     allocate_bits,
     quantize_components,
@@ -204,7 +204,7 @@ def test_quantize_components_with_bits_stays_within_each_rows_levels():
 
 
 def test_bit_budget_shrinks_the_image_at_a_bounded_cost(tmp_path):
-    from host.pca import CellEigenspace
+    from host.fit.pca import CellEigenspace
 
     rng = np.random.default_rng(3)
     basis = rng.standard_normal((12, 8 * 8 * 3))

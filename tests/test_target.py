@@ -9,17 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from host.cinema import CinemaDB
 from host.evaluate import DevicePath, structural_similarity
-from host.model import (
-    HostModel,
-    build_image,
-    components_for_threshold,
-    fit_database,
-    save_model,
-)
-from host.render_settings import RenderSettings, ViewRenderer
-from host.target import (
+from host.evaluate.target import (
     HeldOutViews,
     Target,
     TargetError,
@@ -27,6 +18,15 @@ from host.target import (
     parse_target,
     search_target,
 )
+from host.fit.model import (
+    HostModel,
+    build_image,
+    components_for_threshold,
+    fit_database,
+    save_model,
+)
+from host.render.cinema import CinemaDB
+from host.render.settings import RenderSettings, ViewRenderer
 from protocol.image import read_image
 
 CLI = [sys.executable, "-m", "host.cli"]

@@ -1,6 +1,6 @@
 """Cell eigenspaces: standard, cell and adaptive-cell PCA of training images.
 
-The data model (authoritative, shared with ``host/quantize.py``,
+The data model (authoritative, shared with ``host/fit/quantize.py``,
 ``protocol/image.py`` and ``device_runtime/reconstruct.py``):
 
 * Images are ``(n_views, height, width, 3)`` uint8. They are cut into cells of

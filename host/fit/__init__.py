@@ -1,0 +1,127 @@
+"""Stage 3, fit: a Cinema database in, an eigenspace image (MODEL.ecs) out.
+
+Owns per-cell PCA (``pca.py``: `CellStack`, `CellEigenspace`), quantization of the
+eigenspace to a bit budget (``quantize.py``), view interpolation of scores
+(``interpolate.py``: `ScoreInterpolator`, the host twin of
+``device_runtime/interpolation.py``) and the host model: fitting a database, building and
+saving the ``.ecs`` image with its annex, loading it back as a `HostModel` that reconstructs
+exactly what a device shows (``model.py``).
+
+May import: `host.render` (the database and its settings), `host.errors`, `host.progress`,
+`protocol` (the image format) and `device_runtime` (the device's own reconstruction and
+interpolation, so host and device agree bit for bit); never evaluate or link.
+``eigencast fit`` starts here (``host/commands/fit.py``); its ``--target`` search is in
+`host.evaluate.target`.
+"""
+
+from host.lazy import attach
+
+EXPORTS: dict[str, tuple[str, ...]] = {
+    "pca": (
+        "DEFAULT_BATCH_BYTES",
+        "PARAMETER_CONSTRAINTS",
+        "RANDOMIZED_INITIAL_COMPONENTS",
+        "RANDOMIZED_MIN_SIZE",
+        "RANDOMIZED_OVERSAMPLES",
+        "RANDOMIZED_POWER_ITERATIONS",
+        "SIGN_CONVENTION",
+        "CellEigenspace",
+        "CellStack",
+        "InvalidParameterError",
+        "NotFittedError",
+        "cell_grid",
+        "merge_cells",
+        "split_cells",
+    ),
+    "quantize": (
+        "DEFAULT_BIT_BUDGET",
+        "MAX_BITS",
+        "MIN_BITS",
+        "QuantizationLoss",
+        "QuantizedEigenspace",
+        "allocate_bits",
+        "int8_loss_db",
+        "quantize_components",
+        "quantize_eigenspace",
+        "quantize_mean",
+        "residual_mse",
+    ),
+    "interpolate": (
+        "GRID_DEFAULT",
+        "METHODS",
+        "ScoreInterpolator",
+        "triangulate_views",
+    ),
+    "model": (
+        "ANNEX_EIGENVALUES",
+        "ANNEX_SCORES",
+        "ANNEX_TOTAL_VARIANCE",
+        "DEFAULT_SCORE_MSE",
+        "INT8_CHECK_VIEWS",
+        "HostModel",
+        "add_standalone_table",
+        "auto_score_step",
+        "build_image",
+        "components_for_threshold",
+        "fit_database",
+        "int8_report",
+        "save_model",
+        "score_step_for",
+        "stack_for",
+        "standalone_scores",
+        "subset_database",
+        "truncate_eigenspace",
+    ),
+}
+
+__all__ = [
+    "ANNEX_EIGENVALUES",
+    "ANNEX_SCORES",
+    "ANNEX_TOTAL_VARIANCE",
+    "DEFAULT_BATCH_BYTES",
+    "DEFAULT_BIT_BUDGET",
+    "DEFAULT_SCORE_MSE",
+    "GRID_DEFAULT",
+    "INT8_CHECK_VIEWS",
+    "MAX_BITS",
+    "METHODS",
+    "MIN_BITS",
+    "PARAMETER_CONSTRAINTS",
+    "RANDOMIZED_INITIAL_COMPONENTS",
+    "RANDOMIZED_MIN_SIZE",
+    "RANDOMIZED_OVERSAMPLES",
+    "RANDOMIZED_POWER_ITERATIONS",
+    "SIGN_CONVENTION",
+    "CellEigenspace",
+    "CellStack",
+    "HostModel",
+    "InvalidParameterError",
+    "NotFittedError",
+    "QuantizationLoss",
+    "QuantizedEigenspace",
+    "ScoreInterpolator",
+    "add_standalone_table",
+    "allocate_bits",
+    "auto_score_step",
+    "build_image",
+    "cell_grid",
+    "components_for_threshold",
+    "fit_database",
+    "int8_loss_db",
+    "int8_report",
+    "merge_cells",
+    "quantize_components",
+    "quantize_eigenspace",
+    "quantize_mean",
+    "residual_mse",
+    "save_model",
+    "score_step_for",
+    "split_cells",
+    "stack_for",
+    "standalone_scores",
+    "subset_database",
+    "triangulate_views",
+    "truncate_eigenspace",
+]
+
+__getattr__, __dir__ = attach(__name__, EXPORTS)

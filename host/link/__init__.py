@@ -1,0 +1,60 @@
+"""Stage 5, link: put a model on a device and stream score packets to it.
+
+Owns provisioning (``provision.py``: handshake, chunked image transfer with retransmission
+and resume, commit) and serving (``serve.py``: the session that answers view requests with
+score packets, optionally ray-casting or refining the shown view). Both drive the shared
+protocol (`protocol.link`, `protocol.transport`, `protocol.scores`) from the host end.
+
+Named ``link`` rather than ``serve``: it holds provisioning too, it is the host end of
+`protocol.link`, and a ``host/serve/`` package whose ``serve.py`` defines ``serve()`` would make
+``host.serve.serve`` mean a module or a function depending on import order.
+
+May import: `host.fit` (the `HostModel` whose packets it sends), `host.render` (ray-cast
+views for ``--scores render|refine``), `host.errors`, `protocol`, `device_runtime`; never
+evaluate. ``eigencast provision`` and ``serve`` start here (``host/commands/provision.py``,
+``serve.py``).
+"""
+
+from host.lazy import attach
+
+EXPORTS: dict[str, tuple[str, ...]] = {
+    "provision": (
+        "CHUNK_LATENCY_S",
+        "ImageInfo",
+        "ProvisionError",
+        "ProvisionResult",
+        "choose_chunk_bytes",
+        "inspect_image",
+        "provision",
+    ),
+    "serve": (
+        "FrameEncoder",
+        "ServeError",
+        "ServeStats",
+        "serve",
+        "DEFAULT_REFINE_DELAY_S",
+        "SCORE_MODES",
+        "TrueViewScores",
+        "open_true_view_scores",
+    ),
+}
+
+__all__ = [
+    "CHUNK_LATENCY_S",
+    "DEFAULT_REFINE_DELAY_S",
+    "SCORE_MODES",
+    "FrameEncoder",
+    "ImageInfo",
+    "ProvisionError",
+    "ProvisionResult",
+    "ServeError",
+    "ServeStats",
+    "TrueViewScores",
+    "choose_chunk_bytes",
+    "inspect_image",
+    "open_true_view_scores",
+    "provision",
+    "serve",
+]
+
+__getattr__, __dir__ = attach(__name__, EXPORTS)
