@@ -344,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _projection_scores(model: HostModel, truth: np.ndarray) -> np.ndarray:
     """The true view's scores on the int8 eigenspace (unquantized; see DevicePath)."""
-    from host.fit.pca import split_cells
+    from host.fit.cells import split_cells
 
     img = model.image
     cells = split_cells(np.asarray(truth)[None], img.cell_shape)[0].astype(np.float32)

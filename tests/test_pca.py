@@ -6,14 +6,8 @@ import numpy as np
 import pytest
 
 from host.errors import EigencastError, FitError
-from host.fit.pca import (
-    CellEigenspace,
-    CellStack,
-    InvalidParameterError,
-    NotFittedError,
-    merge_cells,
-    split_cells,
-)
+from host.fit.cells import CellStack, merge_cells, split_cells
+from host.fit.pca import CellEigenspace, InvalidParameterError, NotFittedError
 
 SOLVERS = ["gram", "svd", "randomized"]
 

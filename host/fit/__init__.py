@@ -1,6 +1,7 @@
 """Stage 3, fit: a Cinema database in, an eigenspace image (MODEL.ecs) out.
 
-Owns per-cell PCA (``pca.py``: `CellStack`, `CellEigenspace`), quantization of the
+Owns the cell layout and the streamed cell-major training store (``cells.py``: `CellStack`),
+per-cell PCA (``pca.py``: `CellEigenspace`), quantization of the
 eigenspace to a bit budget (``quantize.py``), view interpolation of scores
 (``interpolate.py``: `ScoreInterpolator`, the host twin of
 ``device_runtime/interpolation.py``) and the host model: fitting a database, building and
@@ -17,6 +18,12 @@ interpolation, so host and device agree bit for bit); never evaluate or link.
 from host.lazy import attach
 
 EXPORTS: dict[str, tuple[str, ...]] = {
+    "cells": (
+        "CellStack",
+        "cell_grid",
+        "merge_cells",
+        "split_cells",
+    ),
     "pca": (
         "DEFAULT_BATCH_BYTES",
         "PARAMETER_CONSTRAINTS",
@@ -26,12 +33,8 @@ EXPORTS: dict[str, tuple[str, ...]] = {
         "RANDOMIZED_POWER_ITERATIONS",
         "SIGN_CONVENTION",
         "CellEigenspace",
-        "CellStack",
         "InvalidParameterError",
         "NotFittedError",
-        "cell_grid",
-        "merge_cells",
-        "split_cells",
     ),
     "quantize": (
         "DEFAULT_BIT_BUDGET",

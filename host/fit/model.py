@@ -32,8 +32,9 @@ import numpy as np
 from device_runtime.reconstruct import Reconstructor
 from host import __version__
 from host.errors import FitError
+from host.fit.cells import CellStack
 from host.fit.interpolate import ScoreInterpolator
-from host.fit.pca import SIGN_CONVENTION, CellEigenspace, CellStack
+from host.fit.pca import SIGN_CONVENTION, CellEigenspace
 from host.fit.quantize import DEFAULT_BIT_BUDGET, quantize_eigenspace, residual_mse
 from host.render.cinema import CinemaDB
 from protocol.image import EigenspaceImage, read_image, write_image
@@ -554,7 +555,7 @@ class HostModel:
         ValueError
             ``image`` is not (height, width, 3) of the model's image size.
         """
-        from host.fit.pca import split_cells
+        from host.fit.cells import split_cells
 
         img = self.image
         x = np.asarray(image)
