@@ -47,16 +47,8 @@ def _smooth_image(size=64, seed=0):
 
 
 @pytest.fixture(scope="module")
-def small_db(tmp_path_factory):
-    db = tmp_path_factory.mktemp("eval") / "tooth.cdb"
-    _run("render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6", "--size", "40",
-         "--samples", "120")
-    return db
-
-
-@pytest.fixture(scope="module")
-def small_model(small_db, tmp_path_factory):
-    db = CinemaDB.open(small_db)
+def small_model(tooth_db, tmp_path_factory):
+    db = CinemaDB.open(tooth_db)
     model = fit_database(db, method="adaptive", cell=16, threshold=0.995, progress=False)
     image, annex = build_image(model, db)
     path = tmp_path_factory.mktemp("model") / "m.ecs"
@@ -196,9 +188,9 @@ def test_device_path_is_the_device_frame_and_packet(small_model):
     assert diff.max() <= 1  # float32 vs float64 rounding of the same quantized scores
 
 
-def test_projection_of_a_training_view_matches_its_own_scores(small_model, small_db):
+def test_projection_of_a_training_view_matches_its_own_scores(small_model, tooth_db):
     model = HostModel.load(small_model)
-    db = CinemaDB.open(small_db)
+    db = CinemaDB.open(tooth_db)
     path = DevicePath(model)
     for i in (5, 90):
         frame, _ = path.projection_frame(db.read_image(i))
@@ -229,9 +221,9 @@ def test_metric_workers_give_the_same_results_as_inline(small_model):
 # ----------------------------------------------------------------------------- render settings
 
 
-def test_view_renderer_reproduces_training_images_bit_for_bit(small_db):
-    db = CinemaDB.open(small_db)
-    settings = RenderSettings.from_record(db.settings, what=str(small_db))
+def test_view_renderer_reproduces_training_images_bit_for_bit(tooth_db):
+    db = CinemaDB.open(tooth_db)
+    settings = RenderSettings.from_record(db.settings, what=str(tooth_db))
     scene = ViewRenderer.open(settings, what="db")
     for i in (0, 77):
         rgb8, alpha = scene.render(db.phi_deg[i], db.theta_deg[i])
@@ -239,8 +231,8 @@ def test_view_renderer_reproduces_training_images_bit_for_bit(small_db):
         assert alpha.shape == rgb8.shape[:2] and 0 < (alpha > 0).mean() < 1
 
 
-def test_render_settings_refuse_missing_or_mismatched(small_db):
-    db = CinemaDB.open(small_db)
+def test_render_settings_refuse_missing_or_mismatched(tooth_db):
+    db = CinemaDB.open(tooth_db)
     with pytest.raises(SettingsError, match="no render settings"):
         RenderSettings.from_record({}, what="x.ecs")
     broken = {k: v for k, v in db.settings.items() if k != "camera"}
@@ -339,9 +331,9 @@ def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path)
     assert len(res.stderr.strip().splitlines()) == 1
 
 
-def test_evaluate_foreign_model_needs_explicit_render_options(small_db, tmp_path):
+def test_evaluate_foreign_model_needs_explicit_render_options(tooth_db, tmp_path):
     foreign = tmp_path / "foreign.cdb"
-    shutil.copytree(small_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
+    shutil.copytree(tooth_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
     (foreign / "eigencast.json").unlink()
     db = CinemaDB.open(foreign)
     model = fit_database(db, method="cell", cell=20, components=6, progress=False)
