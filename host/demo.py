@@ -222,8 +222,8 @@ def run_demo(
     """
     from host.cli import main as eigencast
     from host.fit.model import HostModel
-    from host.link.provision import provision
-    from host.link.serve import open_true_view_scores, serve
+    from host.link.provisioning import provision
+    from host.link.serving import open_true_view_scores, serve
     from protocol.keys import load_key, write_key
 
     work = Path(work)

@@ -6,7 +6,7 @@
 
 For each orbit view the volume is ray-cast with the model's recorded settings (the truth;
 object pixels: alpha >= `host.render.settings.OBJECT_ALPHA_MIN`), and two packet streams are
-made exactly as ``eigencast serve`` sends them (`host.link.serve.FrameEncoder`: one key frame,
+made exactly as ``eigencast serve`` sends them (`host.link.serving.FrameEncoder`: one key frame,
 then deltas against the previous packet):
 
 * ``interpolate``: the training views' scores interpolated at the view (``--scores
@@ -38,7 +38,7 @@ from rdp_common import Timer, quality, save_json, smallest_codec_file
 
 from host.evaluate import encode_image
 from host.fit.model import HostModel
-from host.link.serve import FrameEncoder, open_true_view_scores
+from host.link.serving import FrameEncoder, open_true_view_scores
 from host.render.settings import OBJECT_ALPHA_MIN
 from protocol.scores import ScoreDecoder
 

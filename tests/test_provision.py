@@ -25,7 +25,7 @@ from provision_helpers import (
 from device_runtime.device import Device, DeviceConfig
 from device_runtime.flash import FlashStore
 from host.cli import main as cli_main
-from host.link.provision import ProvisionError, choose_chunk_bytes, inspect_image, provision
+from host.link.provisioning import ProvisionError, choose_chunk_bytes, inspect_image, provision
 from protocol import messages as m
 from protocol.errors import (
     AuthenticationError,
@@ -423,7 +423,7 @@ def test_unsupported_format_version_is_refused(device, model):
         session.link.close()
     hello = session.hello
     info = dataclasses.replace(inspect_image(model[0]), format_version=2)
-    from host.link.provision import _precheck
+    from host.link.provisioning import _precheck
 
     with pytest.raises(ProvisionError, match="UNSUPPORTED_FORMAT"):
         _precheck(info, hello, force=False)

@@ -131,7 +131,7 @@ def test_the_sidecar_records_an_absolute_volume_path_and_old_relative_ones_resum
     model = tmp_path / "cube.ecs"
     assert subprocess.run([*CLI, "fit", str(db), "-o", str(model), "--cell", "20"],
                           capture_output=True, text=True, cwd=vol_dir).returncode == 0
-    from host.link.serve import open_true_view_scores
+    from host.link.serving import open_true_view_scores
 
     assert open_true_view_scores(HostModel.load(model)).renderer is not None
     # a database written before sources were absolute (a path relative to the folder it

@@ -25,7 +25,7 @@ from device_runtime.runtime import (
     standalone_table,
 )
 from host.fit.model import HostModel
-from host.link.provision import provision
+from host.link.provisioning import provision
 from protocol import messages as m
 from protocol.errors import ImageFormatError
 from protocol.image import read_image

@@ -21,8 +21,8 @@ from runtime_helpers import RuntimeThread, read_frames, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
 from host.fit.model import HostModel
-from host.link.provision import provision
-from host.link.serve import TrueViewScores, open_true_view_scores, serve
+from host.link.provisioning import provision
+from host.link.serving import TrueViewScores, open_true_view_scores, serve
 from host.render.cinema import CinemaDB
 from host.render.settings import RenderSettings, ViewRenderer
 

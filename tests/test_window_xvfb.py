@@ -23,8 +23,8 @@ from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import key_file, tiny_model, wait_until
 
 from host.fit.model import HostModel
-from host.link.provision import provision
-from host.link.serve import open_true_view_scores, serve
+from host.link.provisioning import provision
+from host.link.serving import open_true_view_scores, serve
 
 pytestmark = pytest.mark.skipif(
     shutil.which("Xvfb") is None or shutil.which("xdotool") is None,

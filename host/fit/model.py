@@ -547,7 +547,7 @@ class HostModel:
         per cell, by least squares onto the device's own basis -- the quantized eigenimages
         times their scales, which bit allocation leaves slightly non-orthogonal -- so
         ``reconstruct(project(x))`` is the closest frame to ``x`` this eigenspace can show
-        (before score quantization and the uint8 clip). It is what `host.link.serve` streams in
+        (before score quantization and the uint8 clip). It is what `host.link.serving` streams in
         its ``render``/``refine`` modes: the true view's scores, with no interpolation error.
 
         Raises

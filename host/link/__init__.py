@@ -1,13 +1,14 @@
 """Stage 5, link: put a model on a device and stream score packets to it.
 
-Owns provisioning (``provision.py``: handshake, chunked image transfer with retransmission
-and resume, commit) and serving (``serve.py``: the session that answers view requests with
+Owns provisioning (``provisioning.py``: handshake, chunked image transfer with retransmission
+and resume, commit) and serving (``serving.py``: the session that answers view requests with
 score packets, optionally ray-casting or refining the shown view). Both drive the shared
 protocol (`protocol.link`, `protocol.transport`, `protocol.scores`) from the host end.
 
-Named ``link`` rather than ``serve``: it holds provisioning too, it is the host end of
-`protocol.link`, and a ``host/serve/`` package whose ``serve.py`` defines ``serve()`` would make
-``host.serve.serve`` mean a module or a function depending on import order.
+Named ``link`` rather than ``serve``: it holds provisioning too and it is the host end of
+`protocol.link`. Its modules are ``provisioning.py``/``serving.py``, not ``provision.py``/
+``serve.py``: a submodule named like the function the package exports would replace that
+function on the package as soon as it is imported (``host.link.serve`` would be the module).
 
 May import: `host.fit` (the `HostModel` whose packets it sends), `host.render` (ray-cast
 views for ``--scores render|refine``), `host.errors`, `protocol`, `device_runtime`; never
@@ -18,7 +19,7 @@ evaluate. ``eigencast provision`` and ``serve`` start here (``host/commands/prov
 from host.lazy import attach
 
 EXPORTS: dict[str, tuple[str, ...]] = {
-    "provision": (
+    "provisioning": (
         "CHUNK_LATENCY_S",
         "ImageInfo",
         "ProvisionError",
@@ -27,7 +28,7 @@ EXPORTS: dict[str, tuple[str, ...]] = {
         "inspect_image",
         "provision",
     ),
-    "serve": (
+    "serving": (
         "FrameEncoder",
         "ServeError",
         "ServeStats",

@@ -551,7 +551,7 @@ def serve(
     TransportError
         The device cannot be reached (``reconnect`` off, or ``max_reconnects`` exceeded).
     """
-    from host.link.provision import inspect_image, provision
+    from host.link.provisioning import inspect_image, provision
 
     say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
     stop = stop or threading.Event()
