@@ -11,6 +11,8 @@ Usage::
 
     .venv/bin/python scripts/rd_density.py TEST.cdb -o density.json --views 40 \\
         --grids 100x15,100x30,100x60,200x30 [--methods bilinear,bicubic]
+
+Produces: docs/rate-distortion.md, section 2 "View interpolation" (the density study).
 """
 
 from __future__ import annotations

@@ -35,6 +35,9 @@ Usage::
 
     .venv/bin/python scripts/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
         [--webp-db-qualities 60,80,95] [--views N] [--workers 2]
+
+Produces: docs/rate-distortion.md, sections 2 "View interpolation" and 3 "Cell seams"
+(through rd_plots.py).
 """
 
 from __future__ import annotations

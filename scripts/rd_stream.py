@@ -21,6 +21,9 @@ view the smallest WebP and JPEG file of the ray-cast reaching the frame's object
 FLIP is found (`scripts/rdp_common.smallest_codec_file`), as in
 docs/rate-distortion-packets.md. Also recorded: WebP's own curve on those views (quality
 1..95) and the ray-cast time per view.
+
+Produces: docs/rate-distortion.md, section 4 "Streaming the true view's scores"
+(through rd_stream_plot.py).
 """
 
 from __future__ import annotations

@@ -5,6 +5,8 @@ rendered with the same settings (``/work/cache/rd/NAME-SIZE-test.cdb``). Quality
 on the object's pixels only: the ray-casts have a black background, so a pixel is an object
 pixel when any channel exceeds ``host.evaluate.OBJECT_LEVEL`` (`host.evaluate.object_mask`;
 ``host.evaluate`` metric helpers, ``mask=``).
+
+Produces no doc section itself: helpers of the rdp_*.py scripts.
 """
 
 from __future__ import annotations

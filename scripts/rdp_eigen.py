@@ -17,6 +17,8 @@ object PSNR/SSIM of held-out views (interpolated scores at the model's step) and
 between the int8 frames and the re-quantized ones (what the bit allocation alone costs).
 The components are re-quantized from the image's int8 eigenimages (``scales * int8``), so the
 8-bit row is the image itself.
+
+Produces: docs/rate-distortion-packets.md, section 3 "Bit allocation for the eigenimages".
 """
 
 from __future__ import annotations

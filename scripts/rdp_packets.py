@@ -23,6 +23,8 @@ score steps (multiples of the model's own step, which `fit` chose from the 0.25 
   old coding as deltas and as deltas against the linear prediction ``2 q[t-1] - q[t-2]``;
 * **codecs at equal quality**: per view, the smallest WebP and JPEG file of the ray-cast whose
   object SSIM (and FLIP with ``--flip``) is at least the eigencast frame's.
+
+Produces: docs/rate-distortion-packets.md, section 1 "Score packets".
 """
 
 from __future__ import annotations

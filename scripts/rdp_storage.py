@@ -12,6 +12,9 @@ table) and its device image size read back; quality is that of ``HostModel.view`
 held-out views (the frames a standalone device shows), object PSNR/SSIM against the
 ray-casts. With ``--train-db`` the WebP image database it competes with is measured on the
 same views (`scripts/rdp_table.py`'s ``_webp_db``).
+
+Produces: docs/rate-distortion-packets.md, section 4 "Standalone device storage against the
+WebP image database".
 """
 
 from __future__ import annotations

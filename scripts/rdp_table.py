@@ -24,6 +24,9 @@ packet step and reconstructed through the device code; object PSNR/SSIM against 
 With ``--train-db`` the WebP image database is measured too: every training view as WebP at
 each quality, novel views blended from the decoded training images with the model's own
 interpolation weights (object SSIM), and the database's total bytes.
+
+Produces: docs/rate-distortion-packets.md, section 2 "Standalone table" (and the WebP
+database rows of section 4).
 """
 
 from __future__ import annotations
