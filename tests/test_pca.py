@@ -1,4 +1,5 @@
-"""Tests of host/fit/pca.py: eigenspace fitting, the threshold rule, CellStack streaming."""
+"""Tests of host/fit/pca.py and host/fit/cells.py: eigenspace fitting, the threshold rule,
+CellStack streaming."""
 
 from __future__ import annotations
 
