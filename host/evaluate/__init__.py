@@ -16,67 +16,6 @@ May import: `host.volume`, `host.render`, `host.fit`, `host.errors`, `host.progr
 
 from host.lazy import attach
 
-EXPORTS: dict[str, tuple[str, ...]] = {
-    "metrics": (
-        "HIGHER_IS_BETTER",
-        "METRICS",
-        "ImageComparison",
-        "compare_images",
-        "flip_error",
-        "flip_error_map",
-        "peak_signal_noise_ratio",
-        "structural_similarity",
-    ),
-    "masks": (
-        "OBJECT_LEVEL",
-        "alpha_object_mask",
-        "object_mask",
-    ),
-    "baselines": (
-        "CODECS",
-        "MAX_QUALITY",
-        "CodedImage",
-        "TrainingImages",
-        "WebPDatabase",
-        "decode_image",
-        "encode_image",
-        "encode_within_budget",
-        "nearest_training_view",
-        "webp_database_frames",
-    ),
-    "device_path": (
-        "DevicePath",
-    ),
-    "engine": (
-        "DEFAULT_QUALITIES",
-        "DEFAULT_STEP_FACTORS",
-        "DEFAULT_THRESHOLDS",
-        "DEFAULT_WEBP_DB_QUALITY",
-        "METHODS",
-        "Evaluation",
-        "default_metric_workers",
-        "eigenspace_bytes",
-        "evaluate_model",
-        "model_info",
-    ),
-    "report": (
-        "compose_side_by_side",
-        "write_report",
-    ),
-    "target": (
-        "TARGET_METRICS",
-        "HeldOutViews",
-        "Target",
-        "TargetError",
-        "TargetResult",
-        "Try",
-        "holdout_indices",
-        "level_ladder",
-        "parse_target",
-        "search_target",
-    ),
-}
-
 __all__ = [
     "CODECS",
     "DEFAULT_QUALITIES",
@@ -89,6 +28,7 @@ __all__ = [
     "METRICS",
     "OBJECT_LEVEL",
     "TARGET_METRICS",
+    "TARGET_STEP_FACTORS",
     "CodedImage",
     "DevicePath",
     "Evaluation",
@@ -124,4 +64,4 @@ __all__ = [
     "write_report",
 ]
 
-__getattr__, __dir__ = attach(__name__, EXPORTS)
+__getattr__, __dir__ = attach(__name__, __all__)

@@ -33,8 +33,8 @@ from host.errors import EigencastError
 from host.progress import progress as _progress
 
 __all__ = [
-    "DEFAULT_STEP_FACTORS",
     "TARGET_METRICS",
+    "TARGET_STEP_FACTORS",
     "HeldOutViews",
     "Target",
     "TargetError",
@@ -49,7 +49,7 @@ __all__ = [
 #: Metric -> whether larger is better; the metric ranges accepted by `parse_target`.
 TARGET_METRICS = {"ssim": (True, 0.0, 1.0), "flip": (False, 0.0, 1.0), "psnr": (True, 1.0, 99.0)}
 #: Score-step multiples tried (1 = the default step).
-DEFAULT_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0)
+TARGET_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0)
 #: Exponents x of the adaptive ladder T = 1 - 10**-x.
 _LADDER_EXPONENTS = np.round(np.arange(0.5, 5.0001, 0.1), 2)
 
@@ -278,7 +278,7 @@ def search_target(
     heldout: HeldOutViews,
     target: Target,
     *,
-    step_factors: Sequence[float] = DEFAULT_STEP_FACTORS,
+    step_factors: Sequence[float] = TARGET_STEP_FACTORS,
     score_step: float | None = None,
     progress: bool = True,
 ) -> TargetResult:

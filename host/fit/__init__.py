@@ -17,71 +17,10 @@ interpolation, so host and device agree bit for bit); never evaluate or link.
 
 from host.lazy import attach
 
-EXPORTS: dict[str, tuple[str, ...]] = {
-    "cells": (
-        "CellStack",
-        "cell_grid",
-        "merge_cells",
-        "split_cells",
-    ),
-    "pca": (
-        "DEFAULT_BATCH_BYTES",
-        "PARAMETER_CONSTRAINTS",
-        "RANDOMIZED_INITIAL_COMPONENTS",
-        "RANDOMIZED_MIN_SIZE",
-        "RANDOMIZED_OVERSAMPLES",
-        "RANDOMIZED_POWER_ITERATIONS",
-        "SIGN_CONVENTION",
-        "CellEigenspace",
-        "InvalidParameterError",
-        "NotFittedError",
-    ),
-    "quantize": (
-        "DEFAULT_BIT_BUDGET",
-        "MAX_BITS",
-        "MIN_BITS",
-        "QuantizationLoss",
-        "QuantizedEigenspace",
-        "allocate_bits",
-        "int8_loss_db",
-        "quantize_components",
-        "quantize_eigenspace",
-        "quantize_mean",
-        "residual_mse",
-    ),
-    "interpolate": (
-        "GRID_DEFAULT",
-        "METHODS",
-        "ScoreInterpolator",
-        "triangulate_views",
-    ),
-    "model": (
-        "ANNEX_EIGENVALUES",
-        "ANNEX_SCORES",
-        "ANNEX_TOTAL_VARIANCE",
-        "DEFAULT_SCORE_MSE",
-        "INT8_CHECK_VIEWS",
-        "HostModel",
-        "add_standalone_table",
-        "auto_score_step",
-        "build_image",
-        "components_for_threshold",
-        "fit_database",
-        "int8_report",
-        "save_model",
-        "score_step_for",
-        "stack_for",
-        "standalone_scores",
-        "subset_database",
-        "truncate_eigenspace",
-    ),
-}
-
 __all__ = [
     "ANNEX_EIGENVALUES",
     "ANNEX_SCORES",
     "ANNEX_TOTAL_VARIANCE",
-    "DEFAULT_BATCH_BYTES",
     "DEFAULT_BIT_BUDGET",
     "DEFAULT_SCORE_MSE",
     "GRID_DEFAULT",
@@ -89,11 +28,6 @@ __all__ = [
     "MAX_BITS",
     "METHODS",
     "MIN_BITS",
-    "PARAMETER_CONSTRAINTS",
-    "RANDOMIZED_INITIAL_COMPONENTS",
-    "RANDOMIZED_MIN_SIZE",
-    "RANDOMIZED_OVERSAMPLES",
-    "RANDOMIZED_POWER_ITERATIONS",
     "SIGN_CONVENTION",
     "CellEigenspace",
     "CellStack",
@@ -127,4 +61,4 @@ __all__ = [
     "truncate_eigenspace",
 ]
 
-__getattr__, __dir__ = attach(__name__, EXPORTS)
+__getattr__, __dir__ = attach(__name__, __all__)

@@ -18,28 +18,6 @@ evaluate. ``eigencast provision`` and ``serve`` start here (``host/commands/prov
 
 from host.lazy import attach
 
-EXPORTS: dict[str, tuple[str, ...]] = {
-    "provisioning": (
-        "CHUNK_LATENCY_S",
-        "ImageInfo",
-        "ProvisionError",
-        "ProvisionResult",
-        "choose_chunk_bytes",
-        "inspect_image",
-        "provision",
-    ),
-    "serving": (
-        "FrameEncoder",
-        "ServeError",
-        "ServeStats",
-        "serve",
-        "DEFAULT_REFINE_DELAY_S",
-        "SCORE_MODES",
-        "TrueViewScores",
-        "open_true_view_scores",
-    ),
-}
-
 __all__ = [
     "CHUNK_LATENCY_S",
     "DEFAULT_REFINE_DELAY_S",
@@ -58,4 +36,4 @@ __all__ = [
     "serve",
 ]
 
-__getattr__, __dir__ = attach(__name__, EXPORTS)
+__getattr__, __dir__ = attach(__name__, __all__)

@@ -14,71 +14,8 @@ May import: `host.volume`, `host.errors`, `host.progress`; never fit, evaluate o
 
 from host.lazy import attach
 
-EXPORTS: dict[str, tuple[str, ...]] = {
-    "camera": (
-        "MAX_VIEWS",
-        "PROJECTIONS",
-        "VIEW_SET_FORMS",
-        "Camera",
-        "View",
-        "ViewSet",
-        "orbit_camera",
-        "parse_view_set",
-    ),
-    "transfer": (
-        "PRESETS",
-        "TransferFunction",
-        "add_transfer_function_argument",
-        "default_transfer_function",
-        "hu_calibration",
-        "load_transfer_function",
-        "transfer_function_from_args",
-    ),
-    "raycast": (
-        "AMBIENT",
-        "BLOCK_SIZE",
-        "DEFAULT_SAMPLES",
-        "DIFFUSE",
-        "EARLY_TERMINATION_ALPHA",
-        "LUT_SIZE",
-        "MAX_IMAGE_SIDE",
-        "MAX_SAMPLES",
-        "RENDERER_VERSION",
-        "SHININESS",
-        "SPECULAR",
-        "Renderer",
-        "resolve_window",
-        "warmup",
-    ),
-    "raycast_reference": (
-        "ray_box_segments",
-        "render_reference",
-        "samples_in_box",
-    ),
-    "settings": (
-        "OBJECT_ALPHA_MIN",
-        "RenderSettings",
-        "SettingsError",
-        "ViewRenderer",
-    ),
-    "cinema": (
-        "SIDECAR",
-        "CinemaDB",
-        "CinemaWriter",
-        "absolute_source",
-        "atomic_write_bytes",
-        "format_float",
-        "encode_png",
-    ),
-}
-
 __all__ = [
-    "AMBIENT",
-    "BLOCK_SIZE",
     "DEFAULT_SAMPLES",
-    "DIFFUSE",
-    "EARLY_TERMINATION_ALPHA",
-    "LUT_SIZE",
     "MAX_IMAGE_SIDE",
     "MAX_SAMPLES",
     "MAX_VIEWS",
@@ -86,9 +23,7 @@ __all__ = [
     "PRESETS",
     "PROJECTIONS",
     "RENDERER_VERSION",
-    "SHININESS",
     "SIDECAR",
-    "SPECULAR",
     "VIEW_SET_FORMS",
     "Camera",
     "CinemaDB",
@@ -118,4 +53,4 @@ __all__ = [
     "warmup",
 ]
 
-__getattr__, __dir__ = attach(__name__, EXPORTS)
+__getattr__, __dir__ = attach(__name__, __all__)

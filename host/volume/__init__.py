@@ -65,13 +65,6 @@ tifffile, scipy) only inside the function that needs them. Nothing from a later 
 
 from host.lazy import attach
 
-EXPORTS: dict[str, tuple[str, ...]] = {
-    "core": ("MODALITIES", "RAW_DTYPES", "SUPPORTED_FORMATS", "Volume"),
-    "load": ("READERS", "add_volume_arguments", "load_volume", "volume_from_args"),
-    "orientation": ("KNOWN_DATASETS", "KnownDataset"),
-    "phantoms": ("builtin_volume", "list_builtins"),
-}
-
 __all__ = [
     "KNOWN_DATASETS",
     "MODALITIES",
@@ -87,4 +80,4 @@ __all__ = [
     "volume_from_args",
 ]
 
-__getattr__, __dir__ = attach(__name__, EXPORTS)
+__getattr__, __dir__ = attach(__name__, __all__)

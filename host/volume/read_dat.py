@@ -1,8 +1,4 @@
-"""volvis ``.dat``: a text header naming the data file, or the 6-byte binary TU Wien header.
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""volvis ``.dat``: a text header naming the data file, or the 6-byte binary TU Wien header."""
 
 from __future__ import annotations
 

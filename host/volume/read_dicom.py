@@ -1,8 +1,4 @@
-"""A DICOM series folder (or one ``.dcm`` file of it) through pydicom.
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""A DICOM series folder (or one ``.dcm`` file of it) through pydicom."""
 
 from __future__ import annotations
 

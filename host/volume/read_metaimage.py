@@ -1,8 +1,4 @@
-"""MetaImage ``.mhd`` / ``.mha`` (ITK), local or detached data, zlib-compressed or not.
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""MetaImage ``.mhd`` / ``.mha`` (ITK), local or detached data, zlib-compressed or not."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""NIfTI ``.nii`` / ``.nii.gz`` through nibabel.
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""NIfTI ``.nii`` / ``.nii.gz`` through nibabel."""
 
 from __future__ import annotations
 

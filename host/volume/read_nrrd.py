@@ -1,8 +1,4 @@
-"""NRRD ``.nrrd`` / ``.nhdr`` through pynrrd.
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""NRRD ``.nrrd`` / ``.nhdr`` through pynrrd."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""Roettger ``.pvm`` (uncompressed PVM, PVM2, PVM3).
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""Roettger ``.pvm`` (uncompressed PVM, PVM2, PVM3)."""
 
 from __future__ import annotations
 

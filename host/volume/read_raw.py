@@ -1,8 +1,4 @@
-"""Raw voxels (any extension, ``dims`` given; gzip data is inflated).
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""Raw voxels (any extension, ``dims`` given; gzip data is inflated)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""TIFF stacks through tifffile: one multi-page file or a folder of single-page files.
-
-A reader takes a path and returns a `host.volume.core._Loaded` in file order;
-`host.volume.load.READERS` maps the format name to it.
-"""
+"""TIFF stacks through tifffile: one multi-page file or a folder of single-page files."""
 
 from __future__ import annotations
 
