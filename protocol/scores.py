@@ -265,8 +265,8 @@ def zigzag_varints(values: np.ndarray) -> bytes:
 
     Parameters
     ----------
-    values : ndarray of int
-        Any shape; read in C order.
+    values : 1-D ndarray of int
+        Magnitudes below 2**34 (5 bytes at most; callers ``ravel`` other shapes first).
 
     Returns
     -------

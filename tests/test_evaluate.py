@@ -319,6 +319,37 @@ def test_webp_database_blends_decoded_training_views_with_the_model_weights(smal
         WebPDatabase(model, training, 0)
 
 
+def test_webp_database_frames_is_the_webp_database_of_a_whole_cinema_database(small_model):
+    # the scripts' baseline (no model needed) must agree with the evaluation's WebPDatabase
+    from host.evaluate import TrainingImages, WebPDatabase, webp_database_frames
+
+    model = HostModel.load(small_model)
+    training = TrainingImages(model, None)
+    views = [(100.0, 10.0), (training.phi[5], training.theta[5]), (233.0, -20.0)]
+    weights = [model.interpolator.weights(phi, theta) for phi, theta in views]
+    total, frames = webp_database_frames(training.db, weights, 60)
+    webp_db = WebPDatabase(model, training, 60)
+    assert total == webp_db.storage_bytes
+    assert len(frames) == len(views)
+    for (phi, theta), frame in zip(views, frames):
+        assert frame.dtype == np.uint8 and frame.shape == (*model.image.image_shape, 3)
+        np.testing.assert_array_equal(frame, webp_db.frame(phi, theta))
+
+
+def test_object_masks_from_the_image_and_from_the_opacity():
+    from host.evaluate import OBJECT_LEVEL, alpha_object_mask, object_mask
+    from host.render.settings import OBJECT_ALPHA_MIN
+
+    image = np.zeros((4, 5, 3), np.uint8)
+    image[1, 2, 1] = OBJECT_LEVEL + 1  # one channel above the level is enough
+    image[3, 0] = OBJECT_LEVEL  # at the level is background
+    mask = object_mask(image)
+    assert mask.shape == (4, 5) and mask.dtype == bool
+    assert mask.sum() == 1 and mask[1, 2]
+    alpha = np.array([[0.0, OBJECT_ALPHA_MIN * 0.99, OBJECT_ALPHA_MIN, 1.0]])
+    np.testing.assert_array_equal(alpha_object_mask(alpha), [[False, False, True, True]])
+
+
 def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path):
     res = _run("evaluate", str(small_model), "builtin:head", "--views", "random:2",
                check=False)
