@@ -25,7 +25,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 lint: $(STAMP)
-	$(BIN)/ruff check host protocol device_runtime tests benchmarks
+	$(BIN)/ruff check host protocol device_runtime tests benchmarks scripts
 
 # Debian's Xvfb for the real-window test; needs root (or an existing install).
 xvfb:

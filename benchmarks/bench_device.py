@@ -13,7 +13,7 @@ a. **Frame time** at each ``--sizes`` in headless mode, per stage: *decode* (a s
 b. **Latency** from VIEW_REQUEST to frame presented over TCP loopback: ``eigencast-device
    --listen`` as a separate process steps through ``--latency-views`` views (``--views``,
    each requested once its predecessor was shown) while this process serves it
-   (:func:`host.serve.serve`); percentiles from the device's own statistics. Baseline: the
+   (:func:`host.link.serving.serve`); percentiles from the device's own statistics. Baseline: the
    compute on the path (host interpolation + encoding, device decode + reconstruction)
    measured in-process in the same run.
 c. **Bytes per frame** over an orbit (3 and 0.5 degrees of phi per frame at theta 15), key
@@ -216,7 +216,7 @@ class Case:
         self.size = size
         self.path = path
         if path is not None:
-            from host.model import HostModel
+            from host.fit.model import HostModel
 
             self.model = HostModel.load(path)
             self.image = self.model.image
@@ -252,7 +252,7 @@ class Case:
             views = orbit_views(round(360 / degrees_per_frame))[:n]
             while len(views) < n:
                 views += views[: n - len(views)]
-            from host.serve import FrameEncoder
+            from host.link.serving import FrameEncoder
 
             encoder = FrameEncoder(self.model, first_frame=1)  # what `serve` sends
             ys = [self.model.quantized_scores(*v) for v in views]
@@ -433,7 +433,7 @@ def print_tag_cost(r: dict) -> None:
 
 def provisioned_flash(case: Case, work: Path) -> Path:
     """A flash folder holding ``case``'s image (provisioned over TCP once, then reused)."""
-    from host.provision import provision
+    from host.link.provisioning import provision
     from protocol.keys import load_key
 
     flash = work / f"flash-{case.path.stem}"
@@ -456,7 +456,7 @@ def provisioned_flash(case: Case, work: Path) -> Path:
 
 def host_compute_ms(case: Case, views: list[tuple[float, float]]) -> float:
     """Median time the host spends per answered request: interpolate, quantize, encode."""
-    from host.serve import FrameEncoder
+    from host.link.serving import FrameEncoder
 
     encoder = FrameEncoder(case.model)
     times = []
@@ -468,7 +468,7 @@ def host_compute_ms(case: Case, views: list[tuple[float, float]]) -> float:
 
 
 def section_latency(case: Case, work: Path, n_views: int, frame: dict | None) -> dict:
-    from host.serve import serve
+    from host.link.serving import serve
     from protocol.keys import load_key
 
     flash = provisioned_flash(case, work)
@@ -527,8 +527,8 @@ def print_latency(r: dict) -> None:
 
 def section_bytes(case: Case, jpeg_views: int) -> dict:
     from host.demo import equal_quality_jpeg
-    from host.render_settings import RenderSettings, ViewRenderer
-    from host.serve import FrameEncoder
+    from host.link.serving import FrameEncoder
+    from host.render.settings import RenderSettings, ViewRenderer
 
     out: dict[str, Any] = {"size": case.size}
     for label, n in (("3deg", 120), ("0.5deg", 720)):
@@ -570,7 +570,7 @@ def print_bytes(r: dict) -> None:
 
 
 def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
-    from host.serve import serve
+    from host.link.serving import serve
     from protocol.keys import load_key
 
     flash = provisioned_flash(case, work)
@@ -653,7 +653,7 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
 
     from device_runtime.device import DeviceConfig
     from device_runtime.runtime import parse_orbit
-    from host.serve import serve
+    from host.link.serving import serve
     from protocol.keys import load_key
 
     src = provisioned_flash(case, work)

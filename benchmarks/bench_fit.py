@@ -43,7 +43,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from host.pca import CellEigenspace, CellStack
+from host.fit.cells import CellStack
+from host.fit.pca import CellEigenspace
 
 
 def grid_views(n_views: int) -> list[tuple[float, float]]:

@@ -47,7 +47,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name  # noqa: E402
 
-from host.provision import provision  # noqa: E402
+from host.link.provisioning import provision  # noqa: E402
 from protocol import messages as m  # noqa: E402
 from protocol.image import read_manifest  # noqa: E402
 from protocol.keys import write_key  # noqa: E402
@@ -185,7 +185,7 @@ def ping_during_transfer(baud: int, tmp: Path, pings: int = 8) -> dict:
             m.ImageBegin(size_bytes=len(image), digest=hashlib.sha256(image).digest(),
                          image_tag=image[-32:], format_version=1, generation=1),
             on_reply=lambda rid, reply: box.setdefault("id", rid))
-        from host.provision import choose_chunk_bytes
+        from host.link.provisioning import choose_chunk_bytes
 
         chunk = choose_chunk_bytes(link.transport, hello, link)
         link.tx_low_water_bytes = chunk + CHUNK_OVERHEAD_BYTES  # as provision() does

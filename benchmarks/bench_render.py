@@ -6,9 +6,9 @@ Usage::
 
 Measures, in one run:
 
-1. **Ray samples per second** of `host.raycast.Renderer` at 256x256 with 1000
+1. **Ray samples per second** of `host.render.raycast.Renderer` at 256x256 with 1000
    samples per ray (across the bounding sphere), and of the numpy reference
-   `host.raycast_reference.render_reference` on a smaller image with the same
+   `host.render.raycast_reference.render_reference` on a smaller image with the same
    settings and views, plus their ratio. A "ray sample" is a sample position
    inside the volume box (what a naive ray-caster evaluates), counted
    identically for both, so the rate measures how fast the same job gets done
@@ -35,11 +35,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from host.camera import orbit_camera, parse_view_set
-from host.raycast import Renderer, warmup
-from host.raycast_reference import render_reference, samples_in_box
+from host.render.camera import orbit_camera, parse_view_set
+from host.render.raycast import Renderer, warmup
+from host.render.raycast_reference import render_reference, samples_in_box
+from host.render.transfer import TransferFunction
 from host.shared_data import shared_volume
-from host.transfer import TransferFunction
 from host.volume import Volume
 
 SAMPLES = 1000
@@ -124,12 +124,12 @@ def main(argv: list[str] | None = None) -> int:
         "--tf",
         default=None,
         metavar="PRESET",
-        help="a host.transfer preset instead of the fixed skin+bone function",
+        help="a host.render.transfer preset instead of the fixed skin+bone function",
     )
     args = parser.parse_args(argv)
     tf = SKIN_BONE
     if args.tf is not None:
-        from host.transfer import load_transfer_function
+        from host.render.transfer import load_transfer_function
 
         tf = load_transfer_function(args.tf)
 

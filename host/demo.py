@@ -221,9 +221,9 @@ def run_demo(
         the device's statistics and the equal-quality JPEG comparison.
     """
     from host.cli import main as eigencast
-    from host.model import HostModel
-    from host.provision import provision
-    from host.serve import open_true_view_scores, serve
+    from host.fit.model import HostModel
+    from host.link.provisioning import provision
+    from host.link.serving import open_true_view_scores, serve
     from protocol.keys import load_key, write_key
 
     work = Path(work)
@@ -322,7 +322,7 @@ def run_demo(
 def _jpeg_comparison(settings: DemoSettings, model: Any, summary: dict) -> dict[str, float]:
     """Ray-cast a few orbit views; compare the delta packets with equal-SSIM JPEGs."""
     from device_runtime.runtime import parse_orbit
-    from host.render_settings import RenderSettings, ViewRenderer
+    from host.render.settings import RenderSettings, ViewRenderer
 
     orbit = parse_orbit(settings.orbit).start(now_s=0.0)
     views = [orbit.next_view(0.0) for _ in range(parse_orbit(settings.orbit).total_steps or 1)]

@@ -42,7 +42,7 @@ eigenspace at fine steps. Delta packets were 15-30 % smaller than key packets.
 Why end-of-block coding (CODING 1): a cell's components are sorted by eigenvalue, and at the
 coarse steps that are worth sending (docs/rate-distortion-packets.md) the tail of every cell
 quantizes to 0 -- the encoder also zeroes components whose eigenvalue is below the rounding
-noise (reverse water-filling, `host.model.HostModel.quantized_scores`). Sending each cell's
+noise (reverse water-filling, `host.fit.model.HostModel.quantized_scores`). Sending each cell's
 count and dropping its trailing zeros cut key packets by 10-30 % at 4-32 times the 0.25-MSE
 step (tooth and head, 256 and 512); at fine steps plain varints can be smaller, so the encoder
 codes both and keeps the smaller. The encoder's zstd level is 19 (default `DEFAULT_LEVEL`):
@@ -97,6 +97,7 @@ __all__ = [
     "encode_scores",
     "max_packet_size",
     "score_bound",
+    "zigzag_varints",
 ]
 
 MAGIC = b"\xecS"
@@ -290,7 +291,23 @@ def _steps_array(
     return STEP_PER_COMPONENT, 0.0, arr, arr
 
 
-def _zigzag_varints(values: np.ndarray) -> bytes:
+def zigzag_varints(values: np.ndarray) -> bytes:
+    """Zig-zag LEB128 varints of integers: the body of a varint-coded score packet.
+
+    Each value ``v`` maps to ``(v << 1) ^ (v >> 63)`` (small magnitudes, either sign, become
+    small unsigned numbers), written 7 bits per byte, least significant first, the top bit set
+    on every byte but the last. Public because the rate-distortion scripts size other
+    layouts of the same integers with it.
+
+    Parameters
+    ----------
+    values : 1-D ndarray of int
+        Magnitudes below 2**34 (5 bytes at most; callers ``ravel`` other shapes first).
+
+    Returns
+    -------
+    bytes
+    """
     v = values.astype(np.int64)
     z = ((v << 1) ^ (v >> 63)).astype(np.uint64)
     nbytes = np.ones(z.shape, dtype=np.int64)
@@ -416,7 +433,7 @@ def encode_scores(
     best: tuple[int, bytes] | None = None
     for mode_ in tries:
         ints = coded if mode_ == CODING_VARINT else _eob_integers(coded, counts)
-        raw = prefix + _zigzag_varints(ints)
+        raw = prefix + zigzag_varints(ints)
         for zflag, body in ((0, raw), (FLAG_ZSTD, _compressor(level).compress(raw))):
             if best is None or len(body) < len(best[1]):
                 best = (zflag | (mode_ << _CODING_SHIFT), body)

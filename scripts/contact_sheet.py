@@ -5,6 +5,8 @@
 Each tile is `eigencast render-view VOLUME --phi 60 --theta 15` with the
 volume's default transfer function; shared volumes are skipped (and named)
 when ../shared/data is absent.
+
+Produces: README.md, the contact sheet at the top (docs/images/contact-sheet.png).
 """
 
 from __future__ import annotations

@@ -11,6 +11,8 @@ Usage::
 
     .venv/bin/python scripts/rd_density.py TEST.cdb -o density.json --views 40 \\
         --grids 100x15,100x30,100x60,200x30 [--methods bilinear,bicubic]
+
+Produces: docs/rate-distortion.md, section 2 "View interpolation" (the density study).
 """
 
 from __future__ import annotations
@@ -25,11 +27,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from host.camera import parse_view_set
-from host.cinema import CinemaDB
 from host.evaluate import compare_images
-from host.interpolate import ScoreInterpolator
-from host.render_settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
+from host.fit.interpolate import ScoreInterpolator
+from host.render.camera import parse_view_set
+from host.render.cinema import CinemaDB
+from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,7 +8,7 @@ compared with the true ray-cast (SSIM, FLIP, PSNR; whole image and object pixels
     The true view projected onto the model's int8 eigenspace and sent through the score
     packet (no view interpolation): the best the eigenspace can do.
 ``bilinear``, ``bicubic``, ``barycentric``
-    The device's interpolation methods (`host.interpolate.METHODS`), scores rounded to the
+    The device's interpolation methods (`host.fit.interpolate.METHODS`), scores rounded to the
     model's score step, reconstructed by the device code.
 ``bspline``
     Diagnostic: the interpolating cubic B-spline (cardinal spline; the table prefiltered
@@ -35,6 +35,9 @@ Usage::
 
     .venv/bin/python scripts/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
         [--webp-db-qualities 60,80,95] [--views N] [--workers 2]
+
+Produces: docs/rate-distortion.md, sections 2 "View interpolation" and 3 "Cell seams"
+(through rd_plots.py).
 """
 
 from __future__ import annotations
@@ -50,16 +53,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from host.cinema import CinemaDB
 from host.evaluate import (
     DevicePath,
+    TrainingImages,
     WebPDatabase,
-    _TrainingImages,
     compare_images,
     eigenspace_bytes,
 )
-from host.interpolate import ScoreInterpolator
-from host.model import HostModel, standalone_scores
+from host.fit.interpolate import ScoreInterpolator
+from host.fit.model import HostModel, standalone_scores
+from host.render.cinema import CinemaDB
 
 GRID_METHODS = ("bilinear", "bicubic", "barycentric")
 
@@ -213,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         interps[m] = ScoreInterpolator(tphi, ttheta, model.training_scores, method=m)
     default_method = model.interpolator.method_
     device = DevicePath(model)
-    training = _TrainingImages(model, None)
+    training = TrainingImages(model, None)
     if training.db is None:
         raise SystemExit("the model's training database is not available")
     phis = np.mod(test.phi_deg[:n], 360.0)
@@ -344,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _projection_scores(model: HostModel, truth: np.ndarray) -> np.ndarray:
     """The true view's scores on the int8 eigenspace (unquantized; see DevicePath)."""
-    from host.pca import split_cells
+    from host.fit.cells import split_cells
 
     img = model.image
     cells = split_cells(np.asarray(truth)[None], img.cell_shape)[0].astype(np.float32)

@@ -8,6 +8,9 @@ Usage::
 writes ``rd-interp.png`` (methods vs the oracle, object pixels), ``rd-storage.png`` (device
 storage vs quality: eigencast standalone image vs WebP image database), ``rd-density.png``
 (blend quality vs training-grid density against the oracle) and prints the Markdown tables.
+
+Produces: docs/rate-distortion.md, the figures and tables of sections 2 "View interpolation"
+and 5 (storage).
 """
 
 from __future__ import annotations

@@ -5,14 +5,14 @@
         [--frames N]
 
 For each orbit view the volume is ray-cast with the model's recorded settings (the truth;
-object pixels: alpha >= `host.render_settings.OBJECT_ALPHA_MIN`), and two packet streams are
-made exactly as ``eigencast serve`` sends them (`host.serve.FrameEncoder`: one key frame,
+object pixels: alpha >= `host.render.settings.OBJECT_ALPHA_MIN`), and two packet streams are
+made exactly as ``eigencast serve`` sends them (`host.link.serving.FrameEncoder`: one key frame,
 then deltas against the previous packet):
 
 * ``interpolate``: the training views' scores interpolated at the view (``--scores
   interpolate``);
 * ``render``: the scores of the ray-cast itself, fitted onto the device's eigenimages
-  (`host.model.HostModel.project`; ``--scores render``, and what ``refine`` sends once a
+  (`host.fit.model.HostModel.project`; ``--scores render``, and what ``refine`` sends once a
   view rests).
 
 Each at score steps ``factor x`` the model's step. Every frame is decoded and reconstructed
@@ -21,6 +21,9 @@ view the smallest WebP and JPEG file of the ray-cast reaching the frame's object
 FLIP is found (`scripts/rdp_common.smallest_codec_file`), as in
 docs/rate-distortion-packets.md. Also recorded: WebP's own curve on those views (quality
 1..95) and the ray-cast time per view.
+
+Produces: docs/rate-distortion.md, section 4 "Streaming the true view's scores"
+(through rd_stream_plot.py).
 """
 
 from __future__ import annotations
@@ -37,9 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from rdp_common import Timer, quality, save_json, smallest_codec_file
 
 from host.evaluate import encode_image
-from host.model import HostModel
-from host.render_settings import OBJECT_ALPHA_MIN
-from host.serve import FrameEncoder, open_true_view_scores
+from host.fit.model import HostModel
+from host.link.serving import FrameEncoder, open_true_view_scores
+from host.render.settings import OBJECT_ALPHA_MIN
 from protocol.scores import ScoreDecoder
 
 WEBP_CURVE = (1, 5, 10, 20, 30, 50, 70, 80, 90, 95)

@@ -1,4 +1,4 @@
-"""Figure and tables of docs/rate-distortion.md section 5 from rd_stream.py results.
+"""Figure and tables of docs/rate-distortion.md section 4 from rd_stream.py results.
 
     .venv/bin/python scripts/rd_stream_plot.py stream-*.json -o docs/images/rd-stream.png
 

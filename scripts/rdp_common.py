@@ -3,7 +3,10 @@
 A *case* is a fitted model (``.ecs`` with its annex) plus a database of held-out views
 rendered with the same settings (``/work/cache/rd/NAME-SIZE-test.cdb``). Quality is measured
 on the object's pixels only: the ray-casts have a black background, so a pixel is an object
-pixel when any channel exceeds `OBJECT_LEVEL` (``host.evaluate`` metric helpers, ``mask=``).
+pixel when any channel exceeds ``host.evaluate.OBJECT_LEVEL`` (`host.evaluate.object_mask`;
+``host.evaluate`` metric helpers, ``mask=``).
+
+Produces no doc section itself: helpers of the rdp_*.py scripts.
 """
 
 from __future__ import annotations
@@ -16,12 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from host.cinema import CinemaDB
-from host.evaluate import compare_images, encode_image
-from host.model import HostModel
-
-#: A pixel whose largest channel is above this (0..255) is an object pixel.
-OBJECT_LEVEL = 2
+from host.evaluate import compare_images, encode_image, object_mask, webp_database_frames
+from host.fit.model import HostModel
+from host.render.cinema import CinemaDB
 
 
 @dataclass
@@ -38,11 +38,6 @@ class Case:
     @property
     def n_views(self) -> int:
         return len(self.truth)
-
-
-def object_mask(image: np.ndarray) -> np.ndarray:
-    """Bool (height, width): the pixels the object covers (black background elsewhere)."""
-    return np.asarray(image).max(axis=2) > OBJECT_LEVEL
 
 
 def load_case(model_path: str | Path, test_db: str | Path, *, views: int | None = None,
@@ -116,3 +111,22 @@ class Timer:
 
     def say(self, what: str) -> None:
         print(f"[{time.perf_counter() - self.t0:7.1f}s] {what}", flush=True)
+
+
+def webp_db_sweep(train_db: str, case: Case, weights: list, qualities: list[int],
+                  t: Timer) -> list[dict]:
+    """The WebP image-database baseline at each quality: its bytes and object quality.
+
+    `host.evaluate.webp_database_frames` over the training database ``train_db``, measured
+    against the case's held-out views (`quality`).
+    """
+    db = CinemaDB.open(train_db)
+    out = []
+    for qv in qualities:
+        total, frames = webp_database_frames(db, weights, qv)
+        qual = [quality(case.truth[k], frame, case.masks[k]) for k, frame in enumerate(frames)]
+        row = {"quality": qv, "bytes": total,
+               "metrics": {m: float(np.mean([q[m] for q in qual])) for m in qual[0]}}
+        out.append(row)
+        t.say(f"webp db q{qv}: {row}")
+    return out

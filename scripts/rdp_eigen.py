@@ -5,7 +5,7 @@
 
 Component ``j`` (eigenvalue ``lambda_j``) quantized with step ``s_j`` adds, in expectation,
 ``lambda_j * s_j**2 / 12`` to the squared error of its cell summed over its ``d`` values
-(independent rounding errors, scores of variance ``lambda_j``). `host.quantize.allocate_bits`
+(independent rounding errors, scores of variance ``lambda_j``). `host.fit.quantize.allocate_bits`
 gives each component ``b_j`` in 2..8 bits (``s_j = max|v_j| / (2**(b_j - 1) - 1)``) so that
 the total added MSE per pixel value stays within a budget at the fewest bits. The levels are
 still stored one per int8 byte (the device's format is unchanged); zstd's entropy coder turns
@@ -17,6 +17,8 @@ object PSNR/SSIM of held-out views (interpolated scores at the model's step) and
 between the int8 frames and the re-quantized ones (what the bit allocation alone costs).
 The components are re-quantized from the image's int8 eigenimages (``scales * int8``), so the
 8-bit row is the image itself.
+
+Produces: docs/rate-distortion-packets.md, section 3 "Bit allocation for the eigenimages".
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from rdp_common import Timer, load_case, quality, save_json
 
-from host.quantize import QuantizedEigenspace, allocate_bits, quantize_components
+from host.fit.quantize import QuantizedEigenspace, allocate_bits, quantize_components
 
 
 def main(argv: list[str] | None = None) -> int:

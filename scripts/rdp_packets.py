@@ -23,6 +23,8 @@ score steps (multiples of the model's own step, which `fit` chose from the 0.25 
   old coding as deltas and as deltas against the linear prediction ``2 q[t-1] - q[t-2]``;
 * **codecs at equal quality**: per view, the smallest WebP and JPEG file of the ray-cast whose
   object SSIM (and FLIP with ``--flip``) is at least the eigencast frame's.
+
+Produces: docs/rate-distortion-packets.md, section 1 "Score packets".
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from rdp_common import Timer, load_case, quality, save_json, smallest_codec_file
 
-from protocol.scores import HEADER_SIZE, EncodedScores, _zigzag_varints, encode_scores
+from protocol.scores import HEADER_SIZE, EncodedScores, encode_scores, zigzag_varints
 
 LEVEL = 3
 
@@ -74,8 +76,8 @@ def payloads(q: np.ndarray, perm: np.ndarray) -> dict[str, bytes]:
     cm = q[perm]
     c16 = np.clip(q, -32768, 32767).astype("<i2")
     return {
-        "cell_varint": _zigzag_varints(q),
-        "comp_varint": _zigzag_varints(cm),
+        "cell_varint": zigzag_varints(q),
+        "comp_varint": zigzag_varints(cm),
         "cell_int16": c16.tobytes(),
         "cell_planar16": c16.view(np.uint8).reshape(-1, 2).T.tobytes(),
         "comp_planar16": np.clip(cm, -32768, 32767).astype("<i2").view(np.uint8)
@@ -200,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
                 comp = zstd.ZstdCompressor(level=LEVEL, write_content_size=True)
 
                 def size(v: np.ndarray, c: zstd.ZstdCompressor = comp) -> int:
-                    p = _zigzag_varints(v)
+                    p = zigzag_varints(v)
                     return HEADER_SIZE + min(len(p), len(c.compress(p)))
 
                 pred = [size(q[0]), size(q[1] - q[0])] + [

@@ -7,6 +7,8 @@ Reads ``packets-NAME.json``, ``table-NAME.json``, ``eigen-NAME.json`` and
 ``rdp-packets.png``, ``rdp-storage.png`` and ``rdp-eigenbits.png`` (each well under 200 KB)
 plus ``rdp-tables.md`` (markdown tables) into the results folder and the figures into
 ``--docs``.
+
+Produces: docs/rate-distortion-packets.md, the figures and tables of sections 1-4.
 """
 
 from __future__ import annotations

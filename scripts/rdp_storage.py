@@ -5,13 +5,16 @@
         [--table-factors 1,2] [--tmp DIR]
 
 For each threshold T (the model truncated through its annexed eigenvalues), eigenimage bit
-budget (`host.quantize.allocate_bits`, a fraction of the truncated model's residual MSE; the
+budget (`host.fit.quantize.allocate_bits`, a fraction of the truncated model's residual MSE; the
 rows are re-quantized from the image's int8 ones) and table step factor, a real standalone
-image is written (`host.model.add_standalone_table`, the smaller of the delta-coded and plain
+image is written (`host.fit.model.add_standalone_table`, the smaller of the delta-coded and plain
 table) and its device image size read back; quality is that of ``HostModel.view`` on the
 held-out views (the frames a standalone device shows), object PSNR/SSIM against the
 ray-casts. With ``--train-db`` the WebP image database it competes with is measured on the
 same views (`scripts/rdp_table.py`'s ``_webp_db``).
+
+Produces: docs/rate-distortion-packets.md, section 4 "Standalone device storage against the
+WebP image database".
 """
 
 from __future__ import annotations
@@ -26,10 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rdp_common import Timer, load_case, quality, save_json
+from rdp_common import Timer, load_case, quality, save_json, webp_db_sweep
 
-from host.model import HostModel, add_standalone_table
-from host.quantize import allocate_bits, quantize_components
+from host.fit.model import HostModel, add_standalone_table
+from host.fit.quantize import allocate_bits, quantize_components
 from protocol.image import image_size, read_manifest, write_image
 
 
@@ -100,10 +103,8 @@ def main(argv: list[str] | None = None) -> int:
                 save_json(args.output, {"case": case.name, "views": case.n_views,
                                         "rows": rows})
     if args.train_db:
-        from rdp_table import _webp_db
-
         weights = [base.interpolator.weights(p, th) for p, th in zip(case.phi, case.theta)]
-        webp = _webp_db(args.train_db, case, weights,
+        webp = webp_db_sweep(args.train_db, case, weights,
                         [int(v) for v in args.webp_qualities.split(",")], t)
         save_json(args.output, {"case": case.name, "views": case.n_views, "rows": rows,
                                 "webp_db": webp})

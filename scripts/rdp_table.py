@@ -9,7 +9,7 @@ device interpolates. Coded here, each zstd level 3 over int16/varints:
 * ``int16`` -- ``rint(T / s)`` at the score step ``s`` (what ``fit --standalone`` stored so
   far);
 * ``standalone_delta`` / ``standalone_plain_waterfilled`` -- what ``fit --standalone`` now
-  writes (`host.model.add_standalone_table`): water-filled columns zeroed (the components
+  writes (`host.fit.model.add_standalone_table`): water-filled columns zeroed (the components
   packets send as 0), then either the delta-coded section (differences along theta rings,
   zigzag, byte planes) or the plain int16 table;
 * ``phidelta`` -- the same integers, differenced along phi within each theta ring (the first
@@ -24,6 +24,9 @@ packet step and reconstructed through the device code; object PSNR/SSIM against 
 With ``--train-db`` the WebP image database is measured too: every training view as WebP at
 each quality, novel views blended from the decoded training images with the model's own
 interpolation weights (object SSIM), and the database's total bytes.
+
+Produces: docs/rate-distortion-packets.md, section 2 "Standalone table" (and the WebP
+database rows of section 4).
 """
 
 from __future__ import annotations
@@ -38,10 +41,10 @@ import zstandard as zstd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rdp_common import Case, Timer, load_case, quality, save_json
+from rdp_common import Timer, load_case, quality, save_json, webp_db_sweep
 
-from host.model import add_standalone_table
-from protocol.scores import _zigzag_varints
+from host.fit.model import add_standalone_table
+from protocol.scores import zigzag_varints
 
 LEVEL = 3
 
@@ -130,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
             "int16": zsize(q16.tobytes()),
             "standalone_delta": shipped[True],
             "standalone_plain_waterfilled": shipped[False],
-            "phidelta": zsize(_zigzag_varints(comp_major.ravel())),
-            "phidelta_viewmajor": zsize(_zigzag_varints(d.ravel())),
+            "phidelta": zsize(zigzag_varints(comp_major.ravel())),
+            "phidelta_viewmajor": zsize(zigzag_varints(d.ravel())),
         }
         qual = evaluate(q * s)
         qual_w = evaluate(qw * s)
@@ -146,14 +149,14 @@ def main(argv: list[str] | None = None) -> int:
         rec = np.einsum("kp,tkc->tpc", dct, cq * s)
         tab = np.empty_like(table)
         tab[grid] = rec
-        size = zsize(_zigzag_varints(np.ascontiguousarray(cq.transpose(2, 0, 1)).ravel()))
+        size = zsize(zigzag_varints(np.ascontiguousarray(cq.transpose(2, 0, 1)).ravel()))
         qual = evaluate(tab)
         result["variants"].append({"kind": "dct", "factor": factor, "table_step": s,
                                    "bytes": {"dct": size}, "quality": qual})
         t.say(f"dct x{factor:g}: {size} {qual}")
         save_json(args.output, result)
     if args.train_db:
-        result["webp_db"] = _webp_db(args.train_db, case, weights,
+        result["webp_db"] = webp_db_sweep(args.train_db, case, weights,
                                      [int(v) for v in args.webp_qualities.split(",")], t)
     save_json(args.output, result)
     t.say(f"wrote {args.output}")
@@ -169,36 +172,6 @@ def _section_sizes(path: str) -> dict[str, int]:
     manifest = read_manifest(path)
     out = {s["name"]: int(s["size"]) for s in manifest["sections"]}
     out["device_image"] = image_size(head)
-    return out
-
-
-def _webp_db(train_db: str, case: Case, weights: list, qualities: list[int],
-             t: Timer) -> list[dict]:
-    from host.cinema import CinemaDB
-    from host.evaluate import decode_image, encode_image
-
-    db = CinemaDB.open(train_db)
-    needed = sorted({int(i) for idx, _ in weights for i in np.asarray(idx).ravel()})
-    out = []
-    for qv in qualities:
-        total = 0
-        decoded: dict[int, np.ndarray] = {}
-        need = set(needed)
-        for i in range(db.n_views):
-            coded = encode_image(db.read_image(i), "webp", qv)
-            total += coded.size_bytes
-            if i in need:
-                decoded[i] = decode_image(coded.data).astype(np.float32)
-        qual = []
-        for k, (idx, w) in enumerate(weights):
-            img = sum(float(wi) * decoded[int(ii)] for ii, wi in zip(np.asarray(idx).ravel(),
-                                                                     np.asarray(w).ravel()))
-            frame = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-            qual.append(quality(case.truth[k], frame, case.masks[k]))
-        row = {"quality": qv, "bytes": total,
-               "metrics": {m: float(np.mean([q[m] for q in qual])) for m in qual[0]}}
-        out.append(row)
-        t.say(f"webp db q{qv}: {row}")
     return out
 
 

@@ -21,6 +21,8 @@ recorded. Steps whose outputs exist are skipped, so an interrupted run resumes. 
 ``CACHE/results.json`` and ``CACHE/results.md`` (markdown tables); HTML reports to
 ``CACHE/reports/``; small figures for the docs (rate-distortion plots, a side-by-side view,
 each well under 300 KB) to ``--docs-images``.
+
+Produces: docs/paper-reproduction.md (every section's figures and tables).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Shared test setup: no display, deterministic threads, real-data skips, the tiny model."""
+"""Shared test setup: no display, deterministic threads, real-data skips, the tiny model,
+the small tooth database."""
 
 from __future__ import annotations
 
@@ -28,6 +29,18 @@ def shared_path():
     return get
 
 
+@pytest.fixture(scope="session")
+def tooth_db(tmp_path_factory):
+    """A small Cinema database of the built-in tooth (grid:24x6 views, 40 px, 120 samples),
+    rendered once per session; shared by the evaluate and target tests."""
+    from host.cli import main as eigencast
+
+    db = tmp_path_factory.mktemp("tooth-db") / "tooth.cdb"
+    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
+                      "--size", "40", "--samples", "120"]) == 0
+    return db
+
+
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory):
     """The signed, standalone tiny tooth model of `runtime_helpers.tiny_model` (built once
@@ -39,7 +52,7 @@ def model_path(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def model(model_path):
-    """`host.model.HostModel` of ``model_path``."""
-    from host.model import HostModel
+    """`host.fit.model.HostModel` of ``model_path``."""
+    from host.fit.model import HostModel
 
     return HostModel.load(model_path)

@@ -21,8 +21,7 @@ from runtime_helpers import RuntimeThread, check_frames, read_frames, wait_until
 from device_runtime.cli import main as device_main
 from device_runtime.device import Device, DeviceConfig, required_ram_bytes
 from device_runtime.flash import FlashStore, SlotState
-from host.provision import provision
-from host.serve import serve
+from host.link import provision, serve
 from protocol.image import read_manifest
 from protocol.keys import write_key
 

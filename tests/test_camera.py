@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from host.camera import Camera, View, ViewSet, orbit_camera, parse_view_set
 from host.errors import ViewSpecError
+from host.render.camera import Camera, View, ViewSet, orbit_camera, parse_view_set
 
 
 def unit_vectors(view_set: ViewSet) -> np.ndarray:

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from host.cinema import CinemaDB, CinemaWriter, format_float
 from host.errors import CinemaError
+from host.render.cinema import CinemaDB, CinemaWriter, format_float
 
 CAM = {"position": [1.0, 2.0, 3.0], "look_at": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]}
 

@@ -12,7 +12,7 @@ from runtime_helpers import check_frames
 from skimage.metrics import structural_similarity
 
 from host.demo import DemoSettings, equal_quality_jpeg, run_demo
-from host.model import HostModel
+from host.fit.model import HostModel
 
 
 def _ssim(a, b):

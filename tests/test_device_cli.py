@@ -10,7 +10,7 @@ import pytest
 from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name
 
 from device_runtime.cli import KEY_FILE_NAME, build_parser, main
-from host.provision import provision
+from host.link.provisioning import provision
 from protocol.keys import key_fingerprint, load_key, write_key
 
 

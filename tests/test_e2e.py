@@ -22,8 +22,8 @@ from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import check_frames, key_file, read_frames, wait_until
 
 from device_runtime.runtime import parse_orbit
-from host.provision import provision
-from host.serve import serve
+from host.link.provisioning import provision
+from host.link.serving import serve
 from protocol.transport import FdTransport, open_pty_pair
 
 CLI = [sys.executable, "-m", "host.cli"]

@@ -14,7 +14,6 @@ from PIL import Image
 from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
 
-from host.cinema import CinemaDB
 from host.evaluate import (
     DevicePath,
     compare_images,
@@ -25,8 +24,9 @@ from host.evaluate import (
     peak_signal_noise_ratio,
     structural_similarity,
 )
-from host.model import HostModel, build_image, fit_database, save_model
-from host.render_settings import RenderSettings, SettingsError, ViewRenderer
+from host.fit.model import HostModel, build_image, fit_database, save_model
+from host.render.cinema import CinemaDB
+from host.render.settings import RenderSettings, SettingsError, ViewRenderer
 from protocol.scores import encode_scores
 
 CLI = [sys.executable, "-m", "host.cli"]
@@ -47,16 +47,8 @@ def _smooth_image(size=64, seed=0):
 
 
 @pytest.fixture(scope="module")
-def small_db(tmp_path_factory):
-    db = tmp_path_factory.mktemp("eval") / "tooth.cdb"
-    _run("render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6", "--size", "40",
-         "--samples", "120")
-    return db
-
-
-@pytest.fixture(scope="module")
-def small_model(small_db, tmp_path_factory):
-    db = CinemaDB.open(small_db)
+def small_model(tooth_db, tmp_path_factory):
+    db = CinemaDB.open(tooth_db)
     model = fit_database(db, method="adaptive", cell=16, threshold=0.995, progress=False)
     image, annex = build_image(model, db)
     path = tmp_path_factory.mktemp("model") / "m.ecs"
@@ -196,9 +188,9 @@ def test_device_path_is_the_device_frame_and_packet(small_model):
     assert diff.max() <= 1  # float32 vs float64 rounding of the same quantized scores
 
 
-def test_projection_of_a_training_view_matches_its_own_scores(small_model, small_db):
+def test_projection_of_a_training_view_matches_its_own_scores(small_model, tooth_db):
     model = HostModel.load(small_model)
-    db = CinemaDB.open(small_db)
+    db = CinemaDB.open(tooth_db)
     path = DevicePath(model)
     for i in (5, 90):
         frame, _ = path.projection_frame(db.read_image(i))
@@ -229,9 +221,9 @@ def test_metric_workers_give_the_same_results_as_inline(small_model):
 # ----------------------------------------------------------------------------- render settings
 
 
-def test_view_renderer_reproduces_training_images_bit_for_bit(small_db):
-    db = CinemaDB.open(small_db)
-    settings = RenderSettings.from_record(db.settings, what=str(small_db))
+def test_view_renderer_reproduces_training_images_bit_for_bit(tooth_db):
+    db = CinemaDB.open(tooth_db)
+    settings = RenderSettings.from_record(db.settings, what=str(tooth_db))
     scene = ViewRenderer.open(settings, what="db")
     for i in (0, 77):
         rgb8, alpha = scene.render(db.phi_deg[i], db.theta_deg[i])
@@ -239,8 +231,8 @@ def test_view_renderer_reproduces_training_images_bit_for_bit(small_db):
         assert alpha.shape == rgb8.shape[:2] and 0 < (alpha > 0).mean() < 1
 
 
-def test_render_settings_refuse_missing_or_mismatched(small_db):
-    db = CinemaDB.open(small_db)
+def test_render_settings_refuse_missing_or_mismatched(tooth_db):
+    db = CinemaDB.open(tooth_db)
     with pytest.raises(SettingsError, match="no render settings"):
         RenderSettings.from_record({}, what="x.ecs")
     broken = {k: v for k, v in db.settings.items() if k != "camera"}
@@ -298,10 +290,11 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
 
 
 def test_webp_database_blends_decoded_training_views_with_the_model_weights(small_model):
-    from host.evaluate import WebPDatabase, _TrainingImages, decode_image
+    from host.evaluate import WebPDatabase, decode_image
+    from host.evaluate.baselines import TrainingImages
 
     model = HostModel.load(small_model)
-    training = _TrainingImages(model, None)
+    training = TrainingImages(model, None)
     assert training.db is not None
     q = 70
     webp_db = WebPDatabase(model, training, q)
@@ -326,6 +319,37 @@ def test_webp_database_blends_decoded_training_views_with_the_model_weights(smal
         WebPDatabase(model, training, 0)
 
 
+def test_webp_database_frames_is_the_webp_database_of_a_whole_cinema_database(small_model):
+    # the scripts' baseline (no model needed) must agree with the evaluation's WebPDatabase
+    from host.evaluate import TrainingImages, WebPDatabase, webp_database_frames
+
+    model = HostModel.load(small_model)
+    training = TrainingImages(model, None)
+    views = [(100.0, 10.0), (training.phi[5], training.theta[5]), (233.0, -20.0)]
+    weights = [model.interpolator.weights(phi, theta) for phi, theta in views]
+    total, frames = webp_database_frames(training.db, weights, 60)
+    webp_db = WebPDatabase(model, training, 60)
+    assert total == webp_db.storage_bytes
+    assert len(frames) == len(views)
+    for (phi, theta), frame in zip(views, frames):
+        assert frame.dtype == np.uint8 and frame.shape == (*model.image.image_shape, 3)
+        np.testing.assert_array_equal(frame, webp_db.frame(phi, theta))
+
+
+def test_object_masks_from_the_image_and_from_the_opacity():
+    from host.evaluate import OBJECT_LEVEL, alpha_object_mask, object_mask
+    from host.render.settings import OBJECT_ALPHA_MIN
+
+    image = np.zeros((4, 5, 3), np.uint8)
+    image[1, 2, 1] = OBJECT_LEVEL + 1  # one channel above the level is enough
+    image[3, 0] = OBJECT_LEVEL  # at the level is background
+    mask = object_mask(image)
+    assert mask.shape == (4, 5) and mask.dtype == bool
+    assert mask.sum() == 1 and mask[1, 2]
+    alpha = np.array([[0.0, OBJECT_ALPHA_MIN * 0.99, OBJECT_ALPHA_MIN, 1.0]])
+    np.testing.assert_array_equal(alpha_object_mask(alpha), [[False, False, True, True]])
+
+
 def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path):
     res = _run("evaluate", str(small_model), "builtin:head", "--views", "random:2",
                check=False)
@@ -338,9 +362,9 @@ def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path)
     assert len(res.stderr.strip().splitlines()) == 1
 
 
-def test_evaluate_foreign_model_needs_explicit_render_options(small_db, tmp_path):
+def test_evaluate_foreign_model_needs_explicit_render_options(tooth_db, tmp_path):
     foreign = tmp_path / "foreign.cdb"
-    shutil.copytree(small_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
+    shutil.copytree(tooth_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
     (foreign / "eigencast.json").unlink()
     db = CinemaDB.open(foreign)
     model = fit_database(db, method="cell", cell=20, components=6, progress=False)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from host.cinema import CinemaDB
-from host.model import HostModel, auto_score_step
+from host.fit.model import HostModel, auto_score_step
+from host.render.cinema import CinemaDB
 from protocol.image import read_image
 
 CLI = [sys.executable, "-m", "host.cli"]

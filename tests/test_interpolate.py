@@ -1,4 +1,4 @@
-"""Tests of score interpolation: host/interpolate.py and device_runtime/interpolation.py."""
+"""Tests of score interpolation: host/fit/interpolate.py and device_runtime/interpolation.py."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from device_runtime.interpolation import (
     interpolator_from_manifest,
 )
 from host.errors import ViewSpecError
-from host.interpolate import GRID_DEFAULT, ScoreInterpolator, triangulate_views
+from host.fit.interpolate import GRID_DEFAULT, ScoreInterpolator, triangulate_views
 
 
 def grid_views(n_phi=100, n_theta=15, shuffle_seed=None):

@@ -16,7 +16,7 @@ from device_runtime.interpolation import (
     interpolator_from_manifest,
 )
 from host.errors import ViewSpecError
-from host.interpolate import GRID_DEFAULT, METHODS, ScoreInterpolator
+from host.fit.interpolate import GRID_DEFAULT, METHODS, ScoreInterpolator
 from tests.test_interpolate import fibonacci_views, grid_views, smooth_table
 
 
@@ -196,7 +196,7 @@ def tiny_grid_db(tmp_path_factory):
 
 def test_fit_interpolation_option_and_standalone_device_agree(tiny_grid_db, tmp_path):
     from device_runtime.runtime import StandaloneScores
-    from host.model import HostModel
+    from host.fit.model import HostModel
 
     out = tmp_path / "m.ecs"
     _cli("fit", str(tiny_grid_db), "-o", str(out), "--cell", "12", "--threshold", "0.99",

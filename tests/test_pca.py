@@ -1,4 +1,5 @@
-"""Tests of host/pca.py: eigenspace fitting, the threshold rule, CellStack streaming."""
+"""Tests of host/fit/pca.py and host/fit/cells.py: eigenspace fitting, the threshold rule,
+CellStack streaming."""
 
 from __future__ import annotations
 
@@ -6,14 +7,8 @@ import numpy as np
 import pytest
 
 from host.errors import EigencastError, FitError
-from host.pca import (
-    CellEigenspace,
-    CellStack,
-    InvalidParameterError,
-    NotFittedError,
-    merge_cells,
-    split_cells,
-)
+from host.fit.cells import CellStack, merge_cells, split_cells
+from host.fit.pca import CellEigenspace, InvalidParameterError, NotFittedError
 
 SOLVERS = ["gram", "svd", "randomized"]
 

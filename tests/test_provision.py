@@ -27,7 +27,7 @@ from provision_helpers import (
 from device_runtime.device import Device, DeviceConfig
 from device_runtime.flash import FlashStore
 from host.cli import main as cli_main
-from host.provision import ProvisionError, choose_chunk_bytes, inspect_image, provision
+from host.link.provisioning import ProvisionError, choose_chunk_bytes, inspect_image, provision
 from protocol import messages as m
 from protocol.errors import (
     AuthenticationError,
@@ -474,7 +474,7 @@ def test_provision_validates_the_file_as_view_does_before_sending(device, tmp_pa
                                                                   damage, text):
     """Item 6 of issue 11: what view/serve/evaluate refuse, provision refuses, in one line,
     before anything is sent."""
-    from host.model import HostModel, read_model_image
+    from host.fit.model import HostModel, read_model_image
     from protocol.errors import ImageFormatError
 
     path = _with_annex(tmp_path, damage)
@@ -547,7 +547,7 @@ def test_unsupported_format_version_is_refused(device, model):
         session.link.close()
     hello = session.hello
     info = dataclasses.replace(inspect_image(model[0]), format_version=2)
-    from host.provision import _precheck
+    from host.link.provisioning import _precheck
 
     with pytest.raises(ProvisionError, match="UNSUPPORTED_FORMAT"):
         _precheck(info, hello, force=False)

@@ -1,4 +1,4 @@
-"""Tests of host.quantize: the int8 model and the measured quantization loss."""
+"""Tests of host.fit.quantize: the int8 model and the measured quantization loss."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from host.pca import CellEigenspace
-from host.quantize import (
+from host.fit.pca import CellEigenspace
+from host.fit.quantize import (
     QuantizedEigenspace,
     int8_loss_db,
     quantize_components,

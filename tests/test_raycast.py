@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from host.camera import View, orbit_camera
 from host.errors import TransferFunctionError
-from host.raycast import (
+from host.render.camera import View, orbit_camera
+from host.render.raycast import (
     AMBIENT,
     DIFFUSE,
     EARLY_TERMINATION_ALPHA,
@@ -20,8 +20,8 @@ from host.raycast import (
     Renderer,
     warmup,
 )
-from host.raycast_reference import render_reference
-from host.transfer import TransferFunction
+from host.render.raycast_reference import render_reference
+from host.render.transfer import TransferFunction
 from host.volume import Volume
 
 
@@ -390,7 +390,7 @@ def test_degenerate_window_and_non_finite_voxels():
 
 def test_visible_sphere_frames_the_visible_object_not_the_box():
     """A small opaque ball off-centre in a big empty box: the sphere hugs the ball."""
-    from host.raycast import Renderer
+    from host.render.raycast import Renderer
 
     n = 48
     z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float32)

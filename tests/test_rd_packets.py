@@ -16,8 +16,8 @@ from device_runtime.runtime import (
     standalone_table,
 )
 from host.errors import FitError
-from host.model import ANNEX_SCORES, HostModel, add_standalone_table
-from host.quantize import (
+from host.fit.model import ANNEX_SCORES, HostModel, add_standalone_table
+from host.fit.quantize import (
     MAX_BITS,
     allocate_bits,
     quantize_components,
@@ -204,7 +204,7 @@ def test_quantize_components_with_bits_stays_within_each_rows_levels():
 
 
 def test_bit_budget_shrinks_the_image_at_a_bounded_cost(tmp_path):
-    from host.pca import CellEigenspace
+    from host.fit.pca import CellEigenspace
 
     rng = np.random.default_rng(3)
     basis = rng.standard_normal((12, 8 * 8 * 3))
@@ -245,3 +245,22 @@ def test_fit_bit_budget_option(model_path, tmp_path, capsys):
     assert eigencast(["fit", str(db), "-o", str(tmp_path / "bad.ecs"), "--bit-budget",
                       "-1"]) == 1
     assert "--bit-budget -1" in capsys.readouterr().err
+
+
+def test_zigzag_varints_is_the_public_varint_coder_the_scripts_size_layouts_with():
+    from protocol.scores import zigzag_varints
+
+    small = np.array([0, -1, 1, -2, 63, -64, 64], dtype=np.int64)
+    assert zigzag_varints(small) == bytes([0, 1, 2, 3, 0x7E, 0x7F, 0x80, 0x01])
+    values = np.array([8191, -8192, 8192, -(2**33), 2**34 - 1, 5], dtype=np.int64)
+
+    def leb128(v: int) -> bytes:
+        z, out = (v << 1) ^ (v >> 63), bytearray()
+        while True:
+            byte, z = z & 0x7F, z >> 7
+            out.append(byte | (0x80 if z else 0))
+            if not z:
+                return bytes(out)
+
+    assert zigzag_varints(values) == b"".join(leb128(int(v)) for v in values)
+    assert zigzag_varints(np.array([], dtype=np.int64)) == b""

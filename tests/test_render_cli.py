@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from host.cinema import CinemaDB
+from host.render.cinema import CinemaDB
 
 CLI = [sys.executable, "-m", "host.cli"]
 SMALL = ["--size", "40", "--samples", "150"]
@@ -143,7 +143,7 @@ def test_the_sidecar_records_an_absolute_volume_path_and_old_relative_ones_resum
 
     from data_builders import write_mha
 
-    from host.model import HostModel
+    from host.fit.model import HostModel
 
     vol_dir = tmp_path / "volumes"
     vol_dir.mkdir()
@@ -162,7 +162,7 @@ def test_the_sidecar_records_an_absolute_volume_path_and_old_relative_ones_resum
     model = tmp_path / "cube.ecs"
     assert subprocess.run([*CLI, "fit", str(db), "-o", str(model), "--cell", "20"],
                           capture_output=True, text=True, cwd=vol_dir).returncode == 0
-    from host.serve import open_true_view_scores
+    from host.link.serving import open_true_view_scores
 
     assert open_true_view_scores(HostModel.load(model)).renderer is not None
     # a database written before sources were absolute (a path relative to the folder it

@@ -25,8 +25,8 @@ from device_runtime.runtime import (
     parse_view_list,
     standalone_table,
 )
-from host.model import HostModel
-from host.provision import provision
+from host.fit.model import HostModel
+from host.link.provisioning import provision
 from protocol import messages as m
 from protocol.errors import ImageFormatError
 from protocol.image import read_image

@@ -20,11 +20,11 @@ from provision_helpers import KEY, mem_name
 from runtime_helpers import RuntimeThread, read_frames, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
-from host.cinema import CinemaDB
-from host.model import HostModel
-from host.provision import provision
-from host.render_settings import RenderSettings, ViewRenderer
-from host.serve import TrueViewScores, open_true_view_scores, serve
+from host.fit.model import HostModel
+from host.link.provisioning import provision
+from host.link.serving import TrueViewScores, open_true_view_scores, serve
+from host.render.cinema import CinemaDB
+from host.render.settings import RenderSettings, ViewRenderer
 
 REPO = Path(__file__).resolve().parents[1]
 

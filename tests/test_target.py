@@ -9,17 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from host.cinema import CinemaDB
 from host.evaluate import DevicePath, structural_similarity
-from host.model import (
-    HostModel,
-    build_image,
-    components_for_threshold,
-    fit_database,
-    save_model,
-)
-from host.render_settings import RenderSettings, ViewRenderer
-from host.target import (
+from host.evaluate.target import (
     HeldOutViews,
     Target,
     TargetError,
@@ -27,6 +18,15 @@ from host.target import (
     parse_target,
     search_target,
 )
+from host.fit.model import (
+    HostModel,
+    build_image,
+    components_for_threshold,
+    fit_database,
+    save_model,
+)
+from host.render.cinema import CinemaDB
+from host.render.settings import RenderSettings, ViewRenderer
 from protocol.image import read_image
 
 CLI = [sys.executable, "-m", "host.cli"]
@@ -37,25 +37,17 @@ def _run(*args, check=True):
 
 
 @pytest.fixture(scope="module")
-def small_db(tmp_path_factory):
-    db = tmp_path_factory.mktemp("target") / "tooth.cdb"
-    _run("render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6", "--size", "40",
-         "--samples", "120")
-    return db
-
-
-@pytest.fixture(scope="module")
-def high_model(small_db):
+def high_model(tooth_db):
     """An adaptive model fitted at a high threshold, in memory."""
-    db = CinemaDB.open(small_db)
+    db = CinemaDB.open(tooth_db)
     model = fit_database(db, method="adaptive", cell=16, threshold=0.999, progress=False)
     image, annex = build_image(model, db, measure_int8=False)
     return HostModel.from_image(image, annex)
 
 
 @pytest.fixture(scope="module")
-def heldout(small_db):
-    db = CinemaDB.open(small_db)
+def heldout(tooth_db):
+    db = CinemaDB.open(tooth_db)
     scene = ViewRenderer.open(RenderSettings.from_record(db.settings, what="db"))
     rng = np.random.default_rng(3)
     phi = rng.uniform(0, 360, 8)
@@ -79,8 +71,8 @@ def test_components_for_threshold_matches_the_rule_by_hand():
         components_for_threshold(eig, counts, total, 1.5)
 
 
-def test_truncating_equals_fitting_at_the_lower_threshold(small_db, high_model):
-    db = CinemaDB.open(small_db)
+def test_truncating_equals_fitting_at_the_lower_threshold(tooth_db, high_model):
+    db = CinemaDB.open(tooth_db)
     lower = fit_database(db, method="adaptive", cell=16, threshold=0.97, progress=False)
     counts = high_model.components_for(threshold=0.97)
     np.testing.assert_array_equal(counts, lower.n_components_)
@@ -173,8 +165,8 @@ def test_search_reports_an_unreachable_target_with_the_best_reached(high_model, 
         search_target(high_model, heldout, Target("ssim", 0.99999), progress=False)
 
 
-def test_search_with_components_for_cell_models(small_db, heldout):
-    db = CinemaDB.open(small_db)
+def test_search_with_components_for_cell_models(tooth_db, heldout):
+    db = CinemaDB.open(tooth_db)
     model = fit_database(db, method="cell", cell=20, components=12, progress=False)
     image, annex = build_image(model, db, measure_int8=False)
     host = HostModel.from_image(image, annex)
@@ -188,9 +180,9 @@ def test_search_with_components_for_cell_models(small_db, heldout):
 # ----------------------------------------------------------------------------- the command
 
 
-def test_fit_target_cli_writes_the_chosen_model(small_db, tmp_path):
+def test_fit_target_cli_writes_the_chosen_model(tooth_db, tmp_path):
     out = tmp_path / "auto.ecs"
-    res = _run("fit", str(small_db), "-o", str(out), "--cell", "16", "--target", "ssim=0.8",
+    res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "ssim=0.8",
                "--holdout", "random:6:2")
     assert "<- chosen" in res.stdout and "wrote" in res.stdout
     image = read_image(out)
@@ -203,26 +195,26 @@ def test_fit_target_cli_writes_the_chosen_model(small_db, tmp_path):
     assert "ray-cast" in target["holdout"]
 
 
-def test_fit_target_with_a_test_database(small_db, tmp_path):
+def test_fit_target_with_a_test_database(tooth_db, tmp_path):
     test_db = tmp_path / "test.cdb"
     _run("render", "builtin:tooth", "-o", str(test_db), "--views", "random:5:9", "--size", "40",
          "--samples", "120")
     out = tmp_path / "t.ecs"
-    res = _run("fit", str(small_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
+    res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
                "--test-db", str(test_db))
     assert "test database" in res.stdout
     assert read_image(out).provenance["target"]["holdout"].startswith("test database")
     other = tmp_path / "other.cdb"
     _run("render", "builtin:tooth", "-o", str(other), "--views", "random:3", "--size", "40",
          "--samples", "60")
-    res = _run("fit", str(small_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
+    res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
                "--test-db", str(other), check=False)
     assert res.returncode == 1 and "renderer differ" in res.stderr
 
 
-def test_fit_target_falls_back_to_own_views_without_render_settings(small_db, tmp_path):
+def test_fit_target_falls_back_to_own_views_without_render_settings(tooth_db, tmp_path):
     foreign = tmp_path / "foreign.cdb"
-    shutil.copytree(small_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
+    shutil.copytree(tooth_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
     (foreign / "eigencast.json").unlink()
     out = tmp_path / "f.ecs"
     res = _run("fit", str(foreign), "-o", str(out), "--method", "cell", "--cell", "20",
@@ -233,14 +225,14 @@ def test_fit_target_falls_back_to_own_views_without_render_settings(small_db, tm
     assert len(image.views["phi_deg"]) == 144  # the written model uses every view
 
 
-def test_fit_target_errors_are_one_line(small_db, tmp_path):
+def test_fit_target_errors_are_one_line(tooth_db, tmp_path):
     out = tmp_path / "x.ecs"
     for args, message in [
         (["--target", "beauty=1"], "expected one of"),
         (["--target", "ssim=0.99999", "--holdout", "random:4"], "best held-out ssim"),
         (["--test-db", str(tmp_path / "none.cdb")], "only with --target"),
     ]:
-        res = _run("fit", str(small_db), "-o", str(out), "--cell", "16", *args, check=False)
+        res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", *args, check=False)
         assert res.returncode == 1, res.stderr
         lines = res.stderr.strip().splitlines()
         assert message in lines[-1] and "Traceback" not in res.stderr

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from host.errors import TransferFunctionError
-from host.transfer import (
+from host.render.transfer import (
     PRESETS,
     TransferFunction,
     add_transfer_function_argument,

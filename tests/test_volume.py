@@ -125,7 +125,7 @@ def test_engine_keeps_file_order_and_inflates_zlib(shared_path):
 
 
 def test_known_dataset_fixes_are_rotations_not_mirrors():
-    from host.volume import _is_proper_rotation
+    from host.volume.orientation import _is_proper_rotation
 
     for key, known in KNOWN_DATASETS.items():
         assert _is_proper_rotation(known.file_axes), key
@@ -566,7 +566,7 @@ def test_builtin_shape_modality_and_determinism(name, shape, modality):
 
 
 def test_builtin_is_deterministic_across_builds():
-    from host.volume import _build_tooth
+    from host.volume.phantoms import _build_tooth
 
     first, _ = _build_tooth()
     second, _ = _build_tooth()

@@ -22,9 +22,9 @@ from PIL import Image
 from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import key_file, tiny_model, wait_until
 
-from host.model import HostModel
-from host.provision import provision
-from host.serve import open_true_view_scores, serve
+from host.fit.model import HostModel
+from host.link.provisioning import provision
+from host.link.serving import open_true_view_scores, serve
 
 pytestmark = pytest.mark.skipif(
     shutil.which("Xvfb") is None or shutil.which("xdotool") is None,

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from host.errors import EigencastError
+
+if TYPE_CHECKING:
+    from host.volume import Volume
 
 __all__ = [
     "add_render_arguments",
@@ -12,6 +16,7 @@ __all__ = [
     "parse_size",
     "render_setup",
     "renderer_from_args",
+    "settings_from_args",
 ]
 
 
@@ -64,8 +69,8 @@ def _parse_background(text: str) -> tuple[float, float, float]:
 
 
 def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
-    """Build a `host.raycast.Renderer` from parsed options."""
-    from host.raycast import Renderer
+    """Build a `host.render.raycast.Renderer` from parsed options."""
+    from host.render.raycast import Renderer
 
     if args.samples is not None and args.samples < 2:
         raise EigencastError(f"--samples {args.samples}: must be at least 2")
@@ -89,7 +94,7 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
 
 def render_setup(args: argparse.Namespace):
     """Load the volume and transfer function and build the renderer: (volume, tf, renderer)."""
-    from host.transfer import transfer_function_from_args
+    from host.render.transfer import transfer_function_from_args
     from host.volume import volume_from_args
 
     volume = volume_from_args(args.volume, args)
@@ -114,3 +119,30 @@ def camera_settings(args: argparse.Namespace, volume, renderer) -> dict:  # noqa
         "center_mm": [float(c) for c in center],
         "radius_mm": float(radius),
     }
+
+
+def settings_from_args(args: argparse.Namespace, volume: Volume, size: tuple[int, int]) -> dict:
+    """A render-settings record built from command-line render options (foreign databases).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed `add_render_arguments` and ``--tf`` options.
+    volume : Volume
+    size : (int, int)
+        ``(width, height)`` in pixels.
+
+    Returns
+    -------
+    dict
+        The same record ``eigencast render`` writes as its sidecar (view set omitted).
+    """
+    from host.commands.render import database_settings
+    from host.render.camera import ViewSet
+    from host.render.transfer import transfer_function_from_args
+
+    tf = transfer_function_from_args(args, volume)
+    renderer = renderer_from_args(args, volume, tf)
+    framing = camera_settings(args, volume, renderer)
+    empty = ViewSet(spec="none", kind="list", views=())
+    return database_settings(volume, tf, renderer, empty, size, framing)

@@ -22,7 +22,7 @@ _FOREIGN_ONLY = ("tf", "size", "projection", "fov", "background", "frame", "samp
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from host.commands._render_options import add_render_arguments
-    from host.transfer import add_transfer_function_argument
+    from host.render.transfer import add_transfer_function_argument
     from host.volume import add_volume_arguments
 
     parser.add_argument("model", metavar="MODEL.ecs")
@@ -71,7 +71,8 @@ def _check_report_folder(path: Path) -> None:
 
 
 def _scene(args: argparse.Namespace, model):  # noqa: ANN001
-    from host.render_settings import RenderSettings, ViewRenderer, settings_from_args
+    from host.commands._render_options import settings_from_args
+    from host.render.settings import RenderSettings, ViewRenderer
 
     what = str(args.model)
     if model.render_settings:
@@ -111,9 +112,9 @@ def _scene(args: argparse.Namespace, model):  # noqa: ANN001
 
 
 def run(args: argparse.Namespace) -> int:
-    from host.camera import parse_view_set
     from host.evaluate import evaluate_model
-    from host.model import HostModel
+    from host.fit.model import HostModel
+    from host.render.camera import parse_view_set
     from protocol.keys import load_key
 
     if args.rd_views < 0 or args.samples_shown < 0:
@@ -149,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_report_atomically(evaluation, folder: Path) -> None:  # noqa: ANN001
-    from host.report import write_report
+    from host.evaluate.report import write_report
 
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:

@@ -3,10 +3,11 @@
 With ``--target METRIC=VALUE`` the setting (threshold T for adaptive, components per cell
 otherwise, and the score step) is chosen automatically: the model is fitted once at the top of
 the search range and truncated to cheaper settings, each measured on held-out views through
-the device's path (`host.target`). Held-out views, in order of preference: ``--test-db``; views
-ray-cast with the database's recorded settings (``--holdout`` spec) when its volume can be
-loaded (``--volume`` or the recorded source); else views held out of the database itself (the
-search model is fitted without them, the written model is refitted on every view).
+the device's path (`host.evaluate.target`). Held-out views, in order of preference:
+``--test-db``; views ray-cast with the database's recorded settings (``--holdout`` spec) when
+its volume can be loaded (``--volume`` or the recorded source); else views held out of the
+database itself (the search model is fitted without them, the written model is refitted on
+every view).
 """
 
 from __future__ import annotations
@@ -18,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from host.cinema import CinemaDB
 from host.errors import EigencastError
-from host.model import (
+from host.fit.model import (
     HostModel,
     auto_score_step,
     build_image,
@@ -29,7 +29,8 @@ from host.model import (
     subset_database,
     truncate_eigenspace,
 )
-from host.quantize import DEFAULT_BIT_BUDGET
+from host.fit.quantize import DEFAULT_BIT_BUDGET
+from host.render.cinema import CinemaDB
 
 HELP = "fit a PCA eigenspace to a Cinema database and write the eigenspace image (MODEL.ecs)"
 
@@ -98,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
 
     target = None
     if args.target is not None:
-        from host.target import parse_target
+        from host.evaluate.target import parse_target
 
         target = parse_target(args.target)
     elif args.test_db or args.volume:
@@ -136,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
                                interpolation=args.interpolation, bit_budget=args.bit_budget)
     standalone = None
     if args.standalone:
-        from host.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
+        from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
 
         standalone = add_standalone_table(image, annex[ANNEX_SCORES],
                                           eigenvalues=annex.get(ANNEX_EIGENVALUES))
@@ -158,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _fit_to_target(args: argparse.Namespace, db: CinemaDB, target, options: dict):  # noqa: ANN001
     """Fit, search the target on held-out views, return (final model, score step, provenance)."""
-    from host.target import search_target
+    from host.evaluate.target import search_target
 
     heldout, keep = _heldout_views(args, db)
     print(f"target {target}: held-out views from {heldout.source}", file=sys.stderr)
@@ -194,10 +195,10 @@ def _fit_to_target(args: argparse.Namespace, db: CinemaDB, target, options: dict
 
 def _heldout_views(args: argparse.Namespace, db: CinemaDB):
     """(HeldOutViews, indices of db views to fit on or None)."""
-    from host.camera import parse_view_set
+    from host.evaluate.target import HeldOutViews, holdout_indices
     from host.progress import progress
-    from host.render_settings import RenderSettings, ViewRenderer
-    from host.target import HeldOutViews, holdout_indices
+    from host.render.camera import parse_view_set
+    from host.render.settings import RenderSettings, ViewRenderer
 
     if args.test_db:
         test = CinemaDB.open(args.test_db)

@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from host.provision import provision
+from host.link.provisioning import provision
 from protocol.keys import load_key
 from protocol.link import RETRANSMIT_STRATEGIES
 

@@ -7,8 +7,6 @@ import sys
 import time
 
 from host import __version__
-from host.camera import orbit_camera, parse_view_set
-from host.cinema import CinemaWriter, absolute_source
 from host.commands._render_options import (
     add_render_arguments,
     camera_settings,
@@ -16,7 +14,9 @@ from host.commands._render_options import (
     render_setup,
 )
 from host.progress import progress
-from host.transfer import add_transfer_function_argument
+from host.render.camera import orbit_camera, parse_view_set
+from host.render.cinema import CinemaWriter, absolute_source
+from host.render.transfer import add_transfer_function_argument
 from host.volume import add_volume_arguments
 
 HELP = "ray-cast a volume from many views into a Cinema database (DB.cdb)"

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from host.camera import View, orbit_camera
-from host.cinema import atomic_write_bytes, encode_png
 from host.commands._render_options import (
     add_render_arguments,
     camera_settings,
@@ -14,7 +12,9 @@ from host.commands._render_options import (
     render_setup,
 )
 from host.errors import EigencastError
-from host.transfer import add_transfer_function_argument
+from host.render.camera import View, orbit_camera
+from host.render.cinema import atomic_write_bytes, encode_png
+from host.render.transfer import add_transfer_function_argument
 from host.volume import add_volume_arguments
 
 HELP = "ray-cast one view of a volume to a PNG"

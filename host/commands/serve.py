@@ -75,8 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Serve until interrupted, the orbit ends, or a --max-frames/--duration limit."""
     from device_runtime.runtime import parse_orbit
-    from host.model import HostModel
-    from host.serve import DEFAULT_REFINE_DELAY_S, open_true_view_scores, serve
+    from host.fit.model import HostModel
+    from host.link.serving import DEFAULT_REFINE_DELAY_S, open_true_view_scores, serve
     from protocol.keys import load_key
 
     if args.baud <= 0:

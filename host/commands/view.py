@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from host.cinema import atomic_write_bytes, encode_png
 from host.errors import EigencastError
-from host.model import HostModel
+from host.fit.model import HostModel
+from host.render.cinema import atomic_write_bytes, encode_png
 
 HELP = "synthesise a novel view from MODEL.ecs (exactly what a device shows) to a PNG"
 

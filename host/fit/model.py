@@ -12,7 +12,7 @@ The annex also keeps, per kept component, its eigenvalue and, per cell, the
 total variance (the trace), so `HostModel.truncated` can cut a model to any
 lower threshold T (or fewer components per cell) without refitting: the
 quantization scale is per component, so at 8 bits truncating the int8 model equals
-quantizing the truncated float model (with bit allocation, `host.quantize.allocate_bits`,
+quantizing the truncated float model (with bit allocation, `host.fit.quantize.allocate_bits`,
 the kept rows keep the bits chosen for the whole model).
 """
 
@@ -31,11 +31,12 @@ import numpy as np
 
 from device_runtime.reconstruct import Reconstructor
 from host import __version__
-from host.cinema import CinemaDB
 from host.errors import FitError
-from host.interpolate import ScoreInterpolator
-from host.pca import SIGN_CONVENTION, CellEigenspace, CellStack
-from host.quantize import DEFAULT_BIT_BUDGET, quantize_eigenspace, residual_mse
+from host.fit.cells import CellStack
+from host.fit.interpolate import ScoreInterpolator
+from host.fit.pca import SIGN_CONVENTION, CellEigenspace
+from host.fit.quantize import DEFAULT_BIT_BUDGET, quantize_eigenspace, residual_mse
+from host.render.cinema import CinemaDB
 from protocol.image import EigenspaceImage, read_image, write_image
 
 __all__ = [
@@ -76,7 +77,7 @@ ANNEX_SCORES = "training_scores"
 ANNEX_EIGENVALUES = "eigenvalues"
 #: float64 (n_cells,): total variance (trace) of each cell.
 ANNEX_TOTAL_VARIANCE = "total_variance"
-# Same slack as host.pca's adaptive rule, so truncating to the fitted T keeps every component.
+# Same slack as host.fit.pca's adaptive rule, so truncating to the fitted T keeps every component.
 _THRESHOLD_SLACK = 1e-12
 
 
@@ -201,7 +202,7 @@ def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHEC
 
     * ``train_*``: ``n_views`` training views (evenly spread) reconstructed from their own
       scores by the float model (rounded to 8 bits) and by the int8 model through the device
-      code, each against the training image (`host.quantize.int8_loss_db`);
+      code, each against the training image (`host.fit.quantize.int8_loss_db`);
     * ``novel_psnr_float_vs_int8_db``: the two reconstructions against each other at
       interpolated scores of ``n_views`` novel views (``random:N:7`` directions).
 
@@ -213,8 +214,8 @@ def int8_report(model: CellEigenspace, db: CinemaDB, *, n_views: int = INT8_CHEC
         ``views``, ``train_psnr_float_db``, ``train_psnr_int8_db``, ``train_loss_db``,
         ``novel_psnr_float_vs_int8_db`` (floats; inf is stored as 999.0).
     """
-    from host.camera import parse_view_set
-    from host.quantize import int8_loss_db, quantize_eigenspace
+    from host.fit.quantize import int8_loss_db, quantize_eigenspace
+    from host.render.camera import parse_view_set
 
     if quantized is None:
         quantized = quantize_eigenspace(model)
@@ -346,7 +347,7 @@ def build_image(
     With ``measure_int8`` the quality lost to int8 is measured now, while the float model
     exists (`int8_report`), and recorded as ``provenance["int8"]``.
 
-    ``bit_budget`` is `host.quantize.quantize_eigenspace`'s bit allocation (a fraction of the
+    ``bit_budget`` is `host.fit.quantize.quantize_eigenspace`'s bit allocation (a fraction of the
     model's residual MSE; 0: 8 bits for every component); the bits chosen are summarised in
     ``provenance["eigen_bits"]`` and the int8 measurement covers them.
     """
@@ -562,7 +563,7 @@ class HostModel:
         per cell, by least squares onto the device's own basis -- the quantized eigenimages
         times their scales, which bit allocation leaves slightly non-orthogonal -- so
         ``reconstruct(project(x))`` is the closest frame to ``x`` this eigenspace can show
-        (before score quantization and the uint8 clip). It is what `host.serve` streams in
+        (before score quantization and the uint8 clip). It is what `host.link.serving` streams in
         its ``render``/``refine`` modes: the true view's scores, with no interpolation error.
 
         Raises
@@ -570,7 +571,7 @@ class HostModel:
         ValueError
             ``image`` is not (height, width, 3) of the model's image size.
         """
-        from host.pca import split_cells
+        from host.fit.cells import split_cells
 
         img = self.image
         x = np.asarray(image)

@@ -3,7 +3,7 @@
 :func:`provision` does, in order (docs/protocol.md, "Provisioning"):
 
 1. validate the whole file as ``view``/``serve``/``evaluate`` do
-   (:func:`host.model.read_model_image`: sections, tag, declared annex, no
+   (:func:`host.fit.model.read_model_image`: sections, tag, declared annex, no
    trailing bytes), read its header and manifest, hash the *device image* (the
    first ``image_size`` bytes; a host annex after it stays on the host);
 2. connect, HELLO (version negotiation), mutual AUTH (session key);
@@ -130,7 +130,7 @@ def inspect_image(
         A signed image's tag must match it.
     whole_file : bool
         Also validate the whole file as ``view``, ``serve`` and ``evaluate`` do
-        (:func:`host.model.read_model_image`: every section, the declared annex, no
+        (:func:`host.fit.model.read_model_image`: every section, the declared annex, no
         trailing bytes). Off only to send malformed images on purpose (device tests).
 
     Raises
@@ -143,7 +143,7 @@ def inspect_image(
     if not path.is_file():
         raise ProvisionError(f"image '{path}' not found; nothing was installed")
     if whole_file:
-        from host.model import read_model_image
+        from host.fit.model import read_model_image
 
         try:
             read_model_image(path, key=key)

@@ -1,7 +1,7 @@
 """Rebuild a ray-caster and its cameras from recorded render settings.
 
 A database rendered by ``eigencast render`` carries a JSON sidecar
-(`host.cinema.SIDECAR`) that ``fit`` copies into the eigenspace image's
+(`host.render.cinema.SIDECAR`) that ``fit`` copies into the eigenspace image's
 provenance (``provenance["render"]``). It records everything that determines
 the images: the volume (source, dims, spacing), the transfer function and its
 resolved intensity window, the orbit framing (projection, field of view,
@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from host.camera import Camera, View, orbit_camera
 from host.errors import EigencastError
+from host.render.camera import Camera, View, orbit_camera
 from host.volume import Volume
 
 __all__ = [
@@ -39,7 +39,6 @@ __all__ = [
     "RenderSettings",
     "SettingsError",
     "ViewRenderer",
-    "settings_from_args",
 ]
 
 #: A pixel belongs to the object when the ray-cast's alpha reaches this
@@ -71,7 +70,7 @@ class RenderSettings:
     volume_spacing : (float, float, float)
         Voxel size in mm, same axis order.
     transfer_function : dict
-        `host.transfer.TransferFunction.to_dict` of the transfer function.
+        `host.render.transfer.TransferFunction.to_dict` of the transfer function.
     window : (float, float)
         The intensity window actually used, in the volume's data units.
     projection : {"perspective", "orthographic"}
@@ -248,7 +247,7 @@ class RenderSettings:
 
     def transfer_function_object(self) -> Any:
         """The recorded transfer function with its window pinned to the recorded one."""
-        from host.transfer import TransferFunction
+        from host.render.transfer import TransferFunction
 
         data = dict(self.transfer_function)
         data["window"] = list(self.window)
@@ -256,8 +255,8 @@ class RenderSettings:
         return TransferFunction.from_dict(data)
 
     def renderer(self, volume: Volume, *, workers: int | None = None) -> Any:
-        """A `host.raycast.Renderer` with these settings for ``volume``."""
-        from host.raycast import RENDERER_VERSION, Renderer
+        """A `host.render.raycast.Renderer` with these settings for ``volume``."""
+        from host.render.raycast import RENDERER_VERSION, Renderer
 
         if self.renderer_version and self.renderer_version != RENDERER_VERSION:
             raise SettingsError(
@@ -308,7 +307,7 @@ class ViewRenderer:
     ----------
     settings : RenderSettings
     volume : Volume
-    renderer : host.raycast.Renderer
+    renderer : host.render.raycast.Renderer
     image_shape : (int, int)
         ``(height, width)``.
     """
@@ -358,31 +357,3 @@ class ViewRenderer:
     def render_rgb8(self, phi_deg: float, theta_deg: float) -> np.ndarray:
         """Ray-cast one view: uint8 (height, width, 3)."""
         return self.render(phi_deg, theta_deg)[0]
-
-
-def settings_from_args(args: argparse.Namespace, volume: Volume, size: tuple[int, int]) -> dict:
-    """A render-settings record built from command-line render options (foreign databases).
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        Parsed `host.commands._render_options.add_render_arguments` and ``--tf`` options.
-    volume : Volume
-    size : (int, int)
-        ``(width, height)`` in pixels.
-
-    Returns
-    -------
-    dict
-        The same record ``eigencast render`` writes as its sidecar (view set omitted).
-    """
-    from host.camera import ViewSet
-    from host.commands._render_options import camera_settings, renderer_from_args
-    from host.commands.render import database_settings
-    from host.transfer import transfer_function_from_args
-
-    tf = transfer_function_from_args(args, volume)
-    renderer = renderer_from_args(args, volume, tf)
-    framing = camera_settings(args, volume, renderer)
-    empty = ViewSet(spec="none", kind="list", views=())
-    return database_settings(volume, tf, renderer, empty, size, framing)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from host.evaluate import METHODS
+from host.evaluate.engine import METHODS
 
 __all__ = ["compose_side_by_side", "write_report"]
 

@@ -47,7 +47,7 @@ import numpy as np
 
 from device_runtime.runtime import OrbitSpec, canonical_view
 from host.errors import EigencastError
-from host.model import HostModel
+from host.fit.model import HostModel
 from protocol import messages as m
 from protocol.errors import (
     RemoteError,
@@ -253,7 +253,7 @@ class TrueViewScores:
     Parameters
     ----------
     model : HostModel
-    renderer : host.render_settings.ViewRenderer
+    renderer : host.render.settings.ViewRenderer
         Built from the model's recorded render settings (`open_true_view_scores`).
     cache : int
     """
@@ -306,7 +306,7 @@ def open_true_view_scores(
         The model records no render settings, or the volume cannot be loaded or is
         another one (one line for the user).
     """
-    from host.render_settings import RenderSettings, ViewRenderer
+    from host.render.settings import RenderSettings, ViewRenderer
 
     recorded = model.render_settings
     if not recorded:
@@ -555,7 +555,7 @@ def serve(
     TransportError
         The device cannot be reached (``reconnect`` off, or ``max_reconnects`` exceeded).
     """
-    from host.provision import inspect_image, provision
+    from host.link.provisioning import inspect_image, provision
 
     say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
     stop = stop or threading.Event()

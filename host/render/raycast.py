@@ -1,6 +1,6 @@
 """The ray-caster: emission-absorption volume rendering on all cores (numba).
 
-Model (the numpy reference in `host.raycast_reference` implements the same one)
+Model (the numpy reference in `host.render.raycast_reference` implements the same one)
 -----------------------------------------------------------------------------
 * **Scalar field.** ``u = (v - lo) / (hi - lo)`` with the transfer function's
   window ``(lo, hi) = tf.resolve_window(volume)``, sampled trilinearly in
@@ -60,9 +60,9 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from host.camera import Camera
 from host.errors import TransferFunctionError
-from host.transfer import TransferFunction
+from host.render.camera import Camera
+from host.render.transfer import TransferFunction
 from host.volume import Volume
 
 __all__ = [
@@ -627,7 +627,7 @@ class Renderer:
 
 def warmup() -> None:
     """Compile (or load from the on-disk cache) every kernel with a tiny render."""
-    from host.camera import View, orbit_camera
+    from host.render.camera import View, orbit_camera
 
     z, y, x = np.mgrid[0:10, 0:10, 0:10].astype(np.float32)
     data = np.exp(-((x - 4.5) ** 2 + (y - 4.5) ** 2 + (z - 4.5) ** 2) / 8.0)

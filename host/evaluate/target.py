@@ -3,7 +3,7 @@
 The paper chose its threshold T by hand (section 5) and names automating it as future work.
 ``eigencast fit --target ssim=0.95`` does it: it fits once at a high T (or many components),
 then searches a ladder of lower settings *without refitting* -- a fitted model truncates to
-any lower T per cell from its eigenvalues (`host.model.HostModel.truncated`) -- and measures
+any lower T per cell from its eigenvalues (`host.fit.model.HostModel.truncated`) -- and measures
 each try on held-out views through exactly the device's path: interpolated scores -> a real
 key score packet at the score step -> decoder -> int8 reconstruction
 (`host.evaluate.DevicePath`). The cost of a try is its mean score-packet size over the
@@ -12,8 +12,8 @@ held-out views (bytes per view).
 Search. The ladder holds the distinct per-cell component counts of
 ``T = 1 - 10**-x`` for x = 0.5, 0.6, ... (adaptive; plus the fitted T) or of
 ``k = 1 .. components`` (cell/standard), cheapest first. Quality is monotone-ish along it, so
-for each score-step factor (the step is that multiple of `host.model.score_step_for`, the
-step whose rounding noise adds `host.model.DEFAULT_SCORE_MSE`) a bisection finds the cheapest
+for each score-step factor (the step is that multiple of `host.fit.model.score_step_for`, the
+step whose rounding noise adds `host.fit.model.DEFAULT_SCORE_MSE`) a bisection finds the cheapest
 rung that reaches the target; a coarser step can only need a higher rung, so its bisection
 starts where the finer one ended. The choice is the try with the fewest bytes per view
 among those that reached the target; every cheaper try missed it (by construction). A target
@@ -33,8 +33,8 @@ from host.errors import EigencastError
 from host.progress import progress as _progress
 
 __all__ = [
-    "DEFAULT_STEP_FACTORS",
     "TARGET_METRICS",
+    "TARGET_STEP_FACTORS",
     "HeldOutViews",
     "Target",
     "TargetError",
@@ -49,7 +49,7 @@ __all__ = [
 #: Metric -> whether larger is better; the metric ranges accepted by `parse_target`.
 TARGET_METRICS = {"ssim": (True, 0.0, 1.0), "flip": (False, 0.0, 1.0), "psnr": (True, 1.0, 99.0)}
 #: Score-step multiples tried (1 = the default step).
-DEFAULT_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0)
+TARGET_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0)
 #: Exponents x of the adaptive ladder T = 1 - 10**-x.
 _LADDER_EXPONENTS = np.round(np.arange(0.5, 5.0001, 0.1), 2)
 
@@ -239,7 +239,7 @@ def level_ladder(model: Any) -> tuple[str, list[tuple[float, np.ndarray]]]:
 
     Parameters
     ----------
-    model : host.model.HostModel
+    model : host.fit.model.HostModel
 
     Returns
     -------
@@ -278,7 +278,7 @@ def search_target(
     heldout: HeldOutViews,
     target: Target,
     *,
-    step_factors: Sequence[float] = DEFAULT_STEP_FACTORS,
+    step_factors: Sequence[float] = TARGET_STEP_FACTORS,
     score_step: float | None = None,
     progress: bool = True,
 ) -> TargetResult:
@@ -286,7 +286,7 @@ def search_target(
 
     Parameters
     ----------
-    model : host.model.HostModel
+    model : host.fit.model.HostModel
         Fitted at the highest setting the search may pick (the ladder's top).
     heldout : HeldOutViews
         Same image size as the model.
@@ -306,8 +306,9 @@ def search_target(
     TargetError
         When even the top rung at the finest step misses the target (names the best reached).
     """
-    from host.evaluate import DevicePath, compare_images
-    from host.model import score_step_for
+    from host.evaluate.device_path import DevicePath
+    from host.evaluate.metrics import compare_images
+    from host.fit.model import score_step_for
 
     if tuple(heldout.images.shape[1:3]) != tuple(model.image.image_shape):
         raise TargetError(

@@ -1,6 +1,6 @@
-"""A slow, obviously-correct numpy ray-caster: the yardstick for `host.raycast`.
+"""A slow, obviously-correct numpy ray-caster: the yardstick for `host.render.raycast`.
 
-It implements the model documented in `host.raycast` independently: it shares
+It implements the model documented in `host.render.raycast` independently: it shares
 only the camera (`Camera.rays`) and the transfer function's LUT
 (`TransferFunction.lut`) with the numba kernel. Differences by design:
 
@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from host.camera import Camera
-from host.transfer import TransferFunction
+from host.render.camera import Camera
+from host.render.transfer import TransferFunction
 from host.volume import Volume
 
 __all__ = ["ray_box_segments", "render_reference", "samples_in_box"]

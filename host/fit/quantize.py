@@ -286,7 +286,7 @@ def residual_mse(model: Any) -> float:
 
 
 def quantize_eigenspace(model: Any, *, bit_budget: float = 0.0) -> QuantizedEigenspace:
-    """Quantize a fitted eigenspace (a `host.pca.CellEigenspace` or any object with its
+    """Quantize a fitted eigenspace (a `host.fit.pca.CellEigenspace` or any object with its
     fitted attributes ``mean_``, ``components_``, ``n_components_``, ``image_shape_`` and
     ``cell_shape_``) to the int8 device model.
 

@@ -1,0 +1,73 @@
+"""The device path: the frames a device shows and the bytes each costs on the link.
+
+`DevicePath` is what a device shows: interpolated scores -> a real key score packet
+(`protocol.scores.encode_scores` at the model's step; its length is the bytes per view) ->
+`protocol.scores.ScoreDecoder` -> the device's `Reconstructor` (through `host.fit.model.HostModel`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "DevicePath",
+]
+
+
+class DevicePath:
+    """Frames exactly as a device shows them, with the bytes each one costs on the link.
+
+    Interpolated float scores -> `protocol.scores.encode_scores` (key packet, the model's
+    step) -> `protocol.scores.ScoreDecoder` -> the device's reconstruction.
+
+    Parameters
+    ----------
+    model : host.fit.model.HostModel
+    """
+
+    def __init__(self, model: Any) -> None:
+        from protocol.scores import ScoreDecoder
+
+        self.model = model
+        self.digest = model.digest
+        self.decoder = ScoreDecoder(
+            model.image.n_coefficients, self.digest, n_components=model.image.n_components
+        )
+        self._frame = 0
+
+    def packet(self, phi_deg: float, theta_deg: float) -> bytes:
+        """The key score packet of a view."""
+        from protocol.scores import encode_scores
+
+        self._frame = (self._frame + 1) & 0xFFFFFFFF
+        y = self.model.quantized_scores(phi_deg, theta_deg)  # as serve sends (water-filled)
+        return encode_scores(
+            y, step=self.model.score_step, frame=self._frame, view=(phi_deg, theta_deg),
+            image_digest=self.digest, n_components=self.model.image.n_components,
+        ).packet
+
+    def frame(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, int]:
+        """The frame (uint8 (height, width, 3)) and its packet size in bytes."""
+        packet = self.packet(phi_deg, theta_deg)
+        decoded = self.decoder.decode(packet)
+        return self.model.reconstruct(decoded.y), len(packet)
+
+    def projection_frame(self, image: np.ndarray) -> tuple[np.ndarray, int]:
+        """The frame from the *true* view's own scores (an oracle: no interpolation).
+
+        ``image`` (uint8 (height, width, 3)) is fitted onto the device's eigenimages
+        (`host.fit.model.HostModel.project`, least squares per cell), then sent through the same
+        packet (water-filled, the model's step), decoder and reconstruction. It separates
+        what the eigenspace can represent from what view interpolation loses, and it is the
+        frame ``eigencast serve --scores render`` streams.
+        """
+        from protocol.scores import encode_scores
+
+        y = self.model.quantize(self.model.project(image))
+        self._frame = (self._frame + 1) & 0xFFFFFFFF
+        packet = encode_scores(y, step=self.model.score_step, frame=self._frame, view=(0.0, 0.0),
+                               image_digest=self.digest,
+                               n_components=self.model.image.n_components).packet
+        return self.model.reconstruct(self.decoder.decode(packet).y), len(packet)

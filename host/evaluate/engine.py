@@ -1,0 +1,524 @@
+"""The evaluation engine: ray-cast novel views, compare every method, sweep rate-distortion.
+
+`evaluate_model` ray-casts novel views with the model's own render settings
+(`host.render.settings.ViewRenderer`) and compares, per view, the device frame (from
+interpolated scores, and from the ray-cast's own scores as ``serve --scores render`` sends
+them), the equal-bytes JPEG and WebP, the angularly nearest training view and the *WebP
+image database* (`WebPDatabase`: every training view stored as WebP on the device, the novel
+view blended from the decoded training images with the model's own interpolation weights;
+zero bytes per frame) with the ray-cast; then a rate-distortion sweep over a subset of the
+views (the model truncated to lower thresholds / fewer components through the annexed
+eigenvalues, coarser score steps, the *projection* of the true views onto the eigenspace --
+what the eigenspace can do without view interpolation -- and JPEG/WebP at several
+qualities). `Evaluation.summary` is the JSON of
+``eigencast evaluate --json``; `host.evaluate.report.write_report` turns an `Evaluation` into HTML.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from host.errors import EigencastError
+from host.evaluate.baselines import (
+    CODECS,
+    TrainingImages,
+    WebPDatabase,
+    encode_image,
+    encode_within_budget,
+    nearest_training_view,
+)
+from host.evaluate.device_path import DevicePath
+from host.evaluate.masks import alpha_object_mask
+from host.evaluate.metrics import ImageComparison, compare_images
+from host.progress import progress as _progress
+
+__all__ = [
+    "DEFAULT_QUALITIES",
+    "DEFAULT_STEP_FACTORS",
+    "DEFAULT_THRESHOLDS",
+    "DEFAULT_WEBP_DB_QUALITY",
+    "METHODS",
+    "Evaluation",
+    "default_metric_workers",
+    "eigenspace_bytes",
+    "evaluate_model",
+    "model_info",
+]
+
+#: Methods an evaluation reports: the device frame from interpolated scores (``pca``), the
+#: device frame from the ray-cast's own scores (``pca_render``: what ``serve --scores
+#: render`` sends, and ``refine`` once a view rests), equal-bytes codecs, the nearest
+#: training view and the on-device WebP image database.
+METHODS = ("pca", "pca_render", "jpeg", "webp", "nearest", "webp_db")
+#: Thresholds tried by the rate-distortion sweep of an adaptive model (those below its own T).
+DEFAULT_THRESHOLDS = (0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.998, 0.999)
+#: Score-step multiples tried by the rate-distortion sweep at the model's own components.
+DEFAULT_STEP_FACTORS = (2.0, 4.0, 8.0, 16.0)
+#: Codec qualities of the rate-distortion sweep.
+DEFAULT_QUALITIES = (2, 5, 10, 20, 35, 50, 70, 90)
+#: WebP quality of the on-device image database baseline (``webp_db``).
+DEFAULT_WEBP_DB_QUALITY = 80
+_NOT_AVERAGED = {"index"}  # per-view entries whose mean means nothing
+
+
+@dataclass
+class Evaluation:
+    """Everything ``eigencast evaluate`` measured.
+
+    Attributes
+    ----------
+    info : dict
+        Model facts: ``method``, ``threshold``, ``components_per_cell``, ``n_coefficients``,
+        ``eigenspace_bytes``, ``score_step``, ``image_shape``, ``cell_shape``, ``int8``,
+        ``volume`` ...
+    views : list of dict
+        One record per novel view: ``phi_deg``, ``theta_deg``, ``object_fraction`` and, per
+        method (``pca``, ``jpeg``, ``webp``, ``nearest``), a dict of ``bytes_per_view`` and
+        the metrics (plus ``quality``/``within_budget`` for codecs, ``index``/``angle_deg``
+        for the nearest view).
+    rd : list of dict
+        Rate-distortion points: ``kind`` (pca/projection/jpeg/webp), ``label``, ``setting``,
+        ``bytes_per_view``, ``psnr``, ``ssim``, ``flip``, ``components_per_cell``.
+    samples : list of dict
+        A few views with their images (``raycast``, ``pca``, ``jpeg``, ``webp``,
+        ``flip_pca``, ``flip_jpeg``) for the report.
+    timing_s : dict
+        Seconds spent per phase.
+    """
+
+    info: dict
+    views: list[dict]
+    rd: list[dict] = field(default_factory=list)
+    samples: list[dict] = field(default_factory=list)
+    timing_s: dict = field(default_factory=dict)
+
+    def means(self, method: str) -> dict[str, float]:
+        """Means over the views of every numeric entry of ``method``'s records."""
+        keys: list[str] = []
+        for rec in self.views:
+            for k, v in rec[method].items():
+                if k not in keys and k not in _NOT_AVERAGED and isinstance(v, (int, float)) \
+                        and not isinstance(v, bool):
+                    keys.append(k)
+        out: dict[str, float] = {}
+        for k in keys:
+            vals = np.array([float(rec[method].get(k, math.nan)) for rec in self.views])
+            finite = vals[~np.isnan(vals)]
+            out[k] = float(finite.mean()) if finite.size else math.nan
+        if method in CODECS:
+            out["over_budget_views"] = int(
+                sum(not rec[method]["within_budget"] for rec in self.views)
+            )
+        return out
+
+    def summary(self) -> dict:
+        """The ``--json`` object of ``eigencast evaluate``.
+
+        Model facts, the per-method means over the views (`METHODS`: ``pca``,
+        ``pca_render``, ``jpeg``, ``webp``, ``nearest``, ``webp_db``), the rate-distortion
+        points, the time per phase and the per-view records;
+        non-finite floats are ``None``.
+        """
+        info = self.info
+        out = {
+            "method": info["method"],
+            "threshold": info["threshold"],
+            "components_per_cell": info["components_per_cell"],
+            "eigenspace_bytes": info["eigenspace_bytes"],
+            "views": len(self.views),
+            "view_spec": info.get("view_spec"),
+            "image_size": [info["image_shape"][1], info["image_shape"][0]],
+            "n_coefficients": info["n_coefficients"],
+            "score_step": info["score_step"],
+            "int8": info.get("int8"),
+        }
+        for method in METHODS:
+            if self.views and method in self.views[0]:
+                out[method] = self.means(method)
+        if "webp_db" in out:
+            out["webp_db"]["storage_bytes"] = info.get("webp_db_storage_bytes")
+            out["webp_db"]["storage_estimated"] = info.get("webp_db_storage_estimated")
+        out["rate_distortion"] = [
+            {k: v for k, v in p.items() if k != "model"} for p in self.rd
+        ]
+        out["timing_s"] = dict(self.timing_s)
+        out["per_view"] = self.views
+        return _json_safe(out)
+
+
+def _json_safe(value: Any) -> Any:
+    """Non-finite floats become None (strict JSON); numpy scalars become Python ones."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def eigenspace_bytes(model: Any) -> int:
+    """Size of the device image (what provisioning sends and a device stores), in bytes."""
+    from protocol.image import HEADER_SIZE, image_size, write_image
+
+    if model.path is not None and Path(model.path).is_file():
+        with open(model.path, "rb") as f:
+            return image_size(f.read(HEADER_SIZE))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "m.ecs"
+        write_image(path, model.image, annex=None)
+        with open(path, "rb") as f:
+            return image_size(f.read(HEADER_SIZE))
+
+
+def model_info(model: Any) -> dict:
+    """Facts about a model for reports: method, T, components per cell, sizes ..."""
+    image = model.image
+    fit = image.provenance.get("fit") or {}
+    render = model.render_settings
+    return {
+        "path": str(model.path) if model.path else None,
+        "method": image.method,
+        "threshold": model.threshold,
+        "components": fit.get("components"),
+        "components_per_cell": float(np.mean(image.n_components)),
+        "n_cells": int(image.n_cells),
+        "n_coefficients": int(image.n_coefficients),
+        "image_shape": [int(v) for v in image.image_shape],
+        "cell_shape": [int(v) for v in image.cell_shape],
+        "score_step": model.score_step,
+        "eigenspace_bytes": eigenspace_bytes(model),
+        "training_views": len((image.views or {}).get("phi_deg", [])),
+        "training_view_spec": (image.views or {}).get("spec"),
+        "interpolation": (image.interpolation or {}).get("method"),
+        "int8": image.provenance.get("int8"),
+        "target": image.provenance.get("target"),
+        "volume": (render.get("volume") or {}),
+        "transfer_function": (render.get("transfer_function") or {}).get("name"),
+    }
+
+
+def _pca_settings(
+    model: Any, thresholds: Sequence[float], step_factors: Sequence[float]
+) -> list[dict]:
+    """Truncations / score steps of ``model`` for the rate-distortion sweep."""
+    from host.fit.model import score_step_for
+
+    counts = np.asarray(model.image.n_components)
+    d = model.image.cell_values
+    auto = score_step_for(counts, d)
+    factor = model.score_step / auto  # keep the model's step relative to the auto rule
+    out: list[dict] = []
+    seen: set[bytes] = set()
+    levels: list[tuple[str, dict, np.ndarray]] = []
+    own_t = model.threshold
+    if model.image.method == "adaptive" and own_t is not None and model.eigenvalues is not None:
+        for t in sorted({*[t for t in thresholds if t < own_t - 1e-9], own_t}):
+            levels.append((f"T={t:g}", {"threshold": t}, model.components_for(threshold=t)))
+    else:
+        k_max = int(counts.max()) if counts.size else 0
+        ks = sorted({max(1, k_max // 8), max(1, k_max // 4), max(1, k_max // 2), k_max})
+        for k in ks:
+            levels.append((f"k={k}", {"components": k}, model.components_for(components=k)))
+    for label, setting, new in levels:
+        key = new.tobytes()
+        if key in seen or (int(new.sum()) == 0 and counts.sum() > 0):
+            continue
+        seen.add(key)
+        own = np.array_equal(new, counts)
+        step = model.score_step if own else score_step_for(new, d) * factor
+        out.append({"label": label, "setting": {**setting, "step_factor": 1.0},
+                    "counts": new, "step": step, "own": own})
+    for f in step_factors:
+        out.append({"label": f"step x{f:g}",
+                    "setting": {"threshold": own_t, "step_factor": float(f)},
+                    "counts": counts, "step": model.score_step * f, "own": False})
+    return out
+
+
+class _Metrics:
+    """Run `compare_images` jobs in worker processes (or inline), returning futures.
+
+    The metrics (FLIP above all) are single-threaded and dominate an evaluation, while the
+    ray-caster already uses every core only while it renders; a few worker processes keep
+    the cores busy in between. ``workers=0`` computes inline.
+    """
+
+    def __init__(self, workers: int) -> None:
+        self.pool = None
+        if workers > 0:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn, not fork: the parent holds numba's threading layer
+            self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(
+                "spawn"))
+
+    def submit(self, *args: Any, **kwargs: Any) -> Future:
+        if self.pool is not None:
+            return self.pool.submit(_compare_job, *args, **kwargs)
+        done: Future = Future()
+        done.set_result(_compare_job(*args, **kwargs))
+        return done
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+
+def _compare_job(truth: np.ndarray, test: np.ndarray, mask: np.ndarray | None,
+                 keep: bool) -> ImageComparison:
+    return compare_images(truth, test, mask=mask, keep_flip_map=keep)
+
+
+def default_metric_workers() -> int:
+    """Metric worker processes by default: the CPU count, at most 2 (0 on one CPU)."""
+    import os
+
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
+        os.cpu_count() or 1)
+    return 0 if cpus < 2 else min(2, cpus)
+
+
+def evaluate_model(
+    model: Any,
+    scene: Any,
+    views: Any,
+    *,
+    nearest: bool = True,
+    rd_views: int = 8,
+    sample_views: int = 4,
+    thresholds: Sequence[float] = DEFAULT_THRESHOLDS,
+    step_factors: Sequence[float] = DEFAULT_STEP_FACTORS,
+    qualities: Sequence[int] = DEFAULT_QUALITIES,
+    webp_db_quality: int | None = DEFAULT_WEBP_DB_QUALITY,
+    metric_workers: int | None = None,
+    progress: bool = True,
+    info: dict | None = None,
+    on_view: Callable[[int, dict], None] | None = None,
+) -> Evaluation:
+    """Evaluate ``model`` on novel views ray-cast by ``scene``.
+
+    Parameters
+    ----------
+    model : host.fit.model.HostModel
+    scene : host.render.settings.ViewRenderer
+        Ray-casts with the model's own render settings; its image size must be the model's.
+    views : host.render.camera.ViewSet or sequence of (phi_deg, theta_deg)
+    nearest : bool
+        Also score the angularly nearest training view.
+    rd_views : int
+        Views (the first ones) used by the rate-distortion sweep; 0 skips it.
+    sample_views : int
+        Views whose images are kept for side-by-side figures.
+    thresholds, step_factors, qualities
+        The rate-distortion sweep's settings (see `DEFAULT_THRESHOLDS` ...).
+    webp_db_quality : int or None
+        WebP quality of the on-device image database baseline (`WebPDatabase`, method
+        ``webp_db``); None skips it.
+    metric_workers : int, optional
+        Processes computing the metrics (default `default_metric_workers`; 0: inline).
+    progress : bool
+        Progress on stderr.
+    info : dict, optional
+        Extra facts merged into `Evaluation.info` (e.g. ``view_spec``).
+    on_view : callable, optional
+        Called as ``on_view(i, record)`` after each view, in order.
+
+    Returns
+    -------
+    Evaluation
+    """
+    pairs = [(float(v.phi_deg), float(v.theta_deg)) if hasattr(v, "phi_deg") else
+             (float(v[0]), float(v[1])) for v in views]
+    if not pairs:
+        raise EigencastError("evaluate: no views to evaluate")
+    if tuple(scene.image_shape) != tuple(model.image.image_shape):
+        raise EigencastError(
+            f"evaluate: the renderer makes {scene.image_shape[1]}x{scene.image_shape[0]} images, "
+            f"the model is {model.image.image_shape[1]}x{model.image.image_shape[0]}"
+        )
+    workers = default_metric_workers() if metric_workers is None else int(metric_workers)
+    timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "codecs": 0.0, "webp_db": 0.0,
+              "metrics_wait": 0.0, "rate_distortion": 0.0}
+    evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
+    evaluation.info["metric_workers"] = workers
+    device = DevicePath(model)
+    training = TrainingImages(model, scene) if nearest or webp_db_quality is not None else None
+    if training is not None:
+        evaluation.info["nearest_source"] = training.source
+    webp_db = None
+    if webp_db_quality is not None:
+        t0 = time.perf_counter()
+        webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
+        timing["webp_db"] += time.perf_counter() - t0
+        evaluation.info["webp_db_quality"] = webp_db.quality
+    rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
+    metrics = _Metrics(workers)
+    hints: dict[str, int | None] = {c: None for c in CODECS}
+    in_flight: list[tuple[int, dict, dict[str, Future], dict | None]] = []
+
+    def finish(bar: Any) -> None:
+        i, record, futures, sample = in_flight.pop(0)
+        t0 = time.perf_counter()
+        results = {name: f.result() for name, f in futures.items()}
+        timing["metrics_wait"] += time.perf_counter() - t0
+        for name, c in results.items():
+            record[name].update(c.values())
+        if sample is not None:
+            sample.update({f"flip_{name}": results[name].flip_map
+                           for name in ("pca", "jpeg", "webp", "webp_db") if name in results})
+            evaluation.samples.append(sample)
+        evaluation.views.append(record)
+        if on_view is not None:
+            on_view(i, record)
+        bar.advance()
+
+    try:
+        with _progress("evaluate", len(pairs), unit=" views", quiet=not progress) as bar:
+            for i, (phi, theta) in enumerate(pairs):
+                t0 = time.perf_counter()
+                truth, alpha = scene.render(phi, theta)
+                mask = alpha_object_mask(alpha)
+                t1 = time.perf_counter()
+                timing["raycast"] += t1 - t0
+                frame, packet_bytes = device.frame(phi, theta)
+                # what `serve --scores render|refine` sends: the ray-cast's own scores
+                render_frame, render_bytes = device.projection_frame(truth)
+                t2 = time.perf_counter()
+                timing["device"] += t2 - t1
+                coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=hints[c])
+                         for c in CODECS}
+                hints = {c: coded[c].quality for c in CODECS}
+                decoded = {c: coded[c].decode() for c in CODECS}
+                t3 = time.perf_counter()
+                timing["codecs"] += t3 - t2
+                keep = i < sample_views
+                record: dict[str, Any] = {"phi_deg": phi, "theta_deg": theta,
+                                          "object_fraction": float(mask.mean()),
+                                          "pca": {"bytes_per_view": packet_bytes}}
+                futures = {"pca": metrics.submit(truth, frame, mask, keep)}
+                record["pca_render"] = {"bytes_per_view": render_bytes}
+                futures["pca_render"] = metrics.submit(truth, render_frame, mask, False)
+                for c in CODECS:
+                    record[c] = {"bytes_per_view": coded[c].size_bytes,
+                                 "quality": coded[c].quality,
+                                 "within_budget": coded[c].within_budget}
+                    futures[c] = metrics.submit(truth, decoded[c], mask, keep)
+                if webp_db is not None:
+                    t4 = time.perf_counter()
+                    blended = webp_db.frame(phi, theta)
+                    timing["webp_db"] += time.perf_counter() - t4
+                    record["webp_db"] = {"bytes_per_view": 0, "quality": webp_db.quality}
+                    futures["webp_db"] = metrics.submit(truth, blended, mask, keep)
+                t3 = time.perf_counter()
+                if nearest and training is not None:
+                    index, angle = nearest_training_view(phi, theta, training.phi,
+                                                         training.theta)
+                    near, png_bytes = training.get(index)
+                    timing["nearest"] += time.perf_counter() - t3
+                    record["nearest"] = {"bytes_per_view": png_bytes, "index": index,
+                                         "angle_deg": angle}
+                    futures["nearest"] = metrics.submit(truth, near, mask, False)
+                sample = None
+                if keep:
+                    sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
+                              "pca": frame, "pca_render": render_frame,
+                              "jpeg": decoded["jpeg"], "webp": decoded["webp"],
+                              "record": record}
+                    if webp_db is not None:
+                        sample["webp_db"] = blended
+                if i < rd_views:
+                    rd_refs.append((truth, mask, phi, theta))
+                in_flight.append((i, record, futures, sample))
+                while len(in_flight) > max(1, workers):
+                    finish(bar)
+            while in_flight:
+                finish(bar)
+        if rd_refs:
+            t0 = time.perf_counter()
+            evaluation.rd = _rate_distortion(model, rd_refs, thresholds, step_factors,
+                                             qualities, metrics, progress=progress)
+            timing["rate_distortion"] = time.perf_counter() - t0
+            evaluation.info["rd_views"] = len(rd_refs)
+    finally:
+        metrics.close()
+    if webp_db is not None:
+        evaluation.info["webp_db_storage_bytes"] = webp_db.storage_bytes
+        evaluation.info["webp_db_storage_estimated"] = webp_db.storage_estimated
+    evaluation.timing_s = {k: round(v, 3) for k, v in timing.items()}
+    return evaluation
+
+
+def _mean_point(rows: list[dict]) -> dict:
+    out = {}
+    for k in ("bytes_per_view", "psnr", "ssim", "flip", "psnr_object", "ssim_object",
+              "flip_object"):
+        vals = np.array([r[k] for r in rows], dtype=np.float64)
+        vals = vals[np.isfinite(vals)]
+        out[k] = float(vals.mean()) if vals.size else math.nan
+    return out
+
+
+def _rate_distortion(
+    model: Any,
+    refs: list[tuple[np.ndarray, np.ndarray, float, float]],
+    thresholds: Sequence[float],
+    step_factors: Sequence[float],
+    qualities: Sequence[int],
+    metrics: _Metrics,
+    *,
+    progress: bool,
+) -> list[dict]:
+    settings = _pca_settings(model, thresholds, step_factors)
+    jobs: list[tuple[dict, list[tuple[int, Future]]]] = []
+    total = len(settings) + len(CODECS) * len(qualities)
+    with _progress("rate-distortion", total, unit=" settings", quiet=not progress) as bar:
+        for s in settings:
+            m = model if s["own"] else model.truncated(s["counts"], score_step=s["step"])
+            path = DevicePath(m)
+            point = {"kind": "pca", "label": s["label"], "setting": s["setting"],
+                     "own": s["own"], "score_step": s["step"],
+                     "components_per_cell": float(np.mean(s["counts"]))}
+            rows = []
+            for truth, mask, phi, theta in refs:
+                frame, size = path.frame(phi, theta)
+                rows.append((size, metrics.submit(truth, frame, mask, False)))
+            jobs.append((point, rows))
+            if s["own"]:  # the oracle: this eigenspace fed the true views' own scores
+                rows = []
+                for truth, mask, _phi, _theta in refs:
+                    frame, size = path.projection_frame(truth)
+                    rows.append((size, metrics.submit(truth, frame, mask, False)))
+                jobs.append(({**point, "kind": "projection", "label": "projection",
+                              "own": False}, rows))
+            bar.advance()
+        for codec in CODECS:
+            for q in qualities:
+                rows = []
+                for truth, mask, _phi, _theta in refs:
+                    coded = encode_image(truth, codec, int(q))
+                    rows.append((coded.size_bytes,
+                                 metrics.submit(truth, coded.decode(), mask, False)))
+                jobs.append(({"kind": codec, "label": f"q={q}", "setting": {"quality": int(q)},
+                              "own": False}, rows))
+                bar.advance()
+    points = []
+    for point, rows in jobs:
+        values = []
+        for size, future in rows:
+            c = future.result()
+            values.append({"bytes_per_view": size, **c.values()})
+        points.append({**point, **_mean_point(values)})
+    return points

@@ -1,0 +1,56 @@
+"""Stage 2, render: ray-cast a volume from many views into a Cinema database (DB.cdb).
+
+Owns the camera and view sets (``camera.py``), transfer functions and their presets
+(``transfer.py``), the numba ray-caster (``raycast.py``) and its slow numpy reference
+(``raycast_reference.py``, for tests), the recorded render settings that let any later
+stage re-render a view exactly as the database was rendered (``settings.py``:
+`RenderSettings`, `ViewRenderer`, `OBJECT_ALPHA_MIN`) and the Cinema database itself
+(``cinema.py``: `CinemaWriter`, `CinemaDB`).
+
+May import: `host.volume`, `host.errors`, `host.progress`; never fit, evaluate or link.
+``eigencast render`` and ``render-view`` start here (``host/commands/render.py``,
+``render_view.py``).
+"""
+
+from host.lazy import attach
+
+__all__ = [
+    "DEFAULT_SAMPLES",
+    "MAX_IMAGE_SIDE",
+    "MAX_SAMPLES",
+    "MAX_VIEWS",
+    "OBJECT_ALPHA_MIN",
+    "PRESETS",
+    "PROJECTIONS",
+    "RENDERER_VERSION",
+    "SIDECAR",
+    "VIEW_SET_FORMS",
+    "Camera",
+    "CinemaDB",
+    "CinemaWriter",
+    "RenderSettings",
+    "Renderer",
+    "SettingsError",
+    "TransferFunction",
+    "View",
+    "ViewRenderer",
+    "ViewSet",
+    "absolute_source",
+    "add_transfer_function_argument",
+    "atomic_write_bytes",
+    "default_transfer_function",
+    "encode_png",
+    "format_float",
+    "hu_calibration",
+    "load_transfer_function",
+    "orbit_camera",
+    "parse_view_set",
+    "ray_box_segments",
+    "render_reference",
+    "resolve_window",
+    "samples_in_box",
+    "transfer_function_from_args",
+    "warmup",
+]
+
+__getattr__, __dir__ = attach(__name__, __all__)
