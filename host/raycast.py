@@ -97,6 +97,7 @@ DIFFUSE = 0.75
 SPECULAR = 0.3
 SHININESS = 24.0
 GRADIENT_EPSILON = 1e-3  # |grad u| per smallest voxel spacing below which no shading
+_PIXEL_CHUNK = 32  # consecutive listed pixels one thread casts at a time (render_pixels)
 
 # The workqueue threading layer must not be entered from two threads at once.
 _KERNEL_LOCK = threading.Lock()
@@ -337,31 +338,35 @@ def _render_pixels_kernel(
 ) -> None:
     """Render the rays ``origins[i], directions[i]`` (n, 3) into ``out[i, 0]`` (n, 1, 4).
 
-    The same `_cast_ray` as `_render_kernel`, in parallel over interleaved strips of
-    the list, so each pixel equals the full render's bit for bit.
+    The same `_cast_ray` as `_render_kernel`, in parallel over strips of interleaved
+    chunks of the list, so each pixel equals the full render's bit for bit.
     """
     n = out.shape[0]
+    n_chunks = (n + _PIXEL_CHUNK - 1) // _PIXEL_CHUNK
+    # chunks of consecutive pixels keep neighbouring rays on one thread (cache locality);
+    # interleaved chunks per strip balance the load
     for s in prange(n_strips):
-        for i in range(s, n, n_strips):
-            _cast_ray(
-                u,
-                block_empty,
-                origins[i, 0],
-                origins[i, 1],
-                origins[i, 2],
-                directions[i, 0],
-                directions[i, 1],
-                directions[i, 2],
-                inv_spacing,
-                step_mm,
-                lut,
-                use_skip,
-                shading,
-                params,
-                out,
-                i,
-                0,
-            )
+        for chunk in range(s, n_chunks, n_strips):
+            for i in range(chunk * _PIXEL_CHUNK, min(n, (chunk + 1) * _PIXEL_CHUNK)):
+                _cast_ray(
+                    u,
+                    block_empty,
+                    origins[i, 0],
+                    origins[i, 1],
+                    origins[i, 2],
+                    directions[i, 0],
+                    directions[i, 1],
+                    directions[i, 2],
+                    inv_spacing,
+                    step_mm,
+                    lut,
+                    use_skip,
+                    shading,
+                    params,
+                    out,
+                    i,
+                    0,
+                )
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -713,7 +718,7 @@ class Renderer:
                     self.empty_space_skipping,
                     self.shading,
                     self._params,
-                    max(1, min(16 * threads, rows.size)),
+                    max(1, min(4 * threads, -(-rows.size // _PIXEL_CHUNK))),
                     out,
                 )
             finally:
