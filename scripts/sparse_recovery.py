@@ -1,0 +1,216 @@
+"""Sparse ray-cast recovery on held-out views (docs/rate-distortion.md, "Sparse ray-cast
+recovery", issue 13).
+
+For each fitted model (``.ecs`` whose render settings name the volume), on random
+off-grid views, every frame is the device's reconstruction of quantized scores (the
+model's step, water-filled, as `serve` sends them) and is compared with the full ray-cast by
+object SSIM (`host.evaluate.structural_similarity` over the pixels with alpha >=
+`OBJECT_ALPHA_MIN`):
+
+``interpolated``
+    The interpolated scores (what `serve` streams while the view moves).
+``sparse s=S``
+    `host.recover.SparseRecovery` from a strided ray-cast (every S-th row and column, offset
+    (0, 0); `Renderer.render_pixels`), the interpolated scores as the prior, for each λ given.
+``projection``
+    `HostModel.project` of the full ray-cast (the oracle; `serve --scores render`).
+``progressive s=P after k``
+    `host.recover.ProgressiveRecovery` of a resting view: k successive frames ray-cast the
+    first k offsets of stride P (`offset_order`) and accumulate them (the samples are cut
+    from the full ray-cast, which they equal bit for bit); after P*P frames every pixel
+    is known.
+
+Timings on this machine (the fastest over the views, which on a machine shared with other
+work is the best estimate of the uncontended time): the full ray-cast, each sparse ray-cast
+and its ratio to the full one, one recovery with the pattern's factor cached, and the
+factor's one-off build (a single run).
+
+Usage::
+
+    .venv/bin/python scripts/sparse_recovery.py MODEL.ecs [MODEL.ecs ...] \\
+        [--views 10] [--seed 1] [--strides 2,4,8] [--lambdas 100] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from host.camera import parse_view_set
+from host.evaluate import structural_similarity
+from host.model import HostModel
+from host.recover import (
+    DEFAULT_LAMBDA,
+    ProgressiveRecovery,
+    SamplePattern,
+    SparseRecovery,
+    sparse_samples,
+)
+from host.render_settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
+
+
+def _floats(text: str) -> list[float]:
+    return [float(v) for v in text.split(",") if v.strip()]
+
+
+def _ints(text: str) -> list[int]:
+    return [int(v) for v in text.split(",") if v.strip()]
+
+
+def measure(path: Path, *, views: int, seed: int, strides: list[int],
+            lambdas: list[float], progressive: int) -> dict:
+    """Object SSIM and timings of one model (see the module docstring)."""
+    model = HostModel.load(path)
+    settings = RenderSettings.from_record(model.render_settings, what=str(path))
+    renderer = ViewRenderer.open(settings, what=str(path))
+    h, w = renderer.image_shape
+    recoveries = {lam: SparseRecovery(model, lam=lam) for lam in lambdas}
+    patterns = {s: SamplePattern.strided(w, h, s) for s in strides}
+    factor_s: dict[str, float] = {}
+    for lam, rec in recoveries.items():
+        for s, p in patterns.items():
+            t0 = time.perf_counter()
+            rec.factor(p)
+            factor_s[f"s={s} lam={lam:g}"] = time.perf_counter() - t0
+    renderer.render(0.0, 0.0)  # warm the kernels
+    sparse_samples(renderer, 0.0, 0.0, patterns[strides[0]])
+
+    def frame(scores: np.ndarray) -> np.ndarray:
+        return model.reconstruct(model.quantize(scores))
+
+    ssim: dict[str, list[float]] = {}
+    times: dict[str, list[float]] = {}
+
+    def add(table: dict, key: str, value: float) -> None:
+        table.setdefault(key, []).append(value)
+
+    for view in parse_view_set(f"random:{views}:{seed}"):
+        phi, theta = view.phi_deg, view.theta_deg
+        t0 = time.perf_counter()
+        truth, alpha = renderer.render(phi, theta)
+        add(times, "full_render_s", time.perf_counter() - t0)
+        mask = alpha >= OBJECT_ALPHA_MIN
+
+        def score(key: str, scores: np.ndarray, truth: np.ndarray = truth,
+                  mask: np.ndarray = mask) -> None:
+            add(ssim, key, structural_similarity(truth, frame(scores), mask=mask))
+
+        prior = model.scores(phi, theta)
+        score("interpolated", prior)
+        score("projection", model.project(truth))
+        for s, pattern in patterns.items():
+            t0 = time.perf_counter()
+            samples, _ = sparse_samples(renderer, phi, theta, pattern)
+            add(times, f"sparse_render_s s={s}", time.perf_counter() - t0)
+            for lam, rec in recoveries.items():
+                t0 = time.perf_counter()
+                scores = rec.recover(pattern, samples, prior)
+                add(times, f"recover_s s={s} lam={lam:g}", time.perf_counter() - t0)
+                score(f"sparse s={s} lam={lam:g}", scores)
+        if progressive:
+            prog = ProgressiveRecovery(recoveries[lambdas[0]], progressive)
+            prog.reset(prior)
+            n = progressive * progressive
+            marks = {1, 2, 4, n // 4, n // 2, n} - {0}
+            for k, offset in enumerate(prog.order, start=1):
+                p = prog.pattern(offset)
+                t0 = time.perf_counter()
+                scores = prog.add(offset, truth[p.rows, p.cols])
+                add(times, f"progressive_add_s s={progressive}", time.perf_counter() - t0)
+                if k in marks:
+                    score(f"progressive s={progressive} after {k}", scores)
+    medians = {k: min(v) for k, v in times.items()}
+    full = medians["full_render_s"]
+    for s in strides:
+        medians[f"sparse_ratio s={s}"] = medians[f"sparse_render_s s={s}"] / full
+    return {
+        "model": str(path),
+        "image_shape": [h, w],
+        "cell_shape": list(model.image.cell_shape),
+        "threshold": model.threshold,
+        "n_coefficients": int(model.image.n_coefficients),
+        "views": views,
+        "seed": seed,
+        "ssim_object": {k: float(np.mean(v)) for k, v in ssim.items()},
+        "timing_min_s": medians,
+        "factor_build_s": factor_s,
+    }
+
+
+def table(results: list[dict], strides: list[int], lambdas: list[float]) -> str:
+    """The markdown table of object SSIM (one column per model) and the timing rows."""
+    names = [Path(r["model"]).stem + (f" (T {r['threshold']:g})" if r["threshold"] else "")
+             for r in results]
+    lines = ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(results)]
+
+    def row(label: str, values: list[str]) -> None:
+        lines.append(f"| {label} | " + " | ".join(values) + " |")
+
+    row("interpolated scores", [f"{r['ssim_object']['interpolated']:.3f}" for r in results])
+    for s in strides:
+        for lam in lambdas:
+            key = f"sparse s={s} lam={lam:g}"
+            lam_txt = f", λ {lam:g}" if len(lambdas) > 1 else ""
+            row(f"sparse ray-cast, s = {s} (1/{s * s} of the rays{lam_txt})",
+                [f"{r['ssim_object'][key]:.3f}" for r in results])
+    prog = sorted({k for r in results for k in r["ssim_object"] if k.startswith("progressive")},
+                  key=lambda k: int(k.rsplit(" ", 1)[1]))
+    for key in prog:
+        stride, k = key.split()[1][2:], key.rsplit(" ", 1)[1]
+        row(f"resting view, stride {stride} accumulated over {k} frame{'s' * (k != '1')}",
+            [f"{r['ssim_object'].get(key, float('nan')):.3f}" for r in results])
+    row("full ray-cast projection", [f"{r['ssim_object']['projection']:.3f}" for r in results])
+    row("full ray-cast, ms", [f"{1e3 * r['timing_min_s']['full_render_s']:.0f}"
+                               for r in results])
+    for s in strides:
+        row(f"sparse ray-cast s = {s}, ms (x full)", [
+            f"{1e3 * r['timing_min_s'][f'sparse_render_s s={s}']:.1f} "
+            f"({r['timing_min_s'][f'sparse_ratio s={s}']:.3f})" for r in results])
+    for s in strides:
+        for lam in lambdas:
+            key = f"s={s} lam={lam:g}"
+            row(f"recovery s = {s}{f', λ {lam:g}' if len(lambdas) > 1 else ''}, ms "
+                "(factor build, s)", [
+                    f"{1e3 * r['timing_min_s'][f'recover_s {key}']:.2f} "
+                    f"({r['factor_build_s'][key]:.2f})" for r in results])
+    if prog:
+        stride = prog[0].split()[1][2:]
+        row(f"accumulating one offset of stride {stride}, ms", [
+            f"{1e3 * r['timing_min_s'][f'progressive_add_s s={stride}']:.1f}" for r in results])
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("models", nargs="+", type=Path, help="fitted .ecs models")
+    parser.add_argument("--views", type=int, default=10, help="random held-out views")
+    parser.add_argument("--seed", type=int, default=1, help="seed of the random views")
+    parser.add_argument("--strides", type=_ints, default=[2, 4, 8])
+    parser.add_argument("--lambdas", type=_floats, default=[DEFAULT_LAMBDA])
+    parser.add_argument("--progressive", type=int, default=4,
+                        help="stride of the resting-view accumulation (0: skip)")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    args = parser.parse_args(argv)
+    try:
+        results = []
+        for path in args.models:
+            print(f"measuring {path} ...", file=sys.stderr, flush=True)
+            results.append(measure(path, views=args.views, seed=args.seed,
+                                   strides=args.strides, lambdas=args.lambdas,
+                                   progressive=args.progressive))
+    except Exception as exc:  # one line for the user, not a traceback
+        print(f"sparse_recovery: {exc}", file=sys.stderr)
+        return 1
+    print(table(results, args.strides, args.lambdas))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
