@@ -20,10 +20,11 @@ object SSIM (`host.evaluate.structural_similarity` over the pixels with alpha >=
     from the full ray-cast, which they equal bit for bit); after P*P frames every pixel
     is known.
 
-Timings on this machine (the fastest over the views, which on a machine shared with other
-work is the best estimate of the uncontended time): the full ray-cast, each sparse ray-cast
-and its ratio to the full one, one recovery with the pattern's factor cached, and the
-factor's one-off build (a single run).
+Timings on this machine, each the fastest of several runs (on a machine shared with other
+work, the best estimate of the uncontended time): the full ray-cast and each sparse
+ray-cast of one view (phi 33, theta 10), interleaved ``--repeats`` times, and their ratio;
+one recovery with the pattern's factor cached and one progressive step (over the views);
+the factor's one-off build (a single run).
 
 Usage::
 
@@ -63,7 +64,7 @@ def _ints(text: str) -> list[int]:
 
 
 def measure(path: Path, *, views: int, seed: int, strides: list[int],
-            lambdas: list[float], progressive: int) -> dict:
+            lambdas: list[float], progressive: int, repeats: int = 9) -> dict:
     """Object SSIM and timings of one model (see the module docstring)."""
     model = HostModel.load(path)
     settings = RenderSettings.from_record(model.render_settings, what=str(path))
@@ -124,6 +125,20 @@ def measure(path: Path, *, views: int, seed: int, strides: list[int],
                 add(times, f"progressive_add_s s={progressive}", time.perf_counter() - t0)
                 if k in marks:
                     score(f"progressive s={progressive} after {k}", scores)
+    # render timings: one view, full and sparse ray-casts interleaved, the fastest of each
+    # (the per-view times above differ by view and by whatever else runs on the machine)
+    del times["full_render_s"]
+    for s in strides:
+        del times[f"sparse_render_s s={s}"]
+    camera = settings.camera(33.0, 10.0)
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        renderer.renderer.render(camera, w, h)
+        add(times, "full_render_s", time.perf_counter() - t0)
+        for s, p in patterns.items():
+            t0 = time.perf_counter()
+            renderer.renderer.render_pixels(camera, w, h, p.rows, p.cols)
+            add(times, f"sparse_render_s s={s}", time.perf_counter() - t0)
     medians = {k: min(v) for k, v in times.items()}
     full = medians["full_render_s"]
     for s in strides:
@@ -194,6 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lambdas", type=_floats, default=[DEFAULT_LAMBDA])
     parser.add_argument("--progressive", type=int, default=4,
                         help="stride of the resting-view accumulation (0: skip)")
+    parser.add_argument("--repeats", type=int, default=9,
+                        help="interleaved full/sparse ray-casts timed (the fastest counts)")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
     try:
@@ -202,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"measuring {path} ...", file=sys.stderr, flush=True)
             results.append(measure(path, views=args.views, seed=args.seed,
                                    strides=args.strides, lambdas=args.lambdas,
-                                   progressive=args.progressive))
+                                   progressive=args.progressive, repeats=args.repeats))
     except Exception as exc:  # one line for the user, not a traceback
         print(f"sparse_recovery: {exc}", file=sys.stderr)
         return 1
