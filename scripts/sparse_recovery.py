@@ -20,6 +20,12 @@ object SSIM (`host.evaluate.structural_similarity` over the pixels with alpha >=
     from the full ray-cast, which they equal bit for bit); after P*P frames every pixel
     is known.
 
+``orbit s=S prior=interpolated|previous`` (``--orbit N``)
+    A drag: N frames along phi at ``--orbit-step`` degrees per frame (theta 17.5, between
+    grid rows), each a stride-S sparse ray-cast at the next offset of `offset_order` (so a
+    slow drag sees every pixel over S*S frames), the prior being the interpolated scores or
+    the previous frame's recovered scores.
+
 Timings on this machine, each the fastest of several runs (on a machine shared with other
 work, the best estimate of the uncontended time): the full ray-cast and each sparse
 ray-cast of one view (phi 33, theta 10), interleaved ``--repeats`` times, and their ratio;
@@ -50,6 +56,7 @@ from host.recover import (
     ProgressiveRecovery,
     SamplePattern,
     SparseRecovery,
+    offset_order,
     sparse_samples,
 )
 from host.render_settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
@@ -157,6 +164,40 @@ def measure(path: Path, *, views: int, seed: int, strides: list[int],
     }
 
 
+def measure_orbit(path: Path, *, frames: int, step_deg: float, strides: list[int],
+                  lam: float) -> dict:
+    """Mean object SSIM along a drag (see ``orbit`` in the module docstring)."""
+    model = HostModel.load(path)
+    settings = RenderSettings.from_record(model.render_settings, what=str(path))
+    renderer = ViewRenderer.open(settings, what=str(path))
+    h, w = renderer.image_shape
+    rec = SparseRecovery(model, lam=lam)
+    out: dict[str, list[float]] = {}
+    path_views = [(20.0 + k * step_deg, 17.5) for k in range(frames)]
+    truths = []
+    for phi, theta in path_views:
+        truth, alpha = renderer.render(phi, theta)
+        truths.append((truth, alpha >= OBJECT_ALPHA_MIN))
+    for phi_theta, (truth, mask) in zip(path_views, truths):
+        out.setdefault("interpolated", []).append(structural_similarity(
+            truth, model.reconstruct(model.quantize(model.scores(*phi_theta))), mask=mask))
+        out.setdefault("projection", []).append(structural_similarity(
+            truth, model.reconstruct(model.quantize(model.project(truth))), mask=mask))
+    for s in strides:
+        order = offset_order(s)
+        for mode in ("interpolated", "previous"):
+            previous = None
+            for k, (phi_theta, (truth, mask)) in enumerate(zip(path_views, truths)):
+                pattern = SamplePattern.strided(w, h, s, order[k % len(order)])
+                prior = model.scores(*phi_theta) if mode == "interpolated" or previous is None \
+                    else previous
+                scores = rec.recover(pattern, truth[pattern.rows, pattern.cols], prior)
+                previous = scores
+                out.setdefault(f"orbit s={s} prior={mode}", []).append(structural_similarity(
+                    truth, model.reconstruct(model.quantize(scores)), mask=mask))
+    return {k: float(np.mean(v)) for k, v in out.items()}
+
+
 def table(results: list[dict], strides: list[int], lambdas: list[float]) -> str:
     """The markdown table of object SSIM (one column per model) and the timing rows."""
     names = [Path(r["model"]).stem + (f" (T {r['threshold']:g})" if r["threshold"] else "")
@@ -193,6 +234,12 @@ def table(results: list[dict], strides: list[int], lambdas: list[float]) -> str:
                 "(factor build, s)", [
                     f"{1e3 * r['timing_min_s'][f'recover_s {key}']:.2f} "
                     f"({r['factor_build_s'][key]:.2f})" for r in results])
+    if all("orbit" in r for r in results):
+        for key in results[0]["orbit"]:
+            label = {"interpolated": "drag: interpolated scores",
+                     "projection": "drag: full ray-cast projection"}.get(key) or \
+                f"drag: sparse {key.split()[1]}, prior = {key.split('=')[-1]} (offsets cycling)"
+            row(label, [f"{r['orbit'][key]:.3f}" for r in results])
     if prog:
         stride = prog[0].split()[1][2:]
         row(f"accumulating one offset of stride {stride}, ms", [
@@ -209,6 +256,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lambdas", type=_floats, default=[DEFAULT_LAMBDA])
     parser.add_argument("--progressive", type=int, default=4,
                         help="stride of the resting-view accumulation (0: skip)")
+    parser.add_argument("--orbit", type=int, default=0,
+                        help="also measure a drag of this many frames (0: skip)")
+    parser.add_argument("--orbit-step", type=float, default=3.0, help="degrees per frame")
     parser.add_argument("--repeats", type=int, default=9,
                         help="interleaved full/sparse ray-casts timed (the fastest counts)")
     parser.add_argument("--json", type=Path, help="write the results here")
@@ -220,6 +270,11 @@ def main(argv: list[str] | None = None) -> int:
             results.append(measure(path, views=args.views, seed=args.seed,
                                    strides=args.strides, lambdas=args.lambdas,
                                    progressive=args.progressive, repeats=args.repeats))
+        if args.orbit:
+            for r in results:
+                r["orbit"] = measure_orbit(Path(r["model"]), frames=args.orbit,
+                                           step_deg=args.orbit_step, strides=args.strides,
+                                           lam=args.lambdas[0])
     except Exception as exc:  # one line for the user, not a traceback
         print(f"sparse_recovery: {exc}", file=sys.stderr)
         return 1
