@@ -380,12 +380,40 @@ class Camera:
         directions : ndarray of shape (height, width, 3), float64
             Unit vectors.
         """
+        xs, ys = self._pixel_centres(width, height)
+        gx, gy = np.meshgrid(xs, ys)
+        return self._rays_through(gx, gy)
+
+    def rays_at(
+        self, width: int, height: int, rows: np.ndarray, cols: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The rays of `rays` at pixels ``(rows[i], cols[i])`` only, bit-identical to them.
+
+        Parameters
+        ----------
+        width, height : int
+            The full image size the pixels belong to.
+        rows, cols : ndarray of shape (n,), int
+            Pixel indices, within the image (not checked here).
+
+        Returns
+        -------
+        origins, directions : ndarray of shape (n, 3), float64
+        """
+        xs, ys = self._pixel_centres(width, height)
+        return self._rays_through(xs[np.asarray(cols)], ys[np.asarray(rows)])
+
+    @staticmethod
+    def _pixel_centres(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel centres in [-1, 1] (x scaled by the aspect); row 0 at the top (+up)."""
         width, height = int(width), int(height)
-        f, r, u = self.basis()
-        # pixel centres in [-1, 1]; row 0 at the top (+up), column 0 at the left (-right)
         xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * (width / height)
         ys = 1.0 - (np.arange(height) + 0.5) / height * 2.0
-        gx, gy = np.meshgrid(xs, ys)
+        return xs, ys
+
+    def _rays_through(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit directions (gx.shape + (3,)) through image-plane points."""
+        f, r, u = self.basis()
         if self.projection == "perspective":
             half = math.tan(math.radians(self.fov_deg) / 2.0)
             d = f + (gx * half)[..., None] * r + (gy * half)[..., None] * u

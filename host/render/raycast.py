@@ -45,6 +45,8 @@ Model (the numpy reference in `host.render.raycast_reference` implements the sam
   image.
 
 `Renderer.render` returns premultiplied RGBA before the background;
+`Renderer.render_pixels` / `Renderer.render_strided` cast only a subset of the same
+pixel grid (same rays, same kernel), equal bit for bit to those pixels of `render`;
 `Renderer.render_rgb8` composites over the background:
 ``rgb8 = round(255 * clip(C + (1 - A) * background, 0, 1))``.
 Every pixel is computed independently in a fixed order, in float64, without
@@ -79,6 +81,7 @@ __all__ = [
     "SPECULAR",
     "Renderer",
     "resolve_window",
+    "strided_pixels",
     "warmup",
 ]
 
@@ -94,6 +97,7 @@ DIFFUSE = 0.75
 SPECULAR = 0.3
 SHININESS = 24.0
 GRADIENT_EPSILON = 1e-3  # |grad u| per smallest voxel spacing below which no shading
+_PIXEL_CHUNK = 32  # consecutive listed pixels one thread casts at a time (render_pixels)
 
 # The workqueue threading layer must not be entered from two threads at once.
 _KERNEL_LOCK = threading.Lock()
@@ -318,6 +322,54 @@ def _render_kernel(
 
 
 @njit(parallel=True, cache=True, nogil=True)
+def _render_pixels_kernel(
+    u: np.ndarray,
+    block_empty: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    inv_spacing: np.ndarray,
+    step_mm: float,
+    lut: np.ndarray,
+    use_skip: bool,
+    shading: bool,
+    params: np.ndarray,
+    n_strips: int,
+    out: np.ndarray,
+) -> None:
+    """Render the rays ``origins[i], directions[i]`` (n, 3) into ``out[i, 0]`` (n, 1, 4).
+
+    The same `_cast_ray` as `_render_kernel`, in parallel over strips of interleaved
+    chunks of the list, so each pixel equals the full render's bit for bit.
+    """
+    n = out.shape[0]
+    n_chunks = (n + _PIXEL_CHUNK - 1) // _PIXEL_CHUNK
+    # chunks of consecutive pixels keep neighbouring rays on one thread (cache locality);
+    # interleaved chunks per strip balance the load
+    for s in prange(n_strips):
+        for chunk in range(s, n_chunks, n_strips):
+            for i in range(chunk * _PIXEL_CHUNK, min(n, (chunk + 1) * _PIXEL_CHUNK)):
+                _cast_ray(
+                    u,
+                    block_empty,
+                    origins[i, 0],
+                    origins[i, 1],
+                    origins[i, 2],
+                    directions[i, 0],
+                    directions[i, 1],
+                    directions[i, 2],
+                    inv_spacing,
+                    step_mm,
+                    lut,
+                    use_skip,
+                    shading,
+                    params,
+                    out,
+                    i,
+                    0,
+                )
+
+
+@njit(parallel=True, cache=True, nogil=True)
 def _block_minmax(u: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
     """Per block of ``block``^3 cells: min and max of the voxels its cells touch."""
     nz, ny, nx = u.shape
@@ -350,6 +402,35 @@ def _check_size(width: int, height: int) -> tuple[int, int]:
         if not 1 <= v <= MAX_IMAGE_SIDE:
             raise ValueError(f"{name}={v} must be within [1, {MAX_IMAGE_SIDE}]")
     return int(width), int(height)
+
+
+def strided_pixels(
+    width: int, height: int, stride: int, offset: tuple[int, int] = (0, 0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels ``(rows, cols)`` of a strided pattern: every ``stride``-th row and column
+    starting at ``offset = (dy, dx)``, row-major.
+
+    Returns
+    -------
+    rows, cols : ndarray of shape (n,), int64
+        With ``ny = len(range(dy, height, stride))`` and ``nx`` alike, ``n = ny * nx``;
+        reshaped to ``(ny, nx)`` they are ``image[dy::stride, dx::stride]``'s pixels.
+
+    Raises
+    ------
+    ValueError
+        ``stride`` not a positive integer, or an offset outside ``[0, stride)``.
+    """
+    width, height = _check_size(width, height)
+    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise ValueError(f"stride={stride!r} must be a positive integer")
+    dy, dx = (int(v) for v in offset)
+    if not (0 <= dy < stride and 0 <= dx < stride):
+        raise ValueError(f"offset={tuple(offset)} must lie within [0, {stride}) on both axes")
+    ys = np.arange(dy, height, stride, dtype=np.int64)
+    xs = np.arange(dx, width, stride, dtype=np.int64)
+    rows, cols = np.meshgrid(ys, xs, indexing="ij")
+    return rows.ravel(), cols.ravel()
 
 
 class Renderer:
@@ -574,6 +655,99 @@ class Renderer:
                 numba.set_num_threads(previous)
         return out
 
+    def render_pixels(
+        self, camera: Camera, width: int, height: int, rows: object, cols: object
+    ) -> np.ndarray:
+        """Ray-cast only the pixels ``(rows[i], cols[i])`` of a ``width`` x ``height`` image.
+
+        Each pixel equals the same pixel of ``render(camera, width, height)`` bit for bit
+        (same rays, same `_cast_ray`), on all the renderer's threads; the cost is
+        proportional to the number of pixels. Pixels may repeat and come in any order.
+
+        Parameters
+        ----------
+        camera : Camera
+        width, height : int
+            The full image size, each within [1, MAX_IMAGE_SIDE].
+        rows, cols : array-like of shape (n,), int
+            Pixel indices within ``[0, height)`` and ``[0, width)``; n may be 0.
+
+        Returns
+        -------
+        ndarray of shape (n, 4), float32
+            Premultiplied RGBA before the background (`composite` takes it as it is).
+
+        Raises
+        ------
+        ValueError
+            A size out of range, or indices that are not matching 1-D integer arrays
+            inside the image.
+        """
+        width, height = _check_size(width, height)
+        rows = np.asarray(rows)
+        cols = np.asarray(cols)
+        if rows.ndim != 1 or cols.shape != rows.shape:
+            raise ValueError(
+                f"render_pixels: rows {rows.shape} and cols {cols.shape} must be 1-D of one length"
+            )
+        if rows.size and not (
+            np.issubdtype(rows.dtype, np.integer) and np.issubdtype(cols.dtype, np.integer)
+        ):
+            raise ValueError("render_pixels: rows and cols must be integer arrays")
+        out = np.zeros((rows.size, 1, 4), dtype=np.float32)
+        if rows.size == 0:
+            return out[:, 0]
+        if rows.min() < 0 or rows.max() >= height or cols.min() < 0 or cols.max() >= width:
+            raise ValueError(
+                f"render_pixels: pixel indices must lie within {height} rows x {width} columns"
+            )
+        origins, directions = camera.rays_at(width, height, rows, cols)
+        with _KERNEL_LOCK:
+            previous = numba.get_num_threads()
+            threads = self.workers or int(numba.config.NUMBA_NUM_THREADS)
+            numba.set_num_threads(threads)
+            try:
+                _render_pixels_kernel(
+                    self._u,
+                    self._block_empty,
+                    np.ascontiguousarray(origins),
+                    np.ascontiguousarray(directions),
+                    self._inv_spacing,
+                    self.step_mm,
+                    self._lut,
+                    self.empty_space_skipping,
+                    self.shading,
+                    self._params,
+                    max(1, min(4 * threads, -(-rows.size // _PIXEL_CHUNK))),
+                    out,
+                )
+            finally:
+                numba.set_num_threads(previous)
+        return out[:, 0]
+
+    def render_strided(
+        self,
+        camera: Camera,
+        width: int,
+        height: int,
+        stride: int,
+        offset: tuple[int, int] = (0, 0),
+    ) -> np.ndarray:
+        """Ray-cast ``render(camera, width, height)[dy::stride, dx::stride]`` only.
+
+        Bit-identical to that slice of the full render, at about ``1 / stride**2`` of its
+        cost (see `render_pixels`, `strided_pixels`).
+
+        Returns
+        -------
+        ndarray of shape (ny, nx, 4), float32
+            Premultiplied RGBA, ``ny = len(range(dy, height, stride))``, ``nx`` alike.
+        """
+        rows, cols = strided_pixels(width, height, stride, offset)
+        ny = len(range(int(offset[0]), int(height), int(stride)))
+        nx = len(range(int(offset[1]), int(width), int(stride)))
+        return self.render_pixels(camera, width, height, rows, cols).reshape(ny, nx, 4)
+
     def composite(self, rgba: np.ndarray) -> np.ndarray:
         """Premultiplied float RGBA (h, w, 4) over the background: uint8 (h, w, 3)."""
         rgb = rgba[..., :3].astype(np.float64) + (
@@ -639,4 +813,6 @@ def warmup() -> None:
         window=(0.0, 1.0),
     )
     renderer = Renderer(volume, tf, samples=16)
-    renderer.render(orbit_camera(View(0.0, 0.0), volume.center_mm, volume.radius_mm), 4, 4)
+    camera = orbit_camera(View(0.0, 0.0), volume.center_mm, volume.radius_mm)
+    renderer.render(camera, 4, 4)
+    renderer.render_strided(camera, 4, 4, 2)
