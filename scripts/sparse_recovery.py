@@ -10,12 +10,12 @@ object SSIM (`host.evaluate.structural_similarity` over the pixels with alpha >=
 ``interpolated``
     The interpolated scores (what `serve` streams while the view moves).
 ``sparse s=S``
-    `host.recover.SparseRecovery` from a strided ray-cast (every S-th row and column, offset
+    `host.fit.recover.SparseRecovery` from a strided ray-cast (every S-th row and column, offset
     (0, 0); `Renderer.render_pixels`), the interpolated scores as the prior, for each λ given.
 ``projection``
     `HostModel.project` of the full ray-cast (the oracle; `serve --scores render`).
 ``progressive s=P after k``
-    `host.recover.ProgressiveRecovery` of a resting view: k successive frames ray-cast the
+    `host.fit.recover.ProgressiveRecovery` of a resting view: k successive frames ray-cast the
     first k offsets of stride P (`offset_order`) and accumulate them (the samples are cut
     from the full ray-cast, which they equal bit for bit); after P*P frames every pixel
     is known.
@@ -48,10 +48,9 @@ from pathlib import Path
 
 import numpy as np
 
-from host.camera import parse_view_set
 from host.evaluate import structural_similarity
-from host.model import HostModel
-from host.recover import (
+from host.fit.model import HostModel
+from host.fit.recover import (
     DEFAULT_LAMBDA,
     ProgressiveRecovery,
     SamplePattern,
@@ -59,7 +58,8 @@ from host.recover import (
     offset_order,
     sparse_samples,
 )
-from host.render_settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
+from host.render.camera import parse_view_set
+from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
 
 
 def _floats(text: str) -> list[float]:

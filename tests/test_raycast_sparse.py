@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.camera import View, orbit_camera
-from host.raycast import Renderer, strided_pixels
-from host.transfer import default_transfer_function
+from host.render.camera import View, orbit_camera
+from host.render.raycast import Renderer, strided_pixels
+from host.render.transfer import default_transfer_function
 from host.volume import builtin_volume
 
 SIZE = (37, 29)  # width, height: odd, not a multiple of any stride

@@ -1,4 +1,4 @@
-"""Recovering a view's scores from a sparse ray-cast (host.recover, issue 13)."""
+"""Recovering a view's scores from a sparse ray-cast (host.fit.recover, issue 13)."""
 
 from __future__ import annotations
 
@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 
 from host.cli import main as eigencast
-from host.model import HostModel
-from host.pca import merge_cells
-from host.recover import (
+from host.fit.model import HostModel
+from host.fit.pca import merge_cells
+from host.fit.recover import (
     ProgressiveRecovery,
     SamplePattern,
     SparseRecovery,
     offset_order,
     sparse_samples,
 )
-from host.render_settings import RenderSettings, ViewRenderer
+from host.render.settings import RenderSettings, ViewRenderer
 
 SIZE = 36  # a multiple of the cell: no padding, so full recovery is exactly `project`
 CELL = 12

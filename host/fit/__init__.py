@@ -6,7 +6,8 @@ eigenspace to a bit budget (``quantize.py``), view interpolation of scores
 (``interpolate.py``: `ScoreInterpolator`, the host twin of
 ``device_runtime/interpolation.py``) and the host model: fitting a database, building and
 saving the ``.ecs`` image with its annex, loading it back as a `HostModel` that reconstructs
-exactly what a device shows (``model.py``).
+exactly what a device shows (``model.py``), and the recovery of a view's scores from a
+sparse ray-cast with a prior (``recover.py``: `SparseRecovery`, `ProgressiveRecovery`).
 
 May import: `host.render` (the database and its settings), `host.errors`, `host.progress`,
 `protocol` (the image format) and `device_runtime` (the device's own reconstruction and
@@ -22,6 +23,7 @@ __all__ = [
     "ANNEX_SCORES",
     "ANNEX_TOTAL_VARIANCE",
     "DEFAULT_BIT_BUDGET",
+    "DEFAULT_LAMBDA",
     "DEFAULT_SCORE_MSE",
     "GRID_DEFAULT",
     "INT8_CHECK_VIEWS",
@@ -34,9 +36,12 @@ __all__ = [
     "HostModel",
     "InvalidParameterError",
     "NotFittedError",
+    "ProgressiveRecovery",
     "QuantizationLoss",
     "QuantizedEigenspace",
+    "SamplePattern",
     "ScoreInterpolator",
+    "SparseRecovery",
     "add_standalone_table",
     "allocate_bits",
     "auto_score_step",
@@ -47,6 +52,7 @@ __all__ = [
     "int8_loss_db",
     "int8_report",
     "merge_cells",
+    "offset_order",
     "quantize_components",
     "quantize_eigenspace",
     "quantize_mean",
@@ -54,6 +60,7 @@ __all__ = [
     "residual_mse",
     "save_model",
     "score_step_for",
+    "sparse_samples",
     "split_cells",
     "stack_for",
     "standalone_scores",

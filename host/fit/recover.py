@@ -4,7 +4,7 @@ A device frame is, per cell ``c``, ``x_c = mean_c + sum_j a_j * scales[j] * E[j]
 cell's int8 eigenimages ``E`` (`device_runtime.reconstruct`). Write ``B_c`` for the cell's
 rows ``scales[j] * E[j]`` (K_c x cell values): the device's own basis, slightly
 non-orthogonal after quantization. Given the RGB values ``x_S`` of only some pixels ``S``
-of the true view (a sparse ray-cast, `host.raycast.Renderer.render_pixels`) and a prior
+of the true view (a sparse ray-cast, `host.render.raycast.Renderer.render_pixels`) and a prior
 score vector ``a0`` (interpolated scores, or the previous frame's), `SparseRecovery` solves,
 per cell::
 
@@ -86,8 +86,9 @@ class SamplePattern:
         cls, width: int, height: int, stride: int, offset: tuple[int, int] = (0, 0)
     ) -> SamplePattern:
         """Every ``stride``-th row and column from ``offset = (dy, dx)``, row-major
-        (`host.raycast.strided_pixels`; samples come as ``render_strided(...).reshape(-1, 4)``)."""
-        from host.raycast import strided_pixels
+        (`host.render.raycast.strided_pixels`; samples come as
+        ``render_strided(...).reshape(-1, 4)``)."""
+        from host.render.raycast import strided_pixels
 
         rows, cols = strided_pixels(width, height, stride, offset)
         dy, dx = (int(v) for v in offset)
@@ -153,7 +154,7 @@ def sparse_samples(view_renderer: Any, phi_deg: float, theta_deg: float,
 
     Parameters
     ----------
-    view_renderer : host.render_settings.ViewRenderer
+    view_renderer : host.render.settings.ViewRenderer
         The model's recorded render settings and volume.
     phi_deg, theta_deg : float
     pattern : SamplePattern
