@@ -125,7 +125,7 @@ def test_metric_inputs_are_checked():
 # ----------------------------------------------------------------------------- codecs
 
 
-@pytest.mark.parametrize("codec", ["jpeg", "webp"])
+@pytest.mark.parametrize("codec", ["jpeg", "webp", "avif"])
 def test_equal_bytes_search_returns_the_highest_quality_within_budget(codec):
     image = _smooth_image(64)
     for budget in (encode_image(image, codec, 30).size_bytes + 7,
@@ -148,6 +148,11 @@ def test_equal_bytes_search_returns_the_highest_quality_within_budget(codec):
     assert encode_within_budget(image, 10**9, codec=codec, hint=3).quality == 100
     with pytest.raises(ValueError, match="codec"):
         encode_within_budget(image, 100, codec="gif")
+    # what comes back is the image, not just a file of the right size
+    def error(coded):
+        return np.abs(coded.decode().astype(int) - image.astype(int)).mean()
+
+    assert error(huge) < error(tiny)
     with pytest.raises(ValueError, match="budget_bytes"):
         encode_within_budget(image, 0, codec=codec)
 
