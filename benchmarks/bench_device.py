@@ -28,6 +28,12 @@ e. **Frames per second over a paced 921600-baud line** (``mem://`` with baud pac
    92160 B/s, host and device in this process, the device taking frames of up to 64 KiB:
    key packets at 512 px pass the serial default of 4 KiB): achieved frame rate, key + delta
    and key only, against the line's capacity divided by the wire bytes per frame.
+f. **Cost of the SCORES event tag** (protocol 2, a keyed device) at each ``--sizes``: the
+   device's per-frame work, SCORES body decode + score decode + reconstruction (the device's
+   threads), with and without ``verify_event`` (truncated HMAC-SHA256 + replay counter),
+   the two interleaved frame by frame in the same run (each with its own decoder and
+   reconstructor), and the verification alone as a fraction of the untagged frame.
+   Target (issue 11): under 5 % of the frame time at 512.
 
 Models. Real ones where it matters: ``--volume`` (default the shared vismale_head if
 present, else ``builtin:head``) rendered from ``--views`` (default ``grid:36x7``) at each of
@@ -41,7 +47,7 @@ components).
 Targets (issue 5): 512x512 >= 100 fps reconstruction and latency < 30 ms; 1080x1080 >= 30 fps;
 delta frames <= 1/4 of the equal-quality JPEG; peak RSS <= 1.2 x eigenspace + 64 MB, flat.
 
-Run: ``.venv/bin/python benchmarks/bench_device.py [--quick] [--work DIR] [--sections abcde]
+Run: ``.venv/bin/python benchmarks/bench_device.py [--quick] [--work DIR] [--sections abcdef]
 [--json]`` (``--quick``: 64 and 96 px models from ``grid:12x4``, few frames: a smoke run).
 """
 
@@ -75,6 +81,7 @@ from provision_helpers import DeviceProcess, mem_name  # noqa: E402
 
 from device_runtime.display import HeadlessPresenter  # noqa: E402
 from device_runtime.reconstruct import Reconstructor  # noqa: E402
+from protocol import messages as m  # noqa: E402
 from protocol.scores import ScoreDecoder, encode_scores  # noqa: E402
 
 MB = 1e6
@@ -379,6 +386,48 @@ def print_frame_time(r: dict) -> None:
           f"{r['ratio_reconstruct_floor']:.1f}x, / JPEG decode {r['ratio_reconstruct_jpeg']:.1f}x")
 
 
+# --------------------------------------------------------------------------- (f)
+
+
+def section_tag_cost(case: Case, frames: int) -> dict:
+    """Per-frame device work with and without the SCORES event tag, interleaved."""
+    _, packets = case.packets(frames + 1)
+    session_key = os.urandom(32)
+    plain = [m.Scores(sequence=i, packet=p).to_body() for i, p in enumerate(packets)]
+    tagged = [m.tag_event(m.Scores(sequence=i, packet=p), session_key, i + 1).to_body()
+              for i, p in enumerate(packets)]
+    runs = {"plain": (case.decoder(), case.reconstructor("auto"), plain, []),
+            "tagged": (case.decoder(), case.reconstructor("auto"), tagged, [])}
+    verify: list[float] = []
+    for i in range(len(packets)):
+        for name in (("plain", "tagged") if i % 2 else ("tagged", "plain")):
+            decoder, rec, bodies, times = runs[name]
+            t0 = time.perf_counter()
+            msg = m.Scores.from_body(bodies[i])
+            if name == "tagged":
+                t1 = time.perf_counter()
+                m.verify_event(msg, session_key, i)
+                verify.append(time.perf_counter() - t1)
+            rec.update(decoder.decode(msg.packet).y)
+            times.append(time.perf_counter() - t0)
+    for _, rec, _, _ in runs.values():
+        rec.close()
+    plain_ms, tagged_ms = med_ms(runs["plain"][3][1:]), med_ms(runs["tagged"][3][1:])
+    verify_ms = med_ms(verify[1:])
+    return {"size": case.size, "model": case.kind, "frames": frames,
+            "packet_bytes_mean": float(np.mean([len(p) for p in packets[1:]])),
+            "frame_ms_plain": plain_ms, "frame_ms_tagged": tagged_ms, "verify_ms": verify_ms,
+            "ratio_tagged_plain": tagged_ms / plain_ms,
+            "verify_fraction": verify_ms / plain_ms}
+
+
+def print_tag_cost(r: dict) -> None:
+    print(f"  {r['size']}x{r['size']} ({r['model']}, packets {r['packet_bytes_mean']:.0f} B): "
+          f"frame {r['frame_ms_plain']:.3f} ms untagged, {r['frame_ms_tagged']:.3f} ms tagged "
+          f"(ratio {r['ratio_tagged_plain']:.3f}); verify_event {1e3 * r['verify_ms']:.1f} us "
+          f"= {100 * r['verify_fraction']:.2f} % of the frame")
+
+
 # --------------------------------------------------------------------------- devices
 
 
@@ -671,7 +720,7 @@ def main() -> int:
     parser.add_argument("--serial-seconds", type=float, default=None)
     parser.add_argument("--baud", type=int, default=921600)
     parser.add_argument("--jpeg-views", type=int, default=None)
-    parser.add_argument("--sections", default="abcde")
+    parser.add_argument("--sections", default="abcdef")
     parser.add_argument("--json", action="store_true", help="print one JSON object at the end")
     args = parser.parse_args()
     q = args.quick
@@ -745,6 +794,15 @@ def main() -> int:
             rows.append(row)
             print_serial(row)
         results["serial"] = rows
+    if "f" in args.sections:
+        print(f"\n(f) SCORES event tag: device frame (body + decode + reconstruct) with and "
+              f"without verify_event, median of {frames} interleaved frames", flush=True)
+        rows = []
+        for case in cases:
+            row = section_tag_cost(case, frames)
+            rows.append(row)
+            print_tag_cost(row)
+        results["tag_cost"] = rows
     if args.json:
         print(json.dumps(results, default=float))
     return 0

@@ -4,7 +4,7 @@ Usage::
 
     eigencast-device (--port URL | --listen HOST:PORT) --flash DIR [--baud B]
                      [--key KEYFILE | --insecure] [--ram-budget MB] [--flash-size MB]
-                     [--device-id ID] [--max-frame BYTES] [--window FRAMES]
+                     [--device-id ID] [--max-frame BYTES] [--window FRAMES] [--auth-timeout S]
                      [--headless [--frames DIR [--every N]] | --display]
                      [--standalone] [--orbit SPEC | --views LIST] [--view PHI,THETA]
                      [--max-frames N] [--stats FILE] [--screenshots DIR] [--zoom Z]
@@ -127,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--window", metavar="FRAMES", type=int,
                         default=DEFAULT_RX_WINDOW_FRAMES,
                         help=f"image receive buffers (default {DEFAULT_RX_WINDOW_FRAMES})")
+    parser.add_argument("--auth-timeout", metavar="S", type=float, default=5.0,
+                        help="keyed device on TCP: drop a connection that has not "
+                        "authenticated within S seconds (default 5)")
     parser.add_argument("--status", action="store_true",
                         help="print each slot's state, digest and whether it verifies; exit")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON")
@@ -248,6 +251,8 @@ def _config(args: argparse.Namespace) -> DeviceConfig:
         raise _UsageError(f"--window {args.window} must be in 1..65535")
     if args.baud <= 0:
         raise _UsageError(f"--baud {args.baud} must be positive")
+    if not 0 < args.auth_timeout <= 3600:
+        raise _UsageError(f"--auth-timeout {args.auth_timeout} must be in (0, 3600] seconds")
     return DeviceConfig(
         flash_dir=args.flash,
         key=key,
@@ -257,6 +262,7 @@ def _config(args: argparse.Namespace) -> DeviceConfig:
         slot_size_bytes=None if args.flash_size is None else int(args.flash_size * _MB),
         rx_window_frames=args.window,
         max_frame_bytes=args.max_frame,
+        auth_timeout_s=args.auth_timeout,
     )
 
 
@@ -309,7 +315,8 @@ def _serve(args: argparse.Namespace) -> int:
         )  # a bad URL fails here, before the flash folder is touched
         if config.insecure:
             _log("WARNING: --insecure: ANYONE who can reach this device can install images on "
-                 "it (no authentication, unsigned images accepted)")
+                 "it and change what it shows (no authentication, unsigned images and "
+                 "untagged scores accepted)")
         elif config.key is None:
             _log("no key: provisioning is refused (pair one with --pair KEYFILE, or --insecure)")
         else:

@@ -68,6 +68,7 @@ from protocol.errors import (
     ImageFormatError,
     NotAuthenticated,
     ProtocolError,
+    ReplayError,
     TransportError,
 )
 from protocol.framing import Frame
@@ -274,6 +275,10 @@ class DeviceConfig:
         after a reboot), seconds.
     idle_timeout_s : float
         A TCP host that sends no valid frame for this long is dropped, seconds.
+    auth_timeout_s : float
+        Keyed device on TCP: a connection that has not completed AUTH this long after it
+        connected (or after its session lost authentication) is dropped, whatever else it
+        sends, seconds. A new connection replaces an unauthenticated one at once.
     """
 
     flash_dir: Path
@@ -289,6 +294,7 @@ class DeviceConfig:
     display_height: int = 0
     flush_interval_s: float = 1.0
     idle_timeout_s: float = 120.0
+    auth_timeout_s: float = 5.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "flash_dir", Path(self.flash_dir))
@@ -308,11 +314,22 @@ class DeviceConfig:
             raise ValueError(f"rx_window_frames={self.rx_window_frames} must be in 1..65535")
         if self.rx_buffer_bytes is not None and self.rx_buffer_bytes < 1:
             raise ValueError(f"rx_buffer_bytes={self.rx_buffer_bytes} must be >= 1")
+        if not 0 < self.auth_timeout_s < float("inf"):
+            raise ValueError(f"auth_timeout_s={self.auth_timeout_s} must be > 0 and finite")
 
 
 @dataclass
 class DeviceStats:
-    """Counters of a running device (all sessions)."""
+    """Counters of a running device (all sessions).
+
+    The ``dropped_*`` counters are SCORES / IMAGE_CHUNK / KEYFRAME_REQUEST frames dropped
+    before they were decoded or stored: ``dropped_no_session`` before any HELLO,
+    ``dropped_unauthenticated`` on a keyed device outside an authenticated session or
+    without an event tag, ``dropped_bad_tag`` with a tag that does not verify,
+    ``dropped_replayed`` with a counter not above the last accepted one on its channel.
+    ``auth_timeouts`` and ``preempted`` count TCP connections dropped for not
+    authenticating in time or replaced by a newer connection.
+    """
 
     sessions: int = 0
     chunks: int = 0
@@ -323,6 +340,12 @@ class DeviceStats:
     flushes: int = 0
     errors_sent: int = 0
     refused: dict[str, int] = field(default_factory=dict)
+    dropped_no_session: int = 0
+    dropped_unauthenticated: int = 0
+    dropped_bad_tag: int = 0
+    dropped_replayed: int = 0
+    auth_timeouts: int = 0
+    preempted: int = 0
 
 
 @dataclass
@@ -355,10 +378,23 @@ class _Session:
     last_counter: int = 0
     last_signed: tuple[int, bytes, m.Message] | None = None
     transfer: _Transfer | None = None
+    event_counters: dict[int, int] = field(default_factory=dict)  # SCORES, IMAGE_CHUNK only
 
     @property
     def hello_done(self) -> bool:
         return self.device_nonce is not None
+
+    @property
+    def authenticated(self) -> bool:
+        return self.session_key is not None
+
+
+_SESSION_EVENTS = frozenset(
+    {m.MessageType.SCORES, m.MessageType.IMAGE_CHUNK, m.MessageType.KEYFRAME_REQUEST}
+)
+"""Events that need a session (HELLO); the tagged ones also AUTH + a tag on a keyed device."""
+_DROP_LOG_INTERVAL_S = 5.0
+_MAX_TOLD_NO_TRANSFER = 64
 
 
 # --------------------------------------------------------------------------- device
@@ -418,6 +454,7 @@ class Device:
         self._reboot_requested = False
         self._baud_timer: threading.Timer | None = None
         self._told_no_transfer: set[int] = set()
+        self._drop_logged: dict[str, float] = {}
         self.store = FlashStore.open(config.flash_dir, capacity_bytes=config.slot_size_bytes)
         self.boot_result = self.boot()
 
@@ -629,19 +666,42 @@ class Device:
         self.link = link
         link.start()
         listening = isinstance(transport, TcpListenTransport)
+        keyed = self.config.key is not None
+        unauth_since: float | None = None  # keyed TCP: since when this peer is not authenticated
         try:
             while not stop.is_set() and not self._end_session.is_set():
-                if link.wait_closed(0.25):
+                if link.wait_closed(0.05 if listening and keyed else 0.25):
                     break
+                now = time.monotonic()
                 if (
                     listening
                     and transport.connected
-                    and time.monotonic() - last_frame[0] > self.config.idle_timeout_s
+                    and now - last_frame[0] > self.config.idle_timeout_s
                 ):
                     self.log(f"host silent for {self.config.idle_timeout_s:.0f} s; dropped")
                     break
                 if listening and not transport.connected:
-                    last_frame[0] = time.monotonic()
+                    last_frame[0] = now
+                    unauth_since = None
+                    continue
+                if not (listening and keyed):
+                    continue
+                # Fair use of the single TCP slot on a keyed device: whatever it sends, an
+                # unauthenticated peer gets auth_timeout_s, and a newer connection replaces it.
+                if self.session.authenticated:
+                    unauth_since = None
+                    continue
+                if unauth_since is None:
+                    unauth_since = now
+                if transport.pending():
+                    self.stats.preempted += 1
+                    self.log("a new connection replaces the unauthenticated one")
+                    break
+                if now - unauth_since > self.config.auth_timeout_s:
+                    self.stats.auth_timeouts += 1
+                    self.log(f"peer did not authenticate within "
+                             f"{self.config.auth_timeout_s:g} s; dropped")
+                    break
         finally:
             error = link.error
             link.close(flush_timeout_s=1.0)
@@ -667,7 +727,12 @@ class Device:
         return error
 
     def handle(self, msg: m.Message, frame: Frame) -> m.Message | None:
-        """Answer one request or event (the link's handler; runs on its dispatcher thread)."""
+        """Answer one request or event (the link's handler; runs on its dispatcher thread).
+
+        SCORES, IMAGE_CHUNK and KEYFRAME_REQUEST go through :meth:`admit_event` first.
+        """
+        if msg.TYPE in _SESSION_EVENTS and not self.admit_event(msg):
+            return None
         extra = self._extra_handlers.get(int(msg.TYPE))
         if extra is not None:
             return extra(msg, frame)
@@ -692,6 +757,55 @@ class Device:
             return reply
         self._remember(frame, reply)
         return reply
+
+    def admit_event(self, msg: m.Message) -> bool:
+        """Whether a SCORES / IMAGE_CHUNK / KEYFRAME_REQUEST may be decoded or stored.
+
+        It needs a session (HELLO). On a keyed device SCORES and IMAGE_CHUNK also need an
+        authenticated session and an event tag (:func:`protocol.messages.verify_event`)
+        whose counter is above the last one accepted on that channel. Refused events are
+        counted in :attr:`stats` (``dropped_*``) and logged at most once per reason every
+        few seconds; nothing is answered (an answer would be an oracle).
+        """
+        session = self.session
+        name = msg.TYPE.name
+        if not session.hello_done:
+            self.stats.dropped_no_session += 1
+            self._log_drop("no-session", f"{name} from a peer without a session (no HELLO) "
+                           "dropped")
+            return False
+        if self.config.key is None or not isinstance(msg, m.TaggedEvent):
+            return True
+        if session.session_key is None:
+            self.stats.dropped_unauthenticated += 1
+            self._log_drop("unauthenticated", f"{name} outside an authenticated session "
+                           "dropped (this device has a key)")
+            return False
+        channel = int(msg.TYPE)
+        try:
+            counter = m.verify_event(msg, session.session_key,
+                                     session.event_counters.get(channel, 0))
+        except ReplayError:
+            self.stats.dropped_replayed += 1
+            self._log_drop("replayed", f"replayed {name} dropped")
+            return False
+        except NotAuthenticated:
+            self.stats.dropped_unauthenticated += 1
+            self._log_drop("untagged", f"{name} without an event tag dropped")
+            return False
+        except AuthenticationError:
+            self.stats.dropped_bad_tag += 1
+            self._log_drop("bad-tag", f"{name} with a bad event tag dropped")
+            return False
+        session.event_counters[channel] = counter
+        return True
+
+    def _log_drop(self, reason: str, line: str) -> None:
+        """Log ``line`` unless the same reason was logged in the last few seconds."""
+        now = time.monotonic()
+        if now - self._drop_logged.get(reason, -_DROP_LOG_INTERVAL_S) >= _DROP_LOG_INTERVAL_S:
+            self._drop_logged[reason] = now
+            self.log(line)
 
     def _authorize(self, msg: m.SignedRequest, frame: Frame) -> m.Message | None:
         """Check a signed request; return a cached reply for an exact repeat, else None."""
@@ -771,7 +885,8 @@ class Device:
             raise DeviceRefusal(
                 m.ErrorCode.UNSUPPORTED_VERSION,
                 f"the host speaks protocol versions {msg.min_version}..{msg.max_version}, this "
-                f"device {PROTOCOL_VERSIONS[0]}..{PROTOCOL_VERSIONS[1]}",
+                f"device {PROTOCOL_VERSIONS[0]}..{PROTOCOL_VERSIONS[1]}: update the older side "
+                "(protocol 2 authenticates scores and image chunks)",
                 {"min_version": PROTOCOL_VERSIONS[0], "max_version": PROTOCOL_VERSIONS[1]},
             )
         with contextlib.suppress(FlashError):
@@ -785,19 +900,22 @@ class Device:
         self._told_no_transfer.clear()
         self.stats.sessions += 1
         self.log(f"hello from host '{msg.host_id or '?'}' (protocol {high})")
+        # A keyed device tells an unauthenticated peer only what starting a session needs;
+        # slots and budgets follow in AUTH_RESPONSE (mcumgr/MCUboot: state behind auth).
+        hide = self.config.key is not None
         return m.HelloReply(
             min_version=PROTOCOL_VERSIONS[0],
             max_version=PROTOCOL_VERSIONS[1],
             device_id=self.config.device_id,
             nonce=self.session.device_nonce,
             max_frame_bytes=self.max_frame_bytes,
-            ram_budget_bytes=self.config.ram_budget_bytes,
-            slot_size_bytes=self.store.capacity_bytes,
+            ram_budget_bytes=0 if hide else self.config.ram_budget_bytes,
+            slot_size_bytes=0 if hide else self.store.capacity_bytes,
             display_width=self.config.display_width,
             display_height=self.config.display_height,
             rx_window_frames=self.config.rx_window_frames,
             rx_buffer_bytes=self.rx_buffer_bytes,
-            slots=self._slot_infos(),
+            slots=() if hide else self._slot_infos(),
             has_key=self.config.key is not None,
             image_format_versions=tuple(SUPPORTED_VERSIONS),
             software=SOFTWARE,
@@ -839,7 +957,10 @@ class Device:
                 host_nonce=session.host_nonce,
                 device_nonce=session.device_nonce,
                 device_id=self.config.device_id,
-            )
+            ),
+            slots=self._slot_infos(),
+            ram_budget_bytes=self.config.ram_budget_bytes,
+            slot_size_bytes=self.store.capacity_bytes,
         )
 
     def handle_ping(self, msg: m.Ping, frame: Frame) -> m.Message:
@@ -945,7 +1066,11 @@ class Device:
 
     # ------------------------------------------------------------------ image handlers
     def handle_image_status(self, msg: m.ImageStatus, frame: Frame) -> m.Message:
-        """Where would a transfer of that image resume?"""
+        """Where would a transfer of that image resume? (keyed device: after AUTH only)"""
+        if self.config.key is not None and not self.session.authenticated:
+            raise NotAuthenticated(
+                "IMAGE_STATUS needs an authenticated session (HELLO, then AUTH_CHALLENGE)"
+            )
         transfer = self.session.transfer
         if transfer is not None and transfer.digest == msg.digest and not transfer.writer.closed:
             return m.ImageStatusReply(next_offset=transfer.writer.next_offset, in_progress=True)
@@ -1085,6 +1210,8 @@ class Device:
         if transfer is None or tid != transfer.request_id:
             self.stats.chunks_stale += 1
             if transfer is None and tid not in self._told_no_transfer and tid != 0:
+                if len(self._told_no_transfer) >= _MAX_TOLD_NO_TRANSFER:
+                    self._told_no_transfer.clear()  # bounded: a peer picks the ids
                 self._told_no_transfer.add(tid)
                 self.stats.errors_sent += 1
                 self._send(

@@ -73,7 +73,13 @@ from protocol import messages as m
 from protocol.errors import ImageFormatError, ProtocolError
 from protocol.framing import Frame
 from protocol.image import EigenspaceImage
-from protocol.scores import DecodedScores, ImageMismatch, MissingBase, ScoreDecoder
+from protocol.scores import (
+    DecodedScores,
+    ImageMismatch,
+    MissingBase,
+    ScoreDecoder,
+    score_bound,
+)
 
 __all__ = [
     "DEFAULT_VIEW",
@@ -524,6 +530,7 @@ class LoadedModel:
             image.digest or bytes(32),
             n_components=image.n_components,
             max_packet_bytes=max_packet_bytes,
+            max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
         )
         return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
                    generation, test, standalone)
@@ -601,6 +608,7 @@ class RuntimeStats:
     view_requests: int = 0
     coalesced: int = 0
     sessions: int = 0
+    frame_failures: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     reconstruct_s: _Ema = field(default_factory=_Ema)
     present_s: _Ema = field(default_factory=_Ema)
@@ -646,6 +654,7 @@ class RuntimeStats:
             "wrong_image": self.wrong_image,
             "view_requests": self.view_requests,
             "coalesced": self.coalesced,  # frames decoded but never presented
+            "frame_failures": self.frame_failures,  # frames the display could not show
             "sessions": self.sessions,
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
@@ -1046,11 +1055,15 @@ class RuntimeDevice(Device):
                 item = self._scores.take(wait if model is not None else tick)
                 if item is not None and item.model is self._model:
                     d = item.scores
-                    self._present(item.model, d.y, {
-                        "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg,
-                        "key": d.is_key, "packet_bytes": d.packet_bytes,
-                        "sequence": item.sequence, "decode_s": 0.0,
-                    })
+                    try:
+                        self._present(item.model, d.y, {
+                            "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg,
+                            "key": d.is_key, "packet_bytes": d.packet_bytes,
+                            "sequence": item.sequence, "decode_s": 0.0,
+                        })
+                    except Exception as exc:
+                        # A frame that cannot be shown must not stop the device: skip it.
+                        self._frame_failed(d.frame, exc)
                 elif self._redraw and self._model is not None and self._last_y is not None:
                     self._redraw = False
                     overlay = self.overlay_lines() if self.presenter.overlay else None
@@ -1064,6 +1077,14 @@ class RuntimeDevice(Device):
                                            overlay_lines=self.overlay_lines())
         finally:
             self.stop_event.set()
+
+    def _frame_failed(self, frame: int, exc: BaseException) -> None:
+        """Count a frame the display could not show; log the first one of a run of them."""
+        stats = self.runtime_stats
+        stats.frame_failures += 1
+        if stats.frame_failures == 1 or stats.frame_failures % 1000 == 0:
+            self.log(f"frame {frame} skipped ({' '.join(str(exc).split())[:160]}); "
+                     f"{stats.frame_failures} skipped so far")
 
     def stats_dict(self) -> dict[str, Any]:
         """Runtime statistics (:meth:`RuntimeStats.as_dict`) plus the current view and image."""

@@ -567,6 +567,7 @@ def provision(
                             retransmit=retransmit,
                             on_progress=progressed,
                             initial_chunk_bytes=learned_chunk.get("bytes"),
+                            tag=session.tag_event,
                         )
                         learned_chunk["bytes"] = stats.final_chunk_bytes
                     finally:

@@ -703,8 +703,9 @@ def serve(
                     encoded = encoder.encode(view, key=want_key, scores=y)
                     sent.clear()
                     try:
-                        link.send(m.Scores(sequence=sequence, packet=encoded.packet),
-                                  after_sent=sent.set)
+                        session.send_scores(m.Scores(sequence=sequence,
+                                                     packet=encoded.packet),
+                                            after_sent=sent.set)
                     except ValueError as exc:  # the packet does not fit the device's frames
                         kind = "key" if encoder.last_was_key else "delta"
                         raise ServeError(

@@ -101,8 +101,9 @@ MAX_ATTEMPT_TIMEOUT_S = 8.0
 """Longest single-attempt timeout after backoff, seconds."""
 IMAGE_QUEUE_FRAMES = 2
 """Image chunks the writer holds at most: what a control frame may wait behind."""
-CHUNK_OVERHEAD_BYTES = MIN_FRAME_BYTES + 16
-"""Frame bytes an IMAGE_CHUNK adds to its data (header, CRC, CBOR map/offset/length)."""
+CHUNK_OVERHEAD_BYTES = MIN_FRAME_BYTES + 16 + m.EVENT_TAG_OVERHEAD_BYTES
+"""Frame bytes an IMAGE_CHUNK adds to its data (header, CRC, CBOR map/offset/length, and the
+event tag a keyed device needs)."""
 RETRANSMIT_STRATEGIES = ("selective", "go-back-n")
 """Loss recovery of :func:`send_image` (see its docstring)."""
 
@@ -961,6 +962,7 @@ def send_image(
     max_rto_s: float = 4.0,
     retransmit: str = "selective",
     on_progress: Callable[[int], None] | None = None,
+    tag: Callable[[m.ImageChunk], m.Message] | None = None,
 ) -> TransferStats:
     """Stream ``data`` to the device in a credit-based sliding window until it is all acked.
 
@@ -1006,6 +1008,9 @@ def send_image(
         Largest data bytes per chunk (at most the device's ``rx_buffer_bytes``).
     on_progress : callable, optional
         ``on_progress(acked_offset)`` after each ack that advances, on this thread.
+    tag : callable, optional
+        ``tag(chunk) -> chunk`` applied to every chunk as it is sent (a resent chunk is
+        tagged again with a fresh counter): :meth:`HostSession.tag_event` on a keyed device.
 
     Returns
     -------
@@ -1055,7 +1060,10 @@ def send_image(
     def transmit(offset: int, *, front: bool = False, resend: bool = False) -> int:
         nonlocal epoch_chunks, epoch_resent
         end = min(offset + chunk, size)
-        wire = link._encode(m.ImageChunk(offset=offset, data=view[offset:end]), transfer_id)
+        chunk_msg: m.Message = m.ImageChunk(offset=offset, data=view[offset:end])
+        if tag is not None:
+            chunk_msg = tag(chunk_msg)  # type: ignore[arg-type]
+        wire = link._encode(chunk_msg, transfer_id)
         if resend or offset in sent_end:
             stats.retransmitted_chunks += 1
             epoch_resent += 1
@@ -1285,6 +1293,8 @@ class HostSession:
     _session_key: bytes | None = field(default=None, repr=False)
     _counter: int = 0
     _host_nonce: bytes = b""
+    _event_counters: dict[int, int] = field(default_factory=dict, repr=False)
+    _event_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     # ------------------------------------------------------------------ setup
     def start(self) -> m.HelloReply:
@@ -1323,7 +1333,7 @@ class HostSession:
         )
         if hello.has_key:
             self.authenticate()
-        return hello
+        return self.hello
 
     def authenticate(self) -> None:
         """Mutual AUTH: send our proof, check the device's, derive the session key."""
@@ -1361,7 +1371,16 @@ class HostSession:
             )
         self._session_key = m.derive_session_key(self.key, self._host_nonce, hello.nonce)
         self._counter = 0
+        self._event_counters = {}
         self.authenticated = True
+        # A keyed device tells its slots and budgets only after AUTH (protocol 2).
+        full = {
+            name: getattr(reply, name)
+            for name in ("slots", "ram_budget_bytes", "slot_size_bytes")
+            if getattr(reply, name) is not None
+        }
+        if full:
+            self.hello = dataclasses.replace(hello, **full)
 
     # ------------------------------------------------------------------ requests
     def sign(self, msg: m.SignedRequest) -> m.SignedRequest:
@@ -1370,6 +1389,26 @@ class HostSession:
             return msg
         self._counter += 1
         return m.sign(msg, self._session_key, self._counter)
+
+    def tag_event(self, msg: m.TaggedEvent) -> m.TaggedEvent:
+        """Return SCORES/IMAGE_CHUNK ``msg`` tagged with its channel's next counter
+        (unchanged when not authenticated: a keyless device takes it untagged)."""
+        if self._session_key is None:
+            return msg
+        with self._event_lock:
+            counter = self._event_counters.get(int(msg.TYPE), 0) + 1
+            self._event_counters[int(msg.TYPE)] = counter
+        return m.tag_event(msg, self._session_key, counter)
+
+    def send_scores(self, msg: m.Scores, *,
+                    after_sent: Callable[[], None] | None = None) -> None:
+        """Tag (when authenticated) and queue a SCORES event; counters leave in send order."""
+        with self._event_lock:
+            if self._session_key is not None:
+                counter = self._event_counters.get(int(msg.TYPE), 0) + 1
+                self._event_counters[int(msg.TYPE)] = counter
+                msg = m.tag_event(msg, self._session_key, counter)  # type: ignore[assignment]
+            self.link.send(msg, after_sent=after_sent)
 
     def call(
         self,

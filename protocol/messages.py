@@ -55,6 +55,8 @@ __all__ = [
     "BASELINE_MAX_FRAME_BYTES",
     "DIGEST_BYTES",
     "ERROR_CLASSES",
+    "EVENT_TAG_BYTES",
+    "EVENT_TAG_OVERHEAD_BYTES",
     "KEY_BYTES",
     "MAX_DEPTH",
     "MESSAGE_CLASSES",
@@ -96,6 +98,7 @@ __all__ = [
     "SlotSet",
     "SlotState",
     "SlotStatus",
+    "TaggedEvent",
     "UnknownMessage",
     "ViewRequest",
     "auth_proof",
@@ -105,12 +108,16 @@ __all__ = [
     "error_code_for",
     "scan_cbor",
     "sign",
+    "tag_event",
     "verify",
+    "verify_event",
     "wire",
 ]
 
-PROTOCOL_VERSION = 1
-"""Message-set version this code speaks (negotiated in HELLO; frame version is separate)."""
+PROTOCOL_VERSION = 2
+"""Message-set version this code speaks (negotiated in HELLO; frame version is separate).
+2: SCORES and IMAGE_CHUNK carry an event tag on a keyed device, HELLO_REPLY hides slots and
+budgets before AUTH and AUTH_RESPONSE carries them (docs/protocol.md, "Versioning")."""
 
 NONCE_BYTES = 16
 """Length of the host and device nonces."""
@@ -136,6 +143,12 @@ SESSION_COUNTER_KEY = 22
 
 SESSION_TAG_KEY = 23
 """CBOR key of the session tag in every signed request."""
+
+EVENT_TAG_BYTES = 16
+"""Length of the truncated HMAC-SHA256 tag of a tagged event (SCORES, IMAGE_CHUNK)."""
+
+EVENT_TAG_OVERHEAD_BYTES = 1 + 9 + 1 + 1 + EVENT_TAG_BYTES
+"""Most body bytes a tag adds to an event: key 22 + a u64 counter, key 23 + bytes header + tag."""
 
 U8, U16, U32, U64 = (1 << 8) - 1, (1 << 16) - 1, (1 << 32) - 1, (1 << 64) - 1
 MAX_PAYLOAD_BYTES = 1 << 24
@@ -687,6 +700,7 @@ class Message(Record):
     KIND: ClassVar[Kind]
     REPLY: ClassVar[type[Message] | None] = None
     SIGNED: ClassVar[bool] = False
+    TAGGED: ClassVar[bool] = False
     MUST_UNDERSTAND: ClassVar[bool] = True
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -942,6 +956,12 @@ class AuthResponse(Message):
 
     device_proof: bytes = wire(0, lengths=(TAG_BYTES,))
     """``auth_proof(key, "device", ...)``."""
+    slots: tuple[SlotInfo, ...] | None = wire(1, default=None, max_items=4)
+    """Installed images (a keyed device's HELLO_REPLY leaves them out before AUTH)."""
+    ram_budget_bytes: int | None = wire(2, default=None, ge=0, le=U64)
+    """RAM the eigenspace may use (hidden in HELLO_REPLY before AUTH)."""
+    slot_size_bytes: int | None = wire(3, default=None, ge=0, le=U64)
+    """Capacity of each flash slot (hidden in HELLO_REPLY before AUTH)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -1113,6 +1133,18 @@ class SignedRequest(Message):
 
 
 @dataclass(frozen=True, kw_only=True)
+class TaggedEvent(Message):
+    """Base of events that change what a keyed device shows or stores (SCORES, IMAGE_CHUNK):
+    ``session_counter`` (key 22) and a 16-byte ``session_tag`` (key 23), both absent until
+    :func:`tag_event` fills them (a keyless device takes them untagged)."""
+
+    TAGGED: ClassVar[bool] = True
+
+    session_counter: int | None = wire(SESSION_COUNTER_KEY, default=None, ge=1, le=U64)
+    session_tag: bytes | None = wire(SESSION_TAG_KEY, default=None, lengths=(EVENT_TAG_BYTES,))
+
+
+@dataclass(frozen=True, kw_only=True)
 class SetBaud(SignedRequest):
     """Host -> device: switch both ends to ``baud`` after the OK; the device reverts to
     the old rate unless the host pings at the new rate within ``revert_timeout_ms``."""
@@ -1240,7 +1272,7 @@ class ImageStatus(Message):
 
 
 @dataclass(frozen=True, kw_only=True)
-class ImageChunk(Message):
+class ImageChunk(TaggedEvent):
     """Host -> device: image bytes at ``offset`` (request id = the transfer's IMAGE_BEGIN id)."""
 
     TYPE: ClassVar[MessageType] = MessageType.IMAGE_CHUNK
@@ -1310,7 +1342,7 @@ class ImageAbort(SignedRequest):
 
 
 @dataclass(frozen=True, kw_only=True)
-class Scores(Message):
+class Scores(TaggedEvent):
     """Host -> device: one score packet (protocol.scores); latest wins."""
 
     TYPE: ClassVar[MessageType] = MessageType.SCORES
@@ -1515,6 +1547,76 @@ def verify(msg: SignedRequest, session_key: bytes, last_counter: int) -> int:
         raise ReplayError(
             f"verify {name}: session counter {msg.session_counter} is not above the last "
             f"accepted {last_counter} (replayed or stale request)"
+        )
+    return msg.session_counter
+
+
+def _event_tag(msg: TaggedEvent, session_key: bytes, counter: int) -> bytes:
+    # The canonical body with key 22 = counter and without key 23, built from the checked
+    # fields directly (no re-validation of the payload: this runs for every frame).
+    body = msg._to_map()
+    body.pop(SESSION_TAG_KEY, None)
+    body[SESSION_COUNTER_KEY] = counter
+    mac = hmac.new(session_key, _TAG_PREFIX.pack(counter, int(msg.TYPE)), hashlib.sha256)
+    mac.update(cbor2.dumps(body, canonical=True))
+    return mac.digest()[:EVENT_TAG_BYTES]
+
+
+def tag_event(msg: TaggedEvent, session_key: bytes, counter: int) -> TaggedEvent:
+    """Return ``msg`` with ``session_counter=counter`` and its 16-byte event tag.
+
+    The tag is ``HMAC-SHA256(session_key, u64le(counter) || u8(TYPE) || body)[:16]``
+    where ``body`` is the canonical CBOR body with key 22 (the counter) and
+    without key 23 (the tag): the signed-request construction of :func:`sign`,
+    truncated to 16 bytes. Each channel (SCORES, IMAGE_CHUNK) has its own counter.
+
+    Parameters
+    ----------
+    msg : TaggedEvent
+        A SCORES or IMAGE_CHUNK.
+    session_key : bytes of length 32
+    counter : int
+        1..2**64-1, larger than every counter used before on this channel in this session.
+
+    Returns
+    -------
+    TaggedEvent
+        A new message of the same class.
+    """
+    if not isinstance(msg, TaggedEvent):
+        raise ValueError(f"tag_event: {type(msg).__name__} is not a tagged event")
+    key = _check_key(session_key, "session_key")
+    if isinstance(counter, bool) or not isinstance(counter, int) or not 1 <= counter <= U64:
+        raise ValueError(f"tag_event: counter={counter!r} must be an int in [1, 2**64 - 1]")
+    return dataclasses.replace(msg, session_counter=counter,
+                               session_tag=_event_tag(msg, key, counter))
+
+
+def verify_event(msg: TaggedEvent, session_key: bytes, last_counter: int) -> int:
+    """Check a tagged event; return its counter (the channel's new ``last_counter``).
+
+    Raises
+    ------
+    NotAuthenticated
+        No counter or tag.
+    AuthenticationError
+        The tag does not verify.
+    ReplayError
+        The counter is not above ``last_counter``.
+    """
+    if not isinstance(msg, TaggedEvent):
+        raise ValueError(f"verify_event: {type(msg).__name__} is not a tagged event")
+    key = _check_key(session_key, "session_key")
+    name = msg.TYPE.name
+    if msg.session_counter is None or msg.session_tag is None:
+        raise NotAuthenticated(f"verify {name}: no event tag (a keyed device needs one)")
+    expected = _event_tag(msg, key, msg.session_counter)
+    if not hmac.compare_digest(expected, msg.session_tag):
+        raise AuthenticationError(f"verify {name}: event tag mismatch")
+    if msg.session_counter <= last_counter:
+        raise ReplayError(
+            f"verify {name}: counter {msg.session_counter} is not above the last accepted "
+            f"{last_counter} (replayed)"
         )
     return msg.session_counter
 

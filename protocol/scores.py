@@ -50,6 +50,14 @@ codes both and keeps the smaller. The encoder's zstd level is 19 (default `DEFAU
 decoding cost does not depend on the level. CODING 1 was a reserved value of version 1, which
 decoders without it refuse with a clear error, so the packet version stays 1.
 
+Decoded scores are finite and bounded: every step (header or array) must be finite, > 0 and
+at most ``max_abs_score``, and every decoded score ``|q * step|`` at most ``max_abs_score``
+(else ``LimitExceeded``), checked before the frame is kept as a delta base. A device passes
+:func:`score_bound` of its image: scores are orthonormal coordinates of a cell's pixel vector
+minus its mean, so ``|y_j| <= 255 * sqrt(cell values)``; the bound allows 4 times that
+(interpolation overshoot, rounding). Without one the decoder uses
+``DEFAULT_MAX_ABS_SCORE`` (2**64), which keeps every product finite in float32.
+
 Decoding is bounded: a packet longer than ``max_packet_bytes`` is refused before it is parsed;
 the payload bound is computed from K (5 bytes per varint plus the step array, plus 5 bytes
 per cell count with CODING 1) and a zstd frame
@@ -74,6 +82,7 @@ __all__ = [
     "CODING_EOB",
     "CODING_VARINT",
     "DEFAULT_LEVEL",
+    "DEFAULT_MAX_ABS_SCORE",
     "HEADER_SIZE",
     "MAGIC",
     "VERSION",
@@ -87,6 +96,7 @@ __all__ = [
     "decode_header",
     "encode_scores",
     "max_packet_size",
+    "score_bound",
 ]
 
 MAGIC = b"\xecS"
@@ -105,6 +115,9 @@ CODING_VARINT, CODING_EOB = 0, 1
 _RESERVED_MASK = 0xC0
 _MAX_VARINT_BYTES = 5
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
+#: Largest |score| (and step) a decoder accepts unless told a bound (see the module docstring).
+DEFAULT_MAX_ABS_SCORE = float(2.0**64)
+_SCORE_BOUND_MARGIN = 4.0
 #: zstd level of the encoder (decoding cost does not depend on it; see the module docstring).
 DEFAULT_LEVEL = 19
 _DEFAULT_LEVEL = DEFAULT_LEVEL
@@ -118,6 +131,29 @@ def _compressor(level: int) -> zstd.ZstdCompressor:
     if level not in cache:
         cache[level] = zstd.ZstdCompressor(level=level, write_content_size=True)
     return cache[level]
+
+
+def score_bound(cell_values: int, *, value_range: float = 255.0) -> float:
+    """Largest |score| an image with ``cell_values`` values per cell can need.
+
+    A score is an orthonormal coordinate of a cell's pixel vector (``cell_values`` entries in
+    0..``value_range``) minus its mean, so it is at most ``value_range * sqrt(cell_values)``;
+    this returns 4 times that (interpolated views may overshoot a little).
+
+    Parameters
+    ----------
+    cell_values : int
+        Values per cell (cell pixels times channels), >= 1.
+    value_range : float
+        Pixel value range (uint8 images: 255).
+
+    Returns
+    -------
+    float
+    """
+    if cell_values < 1:
+        raise ValueError(f"score_bound: cell_values={cell_values} must be >= 1")
+    return float(_SCORE_BOUND_MARGIN * value_range * np.sqrt(float(cell_values)))
 
 
 class ScorePacketError(MalformedMessage):
@@ -499,6 +535,9 @@ class ScoreDecoder:
     keep_bases : int
         How many recent frames to hold as possible delta bases (a host may code against a
         frame older than the last one when acknowledgements were lost).
+    max_abs_score : float, optional
+        Largest step and |decoded score| accepted (default ``DEFAULT_MAX_ABS_SCORE``; a
+        device passes :func:`score_bound` of its image).
     """
 
     def __init__(
@@ -509,6 +548,7 @@ class ScoreDecoder:
         max_packet_bytes: int | None = None,
         n_components: np.ndarray | None = None,
         keep_bases: int = 4,
+        max_abs_score: float | None = None,
     ) -> None:
         if n_coefficients < 0:
             raise ValueError(f"ScoreDecoder: n_coefficients={n_coefficients} must be >= 0")
@@ -516,6 +556,11 @@ class ScoreDecoder:
             raise ValueError("ScoreDecoder: image_digest must have at least 4 bytes")
         if keep_bases < 1:
             raise ValueError(f"ScoreDecoder: keep_bases={keep_bases} must be >= 1")
+        bound = DEFAULT_MAX_ABS_SCORE if max_abs_score is None else float(max_abs_score)
+        if not 0 < bound <= DEFAULT_MAX_ABS_SCORE:
+            raise ValueError(f"ScoreDecoder: max_abs_score={max_abs_score} must be in "
+                             f"(0, {DEFAULT_MAX_ABS_SCORE:g}]")
+        self.max_abs_score = bound
         self.n_coefficients = int(n_coefficients)
         self.image_tag = bytes(image_digest[:4])
         self.n_components = None
@@ -604,7 +649,15 @@ class ScoreDecoder:
         if coded.size and (coded.min() < _INT32_MIN or coded.max() > _INT32_MAX):
             raise ScorePacketError("decode scores: a quantized score is outside the int32 range")
         q = coded.astype(np.int32)
+        # |q| <= 2**31 and step <= max_abs_score <= 2**64: |y| <= 2**95, finite in float32
         y = q.astype(np.float32) * per_coeff
+        if y.size:
+            peak = float(np.max(np.abs(y)))
+            if not peak <= self.max_abs_score:
+                raise LimitExceeded(
+                    f"decode scores: frame {header.frame} has a score of magnitude {peak:.3g}, "
+                    f"over the bound {self.max_abs_score:.3g} for this image"
+                )
         self._bases.pop(header.frame, None)
         self._bases[header.frame] = (q, steps)
         while len(self._bases) > self.keep_bases:
@@ -686,6 +739,11 @@ class ScoreDecoder:
         mode = header.step_mode
         if mode == STEP_SCALAR:
             step32 = np.float32(header.step)
+            if not float(step32) <= self.max_abs_score:
+                raise ScorePacketError(
+                    f"decode scores: step {float(step32):.3g} is over the bound "
+                    f"{self.max_abs_score:.3g}"
+                )
             return float(step32), np.full(self.n_coefficients, step32, np.float32), data
         if mode == STEP_PER_CELL:
             if self.n_components is None:
@@ -702,5 +760,10 @@ class ScoreDecoder:
         steps = data[: 4 * count].view("<f4").astype(np.float32)
         if not np.all(np.isfinite(steps)) or (steps.size and steps.min() <= 0):
             raise ScorePacketError("decode scores: step array has entries that are not > 0")
+        if steps.size and not float(steps.max()) <= self.max_abs_score:
+            raise ScorePacketError(
+                f"decode scores: step array has an entry of {float(steps.max()):.3g}, over the "
+                f"bound {self.max_abs_score:.3g}"
+            )
         per_coeff = steps if mode == STEP_PER_COMPONENT else np.repeat(steps, self.n_components)
         return steps, per_coeff, data[4 * count :]

@@ -305,7 +305,8 @@ class TcpListenTransport:
     wait in the backlog until the current one disconnects. When the host goes
     away, ``read``/``write`` raise ``TransportClosed`` once and the next
     ``read`` (or :meth:`accept`) waits for a new host. :meth:`disconnect` drops
-    a silent host (the link engine's inactivity timeout).
+    a silent host (the link engine's inactivity timeout); :meth:`pending` says
+    whether another host waits (a keyed device then drops an unauthenticated one).
 
     Parameters
     ----------
@@ -362,6 +363,18 @@ class TcpListenTransport:
             self._conn, self.peer = conn, peer
         _logger.info("%s: host %s connected", self.url, peer)
         return True
+
+    def pending(self) -> bool:
+        """True when another host is waiting to connect (in the listen backlog).
+
+        A keyed device uses it to let a new connection replace one that has not
+        authenticated (docs/protocol.md, "Threat model").
+        """
+        try:
+            ready, _, _ = select.select([self._listener], [], [], 0.0)
+        except (OSError, ValueError):
+            return False
+        return bool(ready)
 
     def disconnect(self) -> None:
         """Drop the current host (if any); the next read waits for a new one."""

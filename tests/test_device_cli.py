@@ -113,6 +113,10 @@ def test_a_device_without_a_key_says_provisioning_is_refused(tmp_path):
         (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--ram-budget", "-3"], "> 0 MB"),
         (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--max-frame", "10"], "--max-frame"),
         (["--pair", "{d}/missing.key", "--flash", "{d}/f"], "not found"),
+        (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--auth-timeout", "0"],
+         "--auth-timeout 0.0 must be in"),
+        (["--flash", "{d}/f", "--listen", "127.0.0.1:0", "--auth-timeout", "nan"],
+         "--auth-timeout nan must be in"),
     ],
 )
 def test_bad_usage_is_one_line_and_exit_code_1(tmp_path, capsys, argv, needle):
@@ -134,3 +138,26 @@ def test_a_corrupt_flash_folder_is_one_line(tmp_path, capsys):
 def test_the_parser_takes_the_runtime_flags():
     args = build_parser().parse_args(["--flash", "x", "--listen", "h:1", "--headless"])
     assert args.headless and args.listen == "h:1"
+
+
+def test_auth_timeout_drops_an_unauthenticated_hog_of_the_tcp_slot(tmp_path):
+    """Issue 11: HELLO then PINGs held the only TCP slot; now --auth-timeout ends it."""
+    from protocol import messages as m
+    from protocol.link import Link
+    from protocol.transport import open_transport
+
+    write_key(tmp_path / "k.key", KEY)
+    dev = DeviceProcess(tmp_path / "flash", "--auth-timeout", "0.5", key_file=tmp_path / "k.key")
+    try:
+        link = Link(open_transport(dev.url, timeout_s=5), owns_transport=True).start()
+        version = m.PROTOCOL_VERSION
+        link.request(m.Hello(min_version=version, max_version=version, nonce=bytes(16)))
+        assert link.wait_closed(15)  # dropped after 0.5 s (PINGs do not extend it)
+        link.close()
+        path = tmp_path / "m.ecs"
+        make_image(path, size_bytes=20_000)
+        result = provision(path, dev.url, key=KEY, show_progress=False, log=lambda s: None)
+        assert result.outcome == "installed"
+    finally:
+        assert dev.stop() == 0
+    assert any("did not authenticate within 0.5 s; dropped" in line for line in dev.lines)

@@ -57,7 +57,7 @@ def _hostile_body(rng: random.Random) -> bytes:
 
 def _valid_bodies() -> list[tuple[type[m.Message], bytes]]:
     samples = [
-        m.Hello(min_version=1, max_version=1, nonce=bytes(16)),
+        m.Hello(min_version=m.PROTOCOL_VERSION, max_version=m.PROTOCOL_VERSION, nonce=bytes(16)),
         m.Ping(payload=b"x" * 50, sent_us=5),
         m.ImageStatus(digest=bytes(32), size_bytes=100),
         m.ImageBegin(size_bytes=5000, digest=bytes(32), image_tag=bytes(32), format_version=1,

@@ -263,6 +263,26 @@ def test_signed_golden_lines_verify_with_the_golden_session_key():
         assert hmac.new(session_key, data, hashlib.sha256).digest() == msg.session_tag
 
 
+def test_tagged_event_golden_lines_verify_with_the_golden_session_key():
+    (auth,) = AUTH_CASES
+    session_key = bytes.fromhex(auth["session_key"])
+    tagged = [c for c in MESSAGE_CASES if _class(c["class"]).TAGGED]
+    assert {_class(c["class"]).TYPE for c in tagged} == {m.MessageType.SCORES,
+                                                          m.MessageType.IMAGE_CHUNK}
+    for case in tagged:
+        msg = _record_from_json(_class(case["class"]), case["kwargs"])
+        assert m.verify_event(msg, session_key, msg.session_counter - 1) == msg.session_counter
+        # docs/protocol.md section 5: the signed-request formula, truncated to 16 bytes.
+        body = dict(cbor2.loads(msg.to_body()))
+        del body[m.SESSION_TAG_KEY]
+        data = (
+            msg.session_counter.to_bytes(8, "little")
+            + bytes([int(msg.TYPE)])
+            + cbor2.dumps(body, canonical=True)
+        )
+        assert hmac.new(session_key, data, hashlib.sha256).digest()[:16] == msg.session_tag
+
+
 # --------------------------------------------------------------------------- docs
 
 
@@ -333,14 +353,14 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
     return [
         (
             "hello",
-            m.Hello(min_version=1, max_version=1, nonce=bytes(range(16)), host_id="host-1"),
+            m.Hello(min_version=2, max_version=2, nonce=bytes(range(16)), host_id="host-1"),
             1,
         ),
         (
             "hello_reply",
             m.HelloReply(
-                min_version=1,
-                max_version=1,
+                min_version=2,
+                max_version=2,
                 device_id="dev-1",
                 nonce=bytes(range(16, 32)),
                 max_frame_bytes=4096,
@@ -358,7 +378,12 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
             1,
         ),
         ("auth_challenge", m.AuthChallenge(host_proof=bytes.fromhex(auth["host_proof"])), 2),
-        ("auth_response", m.AuthResponse(device_proof=bytes.fromhex(auth["device_proof"])), 2),
+        (
+            "auth_response",
+            m.AuthResponse(device_proof=bytes.fromhex(auth["device_proof"]), slots=slots,
+                           ram_budget_bytes=64 << 20, slot_size_bytes=64 << 20),
+            2,
+        ),
         ("ping", m.Ping(payload=b"hi", sent_us=123456789), 3),
         ("pong", m.Pong(payload=b"hi", ping_sent_us=123456789, sent_us=123457000), 3),
         (
@@ -394,7 +419,7 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ),
         ("image_status", m.ImageStatus(digest=digest, size_bytes=52428800), 10),
         ("image_status_reply", m.ImageStatusReply(next_offset=65536, in_progress=True), 10),
-        ("image_chunk", m.ImageChunk(offset=4096, data=bytes(range(32))), 9),
+        ("image_chunk", m.tag_event(m.ImageChunk(offset=4096, data=bytes(range(32))), sk, 1), 9),
         ("image_ack", m.ImageAck(next_offset=8192, credits=7, window_bytes=32768), 9),
         ("image_verify", m.ImageVerify(digest=digest), 11),
         (
@@ -404,7 +429,8 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ),
         ("image_commit", m.sign(m.ImageCommit(digest=digest), sk, 11), 12),
         ("image_abort", m.sign(m.ImageAbort(), sk, 12), 13),
-        ("scores", m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400")), 0),
+        ("scores", m.tag_event(m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400")), sk, 3),
+         0),
         ("view_request", m.ViewRequest(phi_deg=123.5, theta_deg=-12.0, sequence=42), 0),
         ("keyframe_request", m.KeyframeRequest(sequence=43, last_frame=41), 0),
         ("notice", m.Notice(level=1, text="reverted to slot A at boot", detail={"slot": 0}), 0),

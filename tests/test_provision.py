@@ -3,12 +3,14 @@ resume after a disconnect and after a device reboot, power cuts, and every refus
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import random
 import struct
 import threading
+import time
 
 import cbor2
 import pytest
@@ -29,6 +31,7 @@ from host.provision import ProvisionError, choose_chunk_bytes, inspect_image, pr
 from protocol import messages as m
 from protocol.errors import (
     AuthenticationError,
+    ProtocolError,
     RemoteAuthFailed,
     RemoteNotAuthenticated,
     RemoteReplayed,
@@ -311,10 +314,13 @@ def test_no_common_protocol_version_is_one_clear_error(device):
     url, _ = device()
     link = Link(open_transport(url, timeout_s=5), owns_transport=True).start()
     try:
-        session = HostSession(link, key=KEY, versions=(2, 3), request_timeout_s=0.5)
-        with pytest.raises(RemoteUnsupportedVersion, match=r"2\.\.3, this device 1\.\.1") as info:
+        # a protocol-1 host (untagged scores and chunks) meets a protocol-2 device
+        session = HostSession(link, key=KEY, versions=(1, 1), request_timeout_s=0.5)
+        with pytest.raises(RemoteUnsupportedVersion,
+                           match=r"1\.\.1, this device 2\.\.2: update the older side") as info:
             session.start()
-        assert info.value.detail == {"min_version": 1, "max_version": 1}
+        assert "\n" not in str(info.value)
+        assert info.value.detail == {"min_version": 2, "max_version": 2}
     finally:
         link.close()
 
@@ -329,7 +335,8 @@ def test_unauthenticated_signed_request_is_refused_not_authenticated(device):
     url, _ = device()
     session = _open_session(url, auth=False)
     try:
-        session.link.request(m.Hello(min_version=1, max_version=1, nonce=bytes(16)))
+        session.link.request(m.Hello(min_version=m.PROTOCOL_VERSION,
+                                     max_version=m.PROTOCOL_VERSION, nonce=bytes(16)))
         with pytest.raises(RemoteNotAuthenticated):
             session.link.request(m.ImageAbort(), retries=0)
     finally:
@@ -446,7 +453,8 @@ def test_an_image_whose_header_lies_about_its_version_is_refused_mid_transfer(de
         from protocol.link import send_image
 
         with pytest.raises(RemoteUnsupportedFormat):
-            send_image(session.link, bad, transfer_id=box["id"], first_ack=ack, chunk_bytes=1024)
+            send_image(session.link, bad, transfer_id=box["id"], first_ack=ack, chunk_bytes=1024,
+                       tag=session.tag_event)
     finally:
         session.link.close()
 
@@ -530,3 +538,144 @@ def test_device_config_checks_its_inputs(tmp_path):
     with pytest.raises(ValueError, match="rx_window_frames"):
         DeviceConfig(flash_dir=tmp_path, rx_window_frames=0)
     assert Device(DeviceConfig(flash_dir=tmp_path / "f"), log=lambda s: None).store is not None
+
+
+# ------------------------------------------------------------------ hostile peers (issue 11)
+
+
+def test_hello_reply_before_auth_hides_slots_and_budgets(tmp_path, model, device):
+    path, image = model
+    url, dev = device()
+    provision(path, url, key=KEY, **QUIET)
+    raw = _open_session(url, auth=False)
+    try:
+        version = m.PROTOCOL_VERSION
+        hello = raw.link.request(m.Hello(min_version=version, max_version=version,
+                                         nonce=bytes(16)))
+        # what starting a session needs, nothing about the installed images or budgets
+        assert hello.has_key and hello.device_id == dev.config.device_id
+        assert hello.max_frame_bytes >= 1024 and hello.rx_window_frames >= 1
+        assert hello.slots == () and hello.ram_budget_bytes == 0 and hello.slot_size_bytes == 0
+        with pytest.raises(RemoteNotAuthenticated, match="IMAGE_STATUS needs an authenticated"):
+            raw.link.request(m.ImageStatus(digest=hashlib.sha256(image).digest(),
+                                           size_bytes=len(image)), retries=0)
+    finally:
+        raw.link.close()
+    # an authenticated host gets the real slots and budgets (prechecks keep working)
+    session = _open_session(url)
+    try:
+        full = session.hello
+        assert full.ram_budget_bytes == dev.config.ram_budget_bytes
+        assert full.slot_size_bytes == dev.device.store.capacity_bytes
+        active = [s for s in full.slots if s.active]
+        assert len(active) == 1 and active[0].digest == hashlib.sha256(image).digest()
+    finally:
+        session.link.close()
+    # a keyless device answers as before
+    url2, _ = device(key=None, insecure=True)
+    raw = _open_session(url2, key=None, auth=False)
+    try:
+        version = m.PROTOCOL_VERSION
+        hello = raw.link.request(m.Hello(min_version=version, max_version=version,
+                                         nonce=bytes(16)))
+        assert len(hello.slots) == 2 and hello.ram_budget_bytes > 0
+    finally:
+        raw.link.close()
+
+
+def test_untagged_bad_tag_and_replayed_chunks_are_not_stored(tmp_path, device):
+    image = make_image(tmp_path / "m.ecs", size_bytes=20_000)
+    url, dev = device()
+    session = _open_session(url)
+    stats = dev.device.stats
+    try:
+        begin = m.ImageBegin(size_bytes=len(image), digest=hashlib.sha256(image).digest(),
+                             image_tag=image[-32:], format_version=1, generation=1)
+        box = {}
+        session.call(begin, on_reply=lambda rid, r: box.setdefault("id", rid))
+        chunk = m.ImageChunk(offset=0, data=image[:512])
+        session.link.send(chunk, request_id=box["id"])  # untagged
+        session.link.send(m.tag_event(chunk, OTHER_KEY, 1), request_id=box["id"])  # bad tag
+
+        def dropped() -> int:
+            return stats.dropped_unauthenticated + stats.dropped_bad_tag
+
+        _wait(lambda: dropped() == 2, "the two chunks dropped")
+        assert stats.dropped_unauthenticated == 1 and stats.dropped_bad_tag == 1
+        assert stats.chunks == 0  # nothing written
+        tagged = session.tag_event(chunk)
+        session.link.send(tagged, request_id=box["id"])
+        _wait(lambda: stats.chunks == 1, "the tagged chunk stored")
+        session.link.send(tagged, request_id=box["id"])  # the same frame again
+        _wait(lambda: stats.dropped_replayed == 1, "the replayed chunk dropped")
+        assert stats.chunks == 1
+    finally:
+        session.link.close()
+
+
+def _wait(predicate, what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        threading.Event().wait(0.01)
+
+
+def _tcp(dev: DeviceThread) -> str:
+    return f"socket://127.0.0.1:{dev.transport.port}"
+
+
+def test_auth_deadline_drops_a_hello_and_ping_hog(tmp_path):
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=0.5) as dev:
+        hog = _open_session(_tcp(dev), auth=False)
+        try:
+            version = m.PROTOCOL_VERSION
+            hog.link.request(m.Hello(min_version=version, max_version=version,
+                                     nonce=bytes(16)))
+            pings = 0
+            deadline = time.monotonic() + 10
+            while not hog.link.closed and time.monotonic() < deadline:
+                with contextlib.suppress(ProtocolError):
+                    hog.ping(timeout_s=0.2, retries=0)  # valid frames: they do not extend it
+                    pings += 1
+                threading.Event().wait(0.05)
+            assert hog.link.closed and pings >= 2
+            assert dev.device.stats.auth_timeouts == 1
+            assert any("did not authenticate within 0.5 s" in line for line in dev.lines)
+        finally:
+            hog.link.close()
+
+
+def test_a_new_connection_preempts_an_unauthenticated_one(tmp_path, model):
+    path, image = model
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=600) as dev:  # the deadline does not explain it
+        hog = _open_session(_tcp(dev), auth=False)
+        try:
+            version = m.PROTOCOL_VERSION
+            hog.link.request(m.Hello(min_version=version, max_version=version,
+                                     nonce=bytes(16)))
+            result = provision(path, _tcp(dev), key=KEY, **QUIET)
+            assert result.outcome == "installed" and result.confirmed
+            assert dev.device.stats.preempted >= 1
+            _wait(lambda: hog.link.closed, "the hog dropped")
+        finally:
+            hog.link.close()
+        _check_device_holds(tmp_path / "flash", image)
+
+
+def test_an_authenticated_host_is_not_displaced_by_a_newcomer(tmp_path):
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=0.3) as dev:
+        host = _open_session(_tcp(dev))
+        assert host.authenticated
+        newcomer = _open_session(_tcp(dev), auth=False)
+        try:
+            with pytest.raises(ProtocolError):  # waits in the backlog: no answer
+                newcomer.link.request(m.Ping(sent_us=1), timeout_s=0.3, retries=2)
+            host.ping(timeout_s=1.0, retries=0)  # past the auth deadline: still served
+            assert dev.device.stats.preempted == 0 and dev.device.stats.auth_timeouts == 0
+        finally:
+            newcomer.link.close()
+            host.link.close()

@@ -18,6 +18,7 @@ from device_runtime.runtime import (
     LatestSlot,
     RequestLimiter,
     RuntimeDevice,
+    ScoreItem,
     StandaloneScores,
     canonical_view,
     parse_orbit,
@@ -29,7 +30,9 @@ from host.provision import provision
 from protocol import messages as m
 from protocol.errors import ImageFormatError
 from protocol.image import read_image
-from protocol.scores import encode_scores
+from protocol.link import HostSession, Link
+from protocol.scores import DecodedScores, encode_scores
+from protocol.transport import open_transport
 
 
 def test_parse_orbit_forms_and_errors():
@@ -175,7 +178,8 @@ def test_a_delta_without_its_base_asks_for_a_key_frame(tmp_path, model_path, mod
     assert len(requests) == 1 and requests[0].last_frame == 7
     assert device.runtime_stats.missing_base == 1
     # a new session forgets every base: a delta against frame 7 is refused now
-    device.handle_hello(m.Hello(min_version=1, max_version=1, nonce=bytes(16)), None)
+    version = m.PROTOCOL_VERSION
+    device.handle_hello(m.Hello(min_version=version, max_version=version, nonce=bytes(16)), None)
     device._last_keyframe_request = -1e9
     again = encode_scores(model.quantized_scores(43.0, 10.0), step=model.score_step, frame=10,
                           view=(43.0, 10.0), image_digest=model.digest, base=key)
@@ -318,3 +322,164 @@ def test_peak_rss_is_this_process_not_the_parent_before_exec():
     assert peak_rss_bytes() > 200 * 2**20
     assert 0 < child < 150 * 2**20, child
     del ballast
+
+
+# ------------------------------------------------------------------ hostile peers (issue 11)
+
+
+def _overflow_packet(model, mode: int) -> bytes:
+    from test_scores import overflow_packet
+
+    return overflow_packet(model.image.n_coefficients, model.digest, mode=mode)
+
+
+def _key_packet(model, phi: float, theta: float, frame: int) -> bytes:
+    view = canonical_view(phi, theta)
+    return encode_scores(model.quantized_scores(*view), step=model.score_step, frame=frame,
+                         view=view, image_digest=model.digest).packet
+
+
+class _Shown:
+    """Collects what a runtime presents: (phi_deg, theta_deg) of every frame with a view."""
+
+    def __init__(self):
+        self.views = []
+        self.frames = {}
+
+    def __call__(self, frame, info):
+        if info.get("phi_deg") is not None:
+            view = (info["phi_deg"], info["theta_deg"])
+            self.views.append(view)
+            self.frames[view] = frame.copy()
+
+
+def _serving_runtime(tmp_path, model_path, *, key=KEY):
+    """A RuntimeThread on mem:// with the tiny model installed; returns (rt, host url, shown)."""
+    name = mem_name("hostile")
+    flash = tmp_path / "flash"
+    if key is None:  # install with a keyed device first; the keyless one boots the same flash
+        with RuntimeThread(flash, f"mem://{name}-p?end=b&pace=0"):
+            provision(model_path, f"mem://{name}-p?end=a&pace=0", key=KEY,
+                      show_progress=False, log=lambda line: None)
+    shown = _Shown()
+    rt = RuntimeThread(flash, f"mem://{name}?end=b&pace=0", on_frame=shown,
+                       config=DeviceConfig(flash_dir=flash, key=key))
+    url = f"mem://{name}?end=a&pace=0"
+    if key is not None:
+        provision(model_path, url, key=KEY, show_progress=False, log=lambda line: None)
+    return rt, url, shown
+
+
+def _session(url, key=KEY):
+    link = Link(open_transport(url, timeout_s=5), owns_transport=True).start()
+    session = HostSession(link, key=key, request_timeout_s=0.5)
+    session.start()
+    return session
+
+
+@pytest.mark.parametrize("mode", [0, 2], ids=["scalar-step", "per-component-step"])
+def test_an_overflowing_score_packet_does_not_stop_the_device(tmp_path, model_path, model,
+                                                              mode):
+    rt, url, shown = _serving_runtime(tmp_path, model_path)
+    try:
+        session = _session(url)
+        session.send_scores(m.Scores(sequence=0, packet=_overflow_packet(model, mode)))
+        wait_until(lambda: rt.device.runtime_stats.decode_errors == 1, 10, "the refusal")
+        session.send_scores(m.Scores(sequence=0, packet=_key_packet(model, 20.0, 10.0, 5)))
+        wait_until(lambda: canonical_view(20.0, 10.0) in shown.views, 10, "the good frame")
+        np.testing.assert_array_equal(shown.frames[canonical_view(20.0, 10.0)],
+                                      model.view(20.0, 10.0))
+        assert not rt.errors and all(t.is_alive() for t in rt.threads)
+        session.link.close()
+    finally:
+        rt.stop()
+
+
+def test_a_frame_the_display_cannot_show_is_skipped(tmp_path, model_path, model):
+    shown = _Shown()
+    device = _device(tmp_path, model_path, max_frames=2, on_frame=shown)
+    k = model.image.n_coefficients
+
+    def item(y, frame, phi):
+        scores = DecodedScores(frame=frame, base_frame=None, phi_deg=phi, theta_deg=0.0, y=y,
+                               q=np.zeros(k, np.int32), step=1.0, packet_bytes=40)
+        return ScoreItem(device._decoder_model, scores, 0, time.monotonic())
+
+    bad = np.full(k, np.inf, np.float32)  # what a decoder without bounds handed on
+    good_y = model.quantized_scores(*canonical_view(30.0, 0.0))
+    good = item(np.asarray(good_y, np.float32), 2, canonical_view(30.0, 0.0)[0])
+    device._scores.put(item(bad, 1, 10.0))
+    failed = device._frame_failed
+
+    def then_a_good_one(frame, exc):
+        failed(frame, exc)
+        device._scores.put(good)
+
+    device._frame_failed = then_a_good_one
+    lines = []
+    device._log = lines.append
+    device.run_display()  # returns after the mean and the good frame: it did not die
+    assert shown.views == [(canonical_view(30.0, 0.0)[0], 0.0)]
+    assert device.runtime_stats.frame_failures == 1
+    assert sum("frame 1 skipped" in line for line in lines) == 1
+    device.close_display()
+    device.close()
+
+
+def test_scores_without_hello_are_not_shown(tmp_path, model_path, model):
+    rt, url, shown = _serving_runtime(tmp_path, model_path, key=None)
+    try:
+        attacker = Link(open_transport(url, timeout_s=5), owns_transport=True).start()
+        attacker.send(m.Scores(sequence=0, packet=_key_packet(model, 50.0, 5.0, 3)))
+        wait_until(lambda: rt.device.stats.dropped_no_session == 1, 10, "the drop")
+        assert rt.device.runtime_stats.packets == 0 and shown.views == []
+        attacker.close()
+        session = _session(url, key=None)  # keyless: after HELLO, untagged scores are shown
+        session.send_scores(m.Scores(sequence=0, packet=_key_packet(model, 50.0, 5.0, 4)))
+        wait_until(lambda: canonical_view(50.0, 5.0) in shown.views, 10, "the frame")
+        session.link.close()
+    finally:
+        rt.stop()
+
+
+def test_keyed_device_shows_only_tagged_fresh_scores_of_an_authenticated_session(
+        tmp_path, model_path, model):
+    rt, url, shown = _serving_runtime(tmp_path, model_path)
+    stats = rt.device.stats
+    try:
+        # HELLO without AUTH: scores dropped, and a delta with a made-up base asks nothing
+        got = []
+        attacker = Link(open_transport(url, timeout_s=5), owns_transport=True,
+                        handler=lambda msg, frame: got.append(msg)).start()
+        version = m.PROTOCOL_VERSION
+        attacker.request(m.Hello(min_version=version, max_version=version, nonce=bytes(16)))
+        attacker.send(m.Scores(sequence=0, packet=_key_packet(model, 60.0, 0.0, 3)))
+        wait_until(lambda: stats.dropped_unauthenticated == 1, 10, "the untagged drop")
+        key = encode_scores(model.quantized_scores(61.0, 0.0), step=model.score_step, frame=7,
+                            view=(61.0, 0.0), image_digest=model.digest)
+        delta = encode_scores(model.quantized_scores(62.0, 0.0), step=model.score_step,
+                              frame=8, view=(62.0, 0.0), image_digest=model.digest, base=key)
+        attacker.send(m.Scores(sequence=0, packet=delta.packet))
+        wait_until(lambda: stats.dropped_unauthenticated == 2, 10, "the delta drop")
+        assert not any(isinstance(msg, m.KeyframeRequest) for msg in got)
+        assert rt.device.runtime_stats.packets == 0
+        attacker.close()
+        # an authenticated session: a wrong tag and a replay are dropped, fresh tags shown
+        session = _session(url)
+        wrong = m.tag_event(m.Scores(sequence=0, packet=_key_packet(model, 70.0, 0.0, 10)),
+                            bytes(32), 1)
+        session.link.send(wrong)
+        wait_until(lambda: stats.dropped_bad_tag == 1, 10, "the bad-tag drop")
+        first = session.tag_event(m.Scores(sequence=0, packet=_key_packet(model, 71.0, 0.0, 11)))
+        session.link.send(first)
+        wait_until(lambda: canonical_view(71.0, 0.0) in shown.views, 10, "the first frame")
+        session.send_scores(m.Scores(sequence=0, packet=_key_packet(model, 72.0, 0.0, 12)))
+        wait_until(lambda: canonical_view(72.0, 0.0) in shown.views, 10, "the second frame")
+        session.link.send(first)  # replayed
+        wait_until(lambda: stats.dropped_replayed == 1, 10, "the replay drop")
+        assert shown.views.count(canonical_view(71.0, 0.0)) == 1
+        assert canonical_view(70.0, 0.0) not in shown.views
+        assert not any(v[0] in (60.0, 61.0, 62.0) for v in shown.views)
+        session.link.close()
+    finally:
+        rt.stop()

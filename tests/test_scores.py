@@ -30,6 +30,7 @@ from protocol.scores import (
     ScoreDecoder,
     ScorePacketError,
     encode_scores,
+    score_bound,
 )
 
 GOLDEN = Path(__file__).parent / "golden" / "score_packets.jsonl"
@@ -525,6 +526,53 @@ def independent_parse(packet, n_cells=None, counts=None):
 
 def load_golden():
     return [json.loads(line) for line in GOLDEN.read_text().splitlines() if line.strip()]
+
+
+def overflow_packet(n_coefficients, digest, *, mode=0, step=3e38, q0=2**31 - 1):
+    """Issue 11's one-packet kill: a raw key packet whose step (header, or the first entry of
+    a per-component step array) is ``step`` and whose first quantized score is ``q0``."""
+    flags = mode << 2
+    head = struct.pack("<2sBBIIffI4sf", MAGIC, 1, flags, 1, 0, 10.0, 5.0, n_coefficients,
+                       digest[:4], step if mode == 0 else 0.0)
+    steps = b""
+    if mode == 2:
+        steps = np.array([step] + [1.0] * (n_coefficients - 1), dtype="<f4").tobytes()
+    z = (q0 << 1) ^ (q0 >> 63)
+    first = bytearray()
+    while True:
+        byte, z = z & 0x7F, z >> 7
+        first.append(byte | (0x80 if z else 0))
+        if not z:
+            break
+    return head + steps + bytes(first) + bytes(n_coefficients - 1)
+
+
+@pytest.mark.parametrize("mode", [0, 2], ids=["scalar-step", "per-component-step"])
+def test_an_overflowing_step_is_refused_at_decode(mode):
+    """3e38 * (2**31 - 1) is inf in float32: the decoder must refuse it, not hand it on."""
+    dec = ScoreDecoder(8, DIGEST)
+    with pytest.raises(ScorePacketError, match="over the bound"):
+        dec.decode(overflow_packet(8, DIGEST, mode=mode))
+    assert dec.base_frames == []  # not kept as a delta base either
+    # NaN and inf steps are refused too (header and array)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ScorePacketError):
+            dec.decode(overflow_packet(8, DIGEST, mode=mode, step=bad, q0=1))
+    # a finite step under the bound whose score is over it: LimitExceeded
+    bounded = ScoreDecoder(8, DIGEST, max_abs_score=1000.0)
+    with pytest.raises(LimitExceeded, match="over the bound 1e\\+03"):
+        bounded.decode(overflow_packet(8, DIGEST, mode=mode, step=2.0, q0=501))
+    out = bounded.decode(overflow_packet(8, DIGEST, mode=mode, step=2.0, q0=500))
+    assert np.all(np.isfinite(out.y)) and out.y[0] == 1000.0
+
+
+def test_score_bound_follows_the_cell_size():
+    assert score_bound(3) == pytest.approx(4 * 255 * np.sqrt(3))
+    assert score_bound(12 * 12 * 3) > 255 * 12 * 12 ** 0.5 * 3 ** 0.5
+    with pytest.raises(ValueError):
+        score_bound(0)
+    with pytest.raises(ValueError):
+        ScoreDecoder(4, DIGEST, max_abs_score=float("inf"))
 
 
 def test_golden_packets():
