@@ -389,6 +389,7 @@ def provision(
     *,
     baud: int = 115200,
     key: bytes | None = None,
+    insecure: bool = False,
     force: bool = False,
     chunk_bytes: int | None = None,
     retransmit: str = "selective",
@@ -416,6 +417,10 @@ def provision(
         Serial line rate.
     key : bytes, optional
         The device key (needed when the device holds one).
+    insecure : bool
+        With ``key``: install on a device that says it holds no key anyway (unauthenticated;
+        said once through ``log``). Without it such a device is refused
+        (:class:`~protocol.errors.AuthenticationError`) before anything is sent.
     force : bool
         Allow installing an older image generation (rollback).
     chunk_bytes : int, optional
@@ -483,7 +488,8 @@ def provision(
                     notices = _Notices()
                     link = Link(transport, handler=notices, owns_transport=True).start()
                     session = HostSession(
-                        link, key=key, host_id=host_id, request_timeout_s=request_timeout_s
+                        link, key=key, host_id=host_id, request_timeout_s=request_timeout_s,
+                        insecure=insecure,
                     )
                     stage("hello")
                     hello = session.start()
@@ -502,6 +508,9 @@ def provision(
                             f", protocol {session.version}"
                             f"{', authenticated' if session.authenticated else ', no key'})"
                         )
+                        if key is not None and not session.authenticated:
+                            say(f"WARNING: --insecure: device '{hello.device_id}' holds no key; "
+                                "sending the image unauthenticated")
                         done = _already_there(session, hello, info, force=force, say=say)
                         if done is not None:
                             done.seconds = time.monotonic() - started

@@ -464,6 +464,7 @@ def serve(
     url: str,
     *,
     key: bytes | None = None,
+    insecure: bool = False,
     baud: int = 115200,
     orbit: OrbitSpec | None = None,
     fps: float = 60.0,
@@ -495,6 +496,9 @@ def serve(
         The device's port: ``socket://HOST:PORT``, ``/dev/ttyUSB0``, ``mem://...``.
     key : bytes, optional
         Device key (needed when the device holds one; also verifies the image's tag).
+    insecure : bool
+        With ``key``: serve a device that says it holds no key anyway (unauthenticated; said
+        once through ``log``). Without it such a device is refused (AuthenticationError).
     baud : int
         Serial line rate.
     orbit : OrbitSpec, optional
@@ -581,6 +585,7 @@ def serve(
     attempt = 0
     current = _Shown()
     refiner: _Refiner | None = None
+    warned_insecure = False
 
     def done() -> bool:
         if stop.is_set():
@@ -598,9 +603,13 @@ def serve(
                 events = _DeviceEvents(stats, say)
                 link = Link(transport, handler=events, owns_transport=True).start()
                 session = HostSession(link, key=key, host_id=host_id,
-                                      request_timeout_s=request_timeout_s)
+                                      request_timeout_s=request_timeout_s, insecure=insecure)
                 hello = session.start()
                 stats.device_id = hello.device_id
+                if key is not None and not session.authenticated and not warned_insecure:
+                    warned_insecure = True
+                    say(f"WARNING: --insecure: device '{hello.device_id}' holds no key; "
+                        "serving it unauthenticated")
                 if _active_digest(hello) != info.digest:
                     if not provision_missing:
                         held = _active_digest(hello)
@@ -613,7 +622,7 @@ def serve(
                     link.close(flush_timeout_s=0.5)
                     link = None
                     say(f"device '{hello.device_id}' lacks the image: provisioning it")
-                    provision(model_path, url, baud=baud, key=key, log=say,
+                    provision(model_path, url, baud=baud, key=key, insecure=insecure, log=say,
                               transport_factory=transport_factory)
                     stats.provisioned = True
                     continue

@@ -1270,6 +1270,10 @@ class HostSession:
         Informational, sent in HELLO.
     versions : tuple of int
         (min, max) protocol versions this host speaks.
+    insecure : bool
+        With a ``key``: still talk to a device whose HELLO_REPLY says it holds no key
+        (unauthenticated, ``--insecure``). Without it such a device is refused: it may be
+        an impostor, or a man in the middle who cleared ``has_key`` (a downgrade).
 
     Attributes
     ----------
@@ -1287,6 +1291,7 @@ class HostSession:
     versions: tuple[int, int] = (m.PROTOCOL_VERSION, m.PROTOCOL_VERSION)
     request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S
     retries: int = DEFAULT_RETRIES
+    insecure: bool = False
     hello: m.HelloReply | None = None
     version: int = 0
     authenticated: bool = False
@@ -1305,7 +1310,8 @@ class HostSession:
         RemoteUnsupportedVersion, ProtocolError
             No common protocol version (one line naming both ranges).
         AuthenticationError
-            The device holds a key and none was given, or a proof does not verify.
+            The device holds a key and none was given, or a proof does not verify, or a
+            key was given and the device says it holds none (unless ``insecure``).
         """
         self._host_nonce = os.urandom(m.NONCE_BYTES)
         hello = self.link.request(
@@ -1333,6 +1339,13 @@ class HostSession:
         )
         if hello.has_key:
             self.authenticate()
+        elif self.key is not None and not self.insecure:
+            raise AuthenticationError(
+                f"{self.link.name}: a key was given but the device '{hello.device_id}' says it "
+                "holds no key: it may be an impostor or the link is tampered with; pair the "
+                "device (eigencast-device --pair KEYFILE) or pass --insecure to send to a "
+                "keyless device anyway"
+            )
         return self.hello
 
     def authenticate(self) -> None:

@@ -386,6 +386,59 @@ def test_device_without_a_key_refuses_provisioning_unless_insecure(device, tmp_p
     _check_device_holds(dev.config.flash_dir, image)
 
 
+def _record_received(dev: DeviceThread, *types: m.MessageType) -> list[m.MessageType]:
+    """Count what the device is sent of ``types`` (then handle it as usual)."""
+    seen: list[m.MessageType] = []
+    for msg_type in types:
+        original = getattr(dev.device, Device.HANDLERS[msg_type])
+
+        def handler(msg, frame, original=original, msg_type=msg_type):
+            seen.append(msg_type)
+            return original(msg, frame)
+
+        dev.device.on(msg_type, handler)
+    return seen
+
+
+_IMAGE_TYPES = (m.MessageType.IMAGE_STATUS, m.MessageType.IMAGE_BEGIN, m.MessageType.IMAGE_CHUNK,
+                m.MessageType.IMAGE_COMMIT, m.MessageType.SLOT_SET)
+
+
+def test_a_host_with_a_key_refuses_a_device_that_says_it_has_none(device, model):
+    """Item 4 of issue 11: an impostor (or a man in the middle clearing has_key) gets nothing."""
+    path, image = model
+    url, dev = device(key=None, insecure=True)  # answers HELLO_REPLY has_key=false
+    seen = _record_received(dev, *_IMAGE_TYPES)
+    with pytest.raises(AuthenticationError, match=r"says it holds no key.*--insecure"):
+        provision(path, url, key=KEY, **QUIET)
+    assert seen == []
+    assert FlashStore.open(dev.config.flash_dir).active_slot is None
+    lines: list[str] = []
+    result = provision(path, url, key=KEY, insecure=True, show_progress=False, log=lines.append)
+    assert result.outcome == "installed" and result.confirmed
+    assert m.MessageType.IMAGE_CHUNK in seen
+    _check_device_holds(dev.config.flash_dir, image)
+    assert sum("--insecure" in line for line in lines) == 1
+
+
+def test_cli_provision_with_a_key_to_a_keyless_device_is_one_line_and_sends_nothing(
+    device, model, tmp_path, capsys
+):
+    path, _ = model
+    write_key(tmp_path / "k.key", KEY)
+    url, dev = device(key=None, insecure=True)
+    seen = _record_received(dev, *_IMAGE_TYPES)
+    rc = cli_main(["provision", str(path), "--port", url, "--key", str(tmp_path / "k.key"),
+                   "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.count("\n") == 0
+    assert "holds no key" in err and "--pair" in err and "--insecure" in err
+    assert seen == []
+    rc = cli_main(["provision", str(path), "--port", url, "--key", str(tmp_path / "k.key"),
+                   "--insecure", "--quiet"])
+    assert rc == 0 and m.MessageType.IMAGE_CHUNK in seen
+
+
 def test_image_signed_with_another_key_is_refused_at_verify(device, tmp_path):
     path = tmp_path / "other.ecs"
     make_image(path, size_bytes=40_000, key=OTHER_KEY)

@@ -187,3 +187,52 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
         stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
                       orbit=parse_orbit("steps:2"), log=_quiet)
     assert stats.frames == 2 and stats.packet_bytes > 12000
+
+
+def test_serve_with_a_key_refuses_a_device_that_says_it_holds_none(tmp_path, model_path, model):
+    """Item 4 of issue 11: a keyless device (an impostor, or has_key cleared on the way) gets
+    no SCORES from ``serve --key`` unless ``--insecure`` is given."""
+    from device_runtime.device import DeviceConfig
+    from protocol import messages as m
+    from protocol.errors import AuthenticationError
+
+    name = mem_name("impostor")
+    frames = tmp_path / "frames"
+    config = DeviceConfig(flash_dir=tmp_path / "flash", key=None, insecure=True)
+    with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", frames=frames,
+                       config=config) as device:
+        provision(model_path, f"mem://{name}?end=a&pace=0", key=None, show_progress=False,
+                  log=_quiet)
+        seen = []
+        on_scores = device.device.handle_scores
+        device.device.on(m.MessageType.SCORES,
+                         lambda msg, frame: (seen.append(msg), on_scores(msg, frame))[1])
+        with pytest.raises(AuthenticationError, match=r"holds no key.*--insecure"):
+            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                  orbit=parse_orbit("steps:3:0"), log=_quiet)
+        assert seen == [] and read_frames(frames) == []
+        lines = []
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, insecure=True,
+                      orbit=parse_orbit("steps:3:0"), log=lines.append)
+        assert stats.frames == 3
+        wait_until(lambda: len(seen) == 3, 10, "the three packets on the device")
+    assert sum("--insecure" in line for line in lines) == 1
+
+
+def test_serve_cli_with_a_key_to_a_keyless_device_is_one_line(tmp_path, model_path):
+    from provision_helpers import DeviceProcess
+
+    from protocol.keys import write_key
+
+    write_key(tmp_path / "k.key", KEY)
+    device = DeviceProcess(tmp_path / "flash", "--insecure", "--headless")
+    try:
+        res = subprocess.run([sys.executable, "-m", "host.cli", "serve", str(model_path),
+                              "--port", device.url, "--key", str(tmp_path / "k.key"),
+                              "--orbit", "steps:2", "--no-reconnect"],
+                             capture_output=True, text=True, timeout=60)
+    finally:
+        device.stop()
+    assert res.returncode == 1, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "holds no key" in res.stderr
+    assert any("presented 0 frames" in line for line in device.lines), device.lines

@@ -1,4 +1,5 @@
-"""``eigencast provision MODEL.ecs --port URL [--baud B] [--key KEYFILE] [--force] [--json]``."""
+"""``eigencast provision MODEL.ecs --port URL [--baud B] [--key KEYFILE [--insecure]] [--force]
+[--json]``."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ HELP = "install an eigenspace image on a device (resumable, verified, authentica
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the image, ``--port``, ``--baud``, ``--key``, ``--force`` and tuning flags."""
+    """Add the image, ``--port``, ``--baud``, ``--key``, ``--insecure``, ``--force``, tuning."""
     parser.add_argument("model", metavar="MODEL.ecs", type=Path, help="eigenspace image")
     parser.add_argument("--port", required=True, metavar="URL",
                         help="device port: /dev/ttyUSB0, socket://HOST:PORT, rfc2217://...")
@@ -22,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serial line rate (default 115200)")
     parser.add_argument("--key", metavar="KEYFILE", type=Path,
                         help="device key (needed when the device holds one)")
+    parser.add_argument("--insecure", action="store_true",
+                        help="with --key: install on a device that says it holds no key anyway "
+                        "(unauthenticated; refused by default: it may be an impostor)")
     parser.add_argument("--force", action="store_true",
                         help="allow installing an older image generation (rollback)")
     parser.add_argument("--chunk", metavar="BYTES", type=int,
@@ -48,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         args.port,
         baud=args.baud,
         key=key,
+        insecure=args.insecure,
         force=args.force,
         chunk_bytes=args.chunk,
         retransmit=args.retransmit,

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serial line rate (default 115200)")
     parser.add_argument("--key", metavar="KEYFILE", type=Path,
                         help="device key (needed when the device holds one)")
+    parser.add_argument("--insecure", action="store_true",
+                        help="with --key: serve a device that says it holds no key anyway "
+                        "(unauthenticated; refused by default: it may be an impostor)")
     parser.add_argument("--orbit", metavar="SPEC", help=_ORBIT_HELP)
     parser.add_argument("--fps", type=float, default=60.0,
                         help="packets per second at most (default 60; 0: as fast as the link "
@@ -121,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
         args.model,
         args.port,
         key=key,
+        insecure=args.insecure,
         baud=args.baud,
         orbit=orbit,
         fps=args.fps,
