@@ -109,6 +109,7 @@ class BadReason(IntEnum):
     NOT_CONFIRMED = 2
     ABANDONED = 3
     REVERTED = 4
+    NOT_LOADABLE = 5
 
     @property
     def description(self) -> str:
@@ -119,6 +120,7 @@ class BadReason(IntEnum):
             BadReason.NOT_CONFIRMED: "test image not confirmed; reverted at boot",
             BadReason.ABANDONED: "test image abandoned for another slot",
             BadReason.REVERTED: "reverted by command",
+            BadReason.NOT_LOADABLE: "the device could not load it; fell back at boot",
         }[self]
 
 

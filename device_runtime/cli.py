@@ -9,8 +9,9 @@ Usage::
                      [--standalone] [--orbit SPEC | --views LIST] [--view PHI,THETA]
                      [--max-frames N] [--stats FILE] [--screenshots DIR] [--zoom Z]
     eigencast-device --standalone --flash DIR [display options]     (no host at all)
-    eigencast-device --flash DIR --status [--json]
+    eigencast-device --flash DIR --status [--json] [--key KEYFILE] [--ram-budget MB]
     eigencast-device --pair KEYFILE --flash DIR
+    eigencast-device --unpair --flash DIR
 
 The runtime (:mod:`device_runtime.runtime`) boots the active image from flash, shows it in
 a window (drag or arrow keys change the view, ``+``/``-`` zoom, ``h`` overlay, ``s``
@@ -26,7 +27,14 @@ Serving logs one line per event to stderr (``eigencast-device: ...``); with
 (the real port when PORT is 0). It keeps running after a host disconnects and
 stops on SIGINT/SIGTERM. The key comes from ``--key`` or, failing that, from
 the one ``--pair`` installed in the flash folder (``DIR/device.key``, mode
-0600). A device without a key refuses provisioning unless ``--insecure``.
+0600). A device without a key refuses provisioning unless ``--insecure``;
+``--insecure`` is refused on a paired flash folder (``--unpair`` removes the
+key first), as with ``--key``: a device with a key always authenticates.
+
+``--status`` says per slot whether it *verifies*: its digest matches and this
+device (its key, or the paired one, and ``--ram-budget``) would load it; when
+not, ``problem`` says why. At boot an active image that does not load is given
+up for the other slot (see :meth:`device_runtime.device.Device.fall_back`).
 
 Every user error (bad flag, bad URL, missing key file, corrupt flash folder)
 is one line on stderr and exit code 1. :func:`build_parser` is the parser the
@@ -51,6 +59,7 @@ from device_runtime.device import (
     DEFAULT_RAM_BUDGET_BYTES,
     DEFAULT_RX_WINDOW_FRAMES,
     DeviceConfig,
+    image_problem,
 )
 from device_runtime.errors import DeviceError, FlashError
 from device_runtime.flash import FlashStore, format_status
@@ -131,10 +140,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="keyed device on TCP: drop a connection that has not "
                         "authenticated within S seconds (default 5)")
     parser.add_argument("--status", action="store_true",
-                        help="print each slot's state, digest and whether it verifies; exit")
+                        help="print each slot's state, digest and whether it verifies "
+                        "(digest, and loads with this key and --ram-budget); exit")
     parser.add_argument("--json", action="store_true", help="with --status: print JSON")
     parser.add_argument("--pair", metavar="KEYFILE", type=Path,
                         help="install this key into the flash folder (mode 0600) and exit")
+    parser.add_argument("--unpair", action="store_true",
+                        help="remove the key --pair installed in the flash folder and exit")
     show = parser.add_argument_group("display and runtime")
     mode = show.add_mutually_exclusive_group()
     mode.add_argument("--headless", action="store_true",
@@ -212,11 +224,13 @@ def _status(args: argparse.Namespace) -> int:
         raise _UsageError(f"no flash folder at {args.flash} (a device creates it when it "
                           "first starts)")
     store = FlashStore.open(args.flash, create=False)
-    status = store.status()
     key_path = paired_key_path(args.flash)
-    key = None
-    if key_path.exists():
-        key = key_fingerprint(load_key(key_path))
+    paired = load_key(key_path) if key_path.exists() else None
+    device_key = load_key(args.key) if args.key is not None else paired
+    budget = int(args.ram_budget * _MB)
+    status = store.status(check_image=lambda stream: image_problem(
+        stream, key=device_key, ram_budget_bytes=budget))
+    key = None if paired is None else key_fingerprint(paired)
     status["paired_key_fingerprint"] = key
     if args.json:
         print(json.dumps(status, indent=2))
@@ -236,15 +250,32 @@ def _pair(args: argparse.Namespace) -> int:
     return 0
 
 
+def _unpair(args: argparse.Namespace) -> int:
+    target = paired_key_path(args.flash)
+    if not target.exists():
+        raise _UsageError(f"--unpair: no paired key in {args.flash} ({target} does not exist)")
+    fingerprint = key_fingerprint(load_key(target))
+    target.unlink()
+    print(f"removed paired key {fingerprint} from {target}")
+    return 0
+
+
 def _config(args: argparse.Namespace) -> DeviceConfig:
     key = None
+    paired = paired_key_path(args.flash)
     if args.key is not None:
+        if args.insecure:
+            raise _UsageError("--insecure cannot be combined with --key (a device with a key "
+                              "always authenticates)")
         key = load_key(args.key)
-    elif paired_key_path(args.flash).exists() and not args.insecure:
-        key = load_key(paired_key_path(args.flash))
-    if key is not None and args.insecure:
-        raise _UsageError("--insecure cannot be combined with --key (a device with a key "
-                          "always authenticates)")
+    elif paired.exists():
+        if args.insecure:
+            raise _UsageError(
+                f"--insecure: this device is paired ({paired} holds its key) and a device with "
+                "a key always authenticates; to run it without one, unpair it first "
+                f"(eigencast-device --unpair --flash {args.flash})"
+            )
+        key = load_key(paired)
     if args.max_frame is not None and not 1024 <= args.max_frame <= 1 << 24:
         raise _UsageError(f"--max-frame {args.max_frame} must be in 1024..16777216")
     if not 1 <= args.window <= 65535:
@@ -415,8 +446,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
+        if args.pair is not None and args.unpair:
+            raise _UsageError("--pair and --unpair cannot be combined")
         if args.pair is not None:
             return _pair(args)
+        if args.unpair:
+            return _unpair(args)
         if args.status:
             return _status(args)
         if args.json:

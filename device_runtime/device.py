@@ -94,6 +94,8 @@ __all__ = [
     "DeviceRefusal",
     "DeviceStats",
     "error_for",
+    "image_problem",
+    "read_device_image",
     "required_ram_bytes",
 ]
 
@@ -238,6 +240,56 @@ def required_ram_bytes(manifest: dict) -> int:
         (image_shape[0], image_shape[1]), (cell_shape[0], cell_shape[1]), n_coefficients
     )
     return int(base + extra)
+
+
+def read_device_image(stream: Any, *, key: bytes | None, ram_budget_bytes: int) -> Any:
+    """Read and validate an image exactly as a device with ``key`` and budget loads it.
+
+    The RAM the image needs (:func:`required_ram_bytes`, from its manifest) must fit
+    ``ram_budget_bytes``; then the whole image is read within that budget: structure,
+    digest and, on a device with a key, a tag made with that key (unsigned images are
+    refused). Boot, the fallback and ``eigencast-device --status`` use this one check.
+
+    Parameters
+    ----------
+    stream : binary file
+        Seekable, positioned at the image's first byte (a flash slot).
+    key : bytes or None
+        The device key (None: a keyless device, which does not check tags).
+    ram_budget_bytes : int
+
+    Returns
+    -------
+    EigenspaceImage
+
+    Raises
+    ------
+    ImageFormatError, ImageTagError, BudgetError
+    """
+    max_manifest = min(MAX_MANIFEST_BYTES, ram_budget_bytes)
+    manifest = read_manifest(stream, max_manifest_bytes=max_manifest)
+    need = required_ram_bytes(manifest)
+    if need > ram_budget_bytes:
+        raise BudgetError(f"the image needs {need} bytes of RAM, the budget is {ram_budget_bytes}")
+    stream.seek(0)
+    return read_image(
+        stream,
+        key=key,
+        require_tag=key is not None,
+        max_manifest_bytes=max_manifest,
+        max_section_bytes=ram_budget_bytes,
+        max_total_bytes=ram_budget_bytes,
+        read_annex=False,
+    )
+
+
+def image_problem(stream: Any, *, key: bytes | None, ram_budget_bytes: int) -> str | None:
+    """None when :func:`read_device_image` accepts the image, else why not (one line)."""
+    try:
+        read_device_image(stream, key=key, ram_budget_bytes=ram_budget_bytes)
+    except (ProtocolError, DeviceError, OSError, ValueError) as exc:
+        return _one_line(str(exc), 200) or type(exc).__name__
+    return None
 
 
 # --------------------------------------------------------------------------- config
@@ -497,67 +549,85 @@ class Device:
 
     # ------------------------------------------------------------------ boot
     def boot(self) -> Any:
-        """Boot the flash store, then load and confirm a test image (or revert it)."""
+        """Boot the flash store, then load the active image (confirming a test image).
+
+        An active image that does not load, whatever its state, is given up for the
+        other slot (:meth:`fall_back`), as MCUboot does.
+        """
         result = self.store.boot()
         self.log(f"boot: {result.reason}")
-        if result.ok and result.state == "test":
+        if result.ok:
             self._load_and_confirm("boot")
         return result
 
     def _load_and_confirm(self, why: str) -> bool:
-        """Load and validate the active TEST image; confirm it, or revert to the fallback.
+        """Load and validate the active image; confirm a TEST one; fall back when it fails.
 
         Issue 4 has no display: the image is confirmed once it has been read
         and validated (digest, tag, structure, RAM bounds). The issue-5
         runtime overrides :meth:`on_image_committed` to confirm after the first frame.
         """
-        slot = self.store.active_slot
-        try:
-            self.load_active_image()
-        except (ProtocolError, DeviceError, OSError) as exc:
-            self.log(f"{why}: slot {slot}: the image does not load ({_one_line(str(exc), 200)})")
+        for _ in range(2):  # the active slot, then at most the one it fell back to
+            slot = self.store.active_slot
+            if slot is None:
+                return False
+            info = self.store.slots[0 if slot == "A" else 1]
             try:
-                self.store.revert()
-                self.log(f"{why}: reverted to slot {self.store.active_slot}")
-            except FlashError as revert_exc:
-                self.log(f"{why}: cannot revert: {revert_exc}")
-            self.notice(2, f"slot {slot}: image failed to load; reverted",
-                        {"event": "load-failed", "slot": slot or "?"})
-            return False
-        self.store.confirm()
-        info = self.store.slots[0 if slot == "A" else 1]
-        self.log(f"{why}: slot {slot}: image generation {info.image_generation} loaded and "
-                 "confirmed")
-        self.notice(0, f"slot {slot}: image confirmed",
-                    {"event": "confirmed", "slot": slot or "?",
-                     "generation": info.image_generation})
-        return True
+                self.load_active_image()
+            except (ProtocolError, DeviceError, OSError, ValueError) as exc:
+                if self.fall_back(why, slot, exc) is None:
+                    return False
+                continue
+            if info.state.name != "TEST":
+                self.log(f"{why}: slot {slot}: image generation {info.image_generation} loaded")
+                return True
+            self.store.confirm()
+            self.log(f"{why}: slot {slot}: image generation {info.image_generation} loaded and "
+                     "confirmed")
+            self.notice(0, f"slot {slot}: image confirmed",
+                        {"event": "confirmed", "slot": slot,
+                         "generation": info.image_generation})
+            return True
+        return False
+
+    def fall_back(self, why: str, slot: str, exc: BaseException) -> str | None:
+        """The active image (``slot``) cannot be loaded: give it up for the other slot.
+
+        The slot is marked BAD (not loadable) and the other slot, if it holds a
+        confirmed image that verifies, becomes active, in one state write
+        (:meth:`FlashStore.reject_active`); a log line and an error NOTICE
+        (``event`` ``load-failed``) say why. Nothing from ``slot`` is shown.
+
+        Returns
+        -------
+        str or None
+            The slot active now, or None when no image is.
+        """
+        reason = _one_line(str(exc), 160)
+        self.log(f"{why}: slot {slot}: the image does not load ({reason})")
+        try:
+            now = self.store.reject_active()
+        except FlashError as err:
+            self.log(f"{why}: slot {slot}: cannot give it up: {err}")
+            now = None
+        outcome = (f"fell back to slot {now}" if now is not None
+                   else "no other slot holds a confirmed image: nothing to show")
+        self.log(f"{why}: slot {slot} marked bad; {outcome}")
+        self.notice(2, f"slot {slot}: the image does not load ({reason}); {outcome}",
+                    {"event": "load-failed", "slot": slot, "active": now or "",
+                     "reason": reason})
+        return now
 
     def load_active_image(self) -> Any:
-        """Read and validate the active image within the RAM budget; return it.
+        """Read and validate the active image as this device loads it; return it.
 
         Raises
         ------
-        ImageFormatError, ImageTagError, FlashError
+        ImageFormatError, ImageTagError, FlashError, BudgetError
         """
         with self.store.open_active() as stream:
-            manifest = read_manifest(stream, max_manifest_bytes=self._max_manifest_bytes())
-            need = required_ram_bytes(manifest)
-            if need > self.config.ram_budget_bytes:
-                raise BudgetError(
-                    f"the image needs {need} bytes of RAM, the budget is "
-                    f"{self.config.ram_budget_bytes}"
-                )
-            stream.seek(0)
-            return read_image(
-                stream,
-                key=self.config.key,
-                require_tag=self.config.key is not None,
-                max_manifest_bytes=self._max_manifest_bytes(),
-                max_section_bytes=self.config.ram_budget_bytes,
-                max_total_bytes=self.config.ram_budget_bytes,
-                read_annex=False,
-            )
+            return read_device_image(stream, key=self.config.key,
+                                     ram_budget_bytes=self.config.ram_budget_bytes)
 
     def _max_manifest_bytes(self) -> int:
         return min(MAX_MANIFEST_BYTES, self.config.ram_budget_bytes)

@@ -6,7 +6,9 @@ slot by offset, verified (SHA-256, re-read from the slot), and committed as a
 *test* image by one atomic state write; the runtime confirms it once it has
 loaded it and shown a frame, and an image that is not confirmed reverts at the
 next boot (MCUboot's test/confirm). At boot the active slot's digest is checked
-and a bad slot falls back to the other one. An interrupted transfer resumes,
+and a bad slot falls back to the other one; an image whose digest is right but
+which the device cannot load (format, tag, RAM budget: the caller's checks) is
+given up the same way with :meth:`FlashStore.reject_active`. An interrupted transfer resumes,
 even across a reboot, from a journal of verified blocks kept beside the
 inactive slot. Image contents are opaque bytes here: format checks and the
 HMAC tag are the caller's job.
@@ -27,6 +29,7 @@ Use
     store.confirm()
     # slot commands and status:
     store.set_active("B", force=False); store.revert(force=False)
+    store.reject_active()                           # active image does not load: fall back
     format_status(store.status())                   # --status; the dict is --json
 
 Errors are :class:`~device_runtime.errors.FlashError` subclasses, one per
@@ -95,6 +98,11 @@ Provisioning, step by step, and what a cut at each step leaves
    was never confirmed is marked BAD and the other (confirmed) slot becomes
    active again. Cut: either state is valid.
 8. ``confirm``: one state write TEST -> CONFIRMED.
+9. ``reject_active`` (the device could not load the active image, whatever its
+   state): one state write marking it BAD (not loadable) and making the other
+   slot active when that one is CONFIRMED and verifies (else none). Cut: the
+   old state (the next boot fails to load it again and rejects it again) or
+   the new one.
 
 So at every instant the newest valid record names an active slot whose bytes
 were durable before the record was written, and boot re-checks them anyway.
@@ -805,7 +813,61 @@ class FlashStore:
                                             bad_reason=BadReason.REVERTED)
         self._write_record(dataclasses.replace(record, active=other, slots=(slots[0], slots[1])))
 
+    @_wrap_os_errors("reject_active")
+    def reject_active(self) -> str | None:
+        """Give up the active image because it cannot be loaded; fall back like MCUboot.
+
+        The device calls this when the active slot's bytes match their digest but the
+        image does not load (format, missing or wrong tag, RAM budget). The slot becomes
+        BAD (``NOT_LOADABLE``) and the other slot becomes active if it holds a CONFIRMED
+        image that verifies; otherwise no image is active. No rollback check: like the
+        boot's digest fallback, a device that cannot run its newest image runs the one it
+        ran before. One state write (power-cut safe).
+
+        Returns
+        -------
+        str or None
+            The slot active now (``"A"``/``"B"``), or None when no image is active.
+
+        Raises
+        ------
+        NoImage
+            No image is active.
+        """
+        record = self._record
+        if record.active is None:
+            raise NoImage(f"flash reject_active: no image is active ({self.path})")
+        bad, other = record.active, 1 - record.active
+        slots = list(record.slots)
+        slots[bad] = dataclasses.replace(slots[bad], state=SlotState.BAD,
+                                         bad_reason=BadReason.NOT_LOADABLE)
+        active: int | None = None
+        if slots[other].state is SlotState.CONFIRMED:
+            if self._check_slot(slots[other], other)[0]:
+                active = other
+            else:
+                slots[other] = dataclasses.replace(slots[other], state=SlotState.BAD,
+                                                   bad_reason=BadReason.DIGEST_MISMATCH)
+        self._write_record(dataclasses.replace(record, active=active, slots=(slots[0], slots[1])))
+        return None if active is None else SLOT_NAMES[active]
+
     # ----------------------------------------------------------------- reads
+    @_wrap_os_errors("open_slot")
+    def open_slot(self, slot: str) -> io.BufferedReader:
+        """Open ``slot``'s image for streaming reads (exactly ``size_bytes`` bytes, seekable).
+
+        Raises
+        ------
+        NoImage
+            The slot is empty.
+        """
+        index = _slot_index(slot)
+        info = self._record.slots[index]
+        if info.state is SlotState.EMPTY:
+            raise NoImage(f"flash open_slot: slot {SLOT_NAMES[index]} is empty ({self.path})")
+        fd = os.open(self._slot_path(index), os.O_RDONLY)
+        return io.BufferedReader(_SlotReader(fd, info.size_bytes), buffer_size=64 * 1024)
+
     @_wrap_os_errors("open_active")
     def open_active(self) -> io.BufferedReader:
         """Open the active image for streaming reads (exactly ``size_bytes`` bytes, seekable).
@@ -823,13 +885,22 @@ class FlashStore:
         return io.BufferedReader(_SlotReader(fd, info.size_bytes), buffer_size=64 * 1024)
 
     @_wrap_os_errors("status")
-    def status(self, *, verify: bool = True) -> dict[str, Any]:
+    def status(
+        self,
+        *,
+        verify: bool = True,
+        check_image: Callable[[io.BufferedReader], str | None] | None = None,
+    ) -> dict[str, Any]:
         """Describe the store for ``eigencast-device --status [--json]`` (changes nothing).
 
         Parameters
         ----------
         verify : bool
             Re-hash every non-empty slot (and the journalled blocks).
+        check_image : callable, optional
+            With ``verify``: ``check_image(stream) -> None`` when the slot's image (whose
+            digest matched) would be loaded by the device, else a few words why not (its
+            format, tag or RAM checks). Without it ``verifies`` means the digest only.
 
         Returns
         -------
@@ -837,17 +908,25 @@ class FlashStore:
             ``path``, ``capacity_bytes``, ``record_generation``, ``active_slot``;
             ``slots``: a list of dicts with ``slot``, ``active``, ``state``,
             ``size_bytes``, ``sha256`` (hex or None), ``image_generation``,
-            ``boot_attempts``, ``bad_reason`` (text or None) and ``verifies``
-            (bool, or None when empty or not checked); ``journal``: None or a dict
+            ``boot_attempts``, ``bad_reason`` (text or None), ``verifies``
+            (bool, or None when empty or not checked: the digest matches and, with
+            ``check_image``, the device would load it) and ``problem`` (why it does not
+            verify, else None); ``journal``: None or a dict
             with ``slot``, ``size_bytes``, ``sha256``, ``image_generation`` and
             ``verified_offset`` (None when not checked). JSON-serialisable.
         """
         record = self._record
         slots = []
         for index, info in enumerate(record.slots):
-            verifies = None
+            verifies, problem = None, None
             if verify and info.state is not SlotState.EMPTY:
-                verifies = self._check_slot(info, index)[0]
+                verifies, detail = self._check_slot(info, index)
+                if not verifies:
+                    problem = detail
+                elif check_image is not None:
+                    with self.open_slot(info.name) as stream:
+                        problem = check_image(stream)
+                    verifies = problem is None
             slots.append({
                 "slot": info.name,
                 "active": record.active == index,
@@ -858,6 +937,7 @@ class FlashStore:
                 "boot_attempts": info.boot_attempts,
                 "bad_reason": info.bad_reason.description or None,
                 "verifies": verifies,
+                "problem": problem,
             })
         journal = None
         target = self._target_index()
@@ -1438,6 +1518,8 @@ def format_status(status: dict[str, Any]) -> str:
         if slot["state"] != "empty":
             text += (f" {slot['size_bytes']} bytes, generation {slot['image_generation']}, "
                      f"sha256 {slot['sha256'][:16]}…, {verifies[slot['verifies']]}")
+            if slot.get("problem"):
+                text += f": {slot['problem']}"
             if slot["state"] == "test":
                 text += f", boot attempts {slot['boot_attempts']}"
             if slot["bad_reason"]:

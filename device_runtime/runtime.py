@@ -760,19 +760,29 @@ class RuntimeDevice(Device):
 
     def _activate(self, why: str, *, depth: int = 0) -> bool:
         slot = self.store.active_slot
-        info = self.store.slots[0 if slot == "A" else 1] if slot else None
-        test = info is not None and info.state.name == "TEST"
+        if slot is None:
+            return False
+        info = self.store.slots[0 if slot == "A" else 1]
+        test = info.state.name == "TEST"
         try:
             image = self.load_active_image()
+        except (ProtocolError, DeviceError, OSError, ValueError) as exc:
+            # digest, format, tag, RAM budget: this device cannot load it, whatever its
+            # state; give it up for the other slot (MCUboot) and show nothing from it
+            return (self.fall_back(why, slot, exc) is not None and depth == 0
+                    and self._activate(why, depth=1))
+        try:
             model = LoadedModel.build(
                 image,
-                slot=slot or "?",
-                generation=info.image_generation if info else 0,
+                slot=slot,
+                generation=info.image_generation,
                 test=test,
                 max_packet_bytes=None,
                 want_standalone=self.standalone,
             )
         except (ProtocolError, DeviceError, OSError, ValueError) as exc:
+            # this run's mode cannot use it (e.g. --standalone without a table): a test
+            # image goes back to the other slot; a confirmed one stays for a normal start
             text = " ".join(str(exc).split())[:200]
             self.log(f"{why}: slot {slot}: the image does not load ({text})")
             if not test:
@@ -782,11 +792,11 @@ class RuntimeDevice(Device):
             except FlashError as revert_exc:
                 self.log(f"{why}: cannot revert: {revert_exc}")
                 self.notice(2, f"slot {slot}: image failed to load",
-                            {"event": "load-failed", "slot": slot or "?"})
+                            {"event": "load-failed", "slot": slot})
                 return False
             self.log(f"{why}: reverted to slot {self.store.active_slot}")
             self.notice(2, f"slot {slot}: image failed to load; reverted",
-                        {"event": "load-failed", "slot": slot or "?"})
+                        {"event": "load-failed", "slot": slot})
             return depth == 0 and self._activate(why, depth=1)
         self.log(f"{why}: slot {slot}: image generation {model.generation} loaded "
                  f"({image.image_shape[1]}x{image.image_shape[0]}, K={image.n_coefficients}"

@@ -177,6 +177,73 @@ def test_both_slots_bad_boot_reports_no_image(old_new, folder):
     assert [s["verifies"] for s in store.status()["slots"]] == [False, False]
 
 
+def test_reject_active_marks_the_slot_bad_and_falls_back_durably(old_new, folder):
+    """A slot the device cannot load (its digest is fine) is given up for the confirmed one."""
+    store, old, _ = old_new
+    store.boot()
+    store.confirm()  # B confirmed and active, A confirmed fallback
+    assert store.reject_active() == "A"
+    for _ in range(2):  # durable: every later boot stays on A
+        store = reboot(folder)
+        assert store.boot().slot == "A" and active_bytes(store) == old
+    assert store.slots[1].state is SlotState.BAD
+    status = store.status()
+    assert status["slots"][1]["bad_reason"] == "the device could not load it; fell back at boot"
+    assert "could not load" in format_status(status)
+    # nothing to fall back to: no image is active, nothing can be shown from the bad slot
+    assert reboot(folder).reject_active() is None
+    store = reboot(folder)
+    assert store.active_slot is None and not store.boot().ok
+    with pytest.raises(NoImage):
+        store.reject_active()
+
+
+def test_status_reports_why_a_slot_would_not_load(old_new, folder):
+    store, _, new = old_new
+    seen = []
+
+    def check(stream):
+        data = stream.read()
+        seen.append(len(data))
+        return "not signed" if data == new else None
+
+    status = store.status(check_image=check)
+    assert [s["verifies"] for s in status["slots"]] == [True, False]
+    assert [s["problem"] for s in status["slots"]] == [None, "not signed"]
+    assert sorted(seen) == sorted([150_001, 170_017])
+    assert "DOES NOT VERIFY: not signed" in format_status(status)
+    flip_byte(folder / "slot_a.img", 5)  # a digest mismatch is reported without loading
+    status = reboot(folder).status(check_image=check)
+    assert status["slots"][0]["verifies"] is False
+    assert status["slots"][0]["problem"].startswith("digest mismatch")
+
+
+@pytest.mark.parametrize("cut_at", range(1, 8))
+def test_reject_active_survives_a_power_cut_at_every_operation(old_new, folder, tmp_path, cut_at):
+    store, old, new = old_new
+    store.boot()
+    store.confirm()
+    model = driver.PageCacheModel(folder, cut_at)
+    previous = driver.install_file_ops(model)
+    try:
+        store.reject_active()
+    except driver.PowerCut:
+        pass
+    finally:
+        driver.install_file_ops(previous)
+    rng = random.Random(cut_at)
+    for trial in range(3):
+        after = tmp_path / f"after{trial}"
+        model.materialize(folder, after, rng)
+        store = FlashStore.open(after)
+        result = store.boot()
+        if result.slot == "B":  # the old state: B still active, as confirmed
+            assert active_bytes(store) == new and store.slots[1].state is SlotState.CONFIRMED
+        else:  # the new state: A active, B marked bad
+            assert result.slot == "A" and active_bytes(store) == old
+            assert store.slots[1].state is SlotState.BAD
+
+
 def test_boot_without_verify_skips_digest(old_new, folder):
     flip_byte(folder / "slot_b.img", 3)
     result = reboot(folder).boot(verify=False)
