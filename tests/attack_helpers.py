@@ -262,7 +262,7 @@ def _valid_messages(k: int, tag: bytes) -> list[m.Message]:
     digest = bytes(range(32))
     sign = {"session_counter": 1, "session_tag": bytes(32)}
     msgs: list[m.Message] = [
-        m.Hello(min_version=1, max_version=1, nonce=bytes(16)),
+        m.Hello(min_version=1, max_version=m.PROTOCOL_VERSION, nonce=bytes(16)),
         m.AuthChallenge(host_proof=bytes(32)),
         m.Ping(payload=b"x" * 50, sent_us=5),
         m.Bye(reason="fuzz"),

@@ -269,8 +269,8 @@ def _send_all(peer: RawPeer, attacks: list[tuple[str, bytes]]) -> None:
 
 
 def _hello(peer: RawPeer, request_id: int = 1) -> m.HelloReply:
-    reply = peer.request(m.Hello(min_version=1, max_version=1, nonce=random.randbytes(16),
-                                 host_id="attacker"), request_id)
+    reply = peer.request(m.Hello(min_version=1, max_version=m.PROTOCOL_VERSION,
+                                 nonce=random.randbytes(16), host_id="attacker"), request_id)
     assert isinstance(reply, m.HelloReply), f"HELLO answered {reply!r}"
     return reply
 
