@@ -347,6 +347,8 @@ class RawPeer:
         self._decoder = FrameDecoder(max_frame_bytes)
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        self.pings_sent = 0
+        """PINGs the last :meth:`barrier` needed (more than 1: the device dropped some)."""
         self._thread = threading.Thread(target=self._read, daemon=True, name="raw-peer")
         self._thread.start()
 
@@ -392,11 +394,25 @@ class RawPeer:
                              timeout_s)
 
     def barrier(self, timeout_s: float = 10.0) -> bool:
-        """PING and wait for its PONG: everything sent before has been dispatched."""
-        payload = random.randbytes(12)
-        self.send(m.Ping(payload=payload, sent_us=1).encode(request_id=65000))
-        return self.wait_for(lambda rid, r: isinstance(r, m.Pong) and r.payload == payload,
-                             timeout_s) is not None
+        """PING until a PONG comes back: everything sent before has been dispatched.
+
+        The PING is repeated every 0.25 s: a device whose receive queue a flood filled drops
+        frames (the PING among them) rather than block its reader."""
+        payloads: set[bytes] = set()
+        self.pings_sent = 0
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            payload = random.randbytes(12)
+            payloads.add(payload)
+            self.pings_sent += 1
+            self.send(m.Ping(payload=payload, sent_us=1).encode(request_id=65000))
+            wait = min(0.25, max(0.0, deadline - time.monotonic()))
+            if self.wait_for(lambda rid, r: isinstance(r, m.Pong) and r.payload in payloads,
+                             wait) is not None:
+                return True
+            if not self._thread.is_alive():
+                return False
+        return False
 
     def close(self) -> None:
         self._stop.set()
