@@ -106,9 +106,15 @@ class Target:
         """Score packets the device has decoded (key + delta; refused ones not counted)."""
         raise NotImplementedError
 
+    settled: int | None = None
+    """Packets decoded as of the end of the last :meth:`check` (nothing has reached the
+    device since): saves :meth:`mark` a fresh read."""
+
     def mark(self) -> Mark:
         """Where the device is now: frames written, packets decoded."""
-        return Mark(len(read_frames(self.frames)), self.decoded())
+        decoded = self.settled if self.settled is not None else self.decoded()
+        self.settled = None
+        return Mark(len(read_frames(self.frames)), decoded)
 
     def shown(self, view: tuple[float, float], since: Mark | None = None) -> int:
         """How many frames at ``view`` the device wrote (since ``since``)."""
@@ -126,12 +132,14 @@ class Target:
             assert flash_fingerprint(self.flash) == stored, (
                 f"{self.name}: after {what} (seed {SEED}) the flash folder changed")
         self.serves(what)
-        got = self.decoded() - since.decoded - 1
+        now = self.decoded()
+        got = now - since.decoded - 1
         assert got == decoded, (
             f"{self.name}: after {what} (seed {SEED}) the device decoded {got} attacker "
             f"packets, not {decoded}")
         assert self.shown(ATTACK_VIEW, since) == 0, (
             f"{self.name}: after {what} (seed {SEED}) the attacker's view was shown")
+        self.settled = now
 
     def serves(self, what: str) -> None:
         """A real host streams one view (a fresh elevation each time) and it is shown."""
