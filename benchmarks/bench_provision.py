@@ -190,7 +190,8 @@ def ping_during_transfer(baud: int, tmp: Path, pings: int = 8) -> dict:
         chunk = choose_chunk_bytes(link.transport, hello, link)
         link.tx_low_water_bytes = chunk + CHUNK_OVERHEAD_BYTES  # as provision() does
         sender = threading.Thread(target=send_image, args=(link, image), kwargs={
-            "transfer_id": box["id"], "first_ack": ack, "chunk_bytes": chunk}, daemon=True)
+            "transfer_id": box["id"], "first_ack": ack, "chunk_bytes": chunk,
+            "tag": session.tag_event}, daemon=True)
         sender.start()
         time.sleep(0.5)  # let the window fill
         busy = []

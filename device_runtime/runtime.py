@@ -841,8 +841,15 @@ class RuntimeDevice(Device):
         if model is not None:
             model.decoder.reset()
         self._need_key = False
-        if not self.standalone:
+        if not self.standalone and self.config.key is None:
             self.limiter.offer(self.view)  # sent by the display loop after the reply
+        return reply
+
+    def handle_auth_challenge(self, msg: m.AuthChallenge, frame: Frame) -> m.Message:
+        """A keyed device asks for its view once the host has authenticated (not before)."""
+        reply = super().handle_auth_challenge(msg, frame)
+        if not self.standalone:
+            self.limiter.offer(self.view)
         return reply
 
     def on_scores(self, msg: m.Scores) -> None:
@@ -869,9 +876,10 @@ class RuntimeDevice(Device):
                 self.log(f"scores for another image dropped ({exc}); provision the host's "
                          "image")
             return
-        except ProtocolError as exc:
+        except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.decode_errors += 1
-            self.log(f"bad score packet dropped: {' '.join(str(exc).split())[:160]}")
+            self._log_drop("bad-scores", f"bad score packet dropped: "
+                           f"{' '.join(str(exc).split())[:160]} ({stats.decode_errors} so far)")
             return
         decode_s = time.perf_counter() - t0
         stats.decode_s.add(decode_s)
@@ -884,9 +892,12 @@ class RuntimeDevice(Device):
         self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
 
     def _session_link(self) -> Any:
-        """The link when a host session is up (HELLO done), else None."""
+        """The link when a host session is up (HELLO done; a keyed device: AUTH done), else
+        None: an unauthenticated peer learns nothing from view or key-frame requests."""
         link = self.link
         if link is None or link.closed or not self.session.hello_done:
+            return None
+        if self.config.key is not None and not self.session.authenticated:
             return None
         return link
 
@@ -1103,6 +1114,16 @@ class RuntimeDevice(Device):
         model = self._model
         out["view"] = list(self.view)
         out["standalone"] = self.standalone
+        guard = self.stats
+        out["link_guard"] = {  # what the device refused from its peers (issue 11)
+            "dropped_no_session": guard.dropped_no_session,
+            "dropped_unauthenticated": guard.dropped_unauthenticated,
+            "dropped_bad_tag": guard.dropped_bad_tag,
+            "dropped_replayed": guard.dropped_replayed,
+            "auth_timeouts": guard.auth_timeouts,
+            "preempted": guard.preempted,
+            "errors_sent": guard.errors_sent,
+        }
         out["image"] = None if model is None else {
             "slot": model.slot, "generation": model.generation,
             "shape": list(model.image.image_shape), "n_coefficients":

@@ -1258,7 +1258,8 @@ def negotiate_version(
 
 @dataclass
 class HostSession:
-    """The host's side of one session: HELLO, AUTH, signed requests, PING, SET_BAUD.
+    """The host's side of one session: HELLO, AUTH, signed requests, tagged events
+    (SCORES, IMAGE_CHUNK: :meth:`tag_event`, :meth:`send_scores`), PING, SET_BAUD.
 
     Parameters
     ----------
@@ -1278,7 +1279,8 @@ class HostSession:
     Attributes
     ----------
     hello : HelloReply or None
-        The device's HELLO_REPLY.
+        The device's HELLO_REPLY; from a keyed device completed after AUTH with the slots
+        and budgets its AUTH_RESPONSE carries (HELLO_REPLY hides them before AUTH).
     version : int
         Negotiated protocol version.
     authenticated : bool

@@ -9,6 +9,7 @@ a standalone device with no host shows any view.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import subprocess
@@ -231,3 +232,57 @@ def test_standalone_device_shows_views_with_no_host(tmp_path, model_path, model)
                           "--headless"], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert run.returncode == 1 and "no image" in run.stderr
     assert len(run.stderr.strip().splitlines()) <= 3 and "Traceback" not in run.stderr
+
+
+def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, model_path,
+                                                                      model):
+    """Issue 11 item 1 as reported: step 3e38 and q = 2**31 - 1 made ``eigencast-device``
+    exit with status 1. Now the packet is refused at decode and a later frame is shown."""
+    from test_scores import overflow_packet
+
+    from protocol import messages as m
+    from protocol.link import HostSession, Link
+    from protocol.scores import encode_scores
+    from protocol.transport import open_transport
+
+    frames = tmp_path / "frames"
+    stats = tmp_path / "stats.json"
+    device = DeviceProcess(tmp_path / "flash", "--insecure", "--headless", "--frames",
+                           str(frames), "--stats", str(stats))
+    try:
+        provision(model_path, device.url, key=None, show_progress=False, log=_quiet)
+        # item 2: a packet from a peer that never sent HELLO is not shown
+        stranger = Link(open_transport(device.url, timeout_s=5), owns_transport=True).start()
+        stray = encode_scores(model.quantized_scores(44.0, 0.0), step=model.score_step,
+                              frame=3, view=(44.0, 0.0), image_digest=model.digest)
+        sent = threading.Event()
+        stranger.send(m.Scores(sequence=0, packet=stray.packet), after_sent=sent.set)
+        assert sent.wait(10)  # on the wire before the PING (control frames go first)
+        stranger.request(m.Ping(sent_us=1))  # answered in order: the SCORES was handled
+        stranger.close()
+        link = Link(open_transport(device.url, timeout_s=5), owns_transport=True).start()
+        session = HostSession(link, key=None, request_timeout_s=1.0)
+        session.start()
+        k = model.image.n_coefficients
+        for mode in (0, 2):
+            sent = threading.Event()  # each one on the wire (scores are latest-wins)
+            session.send_scores(m.Scores(sequence=0, packet=overflow_packet(k, model.digest,
+                                                                            mode=mode)),
+                                after_sent=sent.set)
+            assert sent.wait(10)
+        good = encode_scores(model.quantized_scores(33.0, 12.0), step=model.score_step,
+                             frame=9, view=(33.0, 12.0), image_digest=model.digest)
+        session.send_scores(m.Scores(sequence=0, packet=good.packet))
+        wait_until(lambda: _has_view(frames, 33.0, 12.0), 20, "the good frame")
+        session.ping()  # still answering
+        assert device.proc.poll() is None
+        link.close()
+    finally:
+        assert device.stop() == 0
+    assert any("bad score packet dropped" in line and "over the bound" in line
+               for line in device.lines)
+    check_frames(model, frames)
+    assert not _has_view(frames, 44.0, 0.0)
+    summary = json.loads(stats.read_text())
+    assert summary["link_guard"]["dropped_no_session"] == 1
+    assert summary["decode_errors"] == 2

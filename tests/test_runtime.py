@@ -105,7 +105,8 @@ def _device(tmp_path, model_path, **kwargs):
     device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
                            presenter=presenter, log=lambda line: None, **kwargs)
     device.link = FakeLink()
-    device.session.device_nonce = bytes(16)  # as after HELLO
+    device.session.device_nonce = bytes(16)  # as after HELLO ...
+    device.session.session_key = bytes(32)  # ... and AUTH (a keyed device asks only then)
     return device
 
 
@@ -447,7 +448,7 @@ def test_keyed_device_shows_only_tagged_fresh_scores_of_an_authenticated_session
     rt, url, shown = _serving_runtime(tmp_path, model_path)
     stats = rt.device.stats
     try:
-        # HELLO without AUTH: scores dropped, and a delta with a made-up base asks nothing
+        # HELLO without AUTH: scores dropped, and a delta with an unknown base asks nothing
         got = []
         attacker = Link(open_transport(url, timeout_s=5), owns_transport=True,
                         handler=lambda msg, frame: got.append(msg)).start()
@@ -461,7 +462,8 @@ def test_keyed_device_shows_only_tagged_fresh_scores_of_an_authenticated_session
                               frame=8, view=(62.0, 0.0), image_digest=model.digest, base=key)
         attacker.send(m.Scores(sequence=0, packet=delta.packet))
         wait_until(lambda: stats.dropped_unauthenticated == 2, 10, "the delta drop")
-        assert not any(isinstance(msg, m.KeyframeRequest) for msg in got)
+        # an unauthenticated peer learns nothing: no key-frame (K probe) or view requests
+        assert not any(isinstance(msg, (m.KeyframeRequest, m.ViewRequest)) for msg in got)
         assert rt.device.runtime_stats.packets == 0
         attacker.close()
         # an authenticated session: a wrong tag and a replay are dropped, fresh tags shown
