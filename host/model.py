@@ -51,6 +51,7 @@ __all__ = [
     "components_for_threshold",
     "fit_database",
     "int8_report",
+    "read_model_image",
     "save_model",
     "score_step_for",
     "stack_for",
@@ -426,6 +427,21 @@ def save_model(
     return write_image(path, image, key=key, annex=annex)
 
 
+def read_model_image(path: str | os.PathLike, *, key: bytes | None = None) -> EigenspaceImage:
+    """Read and verify an ``.ecs`` file the way every host command does.
+
+    Structure, digest, the tag when ``key`` is given (a signed image must match it), the
+    host annex when the manifest declares one (missing or corrupt: refused) and no trailing
+    bytes. `HostModel.load` (``view``, ``serve``, ``evaluate``) and ``provision`` use it.
+
+    Raises
+    ------
+    ImageFormatError
+        One line naming the problem (`ImageTagError` for a wrong tag).
+    """
+    return read_image(path, key=key, require_annex=True)
+
+
 @dataclass
 class HostModel:
     """An eigenspace image loaded on the host, ready to synthesise novel views.
@@ -458,7 +474,7 @@ class HostModel:
         cls, path: str | os.PathLike, *, key: bytes | None = None, interpolation: str | None = None
     ) -> HostModel:
         """Read ``path`` (with its annex; verified with ``key`` when given)."""
-        image = read_image(path, key=key, require_annex=True)
+        image = read_model_image(path, key=key)
         return cls.from_image(image, image.annex or {}, interpolation=interpolation,
                               path=Path(path))
 

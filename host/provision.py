@@ -2,9 +2,10 @@
 
 :func:`provision` does, in order (docs/protocol.md, "Provisioning"):
 
-1. read the image's header and manifest, hash the *device image* (the first
-   ``image_size`` bytes; a host annex after it stays on the host) and check
-   its digest and, with a key, its tag;
+1. validate the whole file as ``view``/``serve``/``evaluate`` do
+   (:func:`host.model.read_model_image`: sections, tag, declared annex, no
+   trailing bytes), read its header and manifest, hash the *device image* (the
+   first ``image_size`` bytes; a host annex after it stays on the host);
 2. connect, HELLO (version negotiation), mutual AUTH (session key);
 3. compare digests with the device's slots: the active slot already holds the
    image -> nothing to do; the other slot holds it (verified, not bad) ->
@@ -49,7 +50,13 @@ from protocol.errors import (
     TransportError,
     TransportTimeout,
 )
-from protocol.image import HEADER_SIZE, parse_header, read_manifest, verify_stream
+from protocol.image import (
+    HEADER_SIZE,
+    ImageTagError,
+    parse_header,
+    read_manifest,
+    verify_stream,
+)
 from protocol.link import CHUNK_OVERHEAD_BYTES, HostSession, Link, send_image
 from protocol.transport import open_transport
 
@@ -111,17 +118,39 @@ class ImageInfo:
     ram_bytes: int
 
 
-def inspect_image(path: str | os.PathLike, *, key: bytes | None = None) -> ImageInfo:
+def inspect_image(
+    path: str | os.PathLike, *, key: bytes | None = None, whole_file: bool = True
+) -> ImageInfo:
     """Read an image's header and manifest, hash its device part, check its tag with ``key``.
+
+    Parameters
+    ----------
+    path : path-like
+    key : bytes, optional
+        A signed image's tag must match it.
+    whole_file : bool
+        Also validate the whole file as ``view``, ``serve`` and ``evaluate`` do
+        (:func:`host.model.read_model_image`: every section, the declared annex, no
+        trailing bytes). Off only to send malformed images on purpose (device tests).
 
     Raises
     ------
     ProvisionError
-        Missing file, not an eigencast image, corrupt (digest), or signed with another key.
+        Missing file, not an eigencast image, corrupt (digest, sections, annex), trailing
+        bytes, or signed with another key; one line that ends "nothing was installed".
     """
     path = Path(path)
     if not path.is_file():
-        raise ProvisionError(f"image '{path}' not found")
+        raise ProvisionError(f"image '{path}' not found; nothing was installed")
+    if whole_file:
+        from host.model import read_model_image
+
+        try:
+            read_model_image(path, key=key)
+        except ImageTagError:
+            pass  # said below, with what the device would answer
+        except ImageFormatError as exc:
+            raise ProvisionError(f"{exc}; nothing was installed") from None
     try:
         with open(path, "rb") as handle:
             header = parse_header(handle.read(HEADER_SIZE), what=f"image '{path}'")
@@ -142,11 +171,11 @@ def inspect_image(path: str | os.PathLike, *, key: bytes | None = None) -> Image
             tag = handle.read(32)
         ram = required_ram_bytes(manifest)
     except ImageFormatError as exc:
-        raise ProvisionError(str(exc)) from None
+        raise ProvisionError(f"{exc}; nothing was installed") from None
     if key is not None and header.signed and not tag_ok:
         raise ProvisionError(
             f"image '{path}' was signed with a different key than the one given "
-            "(the device would refuse it: TAG_MISMATCH)"
+            "(the device would refuse it: TAG_MISMATCH); nothing was installed"
         )
     generation = manifest.get("image_generation")
     return ImageInfo(
@@ -465,7 +494,7 @@ def provision(
     started = time.monotonic()
     say = log or (lambda line: print(f"eigencast provision: {line}", file=sys.stderr, flush=True))
     stage = on_stage or (lambda name: None)
-    info = inspect_image(image_path, key=key if precheck else None)
+    info = inspect_image(image_path, key=key if precheck else None, whole_file=precheck)
     factory = transport_factory or (
         lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s))
     )

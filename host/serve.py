@@ -565,7 +565,8 @@ def serve(
         raise ValueError(f"scores={scores!r}: expected one of {', '.join(SCORE_MODES)}")
     if refine_delay_s < 0:
         raise ValueError(f"refine_delay_s={refine_delay_s} must be >= 0")
-    info = inspect_image(model_path, key=key)
+    # the whole file is validated once, by HostModel.load (here or by the caller)
+    info = inspect_image(model_path, key=key, whole_file=False)
     model = model or HostModel.load(model_path, key=key)
     if scores != "interpolate" and true_views is None:
         true_views = open_true_view_scores(model)

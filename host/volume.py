@@ -54,14 +54,19 @@ Built-in volumes
 from __future__ import annotations
 
 import argparse
+import bz2
+import contextlib
 import functools
 import gzip
 import json
+import logging
 import re
+import warnings
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -654,6 +659,23 @@ def _inflate(blob: bytes, path: object, what: str) -> bytes:
     return out
 
 
+def _verify_compressed(fh: BinaryIO, codec: str, path: object, what: str) -> None:
+    """Decompress ``fh`` from its position to the end, discarding the output, so that a
+    corrupt stream (bad CRC, truncated, garbage after it) is an error.
+
+    Readers that stop once they have the data they need (nibabel reads gzip lazily,
+    pynrrd never looks at the gzip trailer) do not check the CRC; this full read does.
+    ``codec``: ``"gzip"`` (all members) or ``"bzip2"``.
+    """
+    try:
+        with (bz2.BZ2File(fh, mode="rb") if codec == "bzip2"
+              else gzip.GzipFile(fileobj=fh, mode="rb")) as stream:
+            while stream.read(1 << 22):
+                pass
+    except (OSError, EOFError, zlib.error, ValueError) as exc:  # BadGzipFile is an OSError
+        raise _fail(path, f"corrupt compressed {what}: {_one_line(exc)}") from None
+
+
 def _read_bytes(path: Path, what: str = "data file") -> bytes:
     try:
         return path.read_bytes()
@@ -940,6 +962,18 @@ def _load_nrrd(path: Path) -> _Loaded:
         raise _fail(path, f"cannot read NRRD data: {exc.strerror or _one_line(exc)}") from None
     if tuple(data.shape) != tuple(reversed(sizes)):
         raise _fail(path, f"NRRD data has shape {data.shape}, header sizes {sizes} (truncated?)")
+    encoding = str(header.get("encoding", "raw")).lower()
+    if encoding in ("gzip", "gz", "bzip2", "bz2"):  # pynrrd skips the CRC and a lost end
+        try:
+            with open(path, "rb") as fh:
+                nrrd.read_header(fh)  # leaves fh at attached data
+                with open(data_path, "rb") if data_file else contextlib.nullcontext(fh) as src:
+                    for _ in range(int(header.get("line skip", header.get("lineskip", 0)))):
+                        src.readline()
+                    _verify_compressed(src, "bzip2" if encoding.startswith("bz") else "gzip",
+                                       path, "data")
+        except OSError as exc:
+            raise _fail(path, f"cannot read NRRD data: {exc.strerror or _one_line(exc)}") from None
 
     sp: tuple[float, ...] = (1.0, 1.0, 1.0)
     file_axes = None
@@ -974,6 +1008,12 @@ def _load_nifti(path: Path) -> _Loaded:
     import nibabel as nib
     from nibabel.filebasedimages import ImageFileError
 
+    if _read_head(path, 2) == b"\x1f\x8b":  # .nii.gz: nibabel reads lazily, never the CRC
+        try:
+            with open(path, "rb") as fh:
+                _verify_compressed(fh, "gzip", path, "data")
+        except OSError as exc:
+            raise _fail(path, f"cannot read NIfTI: {exc.strerror or _one_line(exc)}") from None
     try:
         img = nib.load(str(path))
         canonical = nib.as_closest_canonical(img)
@@ -1174,20 +1214,57 @@ def _tiff_pixel_size_mm(page: object, imagej: dict | None) -> tuple[float, float
     return None  # NONE, or INCH: print DPI (72/96/300), not a voxel size
 
 
+@contextlib.contextmanager
+def _tifffile_messages() -> Iterator[list[str]]:
+    """Collect what tifffile logs or warns while reading, instead of stray stderr lines.
+
+    Yields the list that receives the text of every ERROR-level log record (a broken page
+    chain, as in a truncated file: the one thing worth folding into the error); warnings
+    are dropped.
+    """
+    logger = logging.getLogger("tifffile")
+    errors: list[str] = []
+
+    class _Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.levelno >= logging.ERROR:
+                errors.append(re.sub(r"^<[^>]*>\s*", "", record.getMessage()))
+
+    handler = _Keep(logging.DEBUG)
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield errors
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
+def _tiff_problem(exc: BaseException | None, errors: list[str]) -> str:
+    parts = ([_one_line(exc)] if exc is not None else []) + errors[:1]
+    return "; ".join(dict.fromkeys(parts)) + ("" if exc is not None else " (truncated or damaged)")
+
+
 def _load_tiff(path: Path) -> _Loaded:
     import tifffile
 
-    try:
-        with tifffile.TiffFile(path) as tif:
-            series = tif.series[0]
-            axes = series.axes
-            data = series.asarray()
-            imagej = tif.imagej_metadata
-            pixel_mm = _tiff_pixel_size_mm(tif.pages[0], imagej)
-    except (tifffile.TiffFileError, ValueError, KeyError, IndexError, EOFError) as exc:
-        raise _fail(path, f"cannot read TIFF: {_one_line(exc)}") from None
-    except OSError as exc:
-        raise _fail(path, f"cannot read TIFF: {exc.strerror or _one_line(exc)}") from None
+    with _tifffile_messages() as errors:
+        try:
+            with tifffile.TiffFile(path) as tif:
+                series = tif.series[0]
+                axes = series.axes
+                data = series.asarray()
+                imagej = tif.imagej_metadata
+                pixel_mm = _tiff_pixel_size_mm(tif.pages[0], imagej)
+        except (tifffile.TiffFileError, ValueError, KeyError, IndexError, EOFError) as exc:
+            raise _fail(path, f"cannot read TIFF: {_tiff_problem(exc, errors)}") from None
+        except OSError as exc:
+            raise _fail(path, f"cannot read TIFF: {exc.strerror or _one_line(exc)}") from None
+    if errors:  # read, but tifffile found the page chain broken: pages may be missing
+        raise _fail(path, f"cannot read TIFF: {_tiff_problem(None, errors)}")
     for ax in ("S", "C"):
         if ax in axes and data.shape[axes.index(ax)] > 1:
             raise _fail(path, f"TIFF has {data.shape[axes.index(ax)]} channels: only greyscale")
@@ -1234,15 +1311,20 @@ def _load_tiff_folder(path: Path) -> _Loaded:
     slices = []
     pixel_mm = None
     for i, p in enumerate(files):
-        try:
-            with tifffile.TiffFile(p) as tif:
-                page = tif.series[0].asarray()
-                if i == 0:
-                    pixel_mm = _tiff_pixel_size_mm(tif.pages[0], tif.imagej_metadata)
-        except (tifffile.TiffFileError, ValueError, KeyError, IndexError, EOFError) as exc:
-            raise _fail(p, f"cannot read TIFF slice: {_one_line(exc)}") from None
-        except OSError as exc:
-            raise _fail(p, f"cannot read TIFF slice: {exc.strerror or _one_line(exc)}") from None
+        with _tifffile_messages() as errors:
+            try:
+                with tifffile.TiffFile(p) as tif:
+                    page = tif.series[0].asarray()
+                    if i == 0:
+                        pixel_mm = _tiff_pixel_size_mm(tif.pages[0], tif.imagej_metadata)
+            except (tifffile.TiffFileError, ValueError, KeyError, IndexError, EOFError) as exc:
+                raise _fail(p, f"cannot read TIFF slice: {_tiff_problem(exc, errors)}") from None
+            except OSError as exc:
+                raise _fail(
+                    p, f"cannot read TIFF slice: {exc.strerror or _one_line(exc)}"
+                ) from None
+        if errors:
+            raise _fail(p, f"cannot read TIFF slice: {_tiff_problem(None, errors)}")
         page = np.squeeze(page)
         if page.ndim != 2:
             raise _fail(p, f"TIFF slice has shape {page.shape}: expected one greyscale page")

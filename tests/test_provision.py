@@ -387,16 +387,18 @@ def test_device_without_a_key_refuses_provisioning_unless_insecure(device, tmp_p
 
 
 def _record_received(dev: DeviceThread, *types: m.MessageType) -> list[m.MessageType]:
-    """Count what the device is sent of ``types`` (then handle it as usual)."""
+    """Count what the device is sent of ``types`` (then handle it as usual: the per-message
+    handler method is wrapped on the instance, so authorization still runs before it)."""
     seen: list[m.MessageType] = []
     for msg_type in types:
-        original = getattr(dev.device, Device.HANDLERS[msg_type])
+        name = Device.HANDLERS[msg_type]
+        original = getattr(dev.device, name)
 
         def handler(msg, frame, original=original, msg_type=msg_type):
             seen.append(msg_type)
             return original(msg, frame)
 
-        dev.device.on(msg_type, handler)
+        setattr(dev.device, name, handler)
     return seen
 
 
@@ -437,6 +439,68 @@ def test_cli_provision_with_a_key_to_a_keyless_device_is_one_line_and_sends_noth
     rc = cli_main(["provision", str(path), "--port", url, "--key", str(tmp_path / "k.key"),
                    "--insecure", "--quiet"])
     assert rc == 0 and m.MessageType.IMAGE_CHUNK in seen
+
+
+def _with_annex(tmp_path, damage: str):
+    """A signed image with a host annex, then damaged as ``view`` would refuse it."""
+    import numpy as np
+
+    from protocol.image import read_image, write_image
+
+    plain = tmp_path / "plain.ecs"
+    make_image(plain, size_bytes=30_000)
+    image = read_image(plain)
+    path = tmp_path / f"{damage}.ecs"
+    annex = {"training_scores": np.arange(6 * image.n_coefficients, dtype=np.float32).reshape(
+        6, image.n_coefficients)}
+    write_image(path, image, key=KEY, annex=annex)
+    data = bytearray(path.read_bytes())
+    size = struct.unpack_from("<Q", data, 20)[0]
+    assert len(data) > size  # the annex follows the device image
+    if damage == "missing-annex":
+        del data[size:]
+    elif damage == "corrupt-annex":
+        data[size + (len(data) - size) // 2] ^= 0xFF
+    elif damage == "trailing-garbage":
+        data += b"garbage after the end"
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("damage, text", [("missing-annex", "annex"),
+                                          ("corrupt-annex", "annex"),
+                                          ("trailing-garbage", "trailing bytes")])
+def test_provision_validates_the_file_as_view_does_before_sending(device, tmp_path, capsys,
+                                                                  damage, text):
+    """Item 6 of issue 11: what view/serve/evaluate refuse, provision refuses, in one line,
+    before anything is sent."""
+    from host.model import HostModel, read_model_image
+    from protocol.errors import ImageFormatError
+
+    path = _with_annex(tmp_path, damage)
+    with pytest.raises(ImageFormatError):  # the validation view, serve and evaluate use
+        HostModel.load(path, key=KEY)
+    with pytest.raises(ImageFormatError):
+        read_model_image(path)
+    url, dev = device()
+    seen = _record_received(dev, *_IMAGE_TYPES)
+    with pytest.raises(ProvisionError, match=f"{text}.*nothing was installed"):
+        provision(path, url, key=KEY, **QUIET)
+    write_key(tmp_path / "k.key", KEY)
+    rc = cli_main(["provision", str(path), "--port", url, "--key", str(tmp_path / "k.key")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.count("\n") == 0 and text in err and "nothing was installed" in err
+    assert seen == []
+    assert FlashStore.open(dev.config.flash_dir).active_slot is None
+
+
+def test_provision_sends_an_intact_image_with_its_annex(device, tmp_path):
+    path = _with_annex(tmp_path, "none")
+    url, dev = device()
+    result = provision(path, url, key=KEY, **QUIET)
+    assert result.outcome == "installed" and result.confirmed
+    size = struct.unpack_from("<Q", path.read_bytes(), 20)[0]
+    _check_device_holds(dev.config.flash_dir, path.read_bytes()[:size])  # not the annex
 
 
 def test_image_signed_with_another_key_is_refused_at_verify(device, tmp_path):
@@ -534,7 +598,8 @@ def test_a_decompression_bomb_manifest_is_refused_before_anything_is_inflated(de
     bomb_path = tmp_path / "bomb.ecs"
     bomb_path.write_bytes(_bomb(image))
     url, _ = device()
-    with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_RAM"):
+    # the host's file validation (the one view/serve use) refuses it before connecting
+    with pytest.raises(ProvisionError, match=r"over the limit.*nothing was installed"):
         provision(bomb_path, url, key=KEY, **QUIET)
     with pytest.raises(RemoteTooLargeForRam):
         provision(bomb_path, url, key=KEY, precheck=False, **QUIET)

@@ -107,6 +107,37 @@ def test_bad_input_is_one_line_and_exit_1(tmp_path, args, message):
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.shared_data
+@pytest.mark.parametrize("command", ["render-view", "render"])
+def test_a_nii_gz_with_overwritten_bytes_is_one_line_and_writes_nothing(tmp_path, shared_path,
+                                                                        command):
+    """Issue 11: bytes 5000-8000 of the MNI .nii.gz overwritten still inflate, but the gzip
+    CRC fails: that is an error, not a rendered image."""
+    path = tmp_path / "mni.nii.gz"
+    blob = bytearray(shared_path("mni152").read_bytes())
+    blob[5000:8000] = bytes(3000)
+    path.write_bytes(bytes(blob))
+    out = tmp_path / ("out.png" if command == "render-view" else "out.cdb")
+    res = _run(command, str(path), "-o", str(out), *SMALL, check=False)
+    assert res.returncode == 1, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "corrupt compressed data" in lines[0] and "CRC" in lines[0]
+    assert not out.exists()
+
+
+def test_a_truncated_tiff_is_exactly_one_line(tmp_path):
+    import tifffile
+
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, (np.arange(16 * 32 * 32) % 251).astype(np.uint8).reshape(16, 32, 32))
+    path.write_bytes(path.read_bytes()[:-100])
+    res = _run("render-view", str(path), "-o", str(tmp_path / "o.png"), *SMALL, check=False)
+    assert res.returncode == 1, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "stack.tif" in lines[0] and "truncated" in lines[0], res.stderr
+    assert not (tmp_path / "o.png").exists()
+
+
 def test_the_sidecar_records_an_absolute_volume_path_and_old_relative_ones_resume(tmp_path):
     import json
 

@@ -433,6 +433,60 @@ def test_nifti_corrupt(tmp_path):
     _error("bad.nii.gz", path)
 
 
+def _damage_gzip_trailer(path, how: str) -> None:
+    """Break only a gzip file's trailer: the deflate data still inflates to the full size,
+    so a reader that stops at the data it needs sees nothing wrong; a CRC check does."""
+    blob = bytearray(path.read_bytes())
+    if how == "crc":
+        blob[-8] ^= 0xFF  # CRC-32 of the data
+    else:
+        del blob[-4:]  # truncated: ISIZE lost
+    path.write_bytes(bytes(blob))
+
+
+@pytest.mark.parametrize("how, text", [("crc", "CRC check failed"), ("cut", "ended before")])
+def test_nifti_gz_with_a_broken_gzip_trailer_is_an_error(tmp_path, how, text):
+    path = write_nifti(tmp_path / "v.nii.gz", small_volume("uint16", SHAPE), np.eye(4))
+    _damage_gzip_trailer(path, how)
+    message = _error("v.nii.gz", path)
+    assert "corrupt compressed" in message and text in message
+
+
+@pytest.mark.parametrize("how", ["crc", "cut"])
+def test_nrrd_gzip_with_a_broken_gzip_trailer_is_an_error(tmp_path, how):
+    path = write_nrrd(tmp_path / "v.nrrd", small_volume("uint16", SHAPE), {"encoding": "gzip"})
+    _damage_gzip_trailer(path, how)
+    message = _error("v.nrrd", path)
+    assert "corrupt compressed" in message
+
+
+def test_nrrd_detached_gzip_with_a_lost_end_is_an_error(tmp_path):
+    path = write_nrrd(tmp_path / "v.nhdr", small_volume("uint16", SHAPE), {"encoding": "gzip"},
+                      detached_header=True)
+    data_file = next(p for p in tmp_path.iterdir() if p.name != "v.nhdr")
+    _damage_gzip_trailer(data_file, "cut")
+    assert "corrupt compressed" in _error("v.nhdr", path)
+
+
+def test_intact_compressed_volumes_still_load(tmp_path):
+    vol = small_volume("uint16", SHAPE)
+    nifti = write_nifti(tmp_path / "v.nii.gz", vol, np.eye(4))
+    nrrd_gz = write_nrrd(tmp_path / "g.nrrd", vol, {"encoding": "gzip"})
+    nrrd_bz2 = write_nrrd(tmp_path / "b.nrrd", vol, {"encoding": "bzip2"})
+    for path in (nifti, nrrd_gz, nrrd_bz2):
+        np.testing.assert_array_equal(load_volume(path).data, vol)
+
+
+@pytest.mark.parametrize("keep", [0.5, -100])
+def test_truncated_tiff_is_one_error_and_nothing_else_on_stderr(tmp_path, capsys, keep):
+    path = write_tiff_stack(tmp_path / "t.tif", small_volume("uint8", (16, 32, 32)))
+    blob = path.read_bytes()
+    path.write_bytes(blob[: int(len(blob) * keep) if keep > 0 else keep])
+    message = _error("t.tif", path)
+    assert "invalid page offset" in message
+    assert capsys.readouterr().err == ""  # tifffile's own log line is folded into the error
+
+
 def test_folder_without_dicom(tmp_path):
     folder = tmp_path / "empty_series"
     folder.mkdir()
