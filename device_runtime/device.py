@@ -848,14 +848,14 @@ class Device:
         name = msg.TYPE.name
         if not session.hello_done:
             self.stats.dropped_no_session += 1
-            self._log_drop("no-session", f"{name} from a peer without a session (no HELLO) "
+            self._log_limited("no-session", f"{name} from a peer without a session (no HELLO) "
                            "dropped")
             return False
         if self.config.key is None or not isinstance(msg, m.TaggedEvent):
             return True
         if session.session_key is None:
             self.stats.dropped_unauthenticated += 1
-            self._log_drop("unauthenticated", f"{name} outside an authenticated session "
+            self._log_limited("unauthenticated", f"{name} outside an authenticated session "
                            "dropped (this device has a key)")
             return False
         channel = int(msg.TYPE)
@@ -864,21 +864,25 @@ class Device:
                                      session.event_counters.get(channel, 0))
         except ReplayError:
             self.stats.dropped_replayed += 1
-            self._log_drop("replayed", f"replayed {name} dropped")
+            self._log_limited("replayed", f"replayed {name} dropped")
             return False
         except NotAuthenticated:
             self.stats.dropped_unauthenticated += 1
-            self._log_drop("untagged", f"{name} without an event tag dropped")
+            self._log_limited("untagged", f"{name} without an event tag dropped")
             return False
         except AuthenticationError:
             self.stats.dropped_bad_tag += 1
-            self._log_drop("bad-tag", f"{name} with a bad event tag dropped")
+            self._log_limited("bad-tag", f"{name} with a bad event tag dropped")
             return False
         session.event_counters[channel] = counter
         return True
 
-    def _log_drop(self, reason: str, line: str) -> None:
-        """Log ``line`` unless the same reason was logged in the last few seconds."""
+    def _log_limited(self, reason: str, line: str) -> None:
+        """Log ``line`` unless the same reason was logged in the last few seconds.
+
+        Every line an unauthenticated peer can cause goes through here, so no peer can
+        grow the device's log faster than one line per reason per interval.
+        """
         now = time.monotonic()
         if now - self._drop_logged.get(reason, -_DROP_LOG_INTERVAL_S) >= _DROP_LOG_INTERVAL_S:
             self._drop_logged[reason] = now
@@ -976,7 +980,8 @@ class Device:
         )
         self._told_no_transfer.clear()
         self.stats.sessions += 1
-        self.log(f"hello from host '{msg.host_id or '?'}' (protocol {high})")
+        self._log_limited("hello", f"hello from host '{_one_line(msg.host_id or '?', 64)}' "
+                                   f"(protocol {high})")
         # A keyed device tells an unauthenticated peer only what starting a session needs;
         # slots and budgets follow in AUTH_RESPONSE (mcumgr/MCUboot: state behind auth).
         hide = self.config.key is not None
@@ -1017,7 +1022,8 @@ class Device:
             device_id=self.config.device_id,
         )
         if not hmac.compare_digest(expected, msg.host_proof):
-            self.log("auth failed: the host's proof does not verify (wrong key?)")
+            self._log_limited("auth-failed",
+                              "auth failed: the host's proof does not verify (wrong key?)")
             raise AuthenticationError(
                 "AUTH_CHALLENGE: the host proof does not verify with this device's key"
             )
@@ -1481,6 +1487,6 @@ class Device:
 
     def handle_notice(self, msg: m.Notice, frame: Frame) -> None:
         """A NOTICE from the host: logged."""
-        self.log(f"host notice: {msg.text}")
+        self._log_limited("notice", f"host notice: {_one_line(msg.text, 256)}")
         return None
 

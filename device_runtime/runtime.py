@@ -878,7 +878,7 @@ class RuntimeDevice(Device):
             return
         except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.decode_errors += 1
-            self._log_drop("bad-scores", f"bad score packet dropped: "
+            self._log_limited("bad-scores", f"bad score packet dropped: "
                            f"{' '.join(str(exc).split())[:160]} ({stats.decode_errors} so far)")
             return
         decode_s = time.perf_counter() - t0

@@ -838,3 +838,23 @@ def test_a_signed_request_with_an_added_handler_still_needs_authentication(tmp_p
             assert calls == []
         finally:
             raw.link.close()
+
+
+def test_an_unauthenticated_peer_cannot_flood_the_device_log(tmp_path):
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=600) as dev:
+        raw = _open_session(_tcp(dev), auth=False)
+        try:
+            version = m.PROTOCOL_VERSION
+            for _ in range(30):
+                raw.link.request(m.Hello(min_version=version, max_version=version,
+                                         nonce=bytes(16)))
+                with contextlib.suppress(ProtocolError):
+                    raw.link.request(m.AuthChallenge(host_proof=bytes(32)), retries=0)
+                raw.link.send(m.Notice(level=1, text="x" * 200))
+            raw.ping(timeout_s=2.0)  # everything before it has been handled
+            assert dev.device.stats.sessions >= 30
+            for what in ("hello from host", "auth failed", "host notice"):
+                assert sum(what in line for line in dev.lines) == 1, what
+        finally:
+            raw.link.close()
