@@ -121,17 +121,26 @@ def fit_database(
     threshold: float = 0.98,
     cache_dir: str | os.PathLike | None = None,
     progress: bool = True,
+    cluster: Any = None,
 ) -> CellEigenspace:
-    """Fit an eigenspace to every image of ``db`` (streams from a memory-mapped stack)."""
+    """Fit an eigenspace to every image of ``db`` (streams from a memory-mapped stack).
+
+    With ``cluster`` (a `host.cluster.Cluster`) the stack is built and the cells are fitted
+    on its workers instead (`host.cluster.fit_blocks`: same model, no ``cache_dir``).
+    """
     if method == "standard":
         cell_shape = db.image_shape
     else:
         if not isinstance(cell, int) or cell < 1:
             raise FitError(f"--cell {cell!r}: must be a positive integer")
         cell_shape = (min(cell, db.image_shape[0]), min(cell, db.image_shape[1]))
-    stack = stack_for(db, cell_shape, cache_dir=cache_dir, progress=progress)
     model = CellEigenspace(method, cell=cell, components=components, threshold=threshold,
                            progress=progress)
+    if cluster is not None:
+        from host.cluster import fit_blocks
+
+        return fit_blocks(cluster, model, db, cell_shape, progress=progress)
+    stack = stack_for(db, cell_shape, cache_dir=cache_dir, progress=progress)
     return model.fit(stack)
 
 

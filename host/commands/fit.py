@@ -91,9 +91,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the volume to ray-cast held-out views from (default: the source the "
                         "database records)")
     add_volume_arguments(parser)
+    from host.cluster import add_scheduler_argument
+
+    add_scheduler_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    from host.cluster import open_cluster
+
+    cluster = open_cluster(args.scheduler)  # None: in-process; connects before the long fit
+    try:
+        return _run(args, cluster)
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     from protocol.keys import load_key
 
     target = None
@@ -125,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
             raise EigencastError(f"--interpolation {args.interpolation} needs a full phi x theta "
                                  f"grid of views: {reason}; use auto or barycentric")
     options = {"method": args.method, "cell": args.cell, "components": args.components,
-               "threshold": threshold, "cache_dir": args.cache}
+               "threshold": threshold, "cache_dir": args.cache, "cluster": cluster}
     extra: dict = {}
     if target is None:
         model = fit_database(db, **options)
