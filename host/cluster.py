@@ -33,6 +33,7 @@ import json
 import logging
 import math
 import operator
+import uuid
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -275,15 +276,16 @@ def render_pngs(
     recipe = scene_recipe(args)
     fingerprint = scene_fingerprint(*scene)
     per_task = views_per_task(len(pending), cluster.threads())
+    run = uuid.uuid4().hex[:12]
     futures = [
         client.submit(_render_batch, recipe, fingerprint,
                       [(i, cameras[i]) for i in pending[s:s + per_task]], width, height,
-                      pure=False, key=f"render-views-{pending[s]}-{fingerprint[:8]}-{s}")
+                      pure=False, key=f"render-views-{pending[s]}-{run}")
         for s in range(0, len(pending), per_task)
     ]
     try:
         for future in as_completed(futures):
-            yield from future.result()
+            yield from _result(future)
             future.release()
     finally:
         client.cancel(futures)
@@ -291,6 +293,21 @@ def render_pngs(
 
 # --------------------------------------------------------------------------
 # fit
+
+
+def _result(future: Any) -> Any:
+    """A task's result; the cluster's own failures (a task that killed its workers, a lost
+    scheduler) become a one-line `ClusterError`, the task's own errors pass through."""
+    from distributed import KilledWorker
+
+    try:
+        return future.result()
+    except (EigencastError, ValueError):
+        raise
+    except (KilledWorker, OSError, TimeoutError) as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise ClusterError(f"cluster task {future.key} failed: {type(exc).__name__}: "
+                           f"{reason}") from None
 
 
 def _bounds(total: int, per: int) -> list[tuple[int, int]]:
@@ -396,13 +413,14 @@ def fit_blocks(
               ("method", "cell", "components", "threshold", "solver", "batch_bytes",
                "random_state")}
     client = cluster.client
+    run = uuid.uuid4().hex[:12]
     groups = [client.submit(_stack_pieces, files[g0:g1], (h, w), cell_shape, blocks,
-                            pure=False, key=f"stack-views-{g0}-{g1}-{id(meta)}")
+                            pure=False, key=f"stack-views-{g0}-{g1}-{run}")
               for g0, g1 in _bounds(n, per_group)]
     pieces = [[client.submit(operator.getitem, g, b, pure=False) for g in groups]
               for b in range(len(blocks))]
     fits = [client.submit(_fit_block, params, n, (h, w), cell_shape, c0, c1, pieces[b],
-                          pure=False, key=f"fit-cells-{c0}-{c1}-{id(meta)}")
+                          pure=False, key=f"fit-cells-{c0}-{c1}-{run}")
             for b, (c0, c1) in enumerate(blocks)]
     del groups, pieces  # the scheduler keeps them while a fit task needs them
     order = {f.key: b for b, f in enumerate(fits)}
@@ -412,7 +430,7 @@ def fit_blocks(
                        quiet=not progress) as bar:
             for future in as_completed(fits):
                 b = order[future.key]
-                results[b] = future.result()
+                results[b] = _result(future)
                 future.release()
                 bar.advance(blocks[b][1] - blocks[b][0])
     finally:
