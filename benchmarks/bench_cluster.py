@@ -28,7 +28,9 @@ render time of the whole grid (issue 16's Table 1 reproduction, not run here).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import resource
 import shutil
@@ -43,8 +45,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import distributed
 
 import host.model
-from host.cinema import atomic_write_bytes
+from host.cinema import CinemaWriter, atomic_write_bytes, encode_png
 from host.cli import main as cli
+from host.cluster import Cluster, render_pngs
 
 
 def _peak_rss_mb() -> float:
@@ -64,8 +67,9 @@ def _snapshot(db: Path) -> dict[str, bytes]:
             and ".eigencast-cache" not in p.parts}
 
 
-def _stream_summary(records: list[dict], prefix: str) -> dict:
-    """Compute seconds, transfer seconds and result bytes of the tasks whose key starts so."""
+def _stream_summary(records: list[dict], prefix: str, rounds: int = 1) -> dict:
+    """Compute seconds, transfer seconds and result bytes of the tasks whose key starts so
+    (per round when the same work ran ``rounds`` times)."""
     compute = transfer = 0.0
     nbytes = count = 0
     for r in records:
@@ -79,7 +83,48 @@ def _stream_summary(records: list[dict], prefix: str) -> dict:
                 compute += ss["stop"] - ss["start"]
             elif ss["action"] == "transfer":
                 transfer += ss["stop"] - ss["start"]
-    return {"tasks": count, "compute_s": compute, "transfer_s": transfer, "result_bytes": nbytes}
+    return {"tasks": count // rounds, "compute_s": compute / rounds,
+            "transfer_s": transfer / rounds, "result_bytes": nbytes // rounds}
+
+
+class _RenderJob:
+    """One database rendered slice by slice, in-process or through a cluster, as the CLI does
+    (host/commands/render.py: same settings, cameras, writer and PNG bytes)."""
+
+    def __init__(self, argv: list[str], cluster) -> None:
+        from host.camera import orbit_camera, parse_view_set
+        from host.cli import build_parser
+        from host.commands._render_options import camera_settings, parse_size, render_setup
+        from host.commands.render import database_settings
+
+        self.args = args = build_parser().parse_args(argv)
+        self.cluster = cluster
+        self.width, self.height = parse_size(args.size)
+        view_set = parse_view_set(args.views)
+        self.scene = volume, tf, renderer = render_setup(args)
+        cam = camera_settings(args, volume, renderer)
+        self.cameras = [orbit_camera(v, cam["center_mm"], cam["radius_mm"],
+                                     projection=args.projection, fov_deg=args.fov)
+                        for v in view_set.views]
+        rows = [(v.phi_deg, v.theta_deg, c.to_dict())
+                for v, c in zip(view_set.views, self.cameras)]
+        settings = database_settings(volume, tf, renderer, view_set,
+                                     (self.width, self.height), cam)
+        self.writer = CinemaWriter(args.output, settings, rows, (self.height, self.width))
+
+    def render(self, indices: list[int]) -> None:
+        w, h = self.width, self.height
+        if self.cluster is None:
+            renderer = self.scene[2]
+            for i in indices:
+                self.writer.write_png(i, encode_png(renderer.render_rgb8(self.cameras[i], w, h)))
+        else:
+            for i, png in render_pngs(self.cluster, self.args, self.scene, self.cameras,
+                                      indices, w, h):
+                self.writer.write_png(i, png)
+
+
+CONFIGS = ("threads", "local1", "local2")
 
 
 def main() -> int:
@@ -89,6 +134,9 @@ def main() -> int:
     ap.add_argument("--size", default="256")
     ap.add_argument("--samples", default="1000")
     ap.add_argument("--cell", default="30")
+    ap.add_argument("--rounds", type=int, default=6,
+                    help="slices the render is cut into, each timed in every configuration "
+                         "in turn (rotating order), so load changes hit all three alike")
     ap.add_argument("--gbps", type=float, default=1.0, help="network per machine (model)")
     ap.add_argument("--quick", action="store_true", help="60 views at 64x64")
     ap.add_argument("--json", action="store_true")
@@ -98,60 +146,79 @@ def main() -> int:
     if args.estimate_1080:
         return _estimate_1080(args.estimate_1080)
     if args.quick:
-        args.views, args.size, args.cell = "fibonacci:60", "64", "16"
+        args.views, args.size, args.cell, args.rounds = "fibonacci:60", "64", "16", 2
     render_opts = ["--views", args.views, "--size", args.size, "--samples", args.samples]
-    fit_opts = ["--cell", args.cell]
     work = Path(tempfile.mkdtemp(prefix="bench-cluster-"))
     # the .ecs records its creation time: freeze it so the fits compare byte for byte
     host.model.time = types.SimpleNamespace(time=lambda: 1.7e9, time_ns=lambda: 17 * 10**17)
     out: dict = {"volume": args.volume, "views": args.views, "size": args.size,
-                 "cpus": os.cpu_count(), "load_1min": os.getloadavg()[0]}
+                 "cpus": os.cpu_count(), "load_1min_start": os.getloadavg()[0]}
     try:
-        ref = work / "threads.cdb"
-        cli(["render", args.volume, "-o", str(work / "warm.cdb"), "--views", "list:0,0",
-             "--size", "16"])  # numba cache, imports
-        out["threads"] = {"render_s": _timed(["render", args.volume, "-o", str(ref),
-                                              *render_opts])}
-        reference = _snapshot(ref)
-        n_views = sum(1 for k in reference if k.startswith("images/"))
-        png_bytes = sum(len(v) for k, v in reference.items() if k.startswith("images/"))
-        out["threads"]["fit_s"] = _timed(["fit", str(ref), "-o", str(work / "threads.ecs"),
-                                          *fit_opts, "--cache", str(work / "cache")])
-        # the client's own cost per image: the atomic write of its PNG
-        scratch = work / "scratch"
-        scratch.mkdir()
-        start = time.perf_counter()
-        for name, data in reference.items():
-            if name.startswith("images/"):
-                atomic_write_bytes(scratch / Path(name).name, data)
-        write_s = (time.perf_counter() - start) / n_views
-        for n_workers in (1, 2):
+        with contextlib.ExitStack() as stack:
+            clusters: dict = {"threads": None}
+            streams: dict = {}
+            for n in (1, 2):
+                start = time.perf_counter()
+                lc = stack.enter_context(distributed.LocalCluster(
+                    n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+                clusters[f"local{n}"] = stack.enter_context(Cluster(lc.scheduler_address))
+                out[f"local{n}"] = {"start_s": time.perf_counter() - start}
+                streams[f"local{n}"] = stack.enter_context(
+                    distributed.get_task_stream(clusters[f"local{n}"].client))
+            out["threads"] = {}
+            cli(["render", args.volume, "-o", str(work / "warm.cdb"), "--views", "list:0,0",
+                 "--size", "16"])  # numba cache, imports
+            jobs = {c: _RenderJob(["render", args.volume, "-o", str(work / f"{c}.cdb"),
+                                   *render_opts], clusters[c]) for c in CONFIGS}
+            n_views = len(jobs["threads"].cameras)
+            per = math.ceil(n_views / args.rounds)
+            spent = dict.fromkeys(CONFIGS, 0.0)
+            loads = []
+            for r, s0 in enumerate(range(0, n_views, per)):
+                indices = list(range(s0, min(n_views, s0 + per)))
+                for c in CONFIGS[r % 3:] + CONFIGS[:r % 3]:
+                    start = time.perf_counter()
+                    jobs[c].render(indices)
+                    spent[c] += time.perf_counter() - start
+                loads.append(os.getloadavg()[0])
+            for c in CONFIGS:
+                jobs[c].writer.write_csv()
+            reference = _snapshot(work / "threads.cdb")
+            png_bytes = sum(len(v) for k, v in reference.items() if k.startswith("images/"))
+            # the client's own cost per image: the atomic write of its PNG
+            scratch = work / "scratch"
+            scratch.mkdir()
             start = time.perf_counter()
-            with distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1,
-                                          processes=True, dashboard_address=None) as lc, \
-                    distributed.Client(lc) as client:
-                started = time.perf_counter() - start
-                db = work / f"cluster{n_workers}.cdb"
-                with distributed.get_task_stream(client) as ts:
-                    render_s = _timed(["render", args.volume, "-o", str(db), *render_opts,
-                                       "--scheduler", lc.scheduler_address])
-                render_stream = _stream_summary(ts.data, "render-views-")
-                identical = _snapshot(db) == reference
-                with distributed.get_task_stream(client) as ts:
-                    fit_s = _timed(["fit", str(ref), "-o", str(work / f"c{n_workers}.ecs"),
-                                    *fit_opts, "--scheduler", lc.scheduler_address])
-                rss = client.run(_peak_rss_mb)
-                same_fit = ((work / f"c{n_workers}.ecs").read_bytes()
-                            == (work / "threads.ecs").read_bytes())
-                out[f"local{n_workers}"] = {
-                    "start_s": started, "render_s": render_s, "identical": identical,
-                    "render_ratio": render_s / out["threads"]["render_s"], "fit_s": fit_s,
-                    "fit_ratio": fit_s / out["threads"]["fit_s"], "identical_fit": same_fit,
-                    "worker_peak_rss_mb": sorted(rss.values()),
-                    "render_tasks": render_stream,
-                    "stack_tasks": _stream_summary(ts.data, "stack-views-"),
-                    "fit_tasks": _stream_summary(ts.data, "fit-cells-"),
-                }
+            for name, data in reference.items():
+                if name.startswith("images/"):
+                    atomic_write_bytes(scratch / Path(name).name, data)
+            write_s = (time.perf_counter() - start) / n_views
+            # fits: two rounds in opposite orders, each in-process fit with a fresh stack
+            fit_s = dict.fromkeys(CONFIGS, 0.0)
+            ref_db = str(work / "threads.cdb")
+            for r, order in enumerate((CONFIGS, CONFIGS[::-1])):
+                for c in order:
+                    where = (["--cache", str(work / f"cache{r}")] if c == "threads" else
+                             ["--scheduler", clusters[c].address])
+                    fit_s[c] += _timed(["fit", ref_db, "-o", str(work / f"{c}.ecs"),
+                                        "--cell", args.cell, *where]) / 2
+                loads.append(os.getloadavg()[0])
+            out["loads"] = loads
+            for c in CONFIGS:
+                rec = out[c]
+                rec.update(render_s=spent[c], render_ratio=spent[c] / spent["threads"],
+                           fit_s=fit_s[c], fit_ratio=fit_s[c] / fit_s["threads"])
+                if c == "threads":
+                    continue
+                rec["identical"] = _snapshot(work / f"{c}.cdb") == reference
+                rec["identical_fit"] = ((work / f"{c}.ecs").read_bytes()
+                                        == (work / "threads.ecs").read_bytes())
+                rec["worker_peak_rss_mb"] = sorted(clusters[c].client.run(_peak_rss_mb).values())
+        for c in CONFIGS[1:]:  # a task stream's records arrive when its context exits
+            data = streams[c].data
+            out[c]["render_tasks"] = _stream_summary(data, "render-views-")
+            out[c]["stack_tasks"] = _stream_summary(data, "stack-views-", rounds=2)
+            out[c]["fit_tasks"] = _stream_summary(data, "fit-cells-", rounds=2)
         out["model"] = _scaling_model(out, n_views, png_bytes, write_s, args.gbps)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -159,8 +226,7 @@ def main() -> int:
         print(json.dumps(out, indent=1, default=float))
     else:
         _print(out)
-    same = all(out[f"local{n}"]["identical"] and out[f"local{n}"]["identical_fit"]
-               for n in (1, 2))
+    same = all(out[c]["identical"] and out[c]["identical_fit"] for c in CONFIGS[1:])
     return 0 if same else 1
 
 
@@ -198,44 +264,43 @@ def _estimate_1080(n: int) -> int:
 
 
 def _scaling_model(out: dict, n_views: int, png_bytes: int, write_s: float, gbps: float) -> dict:
-    """Predicted wall time on N machines like this one (2 worker threads each).
+    """Predicted wall time on N machines like this one (2 cores, 2 single-threaded workers).
 
-    render(N) = max(compute / (2 N) + tasks * overhead / (2 N), client), where compute is the
-    measured worker seconds of all views (1-worker run), overhead the measured per-task cost
-    beyond compute, and client = views * (write + PNG bytes / bandwidth): the client writes
-    every image, so it bounds the speed-up.
-    fit(N) = (stack + fit compute) / (2 N) + shuffled bytes * (N - 1) / N / (N * bandwidth)
-    + client (the model's bytes over the network + the client's serial work, measured as the
-    1-worker fit time minus its task compute).
+    One machine's work is what the 2-worker LocalCluster measured. render(N) = max(render wall
+    of 2 workers / N, client), where client = views * (write + PNG bytes / bandwidth): the
+    client writes every image, so it bounds the speed-up. fit(N) = (stack + fit task compute)
+    / (2 N) + shuffle + serial, where the shuffle moves the stack's pieces between machines
+    (a fraction (N - 1) / N of the stack, over N links) and serial is the client's own part
+    (2-worker fit wall minus its task compute spread over 2 workers: opening the database,
+    bit allocation, int8 check, writing the image), which does not shrink with N.
     """
-    one = out["local1"]
+    two = out["local2"]
     bw = gbps * 1e9 / 8
-    r = one["render_tasks"]
-    per_task_overhead = max(0.0, one["render_s"] - r["compute_s"]) / max(1, r["tasks"])
+    r = two["render_tasks"]
     client_render = n_views * (write_s + png_bytes / n_views / bw)
-    stack, fitt = one["stack_tasks"], one["fit_tasks"]
+    stack, fitt = two["stack_tasks"], two["fit_tasks"]
     shuffled = stack["result_bytes"]
-    client_fit = max(0.0, one["fit_s"] - stack["compute_s"] - fitt["compute_s"])
+    compute = stack["compute_s"] + fitt["compute_s"]
+    serial = max(0.0, two["fit_s"] - compute / 2)
     rows = []
     for n in (1, 2, 4, 8, 16, 32, 64):
-        threads = 2 * n
-        render = max((r["compute_s"] + r["tasks"] * per_task_overhead) / threads, client_render)
-        fit = ((stack["compute_s"] + fitt["compute_s"]) / threads
-               + shuffled * (n - 1) / n / (n * bw) + client_fit + fitt["result_bytes"] / bw)
+        render = max(two["render_s"] / n, client_render)
+        fit = compute / (2 * n) + shuffled * (n - 1) / (n * n * bw) + serial
         rows.append({"machines": n, "render_s": render, "fit_s": fit})
     return {"compute_s_per_view": r["compute_s"] / n_views,
+            "render_tasks": r["tasks"],
             "png_bytes_per_view": png_bytes / n_views,
             "client_write_s_per_view": write_s,
-            "per_task_overhead_s": per_task_overhead,
             "client_render_bound_s": client_render,
             "stack_bytes_shuffled": shuffled,
-            "fit_client_serial_s": client_fit,
+            "fit_compute_s": compute,
+            "fit_serial_s": serial,
             "gbps": gbps, "rows": rows}
 
 
 def _print(out: dict) -> None:
     print(f"{out['volume']} {out['views']} at {out['size']}, {out['cpus']} cpus, "
-          f"load {out['load_1min']:.1f} at start")
+          f"load {out['load_1min_start']:.1f} at start")
     t = out["threads"]
     print(f"{'config':<18}{'start s':>9}{'render s':>10}{'ratio':>7}{'fit s':>8}{'ratio':>7}"
           f"{'worker peak MB':>18}  same PNGs / .ecs")
@@ -247,13 +312,14 @@ def _print(out: dict) -> None:
         print(f"{f'LocalCluster x{n}':<18}{c['start_s']:>9.1f}{c['render_s']:>10.1f}"
               f"{c['render_ratio']:>7.2f}{c['fit_s']:>8.1f}{c['fit_ratio']:>7.2f}{rss:>18}"
               f"  {c['identical']} / {c['identical_fit']}")
+    print("1-minute load after each render round, then each fit round: "
+          + ", ".join(f"{v:.1f}" for v in out["loads"]))
     m = out["model"]
-    print(f"\nmodel inputs: {m['compute_s_per_view'] * 1e3:.1f} ms compute/view, "
-          f"{m['png_bytes_per_view'] / 1e3:.1f} kB PNG/view, client write "
-          f"{m['client_write_s_per_view'] * 1e3:.2f} ms/view, task overhead "
-          f"{m['per_task_overhead_s'] * 1e3:.1f} ms, stack shuffled "
-          f"{m['stack_bytes_shuffled'] / 1e6:.1f} MB, fit client-serial "
-          f"{m['fit_client_serial_s']:.1f} s, {m['gbps']:g} Gb/s")
+    print(f"\nmodel inputs (2-worker run): {m['compute_s_per_view'] * 1e3:.0f} ms worker compute"
+          f"/view in {m['render_tasks']} tasks, {m['png_bytes_per_view'] / 1e3:.1f} kB PNG/view, "
+          f"client write {m['client_write_s_per_view'] * 1e3:.2f} ms/view; fit: "
+          f"{m['fit_compute_s']:.1f} s task compute, {m['stack_bytes_shuffled'] / 1e6:.0f} MB "
+          f"stack pieces, {m['fit_serial_s']:.1f} s client-serial; {m['gbps']:g} Gb/s links")
     print(f"{'machines (2 threads each)':<28}{'render s':>10}{'fit s':>8}")
     for row in m["rows"]:
         print(f"{row['machines']:<28}{row['render_s']:>10.1f}{row['fit_s']:>8.1f}")

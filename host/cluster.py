@@ -17,6 +17,12 @@ Both heavy steps are embarrassingly parallel, so they map onto Dask distributed 
   in-process fit (``_fit_cells``). A cell's fit does not depend on the batch or block it is
   in, so the model, and the ``.ecs`` written from it, are byte-identical.
 
+  Memory: a fit task's working set is its block (at most `FIT_BLOCK_BYTES` of uint8, held
+  twice while its pieces are joined) plus one batch of floats (``batch_bytes``, as
+  in-process), whatever the database's size. The pieces themselves wait in the workers'
+  memory between the two steps: the whole stack spread over the cluster (Dask spills them to
+  disk past its memory thresholds), where the in-process fit keeps it in a file.
+
 Dask reruns the tasks of a worker that dies (the pieces of the stack it held are rebuilt
 from the PNGs), so a lost worker costs time, not the run; a killed client keeps every
 image already written and resumes like an interrupted in-process render.
