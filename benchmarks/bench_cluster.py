@@ -160,7 +160,7 @@ def main() -> int:
             for n in (1, 2):
                 start = time.perf_counter()
                 lc = stack.enter_context(distributed.LocalCluster(
-                    n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+                    n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0"))
                 clusters[f"local{n}"] = stack.enter_context(Cluster(lc.scheduler_address))
                 out[f"local{n}"] = {"start_s": time.perf_counter() - start}
                 streams[f"local{n}"] = stack.enter_context(

@@ -15,7 +15,9 @@ Both heavy steps are embarrassingly parallel, so they map onto Dask distributed 
   block of cells) and each fit task joins one block's pieces, ``(cells, n_views,
   cell_size)``, and decomposes it with the same `host.pca.CellEigenspace` loop as the
   in-process fit (``_fit_cells``). A cell's fit does not depend on the batch or block it is
-  in, so the model, and the ``.ecs`` written from it, are byte-identical.
+  in, and fit tasks use the client's BLAS thread counts (`blas_threads`), so the model, and
+  the ``.ecs`` written from it, are byte-identical (with the same numpy/scipy builds on a
+  CPU of the same kind: OpenBLAS picks its kernels by CPU).
 
   Memory: a fit task's working set is its block (at most `FIT_BLOCK_BYTES` of uint8, held
   twice while its pieces are joined) plus one batch of floats (``batch_bytes``, as
@@ -55,6 +57,7 @@ __all__ = [
     "Cluster",
     "ClusterError",
     "add_scheduler_argument",
+    "blas_threads",
     "fit_blocks",
     "open_cluster",
     "render_pngs",
@@ -115,9 +118,11 @@ class Cluster:
     def __init__(self, address: str) -> None:
         try:
             import distributed
+            import threadpoolctl  # noqa: F401 (fit tasks match the client's BLAS threads)
         except ImportError:
             raise ClusterError(
-                f"--scheduler needs Dask distributed, which is not installed: {INSTALL_HINT}"
+                f"--scheduler needs Dask distributed and threadpoolctl, which are not "
+                f"installed: {INSTALL_HINT}"
             ) from None
         self.address = address
         self._local = None
@@ -129,7 +134,7 @@ class Cluster:
             try:
                 self._local = distributed.LocalCluster(
                     n_workers=int(text), threads_per_worker=1, processes=True,
-                    dashboard_address=None, silence_logs=logging.ERROR)
+                    dashboard_address=":0", silence_logs=logging.ERROR)
             except Exception as exc:  # Dask raises RuntimeError, OSError, ... here
                 raise ClusterError(
                     f"--scheduler {address}: cannot start a local cluster: "
@@ -343,11 +348,27 @@ def _stack_pieces(
     return tuple(np.ascontiguousarray(cells[:, c0:c1].transpose(1, 0, 2)) for c0, c1 in blocks)
 
 
+def blas_threads() -> dict[str, int]:
+    """Threads of each BLAS library loaded here (numpy's and scipy's), by library prefix.
+
+    OpenBLAS sums in another order with another thread count, so the fitted bits depend on
+    it: fit tasks run with the client's counts (Dask starts workers with one BLAS thread).
+    """
+    import scipy.linalg  # noqa: F401 (loads scipy's BLAS, which the fit uses too)
+    from threadpoolctl import threadpool_info
+
+    return {i["prefix"]: int(i["num_threads"]) for i in threadpool_info()
+            if i["user_api"] == "blas"}
+
+
 def _fit_block(
     params: dict, n_views: int, image_shape: tuple[int, int], cell_shape: tuple[int, int],
-    first: int, last: int, pieces: list[np.ndarray],
+    first: int, last: int, pieces: list[np.ndarray], blas: dict[str, int],
 ) -> list:
-    """Worker task: fit cells ``first..last-1`` from their pieces (one per group of views)."""
+    """Worker task: fit cells ``first..last-1`` from their pieces (one per group of views)
+    with ``blas`` threads per BLAS library (`blas_threads` of the client)."""
+    from threadpoolctl import threadpool_limits
+
     from host.pca import CellEigenspace
     from host.progress import Progress
 
@@ -356,7 +377,8 @@ def _fit_block(
     model = CellEigenspace(**params)
     stack = _block_stack(n_views, image_shape, cell_shape, block, first)
     model._prepare_solver(stack.n_views, stack.cell_size)
-    return model._fit_cells(stack, first, last, Progress("", last - first, quiet=True))
+    with threadpool_limits(limits=blas or None):
+        return model._fit_cells(stack, first, last, Progress("", last - first, quiet=True))
 
 
 def _block_stack(
@@ -425,7 +447,8 @@ def fit_blocks(
               for g0, g1 in _bounds(n, per_group)]
     pieces = [[client.submit(operator.getitem, g, b, pure=False) for g in groups]
               for b in range(len(blocks))]
-    fits = [client.submit(_fit_block, params, n, (h, w), cell_shape, c0, c1, pieces[b],
+    blas = blas_threads()
+    fits = [client.submit(_fit_block, params, n, (h, w), cell_shape, c0, c1, pieces[b], blas,
                           pure=False, key=f"fit-cells-{c0}-{c1}-{run}")
             for b, (c0, c1) in enumerate(blocks)]
     del groups, pieces  # the scheduler keeps them while a fit task needs them

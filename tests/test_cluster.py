@@ -42,7 +42,7 @@ def _png_count(db: Path) -> int:
 def scheduler():
     """Address of a LocalCluster with two single-threaded worker processes."""
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address=":0") as cluster:
         yield cluster.scheduler_address
 
 
@@ -126,6 +126,40 @@ def test_fit_is_byte_identical_and_survives_a_killed_worker(
     assert main(["fit", str(reference), "-o", str(remote), *FIT,
                  "--scheduler", scheduler]) == 0
     assert len(killed) == 1
+    assert remote.read_bytes() == local.read_bytes()
+
+
+def _synthetic_database(path: Path, n_views: int = 600, size: int = 60) -> Path:
+    """Smooth images that vary with the view, written as a Cinema database (no ray-casting)."""
+    import numpy as np
+
+    from host.camera import parse_view_set
+
+    rng = np.random.default_rng(0)
+    views = parse_view_set(f"fibonacci:{n_views}").views
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    basis = np.stack([np.sin((i + 1) * np.pi * xx) * np.cos((i % 5 + 1) * np.pi * yy)
+                      for i in range(12)])  # (12, size, size)
+    cam = {"position": [0.0, 0.0, 1.0], "look_at": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0]}
+    writer = CinemaWriter(path, {"synthetic": True},
+                          [(v.phi_deg, v.theta_deg, cam) for v in views], (size, size))
+    for i in range(n_views):
+        coeff = rng.normal(size=(12, 3))
+        image = (128 + 20 * np.einsum("khw,kc->hwc", basis, coeff)
+                 + rng.normal(0, 3, (size, size, 3)))
+        writer.write_image(i, np.clip(image, 0, 255).astype(np.uint8))
+    writer.write_csv()
+    return path
+
+
+def test_fit_matches_in_process_where_blas_runs_threads(tmp_path, scheduler, frozen_clock):
+    """600 views x 2700-entry cells: big enough for OpenBLAS to split work across threads,
+    which changes the fitted bits unless the workers use the client's thread counts."""
+    db = _synthetic_database(tmp_path / "synthetic.cdb")
+    local, remote = tmp_path / "local.ecs", tmp_path / "cluster.ecs"
+    assert main(["fit", str(db), "-o", str(local), "--cell", "30"]) == 0
+    assert main(["fit", str(db), "-o", str(remote), "--cell", "30",
+                 "--scheduler", scheduler]) == 0
     assert remote.read_bytes() == local.read_bytes()
 
 
