@@ -1,5 +1,6 @@
 # Every target builds .venv by itself: on a fresh clone `make demo` and
-# `make test` are the only commands a user types.
+# `make test` are the only commands a user types. The venv includes the cluster extra
+# (Dask) so CI runs the real LocalCluster tests of tests/test_cluster.py.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -12,7 +13,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[host,device,dev]'
+	$(BIN)/python -m pip install --quiet -e '.[host,device,dev,cluster]'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -13,6 +13,7 @@ every view).
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import sys
 from pathlib import Path
@@ -92,9 +93,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the volume to ray-cast held-out views from (default: the source the "
                         "database records)")
     add_volume_arguments(parser)
+    from host.cluster import add_scheduler_argument
+
+    add_scheduler_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    from host.cluster import open_cluster
+
+    cluster = open_cluster(args.scheduler)  # None: in-process; connects before the long fit
+    try:
+        return _run(args, cluster)
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     from protocol.keys import load_key
 
     target = None
@@ -125,8 +140,11 @@ def run(args: argparse.Namespace) -> int:
         if reason:
             raise EigencastError(f"--interpolation {args.interpolation} needs a full phi x theta "
                                  f"grid of views: {reason}; use auto or barycentric")
+    from host.cluster import fit_blocks  # no Dask import until a cluster is used
+
     options = {"method": args.method, "cell": args.cell, "components": args.components,
-               "threshold": threshold, "cache_dir": args.cache}
+               "threshold": threshold, "cache_dir": args.cache,
+               "fit_elsewhere": None if cluster is None else functools.partial(fit_blocks, cluster)}
     extra: dict = {}
     if target is None:
         model = fit_database(db, **options)

@@ -15,7 +15,7 @@ from host.commands._render_options import (
 )
 from host.progress import progress
 from host.render.camera import orbit_camera, parse_view_set
-from host.render.cinema import CinemaWriter, absolute_source
+from host.render.cinema import CinemaWriter, absolute_source, encode_png
 from host.render.transfer import add_transfer_function_argument
 from host.volume import add_volume_arguments
 
@@ -36,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_volume_arguments(parser)
     add_transfer_function_argument(parser)
     add_render_arguments(parser)
+    from host.cluster import add_scheduler_argument
+
+    add_scheduler_argument(parser)
 
 
 def database_settings(volume, tf, renderer, view_set, size, camera_opts) -> dict:  # noqa: ANN001
@@ -78,11 +81,20 @@ def run(args: argparse.Namespace) -> int:
     if kept:
         print(f"resuming {args.output}: {kept} valid images kept, {len(pending)} to render",
               file=sys.stderr)
+    from host.cluster import open_cluster, render_pngs
+
+    cluster = open_cluster(args.scheduler)  # None: in-process threads
+    if cluster is None:
+        pngs = ((i, encode_png(renderer.render_rgb8(cameras[i], width, height)))
+                for i in pending)
+    else:
+        pngs = render_pngs(cluster, args, (volume, tf, renderer), cameras, pending, width,
+                           height)
     last_csv = time.monotonic()
     try:
         with progress(f"render {width}x{height}", len(pending), unit=" views") as bar:
-            for index in pending:
-                writer.write_image(index, renderer.render_rgb8(cameras[index], width, height))
+            for index, png in pngs:
+                writer.write_png(index, png)
                 bar.advance()
                 if time.monotonic() - last_csv > CSV_EVERY_S:
                     writer.write_csv()
@@ -92,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"interrupted: {sum(writer.done)}/{len(rows)} images kept; rerun the same "
               "command to resume", file=sys.stderr)
         return 130
+    finally:
+        pngs.close()
+        if cluster is not None:
+            cluster.close()
     writer.write_csv()
     print(f"wrote {args.output}: {len(rows)} views at {width}x{height} "
           f"({len(pending)} rendered, {kept} reused)")

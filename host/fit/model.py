@@ -23,6 +23,7 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -123,17 +124,26 @@ def fit_database(
     threshold: float = 0.98,
     cache_dir: str | os.PathLike | None = None,
     progress: bool = True,
+    fit_elsewhere: Callable[..., CellEigenspace] | None = None,
 ) -> CellEigenspace:
-    """Fit an eigenspace to every image of ``db`` (streams from a memory-mapped stack)."""
+    """Fit an eigenspace to every image of ``db`` (streams from a memory-mapped stack).
+
+    ``fit_elsewhere(model, db, cell_shape, progress=...)``, when given, builds the stack and
+    fits the unfitted ``model``'s cells somewhere else and returns it fitted (the CLI passes
+    `host.cluster.fit_blocks` bound to a Dask cluster: same model, no ``cache_dir``). The fit
+    stage itself knows nothing of clusters.
+    """
     if method == "standard":
         cell_shape = db.image_shape
     else:
         if not isinstance(cell, int) or cell < 1:
             raise FitError(f"--cell {cell!r}: must be a positive integer")
         cell_shape = (min(cell, db.image_shape[0]), min(cell, db.image_shape[1]))
-    stack = stack_for(db, cell_shape, cache_dir=cache_dir, progress=progress)
     model = CellEigenspace(method, cell=cell, components=components, threshold=threshold,
                            progress=progress)
+    if fit_elsewhere is not None:
+        return fit_elsewhere(model, db, cell_shape, progress=progress)
+    stack = stack_for(db, cell_shape, cache_dir=cache_dir, progress=progress)
     return model.fit(stack)
 
 

@@ -351,30 +351,41 @@ class CellEigenspace:
         n = stack.n_views
         if n < 2:
             raise FitError(f"fit needs at least 2 views to estimate variance, got n_views={n}")
-        d = stack.cell_size
+        self._prepare_solver(n, stack.cell_size)
+        with _progress(
+            "fitting eigenspace", stack.n_cells, unit=" cells", quiet=not self.progress
+        ) as p:
+            fits = self._fit_cells(stack, 0, stack.n_cells, p)
+
+        self._store(fits, stack)
+        return self
+
+    def _prepare_solver(self, n: int, d: int) -> None:
+        """Choose the solver and route for ``n`` views of cells of ``d`` entries."""
         self._n, self._d = n, d
         self._k_cap = min(int(self.components), n - 1, d)
         self.solver_ = self._choose_solver(n, d)
         gram = self.solver_ == "gram" or (self.solver_ == "randomized" and n <= d)
         self._route = "gram" if gram else "svd"
 
-        fits: list[_CellFit] = []
-        per_cell = self._cell_working_bytes(n, d)
-        with _progress(
-            "fitting eigenspace", stack.n_cells, unit=" cells", quiet=not self.progress
-        ) as p:
-            if per_cell <= self.batch_bytes:
-                per_batch = max(1, min(256, self.batch_bytes // per_cell))
-                for start in range(0, stack.n_cells, per_batch):
-                    stop = min(stack.n_cells, start + per_batch)
-                    fits.extend(self._fit_batch(stack.read_cells(start, stop), start))
-                    p.advance(stop - start)
-            else:
-                for c in range(stack.n_cells):
-                    fits.append(self._fit_streamed(stack, c, p))
+    def _fit_cells(self, stack: CellStack, start: int, stop: int, p: Any) -> list[_CellFit]:
+        """Decompose cells ``start..stop-1`` of ``stack`` in batches (after `_prepare_solver`).
 
-        self._store(fits, stack)
-        return self
+        A cell's fit does not depend on the batch it is in, so `host.cluster` fits
+        blocks of cells on workers with this same loop and gets the same bytes.
+        """
+        fits: list[_CellFit] = []
+        per_cell = self._cell_working_bytes(self._n, self._d)
+        if per_cell <= self.batch_bytes:
+            per_batch = max(1, min(256, self.batch_bytes // per_cell))
+            for first in range(start, stop, per_batch):
+                last = min(stop, first + per_batch)
+                fits.extend(self._fit_batch(stack.read_cells(first, last), first))
+                p.advance(last - first)
+        else:
+            for c in range(start, stop):
+                fits.append(self._fit_streamed(stack, c, p))
+        return fits
 
     def _cell_shape_for(self, image_shape: tuple[int, int]) -> tuple[int, int]:
         if self.method == "standard":

@@ -288,7 +288,11 @@ class CinemaWriter:
         """Store view ``index`` (uint8 (H, W, 3)) atomically."""
         if image.shape != (*self.image_shape, 3) or image.dtype != np.uint8:
             raise ValueError(f"image {index}: expected uint8 {(*self.image_shape, 3)}")
-        atomic_write_bytes(self.path / self.files[index], encode_png(image))
+        self.write_png(index, encode_png(image))
+
+    def write_png(self, index: int, data: bytes) -> None:
+        """Store view ``index`` from PNG bytes made by `encode_png` (e.g. on a cluster worker)."""
+        atomic_write_bytes(self.path / self.files[index], data)
         self.done[index] = True
 
     def write_csv(self) -> None:
