@@ -81,6 +81,7 @@ from provision_helpers import DeviceProcess, mem_name  # noqa: E402
 
 from device_runtime.display import HeadlessPresenter  # noqa: E402
 from device_runtime.reconstruct import Reconstructor  # noqa: E402
+from protocol import auth  # noqa: E402
 from protocol import messages as m  # noqa: E402
 from protocol.scores import ScoreDecoder, encode_scores  # noqa: E402
 
@@ -394,7 +395,7 @@ def section_tag_cost(case: Case, frames: int) -> dict:
     _, packets = case.packets(frames + 1)
     session_key = os.urandom(32)
     plain = [m.Scores(sequence=i, packet=p).to_body() for i, p in enumerate(packets)]
-    tagged = [m.tag_event(m.Scores(sequence=i, packet=p), session_key, i + 1).to_body()
+    tagged = [auth.tag_event(m.Scores(sequence=i, packet=p), session_key, i + 1).to_body()
               for i, p in enumerate(packets)]
     runs = {"plain": (case.decoder(), case.reconstructor("auto"), plain, []),
             "tagged": (case.decoder(), case.reconstructor("auto"), tagged, [])}
@@ -406,7 +407,7 @@ def section_tag_cost(case: Case, frames: int) -> dict:
             msg = m.Scores.from_body(bodies[i])
             if name == "tagged":
                 t1 = time.perf_counter()
-                m.verify_event(msg, session_key, i)
+                auth.verify_event(msg, session_key, i)
                 verify.append(time.perf_counter() - t1)
             rec.update(decoder.decode(msg.packet).y)
             times.append(time.perf_counter() - t0)

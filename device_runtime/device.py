@@ -62,6 +62,7 @@ from device_runtime.flash import (
     SlotDigestMismatch,
 )
 from device_runtime.reconstruct import reconstruction_memory_bytes
+from protocol import auth
 from protocol import messages as m
 from protocol.errors import (
     AuthenticationError,
@@ -839,7 +840,7 @@ class Device:
         """Whether a SCORES / IMAGE_CHUNK / KEYFRAME_REQUEST may be decoded or stored.
 
         It needs a session (HELLO). On a keyed device SCORES and IMAGE_CHUNK also need an
-        authenticated session and an event tag (:func:`protocol.messages.verify_event`)
+        authenticated session and an event tag (:func:`protocol.auth.verify_event`)
         whose counter is above the last one accepted on that channel. Refused events are
         counted in :attr:`stats` (``dropped_*``) and logged at most once per reason every
         few seconds; nothing is answered (an answer would be an oracle).
@@ -860,7 +861,7 @@ class Device:
             return False
         channel = int(msg.TYPE)
         try:
-            counter = m.verify_event(msg, session.session_key,
+            counter = auth.verify_event(msg, session.session_key,
                                      session.event_counters.get(channel, 0))
         except ReplayError:
             self.stats.dropped_replayed += 1
@@ -909,7 +910,7 @@ class Device:
             and last[1] == frame.body
         ):
             return self._replay(last[2], frame)
-        session.last_counter = m.verify(msg, session.session_key, session.last_counter)
+        session.last_counter = auth.verify(msg, session.session_key, session.last_counter)
         return None
 
     def _replay(self, reply: m.Message, frame: Frame) -> m.Message:
@@ -1009,7 +1010,7 @@ class Device:
                 "this device has no key (pair one with eigencast-device --pair KEYFILE)",
             )
         assert session.host_nonce is not None and session.device_nonce is not None
-        expected = m.auth_proof(
+        expected = auth.auth_proof(
             self.config.key,
             role="host",
             host_nonce=session.host_nonce,
@@ -1021,14 +1022,14 @@ class Device:
             raise AuthenticationError(
                 "AUTH_CHALLENGE: the host proof does not verify with this device's key"
             )
-        key = m.derive_session_key(self.config.key, session.host_nonce, session.device_nonce)
+        key = auth.derive_session_key(self.config.key, session.host_nonce, session.device_nonce)
         if session.session_key != key:  # a repeated challenge keeps the counter state
             session.session_key = key
             session.last_counter = 0
             session.last_signed = None
             self.log("host authenticated")
         return m.AuthResponse(
-            device_proof=m.auth_proof(
+            device_proof=auth.auth_proof(
                 self.config.key,
                 role="device",
                 host_nonce=session.host_nonce,

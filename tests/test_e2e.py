@@ -241,7 +241,8 @@ def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, 
     from test_scores import overflow_packet
 
     from protocol import messages as m
-    from protocol.link import HostSession, Link
+    from protocol.host_session import HostSession
+    from protocol.link import Link
     from protocol.scores import encode_scores
     from protocol.transport import open_transport
 

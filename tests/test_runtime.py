@@ -27,10 +27,12 @@ from device_runtime.runtime import (
 )
 from host.fit.model import HostModel
 from host.link.provisioning import provision
+from protocol import auth
 from protocol import messages as m
 from protocol.errors import ImageFormatError
+from protocol.host_session import HostSession
 from protocol.image import read_image
-from protocol.link import HostSession, Link
+from protocol.link import Link
 from protocol.scores import DecodedScores, encode_scores
 from protocol.transport import open_transport
 
@@ -468,7 +470,7 @@ def test_keyed_device_shows_only_tagged_fresh_scores_of_an_authenticated_session
         attacker.close()
         # an authenticated session: a wrong tag and a replay are dropped, fresh tags shown
         session = _session(url)
-        wrong = m.tag_event(m.Scores(sequence=0, packet=_key_packet(model, 70.0, 0.0, 10)),
+        wrong = auth.tag_event(m.Scores(sequence=0, packet=_key_packet(model, 70.0, 0.0, 10)),
                             bytes(32), 1)
         session.link.send(wrong)
         wait_until(lambda: stats.dropped_bad_tag == 1, 10, "the bad-tag drop")

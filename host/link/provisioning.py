@@ -55,6 +55,7 @@ from protocol.errors import (
     TransportError,
     TransportTimeout,
 )
+from protocol.host_session import HostSession
 from protocol.image import (
     HEADER_SIZE,
     ImageTagError,
@@ -62,7 +63,8 @@ from protocol.image import (
     read_manifest,
     verify_stream,
 )
-from protocol.link import CHUNK_OVERHEAD_BYTES, HostSession, Link, send_image
+from protocol.image_transfer import send_image
+from protocol.link import CHUNK_OVERHEAD_BYTES, Link
 from protocol.transport import open_transport
 
 __all__ = [
@@ -460,7 +462,7 @@ def provision(
     chunk_bytes : int, optional
         Data bytes per chunk (default: :func:`choose_chunk_bytes`).
     retransmit : {"selective", "go-back-n"}
-        Loss recovery of the chunk window (:func:`protocol.link.send_image`).
+        Loss recovery of the chunk window (:func:`protocol.image_transfer.send_image`).
     precheck : bool
         Refuse on the host what the device would refuse (off in tests of the device).
     show_progress : bool
