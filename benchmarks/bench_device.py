@@ -153,7 +153,7 @@ def eigenspace_bytes(image: Any) -> int:
 
 
 def orbit_views(n: int, theta: float = 15.0, turns: float = 1.0) -> list[tuple[float, float]]:
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
 
     spec = parse_orbit(f"steps:{n}:{theta:g}:{turns:g}")
     orbit = spec.start(now_s=0.0)
@@ -593,7 +593,7 @@ def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
 
     t0 = time.perf_counter()
     hwm = 0
@@ -653,7 +653,7 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
     from runtime_helpers import RuntimeThread
 
     from device_runtime.device import DeviceConfig
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
     from host.link.serving import serve
     from protocol.keys import load_key
 

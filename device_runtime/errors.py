@@ -1,4 +1,7 @@
-"""Error tree of the device runtime (the flash store's errors: one per wire error code)."""
+"""Error tree of the device runtime (the flash store's errors: one per wire error code).
+
+Which ERROR a device sends for each is :func:`device_runtime.wire_errors.error_for`.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ __all__ = [
     "SlotBusy",
     "SlotDigestMismatch",
 ]
+
 
 
 class DeviceError(Exception):

@@ -21,7 +21,7 @@ from PIL import Image
 from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import check_frames, key_file, read_frames, wait_until
 
-from device_runtime.runtime import parse_orbit
+from device_runtime.orbit import parse_orbit
 from host.link.provisioning import provision
 from host.link.serving import serve
 from protocol.transport import FdTransport, open_pty_pair

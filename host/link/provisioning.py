@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from device_runtime.device import required_ram_bytes
+from device_runtime.image_receiver import required_ram_bytes
 from host.errors import EigencastError
 from protocol import messages as m
 from protocol.errors import (
@@ -111,7 +111,7 @@ class ImageInfo:
     format_version : int
     generation : int
     ram_bytes : int
-        RAM the device needs for it (:func:`device_runtime.device.required_ram_bytes`).
+        RAM the device needs for it (:func:`device_runtime.image_receiver.required_ram_bytes`).
     """
 
     path: Path
