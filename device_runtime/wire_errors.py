@@ -12,17 +12,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-from device_runtime.errors import (
-    BadChunk,
-    BudgetError,
-    DeviceError,
-    FlashError,
-    ImageTooLarge,
-    NoImage,
-    RollbackRefused,
-    SlotBusy,
-    SlotDigestMismatch,
-)
+from device_runtime import errors as e
 from protocol import messages as m
 from protocol.errors import ImageFormatError
 from protocol.image import ImageTagError
@@ -32,7 +22,7 @@ __all__ = ["DeviceRefusal", "error_for"]
 _logger = logging.getLogger("device_runtime.device")  # error_for logs as the device
 
 
-class DeviceRefusal(DeviceError):
+class DeviceRefusal(e.DeviceError):
     """A request the device refuses with a specific wire error code.
 
     Parameters
@@ -59,16 +49,16 @@ def _one_line(text: str, limit: int) -> str:
 
 
 _FLASH_CODES: tuple[tuple[type[BaseException], m.ErrorCode], ...] = (
-    (ImageTooLarge, m.ErrorCode.TOO_LARGE_FOR_FLASH),
-    (RollbackRefused, m.ErrorCode.ROLLBACK_REFUSED),
-    (BadChunk, m.ErrorCode.BAD_OFFSET),
-    (NoImage, m.ErrorCode.NO_IMAGE),
-    (SlotBusy, m.ErrorCode.BUSY),
-    (SlotDigestMismatch, m.ErrorCode.DIGEST_MISMATCH),
-    (BudgetError, m.ErrorCode.TOO_LARGE_FOR_RAM),
+    (e.ImageTooLarge, m.ErrorCode.TOO_LARGE_FOR_FLASH),
+    (e.RollbackRefused, m.ErrorCode.ROLLBACK_REFUSED),
+    (e.BadChunk, m.ErrorCode.BAD_OFFSET),
+    (e.NoImage, m.ErrorCode.NO_IMAGE),
+    (e.SlotBusy, m.ErrorCode.BUSY),
+    (e.SlotDigestMismatch, m.ErrorCode.DIGEST_MISMATCH),
+    (e.BudgetError, m.ErrorCode.TOO_LARGE_FOR_RAM),
     (ImageTagError, m.ErrorCode.TAG_MISMATCH),
     (ImageFormatError, m.ErrorCode.UNSUPPORTED_FORMAT),
-    (FlashError, m.ErrorCode.FLASH_FAILED),
+    (e.FlashError, m.ErrorCode.FLASH_FAILED),
 )
 
 

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import flash_crash_driver as driver
 import pytest
+from flash_helpers import BLOCK, CAPACITY, make_image, sha
 
 from device_runtime._flash_format import RECORD_SIZE
 from device_runtime.errors import FlashError
 from device_runtime.flash import (
-    JOURNAL_BLOCK_BYTES,
     FlashStore,
     ImageTooLarge,
     NoImage,
@@ -29,17 +29,6 @@ from device_runtime.flash import (
     SlotState,
     format_status,
 )
-
-BLOCK = JOURNAL_BLOCK_BYTES
-CAPACITY = 1 << 20
-
-
-def sha(data: bytes) -> bytes:
-    return hashlib.sha256(data).digest()
-
-
-def make_image(seed: int, size: int) -> bytes:
-    return random.Random(seed).randbytes(size)
 
 
 def write_image(store: FlashStore, image: bytes, generation: int, *, chunk: int = 10_000,

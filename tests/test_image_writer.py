@@ -4,25 +4,14 @@ that cannot be committed. Resume from the journal and power cuts: test_flash.py.
 
 from __future__ import annotations
 
-import hashlib
 import random
 from pathlib import Path
 
 import pytest
+from flash_helpers import BLOCK, CAPACITY, make_image, sha
 
 from device_runtime.errors import BadChunk, NoImage
-from device_runtime.flash import JOURNAL_BLOCK_BYTES, FlashStore
-
-BLOCK = JOURNAL_BLOCK_BYTES
-CAPACITY = 1 << 20
-
-
-def sha(data: bytes) -> bytes:
-    return hashlib.sha256(data).digest()
-
-
-def make_image(seed: int, size: int) -> bytes:
-    return random.Random(seed).randbytes(size)
+from device_runtime.flash import FlashStore
 
 
 @pytest.fixture

@@ -7,16 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from device_runtime.errors import (
-    BadChunk,
-    BudgetError,
-    FlashError,
-    ImageTooLarge,
-    NoImage,
-    RollbackRefused,
-    SlotBusy,
-    SlotDigestMismatch,
-)
+from device_runtime import errors as e
 from device_runtime.wire_errors import DeviceRefusal, error_for
 from protocol import messages as m
 from protocol.errors import ImageFormatError, MalformedMessage
@@ -31,29 +22,30 @@ def test_a_refusal_carries_its_code_and_detail():
     assert error.detail == {"need": 9}
 
 
-@pytest.mark.parametrize(
-    ("exc", "code"),
-    [
-        (ImageTooLarge("x"), m.ErrorCode.TOO_LARGE_FOR_FLASH),
-        (RollbackRefused("x"), m.ErrorCode.ROLLBACK_REFUSED),
-        (BadChunk("x"), m.ErrorCode.BAD_OFFSET),
-        (NoImage("x"), m.ErrorCode.NO_IMAGE),
-        (SlotBusy("x"), m.ErrorCode.BUSY),
-        (SlotDigestMismatch("x"), m.ErrorCode.DIGEST_MISMATCH),
-        (FlashError("x"), m.ErrorCode.FLASH_FAILED),
-        (BudgetError("x"), m.ErrorCode.TOO_LARGE_FOR_RAM),
-        (ImageTagError("x"), m.ErrorCode.TAG_MISMATCH),
-        (ImageFormatError("x"), m.ErrorCode.UNSUPPORTED_FORMAT),
-        (MalformedMessage("x"), m.ErrorCode.MALFORMED),
-        (RuntimeError("x"), m.ErrorCode.INTERNAL),
-    ],
-)
-def test_each_exception_class_gets_its_wire_code(exc, code):
-    assert error_for(exc, "where").code == code
+#: Wire code name -> an exception the device maps to it (docs/protocol.md, "Error codes").
+EXPECTED_CODE = {
+    "TOO_LARGE_FOR_FLASH": e.ImageTooLarge,
+    "ROLLBACK_REFUSED": e.RollbackRefused,
+    "BAD_OFFSET": e.BadChunk,
+    "NO_IMAGE": e.NoImage,
+    "BUSY": e.SlotBusy,
+    "DIGEST_MISMATCH": e.SlotDigestMismatch,
+    "FLASH_FAILED": e.FlashError,
+    "TOO_LARGE_FOR_RAM": e.BudgetError,
+    "TAG_MISMATCH": ImageTagError,
+    "UNSUPPORTED_FORMAT": ImageFormatError,
+    "MALFORMED": MalformedMessage,
+    "INTERNAL": RuntimeError,
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED_CODE))
+def test_each_exception_class_gets_its_wire_code(name):
+    assert error_for(EXPECTED_CODE[name]("x"), "where").code == m.ErrorCode[name]
 
 
 def test_messages_are_one_line_within_the_field_limits():
-    error = error_for(FlashError("line one\nline two " + "x" * 400), "w" * 100)
+    error = error_for(e.FlashError("line one\nline two " + "x" * 400), "w" * 100)
     assert "\n" not in error.message and error.message.startswith("line one line two")
     assert len(error.message.encode()) <= 256 and error.message.endswith("...")
     assert len(error.where.encode()) <= 64

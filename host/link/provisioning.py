@@ -556,6 +556,7 @@ class _Connection:
     notices: _Notices
 
 
+@dataclass
 class _Provisioning:
     """One run of :func:`provision`: its steps in order, and what carries over a reconnect.
 
@@ -565,34 +566,21 @@ class _Provisioning:
     the first handshake passed the pre-checks; from then on an attempt resumes the transfer.
     """
 
-    def __init__(
-        self,
-        info: ImageInfo,
-        data: memoryview,
-        settings: _Settings,
-        *,
-        bar: _TransferProgress,
-        factory: Callable[[int], Any],
-        started: float,
-        on_progress: Callable[[int, int], None] | None,
-        say: Callable[[str], None],
-        stage: Callable[[str], None],
-    ) -> None:
-        self.info = info
-        self.data = data
-        self.settings = settings
-        self.bar = bar
-        self.factory = factory
-        self.started = started
-        self.on_progress = on_progress
-        self.say = say
-        self.stage = stage
-        self.result: ProvisionResult | None = None
-        self.link: Link | None = None
-        self.failures = 0
-        self.progress_mark = -1
-        self.transfer_seconds = 0.0
-        self.learned_chunk_bytes: int | None = None
+    info: ImageInfo
+    data: memoryview
+    settings: _Settings
+    bar: _TransferProgress
+    factory: Callable[[int], Any]
+    started: float
+    on_progress: Callable[[int, int], None] | None
+    say: Callable[[str], None]
+    stage: Callable[[str], None]
+    result: ProvisionResult | None = None
+    link: Link | None = None
+    failures: int = 0
+    progress_mark: int = -1
+    transfer_seconds: float = 0.0
+    learned_chunk_bytes: int | None = None
 
     def run(self) -> ProvisionResult:
         """Attempt until the image is installed (or was there); reconnect on a lost link."""
