@@ -81,6 +81,7 @@ from provision_helpers import DeviceProcess, mem_name  # noqa: E402
 
 from device_runtime.display import HeadlessPresenter  # noqa: E402
 from device_runtime.reconstruct import Reconstructor  # noqa: E402
+from protocol import auth  # noqa: E402
 from protocol import messages as m  # noqa: E402
 from protocol.scores import ScoreDecoder, encode_scores  # noqa: E402
 
@@ -152,7 +153,7 @@ def eigenspace_bytes(image: Any) -> int:
 
 
 def orbit_views(n: int, theta: float = 15.0, turns: float = 1.0) -> list[tuple[float, float]]:
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
 
     spec = parse_orbit(f"steps:{n}:{theta:g}:{turns:g}")
     orbit = spec.start(now_s=0.0)
@@ -394,7 +395,7 @@ def section_tag_cost(case: Case, frames: int) -> dict:
     _, packets = case.packets(frames + 1)
     session_key = os.urandom(32)
     plain = [m.Scores(sequence=i, packet=p).to_body() for i, p in enumerate(packets)]
-    tagged = [m.tag_event(m.Scores(sequence=i, packet=p), session_key, i + 1).to_body()
+    tagged = [auth.tag_event(m.Scores(sequence=i, packet=p), session_key, i + 1).to_body()
               for i, p in enumerate(packets)]
     runs = {"plain": (case.decoder(), case.reconstructor("auto"), plain, []),
             "tagged": (case.decoder(), case.reconstructor("auto"), tagged, [])}
@@ -406,7 +407,7 @@ def section_tag_cost(case: Case, frames: int) -> dict:
             msg = m.Scores.from_body(bodies[i])
             if name == "tagged":
                 t1 = time.perf_counter()
-                m.verify_event(msg, session_key, i)
+                auth.verify_event(msg, session_key, i)
                 verify.append(time.perf_counter() - t1)
             rec.update(decoder.decode(msg.packet).y)
             times.append(time.perf_counter() - t0)
@@ -592,7 +593,7 @@ def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
 
     t0 = time.perf_counter()
     hwm = 0
@@ -652,7 +653,7 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
     from runtime_helpers import RuntimeThread
 
     from device_runtime.device import DeviceConfig
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
     from host.link.serving import serve
     from protocol.keys import load_key
 

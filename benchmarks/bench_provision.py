@@ -49,9 +49,11 @@ from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_
 
 from host.link.provisioning import provision  # noqa: E402
 from protocol import messages as m  # noqa: E402
+from protocol.host_session import HostSession  # noqa: E402
 from protocol.image import read_manifest  # noqa: E402
+from protocol.image_transfer import send_image  # noqa: E402
 from protocol.keys import write_key  # noqa: E402
-from protocol.link import CHUNK_OVERHEAD_BYTES, HostSession, Link, send_image  # noqa: E402
+from protocol.link import CHUNK_OVERHEAD_BYTES, Link  # noqa: E402
 from protocol.transport import open_transport  # noqa: E402
 
 MB = 1_000_000

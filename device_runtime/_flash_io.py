@@ -12,9 +12,18 @@ which lets a test cut the power at every step of a provisioning sequence.
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import os
+from collections.abc import Callable
+from typing import Any, TypeVar
 
-__all__ = ["FileOps", "file_ops", "install_file_ops"]
+from device_runtime.errors import FlashError
+
+__all__ = ["READ_CHUNK_BYTES", "FileOps", "file_ops", "install_file_ops"]
+
+READ_CHUNK_BYTES = 1 << 20
+"""Buffer of every streaming read (verification, open_active)."""
 
 
 class FileOps:
@@ -71,3 +80,50 @@ def install_file_ops(ops: FileOps) -> FileOps:
     global _current
     previous, _current = _current, ops
     return previous
+
+
+# ------------------------------------------------------------------ shared by store and writer
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _wrap_os_errors(operation: str) -> Callable[[_F], _F]:
+    """Turn an ``OSError`` inside a public method into one-line :class:`FlashError`."""
+
+    def decorate(func: _F) -> _F:
+        @functools.wraps(func)
+        def wrapper(self: Any, *args: Any, **kwargs: Any) -> Any:
+            try:
+                return func(self, *args, **kwargs)
+            except OSError as exc:
+                where = exc.filename or getattr(self, "path", "")
+                raise FlashError(f"flash {operation}: {where}: {exc.strerror or exc}") from exc
+
+        return wrapper  # type: ignore[return-value]
+
+    return decorate
+
+
+def _hash_fd(fd: int, offset: int, length: int) -> tuple[bytes | None, int]:
+    """SHA-256 of ``length`` bytes at ``offset`` (streaming); (None, bytes read) when short."""
+    hasher = hashlib.sha256()
+    buffer = bytearray(min(READ_CHUNK_BYTES, max(length, 1)))
+    view = memoryview(buffer)
+    done = 0
+    while done < length:
+        want = min(len(buffer), length - done)
+        got = os.preadv(fd, [view[:want]], offset + done)
+        if got == 0:
+            return None, done
+        hasher.update(view[:got])
+        done += got
+    return hasher.digest(), done
+
+
+def _check_uint(name: str, value: object, *, low: int, high: int, error: type[Exception]) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    if not low <= value <= high:
+        raise error(f"{name}={value} must be in [{low}, {high}]")
+    return value

@@ -59,10 +59,10 @@ from device_runtime.device import (
     DEFAULT_RAM_BUDGET_BYTES,
     DEFAULT_RX_WINDOW_FRAMES,
     DeviceConfig,
-    image_problem,
 )
 from device_runtime.errors import DeviceError, FlashError
 from device_runtime.flash import FlashStore, format_status
+from device_runtime.image_receiver import image_problem
 from protocol.errors import ProtocolError
 from protocol.keys import key_fingerprint, load_key, write_key
 from protocol.transport import open_transport
@@ -186,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _orbit(text: str) -> Any:
-    from device_runtime.runtime import parse_orbit
+    from device_runtime.orbit import parse_orbit
 
     try:
         return parse_orbit(text)
@@ -195,7 +195,7 @@ def _orbit(text: str) -> Any:
 
 
 def _views(text: str) -> Any:
-    from device_runtime.runtime import parse_view_list
+    from device_runtime.orbit import parse_view_list
 
     try:
         return parse_view_list(text)

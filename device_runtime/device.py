@@ -9,6 +9,13 @@ issue-5 runtime adds its SCORES/VIEW_REQUEST handling through the hooks
 :meth:`Device.on_scores`, :meth:`Device.on_keyframe_request` and
 :meth:`Device.on_image_committed` without rewriting the dispatcher.
 
+This module is the session and authentication dispatcher (HELLO, AUTH, signed requests,
+tagged events, SET_BAUD, RESET, SLOT_SET, the serve/run loops). The transfer handlers
+(IMAGE_*) and what the device accepts as an image are :mod:`device_runtime.image_receiver`
+(:class:`Device` inherits its :class:`~device_runtime.image_receiver.ImageReceiver`); the
+ERROR sent for an exception is :mod:`device_runtime.wire_errors`. Their names are still
+importable from here.
+
 Session state machine (docs/protocol.md, "State machines")::
 
     NO_SESSION --HELLO--> HELLO'D --AUTH_CHALLENGE ok--> AUTHENTICATED
@@ -38,9 +45,7 @@ exception (:func:`error_for`); memory is bounded by the frame size, the inbox
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import hmac
-import io
 import logging
 import os
 import threading
@@ -50,22 +55,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from device_runtime.errors import BudgetError, DeviceError, FlashError
+from device_runtime.errors import DeviceError, FlashError
 from device_runtime.flash import (
-    BadChunk,
     FlashStore,
-    ImageTooLarge,
-    ImageWriter,
-    NoImage,
-    RollbackRefused,
-    SlotBusy,
-    SlotDigestMismatch,
 )
-from device_runtime.reconstruct import reconstruction_memory_bytes
+from device_runtime.image_receiver import (
+    ImageReceiver,
+    _Transfer,
+    image_problem,
+    read_device_image,
+    required_ram_bytes,
+)
+from device_runtime.wire_errors import DeviceRefusal, _one_line, error_for
+from protocol import auth
 from protocol import messages as m
 from protocol.errors import (
     AuthenticationError,
-    ImageFormatError,
     NotAuthenticated,
     ProtocolError,
     ReplayError,
@@ -73,13 +78,8 @@ from protocol.errors import (
 )
 from protocol.framing import Frame
 from protocol.image import (
-    HEADER_SIZE,
     MAX_MANIFEST_BYTES,
     SUPPORTED_VERSIONS,
-    ImageTagError,
-    parse_header,
-    read_image,
-    read_manifest,
 )
 from protocol.link import CHUNK_OVERHEAD_BYTES, Link
 from protocol.transport import TcpListenTransport, open_transport
@@ -122,178 +122,6 @@ _DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
 
 
 # --------------------------------------------------------------------------- errors
-
-
-class DeviceRefusal(DeviceError):
-    """A request the device refuses with a specific wire error code.
-
-    Parameters
-    ----------
-    code : ErrorCode
-    message : str
-        One line.
-    detail : dict, optional
-        Machine-readable specifics (text keys, scalar values).
-    """
-
-    def __init__(self, code: m.ErrorCode, message: str, detail: dict | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-        self.detail = detail
-
-
-_FLASH_CODES: tuple[tuple[type[BaseException], m.ErrorCode], ...] = (
-    (ImageTooLarge, m.ErrorCode.TOO_LARGE_FOR_FLASH),
-    (RollbackRefused, m.ErrorCode.ROLLBACK_REFUSED),
-    (BadChunk, m.ErrorCode.BAD_OFFSET),
-    (NoImage, m.ErrorCode.NO_IMAGE),
-    (SlotBusy, m.ErrorCode.BUSY),
-    (SlotDigestMismatch, m.ErrorCode.DIGEST_MISMATCH),
-    (BudgetError, m.ErrorCode.TOO_LARGE_FOR_RAM),
-    (ImageTagError, m.ErrorCode.TAG_MISMATCH),
-    (ImageFormatError, m.ErrorCode.UNSUPPORTED_FORMAT),
-    (FlashError, m.ErrorCode.FLASH_FAILED),
-)
-
-
-def _one_line(text: str, limit: int) -> str:
-    text = " ".join(str(text).split())
-    data = text.encode("utf-8", "replace")
-    if len(data) <= limit:
-        return text
-    return data[: limit - 3].decode("utf-8", "ignore") + "..."
-
-
-def error_for(exc: BaseException, where: str) -> m.Error:
-    """Return the ERROR a device sends for a failed request.
-
-    :class:`DeviceRefusal` carries its code; flash errors map one to one
-    (ImageTooLarge -> TOO_LARGE_FOR_FLASH, RollbackRefused -> ROLLBACK_REFUSED,
-    BadChunk -> BAD_OFFSET, NoImage -> NO_IMAGE, SlotBusy -> BUSY,
-    SlotDigestMismatch -> DIGEST_MISMATCH, other FlashError -> FLASH_FAILED);
-    BudgetError -> TOO_LARGE_FOR_RAM; ImageTagError -> TAG_MISMATCH; other
-    ImageFormatError -> UNSUPPORTED_FORMAT; protocol errors as
-    :func:`protocol.messages.error_code_for`; anything else INTERNAL.
-    """
-    if isinstance(exc, DeviceRefusal):
-        return m.Error(
-            code=exc.code,
-            where=_one_line(where, 64),
-            message=_one_line(str(exc), 256),
-            detail=exc.detail,
-        )
-    for cls, code in _FLASH_CODES:
-        if isinstance(exc, cls):
-            return m.Error(code=code, where=_one_line(where, 64), message=_one_line(str(exc), 256))
-    error = m.Error.from_exception(exc, where=_one_line(where, 64))
-    if error.code == m.ErrorCode.INTERNAL:
-        _logger.error("%s: internal error", where, exc_info=exc)
-    return dataclasses.replace(error, message=_one_line(error.message, 256))
-
-
-# --------------------------------------------------------------------------- RAM
-
-
-def required_ram_bytes(manifest: dict) -> int:
-    """RAM an image needs on the device, from its manifest's declared sizes, in bytes.
-
-    The reconstruction's arrays, frame buffers and scratch
-    (:func:`device_runtime.reconstruct.reconstruction_memory_bytes`, from the
-    image and cell shapes and the number of components) plus the decompressed
-    size of every extra section.
-
-    Parameters
-    ----------
-    manifest : dict
-        As returned by :func:`protocol.image.read_manifest` (untrusted).
-
-    Raises
-    ------
-    ImageFormatError
-        A field this needs is missing or of the wrong type.
-    """
-
-    def ints(value: Any, n: int | None, what: str) -> list[int]:
-        if not isinstance(value, list) or (n is not None and len(value) != n) or not all(
-            isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 62 for v in value
-        ):
-            raise ImageFormatError(f"image manifest: '{what}' is not a list of non-negative ints")
-        return value
-
-    image_shape = ints(manifest.get("image_shape"), 2, "image_shape")
-    cell_shape = ints(manifest.get("cell_shape"), 2, "cell_shape")
-    if min(*image_shape, *cell_shape) < 1:
-        raise ImageFormatError("image manifest: image_shape and cell_shape must be positive")
-    sections = manifest.get("sections")
-    if not isinstance(sections, list):
-        raise ImageFormatError("image manifest: 'sections' is not a list")
-    n_coefficients = 0
-    extra = 0
-    for entry in sections:
-        if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
-            raise ImageFormatError("image manifest: a section entry has no name")
-        raw = entry.get("raw_size")
-        if not isinstance(raw, int) or isinstance(raw, bool) or raw < 0:
-            raise ImageFormatError(f"image manifest: section '{entry['name'][:64]}' raw_size")
-        if entry["name"] == "eigenimages":
-            shape = ints(entry.get("shape"), None, "eigenimages shape")
-            n_coefficients = shape[0] if shape else 0
-        elif entry["name"] not in _DEVICE_SECTIONS:
-            extra += raw
-    base = reconstruction_memory_bytes(
-        (image_shape[0], image_shape[1]), (cell_shape[0], cell_shape[1]), n_coefficients
-    )
-    return int(base + extra)
-
-
-def read_device_image(stream: Any, *, key: bytes | None, ram_budget_bytes: int) -> Any:
-    """Read and validate an image exactly as a device with ``key`` and budget loads it.
-
-    The RAM the image needs (:func:`required_ram_bytes`, from its manifest) must fit
-    ``ram_budget_bytes``; then the whole image is read within that budget: structure,
-    digest and, on a device with a key, a tag made with that key (unsigned images are
-    refused). Boot, the fallback and ``eigencast-device --status`` use this one check.
-
-    Parameters
-    ----------
-    stream : binary file
-        Seekable, positioned at the image's first byte (a flash slot).
-    key : bytes or None
-        The device key (None: a keyless device, which does not check tags).
-    ram_budget_bytes : int
-
-    Returns
-    -------
-    EigenspaceImage
-
-    Raises
-    ------
-    ImageFormatError, ImageTagError, BudgetError
-    """
-    max_manifest = min(MAX_MANIFEST_BYTES, ram_budget_bytes)
-    manifest = read_manifest(stream, max_manifest_bytes=max_manifest)
-    need = required_ram_bytes(manifest)
-    if need > ram_budget_bytes:
-        raise BudgetError(f"the image needs {need} bytes of RAM, the budget is {ram_budget_bytes}")
-    stream.seek(0)
-    return read_image(
-        stream,
-        key=key,
-        require_tag=key is not None,
-        max_manifest_bytes=max_manifest,
-        max_section_bytes=ram_budget_bytes,
-        max_total_bytes=ram_budget_bytes,
-        read_annex=False,
-    )
-
-
-def image_problem(stream: Any, *, key: bytes | None, ram_budget_bytes: int) -> str | None:
-    """None when :func:`read_device_image` accepts the image, else why not (one line)."""
-    try:
-        read_device_image(stream, key=key, ram_budget_bytes=ram_budget_bytes)
-    except (ProtocolError, DeviceError, OSError, ValueError) as exc:
-        return _one_line(str(exc), 200) or type(exc).__name__
-    return None
 
 
 # --------------------------------------------------------------------------- config
@@ -405,26 +233,6 @@ class DeviceStats:
 
 
 @dataclass
-class _Transfer:
-    request_id: int
-    digest: bytes
-    size_bytes: int
-    image_tag: bytes
-    format_version: int
-    generation: int
-    force: bool
-    writer: ImageWriter
-    window_bytes: int
-    header_checked: bool = False
-    manifest_checked: bool = False
-    verified: bool = False
-    tag_ok: bool = False
-    chunks_since_ack: int = 0
-    last_flush: float = field(default_factory=time.monotonic)
-    manifest_size: int = 0
-
-
-@dataclass
 class _Session:
     host_nonce: bytes | None = None
     device_nonce: bytes | None = None
@@ -456,7 +264,7 @@ _MAX_TOLD_NO_TRANSFER = 64
 # --------------------------------------------------------------------------- device
 
 
-class Device:
+class Device(ImageReceiver):
     """A device: flash store, session state and per-message handlers.
 
     Parameters
@@ -839,7 +647,7 @@ class Device:
         """Whether a SCORES / IMAGE_CHUNK / KEYFRAME_REQUEST may be decoded or stored.
 
         It needs a session (HELLO). On a keyed device SCORES and IMAGE_CHUNK also need an
-        authenticated session and an event tag (:func:`protocol.messages.verify_event`)
+        authenticated session and an event tag (:func:`protocol.auth.verify_event`)
         whose counter is above the last one accepted on that channel. Refused events are
         counted in :attr:`stats` (``dropped_*``) and logged at most once per reason every
         few seconds; nothing is answered (an answer would be an oracle).
@@ -860,7 +668,7 @@ class Device:
             return False
         channel = int(msg.TYPE)
         try:
-            counter = m.verify_event(msg, session.session_key,
+            counter = auth.verify_event(msg, session.session_key,
                                      session.event_counters.get(channel, 0))
         except ReplayError:
             self.stats.dropped_replayed += 1
@@ -913,7 +721,7 @@ class Device:
             and last[1] == frame.body
         ):
             return self._replay(last[2], frame)
-        session.last_counter = m.verify(msg, session.session_key, session.last_counter)
+        session.last_counter = auth.verify(msg, session.session_key, session.last_counter)
         return None
 
     def _replay(self, reply: m.Message, frame: Frame) -> m.Message:
@@ -1014,7 +822,7 @@ class Device:
                 "this device has no key (pair one with eigencast-device --pair KEYFILE)",
             )
         assert session.host_nonce is not None and session.device_nonce is not None
-        expected = m.auth_proof(
+        expected = auth.auth_proof(
             self.config.key,
             role="host",
             host_nonce=session.host_nonce,
@@ -1027,14 +835,14 @@ class Device:
             raise AuthenticationError(
                 "AUTH_CHALLENGE: the host proof does not verify with this device's key"
             )
-        key = m.derive_session_key(self.config.key, session.host_nonce, session.device_nonce)
+        key = auth.derive_session_key(self.config.key, session.host_nonce, session.device_nonce)
         if session.session_key != key:  # a repeated challenge keeps the counter state
             session.session_key = key
             session.last_counter = 0
             session.last_signed = None
             self.log("host authenticated")
         return m.AuthResponse(
-            device_proof=m.auth_proof(
+            device_proof=auth.auth_proof(
                 self.config.key,
                 role="device",
                 host_nonce=session.host_nonce,
@@ -1146,315 +954,6 @@ class Device:
             link.defer(self.on_image_committed)
         else:
             self.on_image_committed()
-
-    # ------------------------------------------------------------------ image handlers
-    def handle_image_status(self, msg: m.ImageStatus, frame: Frame) -> m.Message:
-        """Where would a transfer of that image resume? (keyed device: after AUTH only)"""
-        if self.config.key is not None and not self.session.authenticated:
-            raise NotAuthenticated(
-                "IMAGE_STATUS needs an authenticated session (HELLO, then AUTH_CHALLENGE)"
-            )
-        transfer = self.session.transfer
-        if transfer is not None and transfer.digest == msg.digest and not transfer.writer.closed:
-            return m.ImageStatusReply(next_offset=transfer.writer.next_offset, in_progress=True)
-        journal = self.store.status(verify=False)["journal"]
-        if (
-            journal is None
-            or journal["sha256"] != msg.digest.hex()
-            or journal["size_bytes"] != msg.size_bytes
-        ):
-            return m.ImageStatusReply(next_offset=0, in_progress=False)
-        return m.ImageStatusReply(
-            next_offset=self.store.image_status(msg.digest), in_progress=True
-        )
-
-    def handle_image_begin(self, msg: m.ImageBegin, frame: Frame) -> m.Message:
-        """Open (or resume) a transfer into the inactive slot; answer the first IMAGE_ACK."""
-        if msg.format_version not in SUPPORTED_VERSIONS:
-            raise DeviceRefusal(
-                m.ErrorCode.UNSUPPORTED_FORMAT,
-                f"image format version {msg.format_version} is not supported (this device "
-                f"reads {', '.join(map(str, SUPPORTED_VERSIONS))})",
-                {"format_version": msg.format_version},
-            )
-        if msg.size_bytes < HEADER_SIZE + 64:
-            raise DeviceRefusal(
-                m.ErrorCode.UNSUPPORTED_FORMAT,
-                f"{msg.size_bytes} bytes is too small for an eigenspace image (header and "
-                f"trailer alone take {HEADER_SIZE + 64})",
-            )
-        if msg.size_bytes > self.store.capacity_bytes:
-            raise DeviceRefusal(
-                m.ErrorCode.TOO_LARGE_FOR_FLASH,
-                f"the image is {msg.size_bytes} bytes, a flash slot holds "
-                f"{self.store.capacity_bytes}",
-                {"size_bytes": msg.size_bytes, "limit_bytes": self.store.capacity_bytes},
-            )
-        self.session.transfer = None
-        writer = self.store.begin_image(
-            size_bytes=msg.size_bytes,
-            sha256=msg.digest,
-            image_generation=msg.generation,
-            force=msg.force,
-            window_bytes=self.window_bytes,
-        )
-        transfer = _Transfer(
-            request_id=frame.request_id,
-            digest=msg.digest,
-            size_bytes=msg.size_bytes,
-            image_tag=msg.image_tag,
-            format_version=msg.format_version,
-            generation=msg.generation,
-            force=msg.force,
-            writer=writer,
-            window_bytes=self.window_bytes,
-        )
-        self.session.transfer = transfer
-        self._told_no_transfer.discard(frame.request_id)
-        try:
-            self._check_prefix(transfer)
-        except Exception:
-            self._drop_transfer()
-            raise
-        resumed = f", resuming at {writer.next_offset}" if writer.next_offset else ""
-        self.log(
-            f"image begin: {msg.size_bytes} bytes, sha256 {msg.digest.hex()[:16]}, generation "
-            f"{msg.generation} -> slot {writer.slot}{resumed}"
-        )
-        return m.ImageAck(
-            next_offset=writer.next_offset,
-            credits=self.config.rx_window_frames,
-            window_bytes=min(self.window_bytes, 0xFFFFFFFF),
-        )
-
-    def _drop_transfer(self) -> None:
-        self.session.transfer = None
-        with contextlib.suppress(FlashError):
-            self.store.abort_image()
-
-    def _read_slot(self, transfer: _Transfer, offset: int, size: int) -> bytes:
-        with open(transfer.writer.path, "rb") as handle:
-            handle.seek(offset)
-            return handle.read(size)
-
-    def _check_prefix(self, transfer: _Transfer) -> None:
-        """Check the header, then the manifest, as soon as their bytes have arrived."""
-        received = transfer.writer.next_offset
-        if not transfer.header_checked and received >= HEADER_SIZE:
-            head = self._read_slot(transfer, 0, HEADER_SIZE)
-            try:
-                header = parse_header(head, max_manifest_bytes=self._max_manifest_bytes(),
-                                      what="received image")
-            except ImageFormatError as exc:
-                raise DeviceRefusal(m.ErrorCode.UNSUPPORTED_FORMAT, str(exc)) from None
-            if header.format_version != transfer.format_version:
-                raise DeviceRefusal(
-                    m.ErrorCode.UNSUPPORTED_FORMAT,
-                    f"IMAGE_BEGIN announced format version {transfer.format_version}, the "
-                    f"image header says {header.format_version}",
-                )
-            if header.image_size != transfer.size_bytes:
-                raise DeviceRefusal(
-                    m.ErrorCode.MALFORMED,
-                    f"IMAGE_BEGIN announced {transfer.size_bytes} bytes, the image header "
-                    f"says {header.image_size}",
-                )
-            transfer.header_checked = True
-            transfer.manifest_size = header.manifest_size
-        end = HEADER_SIZE + transfer.manifest_size
-        if transfer.header_checked and not transfer.manifest_checked and received >= end:
-            data = self._read_slot(transfer, 0, end)
-            try:
-                manifest = read_manifest(io.BytesIO(data),
-                                         max_manifest_bytes=self._max_manifest_bytes())
-                need = required_ram_bytes(manifest)
-                generation = manifest.get("image_generation")
-            except ImageFormatError as exc:
-                raise DeviceRefusal(m.ErrorCode.UNSUPPORTED_FORMAT, str(exc)) from None
-            if need > self.config.ram_budget_bytes:
-                raise DeviceRefusal(
-                    m.ErrorCode.TOO_LARGE_FOR_RAM,
-                    f"the eigenspace needs {need} bytes of RAM, this device's budget is "
-                    f"{self.config.ram_budget_bytes}",
-                    {"need_bytes": need, "limit_bytes": self.config.ram_budget_bytes},
-                )
-            if generation != transfer.generation:
-                raise DeviceRefusal(
-                    m.ErrorCode.MALFORMED,
-                    f"IMAGE_BEGIN announced generation {transfer.generation}, the image "
-                    f"manifest says {generation!r}",
-                )
-            transfer.manifest_checked = True
-
-    def handle_image_chunk(self, msg: m.ImageChunk, frame: Frame) -> None:
-        """Write a chunk (idempotent by offset) and acknowledge cumulatively."""
-        transfer = self.session.transfer
-        tid = frame.request_id
-        if transfer is None or tid != transfer.request_id:
-            self.stats.chunks_stale += 1
-            if transfer is None and tid not in self._told_no_transfer and tid != 0:
-                if len(self._told_no_transfer) >= _MAX_TOLD_NO_TRANSFER:
-                    self._told_no_transfer.clear()  # bounded: a peer picks the ids
-                self._told_no_transfer.add(tid)
-                self.stats.errors_sent += 1
-                self._send(
-                    m.Error(
-                        code=m.ErrorCode.NO_IMAGE,
-                        where="IMAGE_CHUNK",
-                        message=f"no image transfer {tid} in this session (send IMAGE_BEGIN)",
-                    ),
-                    tid,
-                )
-            return None
-        writer = transfer.writer
-        data = msg.data
-        end = msg.offset + len(data)
-        try:
-            if len(data) > self.rx_buffer_bytes:
-                raise DeviceRefusal(
-                    m.ErrorCode.LIMIT_EXCEEDED,
-                    f"chunk of {len(data)} bytes exceeds rx_buffer_bytes={self.rx_buffer_bytes}",
-                )
-            if end > transfer.size_bytes:
-                raise DeviceRefusal(
-                    m.ErrorCode.BAD_OFFSET,
-                    f"chunk at {msg.offset} + {len(data)} bytes runs past the image size "
-                    f"{transfer.size_bytes}",
-                )
-            if end > writer.next_offset + transfer.window_bytes:
-                self.stats.chunks_out_of_window += 1
-            else:
-                writer.write_chunk(msg.offset, data)
-                self.stats.chunks += 1
-                self.stats.chunk_bytes += len(data)
-                if not transfer.manifest_checked:
-                    self._check_prefix(transfer)
-                now = time.monotonic()
-                if now - transfer.last_flush >= self.config.flush_interval_s:
-                    transfer.last_flush = now
-                    writer.flush()
-                    self.stats.flushes += 1
-        except (DeviceRefusal, FlashError) as exc:
-            error = self._map_error(exc, "IMAGE_CHUNK")
-            if error.code in (m.ErrorCode.BAD_OFFSET, m.ErrorCode.LIMIT_EXCEEDED):
-                self._send(error, tid)
-                return None
-            self.log(f"image transfer refused: {error.message}")
-            self._drop_transfer()
-            self._told_no_transfer.add(tid)  # its chunks still in flight are dropped quietly
-            self._send(error, tid)
-            return None
-        transfer.chunks_since_ack += 1
-        link = self.link
-        busy = link is not None and link.inbox_image_frames() > 0
-        if not busy or transfer.chunks_since_ack >= max(1, self.config.rx_window_frames // 4):
-            transfer.chunks_since_ack = 0
-            self.stats.acks += 1
-            self._send(
-                m.ImageAck(
-                    next_offset=writer.next_offset,
-                    credits=self.config.rx_window_frames,
-                    window_bytes=min(transfer.window_bytes, 0xFFFFFFFF),
-                ),
-                tid,
-            )
-        return None
-
-    def handle_image_verify(self, msg: m.ImageVerify, frame: Frame) -> m.Message:
-        """Re-read the slot: SHA-256 of the whole image, then its structure, digest and tag."""
-        transfer = self.session.transfer
-        if transfer is None or transfer.digest != msg.digest:
-            raise DeviceRefusal(
-                m.ErrorCode.NO_IMAGE,
-                f"no transfer of image {msg.digest.hex()[:16]} in this session "
-                "(IMAGE_BEGIN first)",
-            )
-        writer = transfer.writer
-        if writer.next_offset < transfer.size_bytes:
-            raise DeviceRefusal(
-                m.ErrorCode.BAD_STATE,
-                f"received {writer.next_offset} of {transfer.size_bytes} bytes; send the rest "
-                "before IMAGE_VERIFY",
-                {"next_offset": writer.next_offset},
-            )
-        if not transfer.verified:
-            if not writer.verify():
-                self.session.transfer = None  # verify() already dropped the journal
-                raise DeviceRefusal(
-                    m.ErrorCode.DIGEST_MISMATCH,
-                    f"the {transfer.size_bytes} bytes received do not hash to the announced "
-                    f"SHA-256 {transfer.digest.hex()[:16]}...; the transfer was discarded",
-                )
-            try:
-                self._check_prefix(transfer)
-                tag_ok = self._validate_slot(transfer)
-            except Exception:
-                self._drop_transfer()
-                raise
-            transfer.verified = True
-            transfer.tag_ok = tag_ok
-            self.log(f"image verified: sha256 {transfer.digest.hex()[:16]}, tag "
-                     f"{'ok' if tag_ok else 'not checked (--insecure)'}")
-        return m.ImageVerifyReply(
-            ok=True,
-            digest=transfer.digest,
-            tag_ok=transfer.tag_ok,
-            size_bytes=transfer.size_bytes,
-        )
-
-    def _validate_slot(self, transfer: _Transfer) -> bool:
-        """Read the written image like a boot would (bounded); True when its tag verified."""
-        tail = self._read_slot(transfer, transfer.size_bytes - 32, 32)
-        if self.config.key is not None and not hmac.compare_digest(tail, transfer.image_tag):
-            raise DeviceRefusal(
-                m.ErrorCode.TAG_MISMATCH,
-                "the image's tag differs from the one announced in IMAGE_BEGIN",
-            )
-        with open(transfer.writer.path, "rb") as handle:
-            try:
-                image = read_image(
-                    handle,
-                    key=self.config.key,
-                    require_tag=self.config.key is not None,
-                    max_manifest_bytes=self._max_manifest_bytes(),
-                    max_section_bytes=self.config.ram_budget_bytes,
-                    max_total_bytes=self.config.ram_budget_bytes,
-                    read_annex=False,
-                )
-            except ImageTagError as exc:
-                raise DeviceRefusal(m.ErrorCode.TAG_MISMATCH, str(exc)) from None
-            except ImageFormatError as exc:
-                raise DeviceRefusal(
-                    m.ErrorCode.UNSUPPORTED_FORMAT, f"the image does not read: {exc}"
-                ) from None
-        return bool(image.tag_verified)
-
-    def handle_image_commit(self, msg: m.ImageCommit, frame: Frame) -> m.Message:
-        """Make the verified image active for a test boot; then load and confirm it."""
-        transfer = self.session.transfer
-        if transfer is None or transfer.digest != msg.digest:
-            raise DeviceRefusal(
-                m.ErrorCode.NO_IMAGE,
-                f"no transfer of image {msg.digest.hex()[:16]} in this session",
-            )
-        if not transfer.verified:
-            raise DeviceRefusal(
-                m.ErrorCode.BAD_STATE, "IMAGE_COMMIT before a successful IMAGE_VERIFY"
-            )
-        self.store.commit_test()
-        self.session.transfer = None
-        self.log(f"image committed to slot {self.store.active_slot} (test)")
-        self._after_activation()
-        return m.SlotStatus(slots=self._slot_infos())
-
-    def handle_image_abort(self, msg: m.ImageAbort, frame: Frame) -> m.Message:
-        """Drop the transfer in progress and its journal."""
-        transfer = self.session.transfer
-        if msg.digest is not None and transfer is not None and transfer.digest != msg.digest:
-            raise DeviceRefusal(m.ErrorCode.NO_IMAGE, "no transfer of that image to abort")
-        self._drop_transfer()
-        self.log("image transfer aborted by the host")
-        return m.Ok()
 
     # ------------------------------------------------------------------ hooks
     def on_image_committed(self) -> None:

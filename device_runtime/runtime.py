@@ -29,17 +29,9 @@ HELLO, provisioning and every other request) that also shows frames. Threads::
 * Memory is flat: one frame buffer, one slot, bounded rings for statistics.
 
 Standalone (``standalone=True``): the image carries a quantized table of the training
-views' scores (section :data:`STANDALONE_SECTION`, written by ``eigencast fit
---standalone``) and the interpolation manifest; the runtime interpolates scores locally
-(:class:`StandaloneScores`), exactly as the host's ``eigencast view`` does for that image,
-and needs no host at all.
-
-Orbits (:func:`parse_orbit`, shared with ``eigencast serve --orbit``)::
-
-    turn:SECONDS[:THETA_DEG[:TURNS]]   a full turn of phi every SECONDS at elevation
-                                       THETA_DEG (default 15), TURNS turns (default: forever)
-    steps:N[:THETA_DEG[:TURNS]]        N evenly spaced views per turn (phi = 360 i / N),
-                                       each shown once, TURNS turns (default 1)
+views' scores and the runtime interpolates scores locally, needing no host:
+:mod:`device_runtime.standalone`. Orbits and view lists (``--orbit``, ``--views``) are
+:mod:`device_runtime.orbit`. Their names are still importable from here.
 """
 
 from __future__ import annotations
@@ -67,10 +59,17 @@ from device_runtime.display import (
     Zoom,
 )
 from device_runtime.errors import DeviceError, FlashError
-from device_runtime.interpolation import interpolate, interpolator_from_manifest
+from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
 from device_runtime.reconstruct import Reconstructor
+from device_runtime.standalone import (
+    STANDALONE_DELTA_SECTION,
+    STANDALONE_SECTION,
+    StandaloneScores,
+    standalone_order,
+    standalone_table,
+)
 from protocol import messages as m
-from protocol.errors import ImageFormatError, ProtocolError
+from protocol.errors import ProtocolError
 from protocol.framing import Frame
 from protocol.image import EigenspaceImage
 from protocol.scores import (
@@ -102,16 +101,6 @@ __all__ = [
     "standalone_table",
 ]
 
-STANDALONE_SECTION = "standalone_scores"
-#: The same table stored smaller (``fit --standalone`` since issue 6): uint8 of shape
-#: (K, 2, n_views). Per component, the views are taken in `standalone_order` (theta rings,
-#: phi ascending: neighbours on the paper's grid are 3.6 degrees apart), each value minus the
-#: previous one as int16 (wrapping), zigzag-mapped to uint16 and split into a plane of low
-#: bytes and a plane of high bytes (zstd packs the planes far better than interleaved int16).
-#: `standalone_table` restores the int16 table in place when the image is loaded.
-STANDALONE_DELTA_SECTION = "standalone_scores_delta"
-_DELTA_BLOCK_ROWS = 256
-"""Name of the image section holding the quantized training-score table (n_views, K)."""
 DEFAULT_VIEW = (30.0, 15.0)
 """(phi_deg, theta_deg) shown first when nothing else says which view."""
 KEYFRAME_RETRY_S = 0.1
@@ -120,149 +109,6 @@ _TICK_S = 1.0 / 60.0
 _HEADLESS_TICK_S = 0.05
 _LATENCY_SAMPLES = 512
 _RATE_WINDOW_S = 1.0
-
-
-# --------------------------------------------------------------------------- views
-
-
-def canonical_view(phi_deg: float, theta_deg: float) -> tuple[float, float]:
-    """The view both sides use: phi wrapped to [0, 360), theta clipped to [-90, 90], both
-    rounded to float32 (what a score packet's header carries).
-
-    The host interpolates at exactly these values, so the view in a packet names the
-    scores it carries bit for bit.
-    """
-    phi = float(np.float32(float(phi_deg) % 360.0))
-    if phi >= 360.0:
-        phi = 0.0
-    theta = float(np.float32(min(90.0, max(-90.0, float(theta_deg)))))
-    return phi, theta
-
-
-@dataclass(frozen=True)
-class OrbitSpec:
-    """A parsed ``--orbit`` spec (see the module docstring).
-
-    Attributes
-    ----------
-    kind : {"turn", "steps"}
-    seconds_per_turn : float or None
-        ``turn`` only.
-    steps_per_turn : int or None
-        ``steps`` only.
-    theta_deg : float
-    turns : float or None
-        None: forever (``turn`` only).
-    spec : str
-        The text it was parsed from.
-    """
-
-    kind: str
-    seconds_per_turn: float | None
-    steps_per_turn: int | None
-    theta_deg: float
-    turns: float | None
-    spec: str
-
-    @property
-    def total_steps(self) -> int | None:
-        """Views of a ``steps`` orbit (None for ``turn``)."""
-        if self.kind != "steps" or self.steps_per_turn is None:
-            return None
-        return round(self.steps_per_turn * (self.turns or 1))
-
-    def start(self, now_s: float | None = None, phi0_deg: float = 0.0) -> Orbit:
-        """A running orbit from ``now_s`` (monotonic seconds), starting at ``phi0_deg``."""
-        return Orbit(self, time.monotonic() if now_s is None else now_s, phi0_deg)
-
-
-class Orbit:
-    """A running orbit: :meth:`next_view` yields its views (None when finished)."""
-
-    def __init__(self, spec: OrbitSpec, start_s: float, phi0_deg: float) -> None:
-        self.spec = spec
-        self.start_s = start_s
-        self.phi0_deg = phi0_deg
-        self.index = 0
-
-    def next_view(self, now_s: float) -> tuple[float, float] | None:
-        """The next view: for ``turn`` where the orbit is at ``now_s``, for ``steps`` the
-        next step (each once); None once the orbit is over."""
-        spec = self.spec
-        if spec.kind == "turn":
-            assert spec.seconds_per_turn is not None
-            elapsed = max(0.0, now_s - self.start_s)
-            if spec.turns is not None and elapsed >= spec.turns * spec.seconds_per_turn:
-                return None
-            phi = self.phi0_deg + 360.0 * elapsed / spec.seconds_per_turn
-        else:
-            total = spec.total_steps
-            assert total is not None and spec.steps_per_turn is not None
-            if self.index >= total:
-                return None
-            phi = self.phi0_deg + 360.0 * self.index / spec.steps_per_turn
-        self.index += 1
-        return canonical_view(phi, spec.theta_deg)
-
-
-def parse_orbit(text: str) -> OrbitSpec:
-    """Parse ``turn:SECONDS[:THETA_DEG[:TURNS]]`` or ``steps:N[:THETA_DEG[:TURNS]]``.
-
-    Raises
-    ------
-    ValueError
-        The spec does not parse; the message gives the accepted forms.
-    """
-    forms = "turn:SECONDS[:THETA_DEG[:TURNS]] or steps:N[:THETA_DEG[:TURNS]]"
-    parts = str(text).strip().split(":")
-    kind = parts[0].lower()
-    if kind not in ("turn", "steps") or not 2 <= len(parts) <= 4:
-        raise ValueError(f"orbit {text!r}: expected {forms}, e.g. turn:12:20 or steps:72:15")
-    try:
-        values = [float(p) for p in parts[1:]]
-    except ValueError:
-        raise ValueError(f"orbit {text!r}: SECONDS/N, THETA_DEG and TURNS must be numbers "
-                         f"({forms})") from None
-    if not all(math.isfinite(v) for v in values):
-        raise ValueError(f"orbit {text!r}: values must be finite")
-    theta = values[1] if len(values) > 1 else 15.0
-    if not -90.0 <= theta <= 90.0:
-        raise ValueError(f"orbit {text!r}: THETA_DEG={theta:g} must be within [-90, 90]")
-    turns = values[2] if len(values) > 2 else None
-    if turns is not None and not turns > 0:
-        raise ValueError(f"orbit {text!r}: TURNS={turns:g} must be > 0")
-    if kind == "turn":
-        if not values[0] > 0:
-            raise ValueError(f"orbit {text!r}: SECONDS={values[0]:g} must be > 0")
-        return OrbitSpec("turn", values[0], None, theta, turns, str(text))
-    if values[0] != int(values[0]) or not 1 <= values[0] <= 1_000_000:
-        raise ValueError(f"orbit {text!r}: N={values[0]:g} must be an integer in 1..1000000")
-    return OrbitSpec("steps", None, int(values[0]), theta, turns if turns else 1.0, str(text))
-
-
-def parse_view_list(text: str) -> list[tuple[float, float]]:
-    """Parse ``PHI,THETA;PHI,THETA;...`` (degrees) into canonical views.
-
-    Raises
-    ------
-    ValueError
-        A pair does not parse or theta is outside [-90, 90].
-    """
-    views = []
-    for item in str(text).replace(" ", "").split(";"):
-        if not item:
-            continue
-        try:
-            phi, theta = (float(v) for v in item.split(","))
-        except ValueError:
-            raise ValueError(f"views {text!r}: {item!r} is not PHI,THETA") from None
-        if not (math.isfinite(phi) and -90.0 <= theta <= 90.0):
-            raise ValueError(f"views {text!r}: {item!r}: phi must be finite and theta within "
-                             "[-90, 90]")
-        views.append(canonical_view(phi, theta))
-    if not views:
-        raise ValueError(f"views {text!r}: no PHI,THETA pair")
-    return views
 
 
 # --------------------------------------------------------------------------- slots
@@ -349,157 +195,6 @@ class RequestLimiter:
 
 
 # --------------------------------------------------------------------------- model
-
-
-def standalone_table(image: EigenspaceImage) -> tuple[np.ndarray, float] | None:
-    """The image's quantized training-score table and its step, or None when it has none.
-
-    Returns
-    -------
-    (table, step) : ndarray of shape (n_views, K), int16 or int32, and float
-        Training view ``i``'s scores are ``table[i] * step`` (orthonormal coordinates).
-
-    Raises
-    ------
-    ImageFormatError
-        The section or its step is inconsistent with the image (shape, dtype, step, views).
-
-    Notes
-    -----
-    An image written with the delta-coded table (:data:`STANDALONE_DELTA_SECTION`) is decoded
-    here once, in place, a block of components at a time (no second table is allocated), and
-    the section is replaced in ``image.sections`` by the int16 table itself under
-    :data:`STANDALONE_SECTION` (a transposed view of the same memory).
-    """
-    coded = image.sections.get(STANDALONE_DELTA_SECTION)
-    if coded is not None:
-        _decode_delta_table(image, coded)
-    table = image.sections.get(STANDALONE_SECTION)
-    if table is None:
-        return None
-    quant = image.score_quantization or {}
-    step = quant.get("table_step")
-    n_views = (image.interpolation or {}).get("n_views")
-    if table.dtype not in (np.int16, np.int32) or table.ndim != 2 or (
-        table.shape[1] != image.n_coefficients
-    ):
-        raise ImageFormatError(
-            f"image section {STANDALONE_SECTION!r}: expected int16/int32 of shape (n_views, "
-            f"K={image.n_coefficients}), got {table.dtype} {table.shape}"
-        )
-    if not isinstance(step, (int, float)) or isinstance(step, bool) or not (
-        math.isfinite(step) and step > 0
-    ):
-        raise ImageFormatError(
-            f"image manifest: score_quantization.table_step={step!r} must be a number > 0"
-        )
-    if n_views != table.shape[0]:
-        raise ImageFormatError(
-            f"image section {STANDALONE_SECTION!r} has {table.shape[0]} views, the "
-            f"interpolation manifest {n_views!r}"
-        )
-    return table, float(step)
-
-
-def standalone_order(image: EigenspaceImage, n_views: int) -> np.ndarray:
-    """The order in which a delta-coded table runs through the training views.
-
-    ``np.lexsort((phi mod 360, theta))`` of the manifest's ``views``: theta rings from the
-    bottom up, phi ascending within each (the writer and the device compute it alike).
-
-    Raises
-    ------
-    ImageFormatError
-        The manifest lacks the views' angles or has another number of them.
-    """
-    views = image.views or {}
-    try:
-        phi = np.mod(np.asarray(views["phi_deg"], dtype=np.float64), 360.0)
-        theta = np.asarray(views["theta_deg"], dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise ImageFormatError(
-            "image manifest: a delta-coded standalone table needs views.phi_deg and "
-            "views.theta_deg"
-        ) from None
-    if phi.shape != (n_views,) or theta.shape != (n_views,):
-        raise ImageFormatError(
-            f"image manifest: views has {phi.size} / {theta.size} angles, the standalone "
-            f"table {n_views} views"
-        )
-    return np.lexsort((phi, theta))
-
-
-def _decode_delta_table(image: EigenspaceImage, coded: np.ndarray) -> None:
-    """Undo :data:`STANDALONE_DELTA_SECTION` in place (see `standalone_table`)."""
-    if STANDALONE_SECTION in image.sections:
-        raise ImageFormatError(
-            f"image sections {STANDALONE_SECTION!r} and {STANDALONE_DELTA_SECTION!r} are "
-            "both present; an image holds one standalone table"
-        )
-    n_views = (image.interpolation or {}).get("n_views")
-    k = image.n_coefficients
-    if coded.dtype != np.uint8 or coded.shape != (k, 2, n_views):
-        raise ImageFormatError(
-            f"image section {STANDALONE_DELTA_SECTION!r}: expected uint8 of shape "
-            f"(K={k}, 2, n_views={n_views}), got {coded.dtype} {coded.shape}"
-        )
-    order = standalone_order(image, int(n_views))
-    if not coded.flags.writeable or not coded.flags.c_contiguous:
-        coded = np.ascontiguousarray(coded).copy()
-    table = coded.reshape(k, 2 * int(n_views)).view("<i2")  # (K, n_views), same memory
-    for start in range(0, k, _DELTA_BLOCK_ROWS):
-        block = coded[start:start + _DELTA_BLOCK_ROWS]
-        z = block[:, 0, :].astype(np.uint16) | (block[:, 1, :].astype(np.uint16) << 8)
-        d = (z >> 1).astype(np.int16) ^ -(z & 1).astype(np.int16)
-        np.cumsum(d, axis=1, dtype=np.int16, out=d)
-        rows = table[start:start + _DELTA_BLOCK_ROWS]
-        rows[:, order] = d
-    del image.sections[STANDALONE_DELTA_SECTION]
-    image.sections[STANDALONE_SECTION] = table.T
-
-
-class StandaloneScores:
-    """Local score interpolation from the image's quantized table (a device with no host).
-
-    The computation is the host's for the same image (``HostModel.quantized_scores``):
-    interpolate the dequantized table (``float32(q) * float32(table_step)``) with the
-    manifest's interpolator, then round to the packet step. Only the ``m`` rows a query
-    needs are dequantized, so the table stays int16 in RAM.
-
-    Parameters
-    ----------
-    image : EigenspaceImage
-        With a standalone table and interpolation manifest.
-
-    Raises
-    ------
-    ImageFormatError
-        No table, or a malformed one / malformed interpolation manifest.
-    """
-
-    def __init__(self, image: EigenspaceImage) -> None:
-        found = standalone_table(image)
-        if found is None:
-            raise ImageFormatError(
-                "the image has no standalone score table (refit with eigencast fit --standalone)"
-            )
-        if image.interpolation is None:
-            raise ImageFormatError("the image has no interpolation manifest")
-        self.table, self.table_step = found
-        try:
-            self.interpolator = interpolator_from_manifest(image.interpolation)
-        except ValueError as exc:
-            raise ImageFormatError(f"image interpolation manifest: {exc}") from None
-        self.step = float((image.score_quantization or {}).get("step", 1.0))
-        self._step32 = np.float32(self.table_step)
-
-    def scores(self, phi_deg: float, theta_deg: float) -> np.ndarray:
-        """Quantized scores (K,) float32 of a view, as the host would send them."""
-        idx, w = self.interpolator.weights(phi_deg, theta_deg)
-        rows = self.table[idx].astype(np.float32) * self._step32  # (m, K)
-        y = interpolate(rows, np.arange(rows.shape[0]), w)
-        step = self.step
-        return (np.rint(y / step) * step).astype(np.float32)
 
 
 @dataclass

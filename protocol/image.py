@@ -49,6 +49,10 @@ into its preallocated numpy array; the digest is checked at the end, then the ta
 malformed section or manifest is met, the reader first hashes the rest of the image: if the
 digest does not match either, it reports the digest mismatch (the root cause of a corrupted
 file), chained to the parse error.
+
+This module stays one file (over 1,000 lines) because it is one idea, the ``.ecs`` file
+format: the layout above, its writer and its reader (with the manifest and model checks
+the reader applies) change together whenever the format does, as one specification.
 """
 
 from __future__ import annotations

@@ -2,41 +2,27 @@
 
 A message class is a declaration: a ``ClassVar`` ``TYPE`` (:class:`MessageType`),
 ``CHANNEL`` and ``KIND`` (from :mod:`protocol.framing`), the reply it elicits
-(``REPLY``), and typed fields declared with :func:`wire` (CBOR key and limits).
-The shared base :class:`Record` checks and normalises field values on
-construction, encodes the body as canonical CBOR (a map from small integer keys
-to values; ``None`` fields are omitted), and decodes bodies from untrusted
-bytes: unknown keys are ignored (forward compatibility), missing required keys
-and wrong types or sizes raise :class:`~protocol.errors.MalformedMessage`.
-
-Decoding is bounded before cbor2 sees a byte: :func:`scan_cbor` walks the body
-and rejects tags, indefinite lengths, undefined/simple values, duplicate or
-non-int/text map keys, trailing bytes, lengths past the end of the body, and
-nesting deeper than ``max_depth``. cbor2 therefore cannot allocate more than the
-frame holds.
+(``REPLY``), and typed fields declared with :func:`~protocol.records.wire` (CBOR key and
+limits). The machinery under them is :mod:`protocol.records`: :class:`Record` checks
+and normalises field values on construction and encodes/decodes canonical CBOR maps
+(unknown keys ignored, missing or wrong ones :class:`~protocol.errors.MalformedMessage`),
+and :func:`scan_cbor` bounds a body before cbor2 sees a byte.
 
 The message type lives in the frame header; :func:`decode_message` maps it to a
 class, or returns :class:`UnknownMessage` so a receiver can answer
 ``ERROR(UNKNOWN_MESSAGE)`` instead of failing.
 
 Mutating requests (``SIGNED = True``) carry a session counter (key 22) and a
-session tag (key 23): ``HMAC-SHA256(session_key, u64le(counter) || u8(TYPE) ||
-canonical body without key 23)``; see :func:`sign`, :func:`verify` and
-:func:`derive_session_key`. The full wire specification is docs/protocol.md.
+session tag (key 23), SCORES and IMAGE_CHUNK (``TAGGED``) an event tag; the maths
+(``sign``, ``verify``, ``tag_event``, ``derive_session_key``) is :mod:`protocol.auth`.
+The full wire specification is docs/protocol.md.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import hmac
-import math
-import struct
-import types
-import typing
 from dataclasses import dataclass
 from enum import IntEnum, unique
-from typing import Any, ClassVar, Union
+from typing import Any, ClassVar
 
 import cbor2
 
@@ -50,6 +36,7 @@ from protocol.errors import (
     ReplayError,
 )
 from protocol.framing import Channel, Flags, Frame, Kind, encode_frame
+from protocol.records import MAX_DEPTH, U8, U16, U32, U64, Detail, Record, scan_cbor, wire
 
 __all__ = [
     "BASELINE_MAX_FRAME_BYTES",
@@ -101,16 +88,10 @@ __all__ = [
     "TaggedEvent",
     "UnknownMessage",
     "ViewRequest",
-    "auth_proof",
     "decode_message",
-    "derive_session_key",
     "encode_message",
     "error_code_for",
     "scan_cbor",
-    "sign",
-    "tag_event",
-    "verify",
-    "verify_event",
     "wire",
 ]
 
@@ -131,9 +112,6 @@ DIGEST_BYTES = 32
 TAG_BYTES = 32
 """Length of an HMAC-SHA256 tag."""
 
-MAX_DEPTH = 8
-"""Default nesting limit for CBOR bodies (the deepest message needs 3)."""
-
 BASELINE_MAX_FRAME_BYTES = 1024
 """Every implementation accepts frames this large; both sides stay within it until
 HELLO_REPLY has declared the device's ``max_frame_bytes``."""
@@ -150,7 +128,6 @@ EVENT_TAG_BYTES = 16
 EVENT_TAG_OVERHEAD_BYTES = 1 + 9 + 1 + 1 + EVENT_TAG_BYTES
 """Most body bytes a tag adds to an event: key 22 + a u64 counter, key 23 + bytes header + tag."""
 
-U8, U16, U32, U64 = (1 << 8) - 1, (1 << 16) - 1, (1 << 32) - 1, (1 << 64) - 1
 MAX_PAYLOAD_BYTES = 1 << 24
 """Upper bound on any one byte-string field; the frame size is the real limit."""
 
@@ -288,393 +265,7 @@ class SlotAction(IntEnum):
     """Make the other slot active again."""
 
 
-# --------------------------------------------------------------------------- fields
-
-
-@dataclass(frozen=True)
-class _Limits:
-    ge: float | None = None
-    le: float | None = None
-    min_len: int | None = None
-    max_len: int | None = None
-    lengths: tuple[int, ...] | None = None
-    max_items: int | None = None
-    finite: bool = True
-
-
-_NO_DEFAULT = dataclasses.MISSING
-
-
-def wire(
-    key: int,
-    *,
-    default: Any = _NO_DEFAULT,
-    ge: float | None = None,
-    le: float | None = None,
-    min_len: int | None = None,
-    max_len: int | None = None,
-    lengths: tuple[int, ...] | None = None,
-    max_items: int | None = None,
-    finite: bool = True,
-    repr: bool = True,
-) -> Any:
-    """Declare a message field: its CBOR key and the limits checked on it.
-
-    Parameters
-    ----------
-    key : int
-        CBOR map key, 0..255, unique within the message.
-    default : optional
-        Makes the key optional on the wire; ``None`` values are not encoded.
-    ge, le : number, optional
-        Inclusive range for ints and floats (also each element of a tuple).
-    min_len, max_len : int, optional
-        Length range of bytes (bytes) and str (UTF-8 bytes) fields, or of
-        each bytes/str value in a dict.
-    lengths : tuple of int, optional
-        The only lengths allowed for a bytes field (e.g. ``(0, 32)``).
-    max_items : int, optional
-        Most elements of a tuple or entries of a dict.
-    finite : bool
-        Floats must be finite (default).
-    repr : bool
-        Include the field in ``repr`` (off for bulk payloads).
-    """
-    if not 0 <= key <= U8:
-        raise ValueError(f"wire key={key} must be in [0, 255]")
-    limits = _Limits(ge, le, min_len, max_len, lengths, max_items, finite)
-    metadata = {"key": key, "limits": limits}
-    if default is _NO_DEFAULT:
-        return dataclasses.field(metadata=metadata, repr=repr)
-    return dataclasses.field(default=default, metadata=metadata, repr=repr)
-
-
-@dataclass(frozen=True)
-class _FieldSpec:
-    name: str
-    key: int
-    tp: Any
-    required: bool
-    default: Any
-    limits: _Limits
-
-
-Scalar = Union[int, float, str, bytes, bool]  # noqa: UP007 (a runtime alias)
-Detail = dict[str, Scalar]
-"""Type of ERROR/NOTICE ``detail``: text keys to scalar values."""
-
-_SCALAR_TYPES = (bool, int, float, str, bytes)
-
-
-def _describe(value: Any) -> str:
-    text = repr(value)
-    if len(text) > 40:
-        text = text[:37] + "..."
-    return f"{type(value).__name__} {text}"
-
-
-def _check_length(size: int, lim: _Limits, what: str) -> None:
-    if lim.lengths is not None and size not in lim.lengths:
-        raise ValueError(f"{what} must be {' or '.join(map(str, lim.lengths))} bytes, got {size}")
-    if lim.min_len is not None and size < lim.min_len:
-        raise ValueError(f"{what} must be at least {lim.min_len} bytes, got {size}")
-    if lim.max_len is not None and size > lim.max_len:
-        raise ValueError(f"{what} must be at most {lim.max_len} bytes, got {size}")
-
-
-def _check_range(value: float, lim: _Limits, what: str) -> None:
-    if lim.ge is not None and value < lim.ge:
-        raise ValueError(f"{what}={value} is below the minimum {lim.ge}")
-    if lim.le is not None and value > lim.le:
-        raise ValueError(f"{what}={value} is above the maximum {lim.le}")
-
-
-def _coerce(value: Any, tp: Any, lim: _Limits, what: str) -> Any:
-    """Check ``value`` against type ``tp`` and limits; return it normalised.
-
-    Normalises bytearray/memoryview -> bytes, int -> float for float fields,
-    int -> IntEnum, list -> tuple, dict -> Record. Raises ValueError naming
-    ``what`` on any mismatch.
-    """
-    origin = typing.get_origin(tp)
-    if origin is Union or origin is types.UnionType:
-        args = typing.get_args(tp)
-        if value is None:
-            if type(None) in args:
-                return None
-            raise ValueError(f"{what} must not be null")
-        members = [a for a in args if a is not type(None)]
-        if len(members) == 1:
-            return _coerce(value, members[0], lim, what)
-        # A union of scalars (Detail values): the value's own type must be listed.
-        for member in members:
-            if type(value) is member or (member is bytes and isinstance(value, bytes)):
-                return _coerce(value, member, lim, what)
-        names = ", ".join(m.__name__ for m in members)
-        raise ValueError(f"{what} must be one of {names}, got {_describe(value)}")
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"{what} must be a bool, got {_describe(value)}")
-        return value
-    if isinstance(tp, type) and issubclass(tp, IntEnum):
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise ValueError(f"{what} must be an int ({tp.__name__}), got {_describe(value)}")
-        try:
-            return tp(value)
-        except ValueError:
-            allowed = ", ".join(f"{m.name}={m.value}" for m in tp)
-            raise ValueError(f"{what}={value} is not a {tp.__name__} ({allowed})") from None
-    if tp is int:
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise ValueError(f"{what} must be an int, got {_describe(value)}")
-        _check_range(value, lim, what)
-        return int(value)
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{what} must be a number, got {_describe(value)}")
-        value = float(value)
-        if lim.finite and not math.isfinite(value):
-            raise ValueError(f"{what}={value} must be finite")
-        _check_range(value, lim, what)
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            raise ValueError(f"{what} must be a text string, got {_describe(value)}")
-        try:
-            size = len(value.encode("utf-8"))
-        except UnicodeEncodeError:
-            raise ValueError(f"{what} is not valid UTF-8 (lone surrogate)") from None
-        _check_length(size, lim, f"{what} (UTF-8)")
-        return value
-    if tp is bytes:
-        if not isinstance(value, (bytes, bytearray, memoryview)):
-            raise ValueError(f"{what} must be a byte string, got {_describe(value)}")
-        value = bytes(value)
-        _check_length(len(value), lim, what)
-        return value
-    if origin is tuple:
-        (item_tp, _ellipsis) = typing.get_args(tp)
-        if not isinstance(value, (list, tuple)):
-            raise ValueError(f"{what} must be an array, got {_describe(value)}")
-        if lim.max_items is not None and len(value) > lim.max_items:
-            raise ValueError(f"{what} has {len(value)} items, at most {lim.max_items} allowed")
-        return tuple(_coerce(v, item_tp, lim, f"{what}[{i}]") for i, v in enumerate(value))
-    if origin is dict:
-        _key_tp, value_tp = typing.get_args(tp)
-        if not isinstance(value, dict):
-            raise ValueError(f"{what} must be a map, got {_describe(value)}")
-        if lim.max_items is not None and len(value) > lim.max_items:
-            raise ValueError(f"{what} has {len(value)} entries, at most {lim.max_items} allowed")
-        out = {}
-        for k, v in value.items():
-            if not isinstance(k, str) or len(k.encode("utf-8", "replace")) > 32:
-                raise ValueError(f"{what} keys must be text of at most 32 bytes, got {k!r:.40}")
-            out[k] = _coerce(v, value_tp, lim, f"{what}[{k!r}]")
-        return out
-    if isinstance(tp, type) and issubclass(tp, Record):
-        if isinstance(value, tp):
-            return value
-        if isinstance(value, dict):
-            return tp._from_map(value, what)
-        raise ValueError(f"{what} must be a {tp.__name__} map, got {_describe(value)}")
-    raise TypeError(f"{what}: unsupported field type {tp!r}")  # a bug in a declaration
-
-
-def _plain(value: Any) -> Any:
-    """Turn a field value into what cbor2 encodes (Records -> int-keyed maps)."""
-    if isinstance(value, Record):
-        return value._to_map()
-    if isinstance(value, bool) or value is None:
-        return value
-    if isinstance(value, IntEnum):
-        return int(value)
-    if isinstance(value, tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    return value
-
-
-# --------------------------------------------------------------------------- CBOR scan
-
-
-def scan_cbor(body: bytes, *, max_depth: int = MAX_DEPTH, where: str = "decode") -> None:
-    """Check that ``body`` is exactly one CBOR item this protocol accepts.
-
-    Accepted: unsigned/negative ints, byte and text strings, arrays and maps of
-    definite length, false/true/null and half/single/double floats. Rejected:
-    tags, indefinite lengths, undefined and other simple values, reserved
-    additional-info values, map keys other than ints and text strings, duplicate
-    keys, lengths running past the end of ``body``, nesting deeper than
-    ``max_depth``, and trailing bytes.
-
-    Parameters
-    ----------
-    body : bytes
-        The CBOR body of one frame.
-    max_depth : int
-        Most nested arrays/maps (the top-level map counts as 1).
-    where : str
-        Operation named at the start of error messages.
-
-    Raises
-    ------
-    MalformedMessage
-        One line naming the offset and the problem.
-    """
-    n = len(body)
-    pos = 0
-    # Open containers: [items left, is_map, keys seen (maps only)].
-    stack: list[list[Any]] = []
-    root_left = 1
-    while True:
-        if pos >= n:
-            raise MalformedMessage(f"{where}: CBOR truncated at offset {pos} of {n}")
-        start = pos
-        ib = body[pos]
-        major, info = ib >> 5, ib & 0x1F
-        pos += 1
-        if info < 24:
-            arg = info
-        elif info <= 27:
-            size = 1 << (info - 24)
-            if pos + size > n:
-                raise MalformedMessage(f"{where}: CBOR truncated at offset {pos} of {n}")
-            arg = int.from_bytes(body[pos : pos + size], "big")
-            pos += size
-        elif info == 31:
-            raise MalformedMessage(f"{where}: CBOR indefinite length at offset {start} not allowed")
-        else:
-            raise MalformedMessage(f"{where}: CBOR reserved value 0x{ib:02x} at offset {start}")
-        # Is this item a map key?
-        if stack:
-            parent = stack[-1]
-            if parent[1] and parent[0] % 2 == 0:
-                if major in (0, 1):
-                    key_id: Any = (major, arg)
-                elif major == 3:
-                    if arg > n - pos:
-                        raise MalformedMessage(
-                            f"{where}: CBOR text of {arg} bytes at offset {start} runs past "
-                            f"the end of {n}"
-                        )
-                    key_id = (3, body[pos : pos + arg])
-                else:
-                    raise MalformedMessage(
-                        f"{where}: CBOR map key at offset {start} is major type {major} "
-                        "(only ints and text strings allowed)"
-                    )
-                if key_id in parent[2]:
-                    raise MalformedMessage(f"{where}: CBOR duplicate map key at offset {start}")
-                parent[2].add(key_id)
-            parent[0] -= 1
-        else:
-            root_left -= 1
-        if major in (2, 3):
-            if arg > n - pos:
-                raise MalformedMessage(
-                    f"{where}: CBOR string of {arg} bytes at offset {start} runs past "
-                    f"the end of {n}"
-                )
-            pos += arg
-        elif major in (4, 5):
-            count = arg * 2 if major == 5 else arg
-            if count > n - pos:
-                raise MalformedMessage(
-                    f"{where}: CBOR container of {arg} items at offset {start} cannot fit the "
-                    f"{n - pos} bytes left"
-                )
-            if count:
-                if len(stack) + 1 > max_depth:
-                    raise MalformedMessage(
-                        f"{where}: CBOR nesting deeper than max_depth={max_depth} at offset {start}"
-                    )
-                stack.append([count, major == 5, set()])
-        elif major == 6:
-            raise MalformedMessage(f"{where}: CBOR tag {arg} at offset {start} not allowed")
-        elif major == 7 and info not in (20, 21, 22, 25, 26, 27):
-            raise MalformedMessage(
-                f"{where}: CBOR simple value 0x{ib:02x} at offset {start} not allowed "
-                "(only false, true, null and floats)"
-            )
-        while stack and stack[-1][0] == 0:
-            stack.pop()
-        if not stack and root_left == 0:
-            break
-    if pos != n:
-        raise MalformedMessage(f"{where}: {n - pos} trailing byte(s) after the CBOR item")
-
-
 # --------------------------------------------------------------------------- base classes
-
-
-class Record:
-    """Base of frozen dataclasses encoded as CBOR maps with small integer keys.
-
-    Subclasses declare fields with :func:`wire`. Construction checks every
-    field (``ValueError`` on a bad value: a bug in the caller) and normalises
-    it (bytes-likes to bytes, lists to tuples, ints to enums).
-    """
-
-    _specs_cache: ClassVar[dict[type, tuple[_FieldSpec, ...]]] = {}
-
-    @classmethod
-    def _specs(cls) -> tuple[_FieldSpec, ...]:
-        specs = Record._specs_cache.get(cls)
-        if specs is None:
-            hints = typing.get_type_hints(cls)
-            out = []
-            keys: set[int] = set()
-            for f in dataclasses.fields(cls):  # type: ignore[arg-type]
-                if "key" not in f.metadata:
-                    raise TypeError(f"{cls.__name__}.{f.name} is not declared with wire()")
-                key = f.metadata["key"]
-                if key in keys:
-                    raise TypeError(f"{cls.__name__}: CBOR key {key} used twice")
-                keys.add(key)
-                required = f.default is dataclasses.MISSING
-                out.append(
-                    _FieldSpec(
-                        f.name, key, hints[f.name], required, f.default, f.metadata["limits"]
-                    )
-                )
-            specs = tuple(out)
-            Record._specs_cache[cls] = specs
-        return specs
-
-    def __post_init__(self) -> None:
-        name = type(self).__name__
-        for spec in self._specs():
-            value = getattr(self, spec.name)
-            if value is None and not spec.required and spec.default is None:
-                continue
-            checked = _coerce(value, spec.tp, spec.limits, f"{name}.{spec.name} (key {spec.key})")
-            if checked is not value:
-                object.__setattr__(self, spec.name, checked)
-        self._check()
-
-    def _check(self) -> None:
-        """Cross-field checks of a subclass (raise ValueError)."""
-
-    def _to_map(self) -> dict[int, Any]:
-        out = {}
-        for spec in self._specs():
-            value = getattr(self, spec.name)
-            if value is not None:
-                out[spec.key] = _plain(value)
-        return out
-
-    @classmethod
-    def _from_map(cls, obj: dict[Any, Any], where: str) -> Any:
-        """Build from a decoded CBOR map; raise ValueError naming the problem."""
-        kwargs = {}
-        for spec in cls._specs():
-            if spec.key in obj:
-                kwargs[spec.name] = obj[spec.key]
-            elif spec.required:
-                raise ValueError(f"{where}: missing required key {spec.key} ({spec.name})")
-        # Construction runs the checks with the class-qualified field names.
-        return cls(**kwargs)
 
 
 class Message(Record):
@@ -690,7 +281,7 @@ class Message(Record):
         For REQUEST kinds it carries the same request id; VIEW_REQUEST and
         KEYFRAME_REQUEST are events answered, latest-wins, by SCORES.
     SIGNED : bool
-        Carries a session counter and tag (see :func:`sign`).
+        Carries a session counter and tag (see :func:`protocol.auth.sign`).
     MUST_UNDERSTAND : bool
         Default of the frame's MUST_UNDERSTAND flag.
     """
@@ -1386,243 +977,20 @@ class KeyframeRequest(Message):
     """Frame number of the last packet the device decoded (absent: none)."""
 
 
-# --------------------------------------------------------------------------- auth
-
-
-_HOST_LABEL = b"eigencast/v1 host-auth\x00"
-_DEVICE_LABEL = b"eigencast/v1 device-auth\x00"
-_SESSION_LABEL = b"eigencast/v1 session\x00"
-_TAG_PREFIX = struct.Struct("<QB")
-
-
-def _check_key(key: bytes, name: str) -> bytes:
-    if not isinstance(key, (bytes, bytearray)) or len(key) != KEY_BYTES:
-        size = len(key) if isinstance(key, (bytes, bytearray)) else type(key).__name__
-        raise ValueError(f"{name} must be {KEY_BYTES} bytes, got {size}")
-    return bytes(key)
-
-
-def _check_nonce(nonce: bytes, name: str) -> bytes:
-    if not isinstance(nonce, (bytes, bytearray)) or len(nonce) != NONCE_BYTES:
-        size = len(nonce) if isinstance(nonce, (bytes, bytearray)) else type(nonce).__name__
-        raise ValueError(f"{name} must be {NONCE_BYTES} bytes, got {size}")
-    return bytes(nonce)
-
-
-def auth_proof(
-    device_key: bytes, *, role: str, host_nonce: bytes, device_nonce: bytes, device_id: str
-) -> bytes:
-    """Return the AUTH proof of ``role`` ("host" or "device").
-
-    ``HMAC-SHA256(device_key, label || host_nonce || device_nonce ||
-    u8(len(id)) || id)`` where ``label`` is ``b"eigencast/v1 host-auth\\0"`` or
-    ``b"eigencast/v1 device-auth\\0"`` and ``id`` is the device id in UTF-8.
-    Distinct labels stop one side's proof being reflected as the other's.
-
-    Parameters
-    ----------
-    device_key : bytes of length 32
-    role : {"host", "device"}
-    host_nonce, device_nonce : bytes of length 16
-    device_id : str
-        At most 64 UTF-8 bytes.
-
-    Returns
-    -------
-    bytes of length 32
-    """
-    key = _check_key(device_key, "device_key")
-    labels = {"host": _HOST_LABEL, "device": _DEVICE_LABEL}
-    if role not in labels:
-        raise ValueError(f"role={role!r} must be one of {sorted(labels)}")
-    ident = device_id.encode("utf-8")
-    if not 1 <= len(ident) <= 64:
-        raise ValueError(f"device_id of {len(ident)} UTF-8 bytes must be 1..64")
-    data = (
-        labels[role]
-        + _check_nonce(host_nonce, "host_nonce")
-        + _check_nonce(device_nonce, "device_nonce")
-        + bytes([len(ident)])
-        + ident
-    )
-    return hmac.new(key, data, hashlib.sha256).digest()
-
-
-def derive_session_key(device_key: bytes, host_nonce: bytes, device_nonce: bytes) -> bytes:
-    """Return the session key ``HMAC-SHA256(device_key, b"eigencast/v1 session\\0" ||
-    host_nonce || device_nonce)``.
-
-    Parameters
-    ----------
-    device_key : bytes of length 32
-    host_nonce, device_nonce : bytes of length 16
-        From HELLO and HELLO_REPLY of this session.
-
-    Returns
-    -------
-    bytes of length 32
-    """
-    key = _check_key(device_key, "device_key")
-    data = (
-        _SESSION_LABEL
-        + _check_nonce(host_nonce, "host_nonce")
-        + _check_nonce(device_nonce, "device_nonce")
-    )
-    return hmac.new(key, data, hashlib.sha256).digest()
-
-
-def _session_tag(msg: SignedRequest, session_key: bytes, counter: int) -> bytes:
-    unsigned = dataclasses.replace(msg, session_counter=counter, session_tag=None)
-    data = _TAG_PREFIX.pack(counter, int(msg.TYPE)) + unsigned.to_body()
-    return hmac.new(session_key, data, hashlib.sha256).digest()
-
-
-def sign(msg: SignedRequest, session_key: bytes, counter: int) -> SignedRequest:
-    """Return ``msg`` with ``session_counter=counter`` and its session tag.
-
-    The tag is ``HMAC-SHA256(session_key, u64le(counter) || u8(TYPE) || body)``
-    where ``body`` is the canonical CBOR body with key 22 (the counter) and
-    without key 23 (the tag).
-
-    Parameters
-    ----------
-    msg : SignedRequest
-        A mutating request (``msg.SIGNED``).
-    session_key : bytes of length 32
-        From :func:`derive_session_key`.
-    counter : int
-        1..2**64-1, larger than every counter used before in this session.
-
-    Returns
-    -------
-    SignedRequest
-        A new message of the same class.
-    """
-    if not isinstance(msg, SignedRequest):
-        raise ValueError(f"sign: {type(msg).__name__} is not a signed request")
-    key = _check_key(session_key, "session_key")
-    if isinstance(counter, bool) or not isinstance(counter, int) or not 1 <= counter <= U64:
-        raise ValueError(f"sign: counter={counter!r} must be an int in [1, 2**64 - 1]")
-    tag = _session_tag(msg, key, counter)
-    return dataclasses.replace(msg, session_counter=counter, session_tag=tag)
-
-
-def verify(msg: SignedRequest, session_key: bytes, last_counter: int) -> int:
-    """Check a signed request; return its counter (store it as the new ``last_counter``).
-
-    Parameters
-    ----------
-    msg : SignedRequest
-        As decoded from the wire.
-    session_key : bytes of length 32
-    last_counter : int
-        The highest counter accepted so far in this session (0 at the start).
-
-    Returns
-    -------
-    int
-        ``msg.session_counter``.
-
-    Raises
-    ------
-    NotAuthenticated
-        The message carries no counter or tag.
-    AuthenticationError
-        The tag does not verify (wrong key, or altered message).
-    ReplayError
-        The tag verifies but the counter is not above ``last_counter``.
-    """
-    if not isinstance(msg, SignedRequest):
-        raise ValueError(f"verify: {type(msg).__name__} is not a signed request")
-    key = _check_key(session_key, "session_key")
-    name = msg.TYPE.name
-    if msg.session_counter is None or msg.session_tag is None:
-        raise NotAuthenticated(f"verify {name}: no session tag (mutating requests must be signed)")
-    expected = _session_tag(msg, key, msg.session_counter)
-    if not hmac.compare_digest(expected, msg.session_tag):
-        raise AuthenticationError(
-            f"verify {name}: session tag mismatch (wrong session key or altered message)"
-        )
-    if msg.session_counter <= last_counter:
-        raise ReplayError(
-            f"verify {name}: session counter {msg.session_counter} is not above the last "
-            f"accepted {last_counter} (replayed or stale request)"
-        )
-    return msg.session_counter
-
-
-def _event_tag(msg: TaggedEvent, session_key: bytes, counter: int) -> bytes:
-    # The canonical body with key 22 = counter and without key 23, built from the checked
-    # fields directly (no re-validation of the payload: this runs for every frame).
-    body = msg._to_map()
-    body.pop(SESSION_TAG_KEY, None)
-    body[SESSION_COUNTER_KEY] = counter
-    mac = hmac.new(session_key, _TAG_PREFIX.pack(counter, int(msg.TYPE)), hashlib.sha256)
-    mac.update(cbor2.dumps(body, canonical=True))
-    return mac.digest()[:EVENT_TAG_BYTES]
-
-
-def tag_event(msg: TaggedEvent, session_key: bytes, counter: int) -> TaggedEvent:
-    """Return ``msg`` with ``session_counter=counter`` and its 16-byte event tag.
-
-    The tag is ``HMAC-SHA256(session_key, u64le(counter) || u8(TYPE) || body)[:16]``
-    where ``body`` is the canonical CBOR body with key 22 (the counter) and
-    without key 23 (the tag): the signed-request construction of :func:`sign`,
-    truncated to 16 bytes. Each channel (SCORES, IMAGE_CHUNK) has its own counter.
-
-    Parameters
-    ----------
-    msg : TaggedEvent
-        A SCORES or IMAGE_CHUNK.
-    session_key : bytes of length 32
-    counter : int
-        1..2**64-1, larger than every counter used before on this channel in this session.
-
-    Returns
-    -------
-    TaggedEvent
-        A new message of the same class.
-    """
-    if not isinstance(msg, TaggedEvent):
-        raise ValueError(f"tag_event: {type(msg).__name__} is not a tagged event")
-    key = _check_key(session_key, "session_key")
-    if isinstance(counter, bool) or not isinstance(counter, int) or not 1 <= counter <= U64:
-        raise ValueError(f"tag_event: counter={counter!r} must be an int in [1, 2**64 - 1]")
-    return dataclasses.replace(msg, session_counter=counter,
-                               session_tag=_event_tag(msg, key, counter))
-
-
-def verify_event(msg: TaggedEvent, session_key: bytes, last_counter: int) -> int:
-    """Check a tagged event; return its counter (the channel's new ``last_counter``).
-
-    Raises
-    ------
-    NotAuthenticated
-        No counter or tag.
-    AuthenticationError
-        The tag does not verify.
-    ReplayError
-        The counter is not above ``last_counter``.
-    """
-    if not isinstance(msg, TaggedEvent):
-        raise ValueError(f"verify_event: {type(msg).__name__} is not a tagged event")
-    key = _check_key(session_key, "session_key")
-    name = msg.TYPE.name
-    if msg.session_counter is None or msg.session_tag is None:
-        raise NotAuthenticated(f"verify {name}: no event tag (a keyed device needs one)")
-    expected = _event_tag(msg, key, msg.session_counter)
-    if not hmac.compare_digest(expected, msg.session_tag):
-        raise AuthenticationError(f"verify {name}: event tag mismatch")
-    if msg.session_counter <= last_counter:
-        raise ReplayError(
-            f"verify {name}: counter {msg.session_counter} is not above the last accepted "
-            f"{last_counter} (replayed)"
-        )
-    return msg.session_counter
-
-
 # Every class must have resolvable field specs; build them now so a bad
 # declaration fails at import, not on the first frame.
 for _cls in (SlotInfo, *MESSAGE_CLASSES.values()):
     _cls._specs()
 del _cls
+
+
+# --------------------------------------------------------------------------- auth (protocol.auth)
+
+
+def __getattr__(name: str) -> Any:
+    """``m.sign`` and the other names that moved to :mod:`protocol.auth` (it imports this)."""
+    if name in ("auth_proof", "derive_session_key", "sign", "tag_event", "verify", "verify_event"):
+        from protocol import auth
+
+        return getattr(auth, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -56,3 +56,42 @@ def model(model_path):
     from host.fit.model import HostModel
 
     return HostModel.load(model_path)
+
+
+@pytest.fixture
+def pair():
+    """Open both ends of a fresh mem line: ``pair(a_opts, b_opts, baud=)`` -> (a, b) transports
+    (unpaced by default); closed at the end. Link-engine and image-transfer tests."""
+    from provision_helpers import mem_name
+
+    from protocol.transport import open_transport
+
+    opened = []
+
+    def open_pair(a_opts: str = "&pace=0", b_opts: str = "&pace=0", *, baud: int = 115200):
+        name = mem_name("link")
+        a = open_transport(f"mem://{name}?end=a{a_opts}", baud=baud, timeout_s=5.0)
+        b = open_transport(f"mem://{name}?end=b{b_opts}", baud=baud, timeout_s=5.0)
+        opened.extend([a, b])
+        return a, b
+
+    yield open_pair
+    for t in opened:
+        t.close()
+
+
+@pytest.fixture
+def links():
+    """Start links: ``links(transport, **Link kwargs)`` -> started Link; closed at the end."""
+    from protocol.link import Link
+
+    started = []
+
+    def start(transport, **kwargs):
+        link = Link(transport, **kwargs).start()
+        started.append(link)
+        return link
+
+    yield start
+    for link in started:
+        link.close(flush_timeout_s=0.2)

@@ -19,8 +19,9 @@ from provision_helpers import KEY, OTHER_KEY, make_image, mem_name
 from runtime_helpers import RuntimeThread, check_frames, read_frames, wait_until
 
 from device_runtime.cli import main as device_main
-from device_runtime.device import Device, DeviceConfig, required_ram_bytes
+from device_runtime.device import Device, DeviceConfig
 from device_runtime.flash import FlashStore, SlotState
+from device_runtime.image_receiver import required_ram_bytes
 from host.link import provision, serve
 from protocol.image import read_manifest
 from protocol.keys import write_key
@@ -149,7 +150,7 @@ def test_the_issue_scenario_pair_unsigned_commit_boot_falls_back_and_status_tell
         assert any("slot B: the image does not load" in line and "not signed" in line
                    for line in device.lines), device.lines
         assert any("fell back to slot A" in line for line in device.lines), device.lines
-        from device_runtime.runtime import parse_orbit
+        from device_runtime.orbit import parse_orbit
 
         stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
                       orbit=parse_orbit("steps:3:10"), log=_quiet)

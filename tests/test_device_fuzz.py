@@ -15,7 +15,8 @@ from provision_helpers import KEY, DeviceThread, mem_name
 from protocol import messages as m
 from protocol.errors import RemoteError
 from protocol.framing import encode_frame
-from protocol.link import HostSession, Link
+from protocol.host_session import HostSession
+from protocol.link import Link
 from protocol.transport import open_transport
 
 FRAMES = 1500

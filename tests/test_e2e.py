@@ -21,7 +21,7 @@ from PIL import Image
 from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import check_frames, key_file, read_frames, wait_until
 
-from device_runtime.runtime import parse_orbit
+from device_runtime.orbit import parse_orbit
 from host.link.provisioning import provision
 from host.link.serving import serve
 from protocol.transport import FdTransport, open_pty_pair
@@ -241,7 +241,8 @@ def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, 
     from test_scores import overflow_packet
 
     from protocol import messages as m
-    from protocol.link import HostSession, Link
+    from protocol.host_session import HostSession
+    from protocol.link import Link
     from protocol.scores import encode_scores
     from protocol.transport import open_transport
 

@@ -29,6 +29,7 @@ from pathlib import Path
 import cbor2
 import pytest
 
+from protocol import auth
 from protocol import messages as m
 from protocol._cobs import cobs_decode, cobs_encode
 from protocol.framing import HEADER, FrameDecoder, crc32, decode_frame
@@ -222,10 +223,10 @@ def test_auth_golden(case):
     host_nonce = bytes.fromhex(case["host_nonce"])
     device_nonce = bytes.fromhex(case["device_nonce"])
     device_id = case["device_id"]
-    session_key = m.derive_session_key(key, host_nonce, device_nonce)
+    session_key = auth.derive_session_key(key, host_nonce, device_nonce)
     assert session_key.hex() == case["session_key"]
     for role in ("host", "device"):
-        proof = m.auth_proof(
+        proof = auth.auth_proof(
             key, role=role, host_nonce=host_nonce, device_nonce=device_nonce, device_id=device_id
         )
         assert proof.hex() == case[f"{role}_proof"]
@@ -245,13 +246,13 @@ def test_auth_golden(case):
 
 
 def test_signed_golden_lines_verify_with_the_golden_session_key():
-    (auth,) = AUTH_CASES
-    session_key = bytes.fromhex(auth["session_key"])
+    (case_auth,) = AUTH_CASES
+    session_key = bytes.fromhex(case_auth["session_key"])
     signed = [c for c in MESSAGE_CASES if _class(c["class"]).SIGNED]
     assert signed
     for case in signed:
         msg = _record_from_json(_class(case["class"]), case["kwargs"])
-        assert m.verify(msg, session_key, msg.session_counter - 1) == msg.session_counter
+        assert auth.verify(msg, session_key, msg.session_counter - 1) == msg.session_counter
         # The tag formula of docs/protocol.md, recomputed by hand.
         body = dict(cbor2.loads(msg.to_body()))
         del body[m.SESSION_TAG_KEY]
@@ -264,14 +265,14 @@ def test_signed_golden_lines_verify_with_the_golden_session_key():
 
 
 def test_tagged_event_golden_lines_verify_with_the_golden_session_key():
-    (auth,) = AUTH_CASES
-    session_key = bytes.fromhex(auth["session_key"])
+    (case_auth,) = AUTH_CASES
+    session_key = bytes.fromhex(case_auth["session_key"])
     tagged = [c for c in MESSAGE_CASES if _class(c["class"]).TAGGED]
     assert {_class(c["class"]).TYPE for c in tagged} == {m.MessageType.SCORES,
                                                           m.MessageType.IMAGE_CHUNK}
     for case in tagged:
         msg = _record_from_json(_class(case["class"]), case["kwargs"])
-        assert m.verify_event(msg, session_key, msg.session_counter - 1) == msg.session_counter
+        assert auth.verify_event(msg, session_key, msg.session_counter - 1) == msg.session_counter
         # docs/protocol.md section 5: the signed-request formula, truncated to 16 bytes.
         body = dict(cbor2.loads(msg.to_body()))
         del body[m.SESSION_TAG_KEY]
@@ -334,8 +335,8 @@ def test_protocol_doc_lists_every_error_code():
 
 def _golden_messages() -> list[tuple[str, m.Message, int]]:
     """The cases written to messages.jsonl (fixed ids, counters, keys and nonces)."""
-    (auth,) = AUTH_CASES
-    sk = bytes.fromhex(auth["session_key"])
+    (case_auth,) = AUTH_CASES
+    sk = bytes.fromhex(case_auth["session_key"])
     digest = hashlib.sha256(b"eigencast golden image").digest()
     slots = (
         m.SlotInfo(
@@ -377,10 +378,10 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
             ),
             1,
         ),
-        ("auth_challenge", m.AuthChallenge(host_proof=bytes.fromhex(auth["host_proof"])), 2),
+        ("auth_challenge", m.AuthChallenge(host_proof=bytes.fromhex(case_auth["host_proof"])), 2),
         (
             "auth_response",
-            m.AuthResponse(device_proof=bytes.fromhex(auth["device_proof"]), slots=slots,
+            m.AuthResponse(device_proof=bytes.fromhex(case_auth["device_proof"]), slots=slots,
                            ram_budget_bytes=64 << 20, slot_size_bytes=64 << 20),
             2,
         ),
@@ -398,13 +399,14 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ),
         ("ok", m.Ok(), 5),
         ("bye", m.Bye(reason="done"), 0),
-        ("set_baud", m.sign(m.SetBaud(baud=921600, revert_timeout_ms=2000), sk, 7), 6),
-        ("reset", m.sign(m.Reset(reason="test"), sk, 8), 7),
-        ("slot_set", m.sign(m.SlotSet(action=m.SlotAction.ACTIVATE, slot=1, force=True), sk, 9), 8),
+        ("set_baud", auth.sign(m.SetBaud(baud=921600, revert_timeout_ms=2000), sk, 7), 6),
+        ("reset", auth.sign(m.Reset(reason="test"), sk, 8), 7),
+        ("slot_set",
+         auth.sign(m.SlotSet(action=m.SlotAction.ACTIVATE, slot=1, force=True), sk, 9), 8),
         ("slot_status", m.SlotStatus(slots=slots), 8),
         (
             "image_begin",
-            m.sign(
+            auth.sign(
                 m.ImageBegin(
                     size_bytes=52428800,
                     digest=digest,
@@ -419,7 +421,7 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ),
         ("image_status", m.ImageStatus(digest=digest, size_bytes=52428800), 10),
         ("image_status_reply", m.ImageStatusReply(next_offset=65536, in_progress=True), 10),
-        ("image_chunk", m.tag_event(m.ImageChunk(offset=4096, data=bytes(range(32))), sk, 1), 9),
+        ("image_chunk", auth.tag_event(m.ImageChunk(offset=4096, data=bytes(range(32))), sk, 1), 9),
         ("image_ack", m.ImageAck(next_offset=8192, credits=7, window_bytes=32768), 9),
         ("image_verify", m.ImageVerify(digest=digest), 11),
         (
@@ -427,10 +429,10 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
             m.ImageVerifyReply(ok=True, digest=digest, tag_ok=True, size_bytes=52428800),
             11,
         ),
-        ("image_commit", m.sign(m.ImageCommit(digest=digest), sk, 11), 12),
-        ("image_abort", m.sign(m.ImageAbort(), sk, 12), 13),
-        ("scores", m.tag_event(m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400")), sk, 3),
-         0),
+        ("image_commit", auth.sign(m.ImageCommit(digest=digest), sk, 11), 12),
+        ("image_abort", auth.sign(m.ImageAbort(), sk, 12), 13),
+        ("scores",
+         auth.tag_event(m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400")), sk, 3), 0),
         ("view_request", m.ViewRequest(phi_deg=123.5, theta_deg=-12.0, sequence=42), 0),
         ("keyframe_request", m.KeyframeRequest(sequence=43, last_frame=41), 0),
         ("notice", m.Notice(level=1, text="reverted to slot A at boot", detail={"slot": 0}), 0),
@@ -441,22 +443,22 @@ def _regenerate() -> None:
     key = bytes(range(0xA0, 0xC0))
     host_nonce = bytes(range(16))
     device_nonce = bytes(range(16, 32))
-    auth = {
+    case_auth = {
         "name": "dev-1",
         "device_key": key.hex(),
         "host_nonce": host_nonce.hex(),
         "device_nonce": device_nonce.hex(),
         "device_id": "dev-1",
-        "session_key": m.derive_session_key(key, host_nonce, device_nonce).hex(),
-        "host_proof": m.auth_proof(
+        "session_key": auth.derive_session_key(key, host_nonce, device_nonce).hex(),
+        "host_proof": auth.auth_proof(
             key, role="host", host_nonce=host_nonce, device_nonce=device_nonce, device_id="dev-1"
         ).hex(),
-        "device_proof": m.auth_proof(
+        "device_proof": auth.auth_proof(
             key, role="device", host_nonce=host_nonce, device_nonce=device_nonce, device_id="dev-1"
         ).hex(),
     }
-    (GOLDEN / "auth.jsonl").write_text(json.dumps(auth) + "\n")
-    AUTH_CASES[:] = [auth]
+    (GOLDEN / "auth.jsonl").write_text(json.dumps(case_auth) + "\n")
+    AUTH_CASES[:] = [case_auth]
     lines = []
     for name, msg, request_id in _golden_messages():
         flags = 1 if msg.MUST_UNDERSTAND else 0

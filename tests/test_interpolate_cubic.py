@@ -195,7 +195,7 @@ def tiny_grid_db(tmp_path_factory):
 
 
 def test_fit_interpolation_option_and_standalone_device_agree(tiny_grid_db, tmp_path):
-    from device_runtime.runtime import StandaloneScores
+    from device_runtime.standalone import StandaloneScores
     from host.fit.model import HostModel
 
     out = tmp_path / "m.ecs"

@@ -1,17 +1,18 @@
 """The link engine: request ids, stale replies, timeouts, errors, priorities, latest-wins
-scores, bounded inbox, the windowed image sender, SET_BAUD, and a hypothesis test of the
-frame dispatcher."""
+scores, bounded inbox, and a hypothesis test of the frame dispatcher.
+
+The image sender is tested in test_image_transfer.py, the host session (SET_BAUD) in
+test_host_session.py; the ``pair`` and ``links`` fixtures are in conftest.py."""
 
 from __future__ import annotations
 
 import threading
 import time
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from provision_helpers import KEY, DeviceThread, mem_name, wait_for_line
+from provision_helpers import mem_name
 
 from protocol import messages as m
 from protocol.errors import (
@@ -22,48 +23,8 @@ from protocol.errors import (
     TransportTimeout,
 )
 from protocol.framing import Channel, Frame, FrameDecoder, Kind, encode_frame
-from protocol.link import (
-    IMAGE_QUEUE_FRAMES,
-    HostSession,
-    Link,
-    negotiate_version,
-    send_image,
-)
-from protocol.transport import open_pty_pair, open_transport
-
-# --------------------------------------------------------------------------- fixtures
-
-
-@pytest.fixture
-def pair():
-    """Open both ends of a fresh unpaced mem line; return (open_fn)."""
-    opened = []
-
-    def open_pair(a_opts: str = "&pace=0", b_opts: str = "&pace=0", *, baud: int = 115200):
-        name = mem_name("link")
-        a = open_transport(f"mem://{name}?end=a{a_opts}", baud=baud, timeout_s=5.0)
-        b = open_transport(f"mem://{name}?end=b{b_opts}", baud=baud, timeout_s=5.0)
-        opened.extend([a, b])
-        return a, b
-
-    yield open_pair
-    for t in opened:
-        t.close()
-
-
-@pytest.fixture
-def links():
-    """Start links and close them at the end."""
-    started = []
-
-    def start(transport, **kwargs):
-        link = Link(transport, **kwargs).start()
-        started.append(link)
-        return link
-
-    yield start
-    for link in started:
-        link.close(flush_timeout_s=0.2)
+from protocol.link import Link
+from protocol.transport import open_transport
 
 
 class GatedTransport:
@@ -338,200 +299,6 @@ def test_a_flooding_peer_cannot_grow_the_inbox_beyond_its_bound(pair, links):
     assert device.stats.inbox_dropped >= 200 - 8 - 1
     assert len(device._inbox) <= 8
     release.set()
-
-
-# --------------------------------------------------------------------------- image sender
-
-
-class ChunkSink:
-    """A minimal receiver: writes chunks into a buffer, acks cumulatively."""
-
-    def __init__(self, size: int, credits: int = 8, window_bytes: int = 8 * 512) -> None:
-        self.buf = bytearray(size)
-        self.have = np.zeros(size, dtype=bool)
-        self.credits = credits
-        self.window_bytes = window_bytes
-        self.link: Link | None = None
-        self.chunks = 0
-
-    def next_offset(self) -> int:
-        missing = np.flatnonzero(~self.have)
-        return int(missing[0]) if missing.size else len(self.buf)
-
-    def __call__(self, msg, frame):
-        if isinstance(msg, m.ImageChunk):
-            self.chunks += 1
-            end = msg.offset + len(msg.data)
-            if end <= self.next_offset() + self.window_bytes:
-                self.buf[msg.offset:end] = msg.data
-                self.have[msg.offset:end] = True
-            self.link.send(
-                m.ImageAck(next_offset=self.next_offset(), credits=self.credits,
-                           window_bytes=self.window_bytes),
-                request_id=frame.request_id,
-            )
-        return None
-
-
-@pytest.mark.parametrize("strategy", ["selective", "go-back-n"])
-@pytest.mark.parametrize("faults", ["", "&burst=2e-4&burst_bytes=40&seed=3", "&ber=1e-4&seed=5"])
-def test_send_image_delivers_every_byte_over_a_lossy_line(pair, links, strategy, faults):
-    data = np.random.default_rng(4).integers(0, 256, 60_000, dtype=np.uint8).tobytes()
-    a, b = pair("&pace=0" + faults)
-    sink = ChunkSink(len(data), credits=16, window_bytes=16 * 1024)
-    sink.link = links(b, handler=sink)
-    host = links(a, tx_max_frame_bytes=4096)
-    progress: list[int] = []
-    stats = send_image(
-        host, data, transfer_id=42,
-        first_ack=m.ImageAck(next_offset=0, credits=16, window_bytes=16 * 1024),
-        chunk_bytes=1024, retransmit=strategy, min_rto_s=0.05, initial_rto_s=0.2,
-        on_progress=progress.append,
-    )
-    assert bytes(sink.buf) == data
-    assert progress == sorted(progress) and progress[-1] == len(data)
-    assert stats.data_bytes_sent >= len(data)
-    if not faults:
-        assert stats.retransmitted_chunks == 0 and stats.data_bytes_sent == len(data)
-    else:
-        assert stats.retransmitted_chunks > 0
-
-
-def test_send_image_keeps_inside_credits_and_window(pair, links):
-    data = bytes(range(256)) * 64
-    a, b = pair()
-    seen_beyond: list[int] = []
-
-    class Checking(ChunkSink):
-        def __call__(self, msg, frame):
-            if isinstance(msg, m.ImageChunk):
-                seen_beyond.append(msg.offset + len(msg.data) - self.next_offset())
-            return super().__call__(msg, frame)
-
-    sink = Checking(len(data), credits=2, window_bytes=1000)
-    sink.link = links(b, handler=sink)
-    host = links(a)
-    send_image(host, data, transfer_id=1,
-               first_ack=m.ImageAck(next_offset=0, credits=2, window_bytes=1000),
-               chunk_bytes=400)
-    assert bytes(sink.buf) == data
-    assert max(seen_beyond) <= 1000
-
-
-def test_send_image_reports_the_device_error_for_the_transfer(pair, links):
-    a, b = pair()
-
-    def refuse(msg, frame):
-        if isinstance(msg, m.ImageChunk):
-            device.send(m.Error(code=m.ErrorCode.TOO_LARGE_FOR_RAM, where="IMAGE_CHUNK",
-                                message="needs 9 bytes"), request_id=frame.request_id)
-
-    device = links(b, handler=refuse)
-    host = links(a)
-    with pytest.raises(RemoteError, match="TOO_LARGE_FOR_RAM"):
-        send_image(host, b"z" * 5000, transfer_id=3,
-                   first_ack=m.ImageAck(next_offset=0, credits=4, window_bytes=4096),
-                   chunk_bytes=512)
-
-
-def test_send_image_gives_up_after_inactivity_not_after_a_total_time(pair, links):
-    a, b = pair()
-    links(b, handler=lambda msg, frame: None)  # never acks
-    host = links(a)
-    start = time.monotonic()
-    with pytest.raises(TransportTimeout, match="no progress for 1 s"):
-        send_image(host, b"z" * 5000, transfer_id=3,
-                   first_ack=m.ImageAck(next_offset=0, credits=4, window_bytes=4096),
-                   chunk_bytes=512, inactivity_timeout_s=0.6, initial_rto_s=0.1)
-    assert time.monotonic() - start < 5
-
-
-def test_send_image_refuses_a_chunk_that_does_not_fit_the_frame(pair, links):
-    a, _ = pair()
-    host = links(a)
-    with pytest.raises(ValueError, match="does not fit max_frame_bytes=1024"):
-        send_image(host, b"z" * 5000, transfer_id=3,
-                   first_ack=m.ImageAck(next_offset=0, credits=4, window_bytes=4096),
-                   chunk_bytes=2000)
-    assert IMAGE_QUEUE_FRAMES >= 1
-
-
-# --------------------------------------------------------------------------- sessions, baud
-
-
-def test_negotiate_version():
-    assert negotiate_version((1, 3), (2, 5)) == 3
-    assert negotiate_version((1, 1), (2, 2)) is None
-
-
-def _session(url: str, *, baud: int, key=KEY) -> HostSession:
-    link = Link(open_transport(url, baud=baud, timeout_s=5.0), owns_transport=True).start()
-    session = HostSession(link, key=key, request_timeout_s=0.5)
-    session.start()
-    return session
-
-
-def test_set_baud_switches_both_ends_of_a_paced_line(tmp_path):
-    name = mem_name("baud")
-    with DeviceThread(f"mem://{name}?end=b", tmp_path / "flash", baud=115200) as dev:
-        session = _session(f"mem://{name}?end=a", baud=115200)
-        try:
-            assert session.set_baud(921600, revert_timeout_ms=1500) is True
-            assert session.link.transport.baud == 921600
-            assert dev.transport.baud == 921600
-            session.ping(timeout_s=0.5, retries=2)
-            garbage = session.link.decoder.counters()
-            # The device's revert timer fires and keeps the new rate ...
-            assert wait_for_line(dev, "set-baud: now 921600", 5.0)
-            session.ping(timeout_s=0.5, retries=0)  # ... and still answers at it
-            assert dev.transport.baud == 921600
-            assert session.link.decoder.counters()["bad_crc"] == garbage["bad_crc"]
-        finally:
-            session.link.close()
-
-
-def test_set_baud_reverts_when_the_host_never_answers_at_the_new_rate(tmp_path):
-    name = mem_name("baud")
-    with DeviceThread(f"mem://{name}?end=b", tmp_path / "flash", baud=115200) as dev:
-        session = _session(f"mem://{name}?end=a", baud=115200)
-        try:
-            # The host asks for the switch but stays at 115200 (its adapter cannot do it):
-            # its pings are garbled at the device until the device reverts by itself.
-            session.call(m.SetBaud(baud=921600, revert_timeout_ms=400), retries=0)
-            session.ping(timeout_s=0.25, retries=6)  # succeeds once the device is back
-            assert dev.transport.baud == 115200
-        finally:
-            session.link.close()
-    assert any("reverted to 115200" in line for line in dev.lines)
-
-
-def test_set_baud_refuses_an_unsupported_rate_and_needs_a_signature(tmp_path):
-    name = mem_name("baud")
-    with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash"):
-        session = _session(f"mem://{name}?end=a&pace=0", baud=115200)
-        try:
-            with pytest.raises(RemoteError, match=r"UNSUPPORTED.*123456"):
-                session.call(m.SetBaud(baud=123456, revert_timeout_ms=100), retries=0)
-            with pytest.raises(RemoteError, match=r"NOT_AUTHENTICATED \(4\)"):
-                session.link.request(m.SetBaud(baud=921600, revert_timeout_ms=100), retries=0)
-        finally:
-            session.link.close()
-
-
-@pytest.mark.skipif(not hasattr(__import__("os"), "openpty"), reason="needs POSIX ptys")
-def test_set_baud_on_a_pty_is_accepted_and_the_link_keeps_working(tmp_path):
-    pty = open_pty_pair()
-    with DeviceThread(pty.slave_path, tmp_path / "flash", baud=115200) as dev:
-        link = Link(pty.master_transport(), owns_transport=True).start()
-        session = HostSession(link, key=KEY, request_timeout_s=0.5)
-        try:
-            session.start()
-            assert session.set_baud(921600, revert_timeout_ms=800) is True
-            session.ping(retries=1)
-        finally:
-            link.close()
-            pty.close()
-    assert any("set-baud" in line for line in dev.lines)
 
 
 # --------------------------------------------------------------------------- dispatcher

@@ -28,6 +28,7 @@ from device_runtime.device import Device, DeviceConfig
 from device_runtime.flash import FlashStore
 from host.cli import main as cli_main
 from host.link.provisioning import ProvisionError, choose_chunk_bytes, inspect_image, provision
+from protocol import auth
 from protocol import messages as m
 from protocol.errors import (
     AuthenticationError,
@@ -42,8 +43,9 @@ from protocol.errors import (
     RemoteUnsupportedFormat,
     RemoteUnsupportedVersion,
 )
+from protocol.host_session import HostSession
 from protocol.keys import write_key
-from protocol.link import HostSession, Link
+from protocol.link import Link
 from protocol.transport import open_pty_pair, open_transport
 
 QUIET = {"show_progress": False, "log": lambda line: None}
@@ -567,7 +569,7 @@ def test_an_image_whose_header_lies_about_its_version_is_refused_mid_transfer(de
         box = {}
         ack = session.call(dataclasses.replace(begin, digest=hashlib.sha256(bad).digest()),
                            on_reply=lambda rid, r: box.setdefault("id", rid))
-        from protocol.link import send_image
+        from protocol.image_transfer import send_image
 
         with pytest.raises(RemoteUnsupportedFormat):
             send_image(session.link, bad, transfer_id=box["id"], first_ack=ack, chunk_bytes=1024,
@@ -713,7 +715,7 @@ def test_untagged_bad_tag_and_replayed_chunks_are_not_stored(tmp_path, device):
         session.call(begin, on_reply=lambda rid, r: box.setdefault("id", rid))
         chunk = m.ImageChunk(offset=0, data=image[:512])
         session.link.send(chunk, request_id=box["id"])  # untagged
-        session.link.send(m.tag_event(chunk, OTHER_KEY, 1), request_id=box["id"])  # bad tag
+        session.link.send(auth.tag_event(chunk, OTHER_KEY, 1), request_id=box["id"])  # bad tag
 
         def dropped() -> int:
             return stats.dropped_unauthenticated + stats.dropped_bad_tag

@@ -8,11 +8,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from device_runtime.runtime import (
+from device_runtime.orbit import canonical_view
+from device_runtime.standalone import (
     STANDALONE_DELTA_SECTION,
     STANDALONE_SECTION,
     StandaloneScores,
-    canonical_view,
     standalone_table,
 )
 from host.errors import FitError

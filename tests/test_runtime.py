@@ -13,56 +13,17 @@ from runtime_helpers import RuntimeThread, wait_until
 
 from device_runtime.device import DeviceConfig
 from device_runtime.display import HeadlessPresenter, ViewDelta
-from device_runtime.runtime import (
-    STANDALONE_SECTION,
-    LatestSlot,
-    RequestLimiter,
-    RuntimeDevice,
-    ScoreItem,
-    StandaloneScores,
-    canonical_view,
-    parse_orbit,
-    parse_view_list,
-    standalone_table,
-)
+from device_runtime.orbit import canonical_view
+from device_runtime.runtime import LatestSlot, RequestLimiter, RuntimeDevice, ScoreItem
 from host.fit.model import HostModel
 from host.link.provisioning import provision
+from protocol import auth
 from protocol import messages as m
-from protocol.errors import ImageFormatError
+from protocol.host_session import HostSession
 from protocol.image import read_image
-from protocol.link import HostSession, Link
+from protocol.link import Link
 from protocol.scores import DecodedScores, encode_scores
 from protocol.transport import open_transport
-
-
-def test_parse_orbit_forms_and_errors():
-    turn = parse_orbit("turn:12:20:2")
-    assert (turn.kind, turn.seconds_per_turn, turn.theta_deg, turn.turns) == ("turn", 12, 20, 2)
-    assert parse_orbit("turn:5").turns is None and parse_orbit("turn:5").theta_deg == 15.0
-    steps = parse_orbit("steps:4:-30")
-    orbit = steps.start(now_s=0.0)
-    views = [orbit.next_view(0.0) for _ in range(5)]
-    assert views == [(0.0, -30.0), (90.0, -30.0), (180.0, -30.0), (270.0, -30.0), None]
-    assert parse_orbit("steps:3:0:2").total_steps == 6
-    running = turn.start(now_s=100.0)
-    assert running.next_view(103.0) == (90.0, 20.0)  # a quarter of 12 s
-    assert running.next_view(100.0 + 24.0) is None  # two turns done
-    for bad, text in [("spin:3", "turn:SECONDS"), ("turn:0", "SECONDS=0"),
-                      ("steps:2.5", "integer"), ("steps:4:95", "THETA_DEG=95"),
-                      ("turn:3:10:-1", "TURNS=-1"), ("steps:x", "numbers"), ("turn", "expected")]:
-        with pytest.raises(ValueError, match=text):
-            parse_orbit(bad)
-
-
-def test_views_are_canonical_float32_wrapped():
-    phi, theta = canonical_view(-30.1, 95.0)
-    assert phi == float(np.float32(329.9)) and theta == 90.0
-    assert canonical_view(720.0, 0.0) == (0.0, 0.0)
-    assert canonical_view(359.99999999, 0.0)[0] < 360.0
-    assert parse_view_list("10,5; 370,-5") == [(10.0, 5.0), (10.0, -5.0)]
-    for bad in ("10", "10,100", "a,b", ""):
-        with pytest.raises(ValueError):
-            parse_view_list(bad)
 
 
 def test_latest_slot_and_request_limiter_keep_only_the_newest():
@@ -213,29 +174,6 @@ def test_input_becomes_rate_limited_view_requests(tmp_path, model_path):
     assert sent[0].sequence == first[0].sequence + 1
     device.close_display()
     device.close()
-
-
-def test_standalone_scores_match_the_host_and_bad_tables_are_refused(model_path, model):
-    image = read_image(model_path)
-    standalone = StandaloneScores(image)
-    for view in [(0.0, 0.0), (33.3, 12.0), (359.0, -40.0), (181.0, 89.0)]:
-        view = canonical_view(*view)
-        np.testing.assert_array_equal(standalone.scores(*view), model.quantized_scores(*view))
-    table, step = standalone_table(image)
-    assert table.dtype == np.int16 and step == model.score_step
-    image.sections[STANDALONE_SECTION] = table.astype(np.float32)
-    with pytest.raises(ImageFormatError, match="int16/int32"):
-        standalone_table(image)
-    image.sections[STANDALONE_SECTION] = table[:, :-1]
-    with pytest.raises(ImageFormatError, match="shape"):
-        standalone_table(image)
-    image.sections[STANDALONE_SECTION] = table
-    image.score_quantization = {"step": 1.0, "table_step": -1}
-    with pytest.raises(ImageFormatError, match="table_step"):
-        standalone_table(image)
-    del image.sections[STANDALONE_SECTION]
-    with pytest.raises(ImageFormatError, match="fit --standalone"):
-        StandaloneScores(image)
 
 
 def test_memory_stays_flat_over_many_frames(tmp_path, model_path, model):
@@ -468,7 +406,7 @@ def test_keyed_device_shows_only_tagged_fresh_scores_of_an_authenticated_session
         attacker.close()
         # an authenticated session: a wrong tag and a replay are dropped, fresh tags shown
         session = _session(url)
-        wrong = m.tag_event(m.Scores(sequence=0, packet=_key_packet(model, 70.0, 0.0, 10)),
+        wrong = auth.tag_event(m.Scores(sequence=0, packet=_key_packet(model, 70.0, 0.0, 10)),
                             bytes(32), 1)
         session.link.send(wrong)
         wait_until(lambda: stats.dropped_bad_tag == 1, 10, "the bad-tag drop")

@@ -11,7 +11,7 @@ import pytest
 from provision_helpers import KEY, mem_name
 from runtime_helpers import RuntimeThread, check_frames, read_frames, wait_until
 
-from device_runtime.runtime import parse_orbit
+from device_runtime.orbit import parse_orbit
 from host.link.provisioning import provision
 from host.link.serving import FrameEncoder, ServeError, serve
 from protocol.scores import ScoreDecoder

@@ -19,7 +19,7 @@ from PIL import Image
 from provision_helpers import KEY, mem_name
 from runtime_helpers import RuntimeThread, read_frames, wait_until
 
-from device_runtime.runtime import canonical_view, parse_orbit
+from device_runtime.orbit import canonical_view, parse_orbit
 from host.fit.model import HostModel
 from host.link.provisioning import provision
 from host.link.serving import TrueViewScores, open_true_view_scores, serve

@@ -8,8 +8,8 @@ import json
 from pathlib import Path
 
 from host.link.provisioning import provision
+from protocol.image_transfer import RETRANSMIT_STRATEGIES
 from protocol.keys import load_key
-from protocol.link import RETRANSMIT_STRATEGIES
 
 HELP = "install an eigenspace image on a device (resumable, verified, authenticated)"
 

@@ -21,6 +21,11 @@
    its key), IMAGE_COMMIT (test state), and wait briefly for the device's
    NOTICE that it loaded and confirmed the image.
 
+The steps are the methods of ``_Provisioning`` (``_open``, ``_first_contact``, ``_begin``,
+``_send_image``, ``_verify``, ``_commit``, ``_await_confirmation``, ``_back_off``), in that
+order in ``_Provisioning._attempt``; :func:`provision` only inspects the image, maps it and
+runs them.
+
 Refusals by the device arrive as :class:`~protocol.errors.RemoteError`
 subclasses (one line each); the host's own pre-checks raise
 :class:`ProvisionError`. Both are user errors (exit code 1 in the CLI).
@@ -40,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from device_runtime.device import required_ram_bytes
+from device_runtime.image_receiver import required_ram_bytes
 from host.errors import EigencastError
 from protocol import messages as m
 from protocol.errors import (
@@ -50,6 +55,7 @@ from protocol.errors import (
     TransportError,
     TransportTimeout,
 )
+from protocol.host_session import HostSession
 from protocol.image import (
     HEADER_SIZE,
     ImageTagError,
@@ -57,7 +63,8 @@ from protocol.image import (
     read_manifest,
     verify_stream,
 )
-from protocol.link import CHUNK_OVERHEAD_BYTES, HostSession, Link, send_image
+from protocol.image_transfer import send_image
+from protocol.link import CHUNK_OVERHEAD_BYTES, Link
 from protocol.transport import open_transport
 
 __all__ = [
@@ -104,7 +111,7 @@ class ImageInfo:
     format_version : int
     generation : int
     ram_bytes : int
-        RAM the device needs for it (:func:`device_runtime.device.required_ram_bytes`).
+        RAM the device needs for it (:func:`device_runtime.image_receiver.required_ram_bytes`).
     """
 
     path: Path
@@ -455,7 +462,7 @@ def provision(
     chunk_bytes : int, optional
         Data bytes per chunk (default: :func:`choose_chunk_bytes`).
     retransmit : {"selective", "go-back-n"}
-        Loss recovery of the chunk window (:func:`protocol.link.send_image`).
+        Loss recovery of the chunk window (:func:`protocol.image_transfer.send_image`).
     precheck : bool
         Refuse on the host what the device would refuse (off in tests of the device).
     show_progress : bool
@@ -492,181 +499,305 @@ def provision(
         The device could not be reached, or the link kept failing.
     """
     started = time.monotonic()
-    say = log or (lambda line: print(f"eigencast provision: {line}", file=sys.stderr, flush=True))
-    stage = on_stage or (lambda name: None)
     info = inspect_image(image_path, key=key if precheck else None, whole_file=precheck)
+    settings = _Settings(
+        key=key, insecure=insecure, force=force, chunk_bytes=chunk_bytes, retransmit=retransmit,
+        precheck=precheck, request_timeout_s=request_timeout_s,
+        inactivity_timeout_s=inactivity_timeout_s, max_reconnects=max_reconnects,
+        confirm_timeout_s=confirm_timeout_s, host_id=host_id,
+    )
     factory = transport_factory or (
         lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s))
     )
-    result: ProvisionResult | None = None
-    failures = 0
-    attempt = 0
-    progress_mark = -1
-    transfer_seconds = 0.0
-    learned_chunk: dict[str, int] = {}
     with open(info.path, "rb") as handle:
         mapped = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
     try:
-        data = memoryview(mapped)[: info.size_bytes]
         with _TransferProgress(info.size_bytes, "provision", enabled=show_progress) as bar:
-            while True:
-                stage("connect")
-                link: Link | None = None
-                try:
-                    transport = factory(attempt)
-                    notices = _Notices()
-                    link = Link(transport, handler=notices, owns_transport=True).start()
-                    session = HostSession(
-                        link, key=key, host_id=host_id, request_timeout_s=request_timeout_s,
-                        insecure=insecure,
-                    )
-                    stage("hello")
-                    hello = session.start()
-                    if result is not None and _holds_active(hello, info):
-                        # The link dropped after the commit went through.
-                        result.reconnects += 1
-                        result.verified = True
-                        result.slot = _active_slot(hello.slots)
-                        session.bye("done")
-                        result.seconds = time.monotonic() - started
-                        stage("done")
-                        return result
-                    if result is None:
-                        say(
-                            f"device '{hello.device_id}' ({hello.software or 'unknown software'}"
-                            f", protocol {session.version}"
-                            f"{', authenticated' if session.authenticated else ', no key'})"
-                        )
-                        if key is not None and not session.authenticated:
-                            say(f"WARNING: --insecure: device '{hello.device_id}' holds no key; "
-                                "sending the image unauthenticated")
-                        done = _already_there(session, hello, info, force=force, say=say)
-                        if done is not None:
-                            done.seconds = time.monotonic() - started
-                            session.bye("done")
-                            stage("done")
-                            return done
-                        if precheck:
-                            _precheck(info, hello, force=force)
-                        result = ProvisionResult(
-                            outcome="installed",
-                            device_id=hello.device_id,
-                            slot="",
-                            digest=info.digest.hex(),
-                            size_bytes=info.size_bytes,
-                        )
-                    else:
-                        result.reconnects += 1
-                    stage("status")
-                    status = session.call(m.ImageStatus(digest=info.digest,
-                                                        size_bytes=info.size_bytes))
-                    assert isinstance(status, m.ImageStatusReply)
-                    stage("begin")
-                    answered: dict[str, int] = {}
-                    ack = session.call(
-                        m.ImageBegin(
-                            size_bytes=info.size_bytes,
-                            digest=info.digest,
-                            image_tag=info.tag,
-                            format_version=info.format_version,
-                            generation=info.generation,
-                            force=force,
-                        ),
-                        on_reply=lambda rid, reply, box=answered: box.__setitem__("id", rid),
-                    )
-                    assert isinstance(ack, m.ImageAck)
-                    result.resume_offsets.append(ack.next_offset)
-                    if len(result.resume_offsets) == 1:
-                        result.resumed_from = ack.next_offset
-                    if ack.next_offset:
-                        say(f"resuming at byte {ack.next_offset} of {info.size_bytes}")
-                    chunk = choose_chunk_bytes(transport, hello, link, chunk_bytes)
-                    if getattr(transport, "scheme", None) in _SERIAL_SCHEMES:
-                        # keep about one chunk in the port's buffer: frames that jump the
-                        # queue then wait behind at most ~CHUNK_LATENCY_S of wire time
-                        link.tx_low_water_bytes = chunk + CHUNK_OVERHEAD_BYTES
-                    stage("transfer")
-                    bar.start_at(ack.next_offset)
-
-                    def progressed(offset: int) -> None:
-                        bar.update(offset)
-                        if on_progress is not None:
-                            on_progress(offset, info.size_bytes)
-
-                    t0 = time.monotonic()
-                    try:
-                        stats = send_image(
-                            link,
-                            data,
-                            transfer_id=answered["id"],
-                            first_ack=ack,
-                            chunk_bytes=chunk,
-                            inactivity_timeout_s=inactivity_timeout_s,
-                            retransmit=retransmit,
-                            on_progress=progressed,
-                            initial_chunk_bytes=learned_chunk.get("bytes"),
-                            tag=session.tag_event,
-                        )
-                        learned_chunk["bytes"] = stats.final_chunk_bytes
-                    finally:
-                        transfer_seconds += time.monotonic() - t0
-                        result.transfer_seconds = transfer_seconds
-                    result.data_bytes_sent += stats.data_bytes_sent
-                    result.wire_bytes_sent += stats.wire_bytes_sent
-                    result.retransmitted_chunks += stats.retransmitted_chunks
-                    result.timeouts += stats.timeouts
-                    stage("verify")
-                    verify = session.call(
-                        m.ImageVerify(digest=info.digest),
-                        timeout_s=max(request_timeout_s, 2.0 + info.size_bytes / (10 * _MB)),
-                        retries=3,
-                    )
-                    assert isinstance(verify, m.ImageVerifyReply)
-                    if not verify.ok or verify.digest != info.digest:
-                        raise ProvisionError(
-                            f"device '{hello.device_id}' could not verify the image it received"
-                        )
-                    result.verified = True
-                    stage("commit")
-                    status_reply = session.call(m.ImageCommit(digest=info.digest))
-                    assert isinstance(status_reply, m.SlotStatus)
-                    result.slot = _active_slot(status_reply.slots)
-                    say(
-                        f"sent {info.size_bytes} bytes, verified (sha256 "
-                        f"{info.digest.hex()[:16]}, tag {'ok' if verify.tag_ok else 'unchecked'})"
-                        f", committed to slot {result.slot}"
-                    )
-                    result.confirmed = notices.wait_confirm(confirm_timeout_s)
-                    if result.confirmed:
-                        say(f"device confirmed the image in slot {result.slot}")
-                    elif result.confirmed is False:
-                        say("device could not load the image and reverted")
-                    session.bye("provisioned")
-                    result.seconds = time.monotonic() - started
-                    stage("done")
-                    return result
-                except (TransportClosed, TransportTimeout, RemoteNoImage) as exc:
-                    if link is not None:
-                        link.close(flush_timeout_s=0.0)
-                    if result is None and isinstance(exc, RemoteNoImage):
-                        raise
-                    mark = bar.done
-                    failures = 0 if mark > progress_mark else failures + 1
-                    progress_mark = max(progress_mark, mark)
-                    if failures > max_reconnects:
-                        raise TransportError(
-                            f"gave up after {failures} reconnects without progress: {exc}"
-                        ) from None
-                    delay = min(0.05 * 2**failures, 2.0)
-                    say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
-                    time.sleep(delay)  # reconnect backoff (a protocol timer)
-                    attempt += 1
-                finally:
-                    if link is not None and not link.closed:
-                        link.close(flush_timeout_s=0.5)
+            run = _Provisioning(
+                info, memoryview(mapped)[: info.size_bytes], settings, bar=bar,
+                factory=factory, started=started, on_progress=on_progress,
+                say=log or (lambda line: print(f"eigencast provision: {line}", file=sys.stderr,
+                                               flush=True)),
+                stage=on_stage or (lambda name: None),
+            )
+            return run.run()
     finally:
         with contextlib.suppress(BufferError):
             mapped.close()
+
+
+# --------------------------------------------------------------------------- the steps
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """The options of :func:`provision` that the steps read (see its parameters)."""
+
+    key: bytes | None
+    insecure: bool
+    force: bool
+    chunk_bytes: int | None
+    retransmit: str
+    precheck: bool
+    request_timeout_s: float
+    inactivity_timeout_s: float
+    max_reconnects: int
+    confirm_timeout_s: float
+    host_id: str
+
+
+@dataclass
+class _Connection:
+    """One attempt's way to the device: the transport, the link engine on it, the session."""
+
+    transport: Any
+    link: Link
+    session: HostSession
+    notices: _Notices
+
+
+@dataclass
+class _Provisioning:
+    """One run of :func:`provision`: its steps in order, and what carries over a reconnect.
+
+    :meth:`run` repeats :meth:`_attempt` (open, handshake, first contact or resume, begin,
+    send the image, verify, commit, wait for the confirmation) until one returns, backing
+    off between attempts after a lost link (:meth:`_back_off`). ``result`` is None until
+    the first handshake passed the pre-checks; from then on an attempt resumes the transfer.
+    """
+
+    info: ImageInfo
+    data: memoryview
+    settings: _Settings
+    bar: _TransferProgress
+    factory: Callable[[int], Any]
+    started: float
+    on_progress: Callable[[int, int], None] | None
+    say: Callable[[str], None]
+    stage: Callable[[str], None]
+    result: ProvisionResult | None = None
+    link: Link | None = None
+    failures: int = 0
+    progress_mark: int = -1
+    transfer_seconds: float = 0.0
+    learned_chunk_bytes: int | None = None
+
+    def run(self) -> ProvisionResult:
+        """Attempt until the image is installed (or was there); reconnect on a lost link."""
+        attempt = 0
+        while True:
+            self.stage("connect")
+            self.link = None
+            try:
+                return self._attempt(attempt)
+            except (TransportClosed, TransportTimeout, RemoteNoImage) as exc:
+                if self.link is not None:
+                    self.link.close(flush_timeout_s=0.0)
+                if self.result is None and isinstance(exc, RemoteNoImage):
+                    raise
+                self._back_off(exc)
+                attempt += 1
+            finally:
+                if self.link is not None and not self.link.closed:
+                    self.link.close(flush_timeout_s=0.5)
+
+    def _attempt(self, attempt: int) -> ProvisionResult:
+        conn = self._open(attempt)
+        self.stage("hello")
+        hello = conn.session.start()
+        if self.result is not None and _holds_active(hello, self.info):
+            return self._committed_before_the_link_dropped(conn, hello)
+        if self.result is None:
+            done = self._first_contact(conn, hello)
+            if done is not None:
+                return done
+        else:
+            self.result.reconnects += 1
+        ack, transfer_id = self._begin(conn)
+        self._send_image(conn, hello, ack, transfer_id)
+        verify = self._verify(conn, hello)
+        self._commit(conn, verify)
+        self._await_confirmation(conn)
+        return self._finish(conn, self._started_result(), "provisioned")
+
+    def _started_result(self) -> ProvisionResult:
+        assert self.result is not None, "the first contact creates the result"
+        return self.result
+
+    def _open(self, attempt: int) -> _Connection:
+        """Open the transport and start the link engine and a host session on it."""
+        transport = self.factory(attempt)
+        notices = _Notices()
+        self.link = Link(transport, handler=notices, owns_transport=True).start()
+        session = HostSession(
+            self.link, key=self.settings.key, host_id=self.settings.host_id,
+            request_timeout_s=self.settings.request_timeout_s, insecure=self.settings.insecure,
+        )
+        return _Connection(transport, self.link, session, notices)
+
+    def _committed_before_the_link_dropped(
+        self, conn: _Connection, hello: m.HelloReply
+    ) -> ProvisionResult:
+        result = self._started_result()
+        result.reconnects += 1
+        result.verified = True
+        result.slot = _active_slot(hello.slots)
+        return self._finish(conn, result, "done")
+
+    def _first_contact(self, conn: _Connection, hello: m.HelloReply) -> ProvisionResult | None:
+        """Name the device, skip the transfer if a slot holds the image, pre-check the rest.
+
+        Returns the finished result when there is nothing to send; otherwise creates
+        ``self.result`` and returns None.
+        """
+        session = conn.session
+        self.say(
+            f"device '{hello.device_id}' ({hello.software or 'unknown software'}"
+            f", protocol {session.version}"
+            f"{', authenticated' if session.authenticated else ', no key'})"
+        )
+        if self.settings.key is not None and not session.authenticated:
+            self.say(f"WARNING: --insecure: device '{hello.device_id}' holds no key; "
+                     "sending the image unauthenticated")
+        done = _already_there(session, hello, self.info, force=self.settings.force, say=self.say)
+        if done is not None:
+            return self._finish(conn, done, "done")
+        if self.settings.precheck:
+            _precheck(self.info, hello, force=self.settings.force)
+        self.result = ProvisionResult(
+            outcome="installed",
+            device_id=hello.device_id,
+            slot="",
+            digest=self.info.digest.hex(),
+            size_bytes=self.info.size_bytes,
+        )
+        return None
+
+    def _begin(self, conn: _Connection) -> tuple[m.ImageAck, int]:
+        """IMAGE_STATUS, then IMAGE_BEGIN: the device names the offset to carry on from."""
+        info, result = self.info, self._started_result()
+        self.stage("status")
+        status = conn.session.call(m.ImageStatus(digest=info.digest, size_bytes=info.size_bytes))
+        assert isinstance(status, m.ImageStatusReply)
+        self.stage("begin")
+        answered: dict[str, int] = {}
+        ack = conn.session.call(
+            m.ImageBegin(
+                size_bytes=info.size_bytes,
+                digest=info.digest,
+                image_tag=info.tag,
+                format_version=info.format_version,
+                generation=info.generation,
+                force=self.settings.force,
+            ),
+            on_reply=lambda rid, reply, box=answered: box.__setitem__("id", rid),
+        )
+        assert isinstance(ack, m.ImageAck)
+        result.resume_offsets.append(ack.next_offset)
+        if len(result.resume_offsets) == 1:
+            result.resumed_from = ack.next_offset
+        if ack.next_offset:
+            self.say(f"resuming at byte {ack.next_offset} of {info.size_bytes}")
+        return ack, answered["id"]
+
+    def _send_image(
+        self, conn: _Connection, hello: m.HelloReply, ack: m.ImageAck, transfer_id: int
+    ) -> None:
+        """Stream the chunks from ``ack.next_offset`` (windowed, with retransmission)."""
+        result = self._started_result()
+        chunk = choose_chunk_bytes(conn.transport, hello, conn.link, self.settings.chunk_bytes)
+        if getattr(conn.transport, "scheme", None) in _SERIAL_SCHEMES:
+            # keep about one chunk in the port's buffer: frames that jump the
+            # queue then wait behind at most ~CHUNK_LATENCY_S of wire time
+            conn.link.tx_low_water_bytes = chunk + CHUNK_OVERHEAD_BYTES
+        self.stage("transfer")
+        self.bar.start_at(ack.next_offset)
+        t0 = time.monotonic()
+        try:
+            stats = send_image(
+                conn.link,
+                self.data,
+                transfer_id=transfer_id,
+                first_ack=ack,
+                chunk_bytes=chunk,
+                inactivity_timeout_s=self.settings.inactivity_timeout_s,
+                retransmit=self.settings.retransmit,
+                on_progress=self._progressed,
+                initial_chunk_bytes=self.learned_chunk_bytes,
+                tag=conn.session.tag_event,
+            )
+            self.learned_chunk_bytes = stats.final_chunk_bytes
+        finally:
+            self.transfer_seconds += time.monotonic() - t0
+            result.transfer_seconds = self.transfer_seconds
+        result.data_bytes_sent += stats.data_bytes_sent
+        result.wire_bytes_sent += stats.wire_bytes_sent
+        result.retransmitted_chunks += stats.retransmitted_chunks
+        result.timeouts += stats.timeouts
+
+    def _progressed(self, offset: int) -> None:
+        self.bar.update(offset)
+        if self.on_progress is not None:
+            self.on_progress(offset, self.info.size_bytes)
+
+    def _verify(self, conn: _Connection, hello: m.HelloReply) -> m.ImageVerifyReply:
+        """IMAGE_VERIFY: the device re-reads the slot; its digest must be the image's."""
+        info = self.info
+        self.stage("verify")
+        verify = conn.session.call(
+            m.ImageVerify(digest=info.digest),
+            timeout_s=max(self.settings.request_timeout_s, 2.0 + info.size_bytes / (10 * _MB)),
+            retries=3,
+        )
+        assert isinstance(verify, m.ImageVerifyReply)
+        if not verify.ok or verify.digest != info.digest:
+            raise ProvisionError(
+                f"device '{hello.device_id}' could not verify the image it received"
+            )
+        self._started_result().verified = True
+        return verify
+
+    def _commit(self, conn: _Connection, verify: m.ImageVerifyReply) -> None:
+        """IMAGE_COMMIT: the slot becomes active in the test state."""
+        info, result = self.info, self._started_result()
+        self.stage("commit")
+        status_reply = conn.session.call(m.ImageCommit(digest=info.digest))
+        assert isinstance(status_reply, m.SlotStatus)
+        result.slot = _active_slot(status_reply.slots)
+        self.say(
+            f"sent {info.size_bytes} bytes, verified (sha256 "
+            f"{info.digest.hex()[:16]}, tag {'ok' if verify.tag_ok else 'unchecked'})"
+            f", committed to slot {result.slot}"
+        )
+
+    def _await_confirmation(self, conn: _Connection) -> None:
+        """Wait briefly for the device's NOTICE that it loaded and confirmed the image."""
+        result = self._started_result()
+        result.confirmed = conn.notices.wait_confirm(self.settings.confirm_timeout_s)
+        if result.confirmed:
+            self.say(f"device confirmed the image in slot {result.slot}")
+        elif result.confirmed is False:
+            self.say("device could not load the image and reverted")
+
+    def _finish(self, conn: _Connection, result: ProvisionResult, why: str) -> ProvisionResult:
+        """BYE with ``why``; the run's time; the "done" stage."""
+        conn.session.bye(why)
+        result.seconds = time.monotonic() - self.started
+        self.stage("done")
+        return result
+
+    def _back_off(self, exc: BaseException) -> None:
+        """Wait before reconnecting (exponential); give up after too many without progress."""
+        mark = self.bar.done
+        self.failures = 0 if mark > self.progress_mark else self.failures + 1
+        self.progress_mark = max(self.progress_mark, mark)
+        if self.failures > self.settings.max_reconnects:
+            raise TransportError(
+                f"gave up after {self.failures} reconnects without progress: {exc}"
+            ) from None
+        delay = min(0.05 * 2**self.failures, 2.0)
+        self.say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
+        time.sleep(delay)  # reconnect backoff (a protocol timer)
 
 
 def _short(exc: BaseException) -> str:
