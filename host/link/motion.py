@@ -10,14 +10,18 @@ dense as the frame's time budget allows:
   `HostModel.project` of it. The prior is the interpolated scores, or the previous frame's
   when the view moved less than ``prior_switch_deg`` since it (slow drags: docs/
   rate-distortion.md section 6).
-* **Resting.** `refine` continues a view that was not replaced: it ray-casts the offsets of
-  the stride not yet seen, as many per step as fit the budget, accumulates them
-  (`host.fit.ProgressiveRecovery`) and, with the last one, sends `HostModel.project` of the
-  assembled full ray-cast: the frame is then exactly ``--scores render``'s.
+* **Resting.** `refine` continues a view that was not replaced: each step ray-casts as many
+  of the missing pixels as fit the budget, towards the next denser stride; once that
+  stride's grid is complete its recovered scores are sent (cached factors, ~1 ms), and
+  with the last pixel `HostModel.project` of the assembled full ray-cast: the frame is then
+  exactly ``--scores render``'s. (`host.fit.ProgressiveRecovery`'s per-offset accumulation
+  was measured too slow for this: a solve per cell per offset, 13-45 s to the projection
+  from stride 16 at 256.)
 
-The cost model is measured, not assumed: the seconds of the last frames at the stride used
-(render and recovery, an exponential average), scaled by the number of rays for the other
-strides. A slower host (or a larger model) therefore gets sparser frames, never later ones.
+The cost model is measured, not assumed: the seconds per frame at the two strides used
+last (ray-cast and recovery, exponential averages) give a fixed cost and a cost per ray,
+which predict the other strides. A slower host (or a larger model) therefore gets sparser
+frames, never later ones.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from host.errors import EigencastError
-from host.fit.recover import DEFAULT_LAMBDA, ProgressiveRecovery, SamplePattern, SparseRecovery
+from host.fit.recover import DEFAULT_LAMBDA, SamplePattern, SparseRecovery
 
 __all__ = [
     "BUDGET_SHARE",
@@ -72,7 +76,8 @@ class MotionFrame:
 
     Attributes
     ----------
-    scores : ndarray of shape (K,), float32
+    scores : ndarray of shape (K,), float32, or None
+        None: a resting view's step that only ray-cast more pixels (nothing new to send).
     stride : int
         Of the sample grid (1: full ray-cast).
     pixels : int
@@ -86,7 +91,7 @@ class MotionFrame:
         The scores are `HostModel.project` of the full ray-cast.
     """
 
-    scores: np.ndarray
+    scores: np.ndarray | None
     stride: int
     pixels: int
     seconds: float
@@ -110,6 +115,10 @@ class MotionScores:
         Candidate strides for moving frames (sorted; 1 means a full ray-cast).
     prior_switch_deg : float
         Use the previous frame's scores as the prior below this angle per frame.
+    coarse : float
+        Moving frames sample their rays ``coarse`` times farther apart
+        (`Renderer.coarser`; 1: the training database's exact renderer). Resting views are
+        always refined with the exact one.
     clock : callable
         Seconds (monotonic); tests pass a fake one.
 
@@ -125,7 +134,7 @@ class MotionScores:
 
     def __init__(self, model: Any, renderer: Any, *, budget_s: float = 1.0 / DEFAULT_MOTION_FPS,
                  lam: float = DEFAULT_LAMBDA, strides: tuple[int, ...] = DEFAULT_STRIDES,
-                 prior_switch_deg: float = PRIOR_SWITCH_DEG,
+                 prior_switch_deg: float = PRIOR_SWITCH_DEG, coarse: float = 1.0,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         h, w = (int(v) for v in model.image.image_shape)
         if tuple(renderer.image_shape) != (h, w):
@@ -135,6 +144,8 @@ class MotionScores:
         strides = tuple(sorted({int(s) for s in strides}))
         if not strides or strides[0] < 1:
             raise ValueError(f"strides={strides}: positive integers expected")
+        if not (coarse >= 1.0 and math.isfinite(coarse)):
+            raise ValueError(f"coarse={coarse} must be >= 1")
         if not budget_s > 0:
             raise ValueError(f"budget_s={budget_s} must be > 0")
         self.model = model
@@ -146,14 +157,17 @@ class MotionScores:
         self.clock = clock
         self.recovery = SparseRecovery(model, lam=lam, max_patterns=4 * len(strides))
         self._patterns = {s: SamplePattern.strided(w, h, s) for s in strides}
-        self._cost: tuple[int, float] | None = None  # (stride, seconds per frame), EMA
-        self._progress: dict[int, ProgressiveRecovery] = {}
+        self._times: dict[int, float] = {}  # seconds per frame at each stride, EMA
+        self._recent: list[int] = []  # strides measured, the most recent last
+        self._moving = (renderer.renderer if coarse == 1.0
+                        else renderer.renderer.coarser(coarse))
         self._view: tuple[float, float] | None = None
         self._scores: np.ndarray | None = None
         self._prior: np.ndarray | None = None
         self._stride = 1
-        self._image: np.ndarray | None = None  # the view's ray-cast pixels so far (h, w, 3)
-        self._seen: list[tuple[int, int]] = []
+        self._complete = False
+        self._image = np.zeros((h, w, 3), dtype=np.uint8)  # the view's ray-cast pixels
+        self._known = np.zeros((h, w), dtype=bool)  # ... those cast exactly
         self.frames = self.refinements = self.pixels = 0
         self.seconds = 0.0
         self.stride_frames: dict[int, int] = {}
@@ -163,22 +177,39 @@ class MotionScores:
         h, w = self.shape
         return (-(-h // stride)) * (-(-w // stride))
 
+    def _fit(self) -> tuple[float, float]:
+        """``(fixed, per_ray)`` seconds: the line through the two strides measured last
+        (through 0 when only one was, or when they disagree)."""
+        last = self._recent[-1]
+        n1, t1 = self._n_pixels(last), self._times[last]
+        if len(self._recent) >= 2:
+            other = self._recent[-2]
+            n0, t0 = self._n_pixels(other), self._times[other]
+            per_ray = (t1 - t0) / (n1 - n0)
+            fixed = t1 - per_ray * n1
+            if per_ray > 0 and fixed >= 0:
+                return fixed, per_ray
+        return 0.0, t1 / n1
+
     def estimate(self, stride: int) -> float:
         """Expected seconds of a frame at ``stride`` (0 before anything was measured)."""
-        if self._cost is None:
+        if not self._recent:
             return 0.0
-        ref, seconds = self._cost
-        return seconds * self._n_pixels(stride) / self._n_pixels(ref)
+        fixed, per_ray = self._fit()
+        return fixed + per_ray * self._n_pixels(stride)
 
     def _measured(self, stride: int, seconds: float) -> None:
-        if self._cost is not None and self._cost[0] == stride:
-            seconds = (1 - _EMA) * self._cost[1] + _EMA * seconds
-        self._cost = (stride, seconds)
+        if stride in self._times and self._recent[-1] == stride:
+            seconds = (1 - _EMA) * self._times[stride] + _EMA * seconds
+        self._times[stride] = seconds
+        if stride in self._recent:
+            self._recent.remove(stride)
+        self._recent.append(stride)
 
     def choose_stride(self) -> int:
         """The densest stride whose estimated cost fits ``BUDGET_SHARE * budget_s`` (the
         sparsest when none does, and before the first measurement)."""
-        if self._cost is None:
+        if not self._recent:
             return self.strides[-1]
         room = BUDGET_SHARE * self.budget_s
         for s in self.strides:
@@ -193,13 +224,13 @@ class MotionScores:
                 self.recovery.factor(self._patterns[s])
 
     # ------------------------------------------------------------------ frames
-    def _cast(self, phi_theta: tuple[float, float], rows: np.ndarray,
-              cols: np.ndarray) -> np.ndarray:
+    def _cast(self, phi_theta: tuple[float, float], rows: np.ndarray, cols: np.ndarray, *,
+              exact: bool = True) -> np.ndarray:
         settings = self.renderer.settings
         camera = settings.camera(*phi_theta)
-        rgba = self.renderer.renderer.render_pixels(camera, settings.width, settings.height,
-                                                    rows, cols)
-        return self.renderer.renderer.composite(rgba)
+        caster = self.renderer.renderer if exact else self._moving
+        rgba = caster.render_pixels(camera, settings.width, settings.height, rows, cols)
+        return caster.composite(rgba)
 
     def frame(self, view: tuple[float, float]) -> MotionFrame:
         """The scores of a new view (canonical ``(phi, theta)``), at the stride that fits."""
@@ -214,69 +245,74 @@ class MotionScores:
         pattern = self._patterns[stride]
         if stride > 1:
             self.recovery.factor(pattern)  # cached after the first use of the stride
-        rgb = self._cast(view, pattern.rows, pattern.cols)
+        exact = self._moving is self.renderer.renderer
+        rgb = self._cast(view, pattern.rows, pattern.cols, exact=exact)
         h, w = self.shape
-        image = np.zeros((h, w, 3), dtype=np.uint8)
-        image[pattern.rows, pattern.cols] = rgb
+        self._image = np.zeros((h, w, 3), dtype=np.uint8)
+        self._known = np.zeros((h, w), dtype=bool)
+        self._image[pattern.rows, pattern.cols] = rgb
         if stride == 1:
-            y = self.model.project(image)
+            y = self.model.project(self._image)
         else:
             y = self.recovery.recover(pattern, rgb, prior)
+        self._known[pattern.rows, pattern.cols] = exact
         seconds = self.clock() - t0
         self._measured(stride, seconds)
-        self._view, self._scores, self._prior, self._stride = view, y, prior, stride
-        self._image, self._seen = image, [(0, 0)]
+        complete = stride == 1 and exact
+        self._view, self._scores, self._prior = view, y, prior
+        self._stride, self._complete = stride, complete
         self.frames += 1
         self.pixels += pattern.n_pixels
         self.seconds += seconds
         self.stride_frames[stride] = self.stride_frames.get(stride, 0) + 1
-        return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, stride == 1)
+        return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, complete)
 
     def converged(self, view: tuple[float, float]) -> bool:
         """``view`` is the last frame's and its scores are already the full projection
         (False for another view: it has not been ray-cast yet)."""
-        return view == self._view and len(self._seen) == self._stride ** 2
+        return view == self._view and self._complete
 
     def refine(self, view: tuple[float, float]) -> MotionFrame | None:
-        """The next, denser frame of the resting ``view``; None when it is not the last
-        frame's view or is already the full projection."""
-        if view != self._view or self.converged(view):
+        """The next step of the resting ``view``; None when it is not the last frame's view
+        or is already the full projection.
+
+        Each step ray-casts (exactly) as many of the pixels still missing as fit the budget,
+        towards the next denser stride of `strides` (then every pixel). A step that
+        completes that stride's grid carries its recovered scores, the last one
+        `HostModel.project` of the whole ray-cast; a step in between carries
+        ``scores=None`` (nothing new to show yet).
+        """
+        if view != self._view or self._complete:
             return None
         t0 = self.clock()
-        s = self._stride
-        progress = self._progress.get(s)
-        if progress is None:
-            progress = self._progress[s] = ProgressiveRecovery(self.recovery, s)
-        if progress.offsets_seen != self._seen:  # (re)start from this view's first samples
-            progress.reset(self._prior)
-            first = self._patterns[s]
-            progress.add((0, 0), self._image[first.rows, first.cols])
-        todo = [o for o in progress.order if o not in self._seen]
-        per_offset = self.estimate(s) or 0.0
-        room = BUDGET_SHARE * self.budget_s
-        n = len(todo) if per_offset * len(todo) <= room else max(1, int(room // per_offset)
-                                                                  if per_offset else 1)
-        batch = todo[:n]
-        pats = [progress.pattern(o) for o in batch]
-        rows = np.concatenate([p.rows for p in pats])
-        cols = np.concatenate([p.cols for p in pats])
+        target = next((s for s in reversed(self.strides) if s < self._stride), 1)
+        pattern = self._patterns.get(target) or SamplePattern.strided(
+            self.shape[1], self.shape[0], 1)
+        todo = ~self._known[pattern.rows, pattern.cols]
+        rows, cols = pattern.rows[todo], pattern.cols[todo]
+        if self._recent:  # as many rays as the budget holds (at least a stride's worth)
+            fixed, per_ray = self._fit()
+            room = max(BUDGET_SHARE * self.budget_s - fixed, 0.0)
+            cap = max(int(room / per_ray), self._n_pixels(self.strides[-1]))
+            rows, cols = rows[:cap], cols[:cap]
         rgb = self._cast(view, rows, cols)
         self._image[rows, cols] = rgb
-        self._seen.extend(batch)
-        complete = len(self._seen) == s * s
-        if complete:
-            y = self.model.project(self._image)
-        else:
-            start = 0
-            for o, p in zip(batch, pats, strict=True):
-                y = progress.add(o, rgb[start:start + p.n_pixels])
-                start += p.n_pixels
+        self._known[rows, cols] = True
+        y = None
+        complete = False
+        if self._known[pattern.rows, pattern.cols].all():
+            if target == 1:
+                y = self.model.project(self._image)
+                complete = True
+            else:
+                y = self.recovery.recover(pattern, self._image[pattern.rows, pattern.cols],
+                                          self._prior)
+            self._scores, self._stride, self._complete = y, target, complete
         seconds = self.clock() - t0
-        self._scores = y
         self.refinements += 1
         self.pixels += int(rows.size)
         self.seconds += seconds
-        return MotionFrame(y, s, int(rows.size), seconds, "progressive", complete)
+        return MotionFrame(y, target, int(rows.size), seconds, "progressive", complete)
 
     def stats(self) -> dict[str, Any]:
         """JSON-able counters."""

@@ -734,11 +734,14 @@ def serve(
                                 say(f"ray-casting failed ({_short(error)}); sending "
                                     "interpolated scores only")
                                 motion, scores = None, "interpolate"
+                        if step is not None:
+                            stats.motion_pixels += step.pixels
+                            stats.motion_seconds += step.seconds
+                            if step.scores is None:  # more pixels, nothing new to show yet
+                                continue
                         if step is not None:  # the resting view, denser
                             view, sequence, y, refined = (current.view, current.sequence,
                                                           step.scores, True)
-                            stats.motion_pixels += step.pixels
-                            stats.motion_seconds += step.seconds
                             stats.converged_frames += int(step.complete)
                         elif ready is not None:  # the resting view, ray-cast: send its own scores
                             view, sequence, y, refined = current.view, current.sequence, ready, True
