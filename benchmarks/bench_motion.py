@@ -9,7 +9,7 @@ Usage::
 For each model (its render settings name the volume), in one run on this machine:
 
 1. **A drag**: ``--frames`` views along phi, ``--step`` degrees apart, at elevation
-   ``--theta`` (between grid rows), made by `host.link.motion.MotionScores` at the deadline,
+   ``--theta`` (between grid rows), made by `host.fit.motion.MotionScores` at the deadline,
    in real time (each frame's ray-cast, recovery and packet encoding), after a few warm-up
    frames. **Host frames/s** = frames delivered / wall time, beside a full ray-cast's time
    measured in the same run (median of 3), and the strides used.
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from device_runtime.runtime import canonical_view
 from host.evaluate import structural_similarity
 from host.fit.model import HostModel
-from host.link.motion import MotionScores
+from host.fit.motion import MotionScores
 from host.link.serving import FrameEncoder
 from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
 

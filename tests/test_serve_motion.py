@@ -16,7 +16,7 @@ from provision_helpers import KEY, mem_name
 from runtime_helpers import RuntimeThread, read_frames, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
-from host.link.motion import BUDGET_SHARE, MotionScores, angle_between
+from host.fit.motion import BUDGET_SHARE, PROBE_EVERY, MotionScores, angle_between
 from host.link.provisioning import provision
 from host.link.serving import _Pace, open_true_view_scores, serve
 
@@ -53,6 +53,9 @@ class _SlowRays:
     def composite(self, rgba):
         return self.inner.composite(rgba)
 
+    def coarser(self, factor):
+        return _SlowRays(self.inner.coarser(factor), self.clock, self.per_ray / factor)
+
 
 class _SlowRenderer:
     def __init__(self, renderer, clock: _Clock, per_ray: float) -> None:
@@ -78,16 +81,32 @@ def test_a_slower_renderer_gets_sparser_frames_that_still_fit_the_budget(model, 
         for f in frames[1:]:
             assert f.seconds <= BUDGET_SHARE * budget + 1e-12  # never behind the deadline
         strides[per_ray] = frames[-1].stride
-        assert frames[-1].pixels * per_ray <= BUDGET_SHARE * budget
+        assert frames[-1].pixels * per_ray / source.coarse <= BUDGET_SHARE * budget
     assert strides[1e-6] == 1  # the whole view fits: a full ray-cast, the projection
     assert strides[2e-4] > 1
     # the densest stride that fits
     dense = [s for s in source.strides if s < strides[2e-4]]
-    assert all((-(-h // s)) * (-(-w // s)) * 2e-4 > BUDGET_SHARE * budget for s in dense)
+    assert all((-(-h // s)) * (-(-w // s)) * 2e-4 / source.coarse > BUDGET_SHARE * budget
+               for s in dense)
+
+
+def test_a_host_too_slow_for_any_stride_sends_the_prior_and_probes_again(model, renderer):
+    clock = _Clock()
+    source = MotionScores(model, _SlowRenderer(renderer, clock, 1e-2), budget_s=0.05,
+                          clock=clock)
+    frames = _drag(source, 2 + PROBE_EVERY)
+    assert frames[0].stride == source.strides[-1]  # measured: far over the budget
+    skipped = frames[1:PROBE_EVERY]
+    assert [f.stride for f in skipped] == [0] * (PROBE_EVERY - 1)
+    assert all(f.pixels == 0 for f in skipped)
+    view = canonical_view(23.0, 10.0)  # the second frame's
+    np.testing.assert_array_equal(frames[1].scores, model.scores(*view).astype(np.float32))
+    assert frames[PROBE_EVERY].stride == source.strides[-1]  # measured again
+    assert source.refine(canonical_view(20.0 + 3.0 * (1 + PROBE_EVERY), 10.0)) is not None
 
 
 def test_a_full_stride_frame_is_the_projection(model, renderer):
-    source = MotionScores(model, renderer, strides=(1,))
+    source = MotionScores(model, renderer, strides=(1,), coarse=1.0)
     view = canonical_view(33.0, 21.0)
     frame = source.frame(view)
     rgb, _alpha = renderer.render(*view)
@@ -98,7 +117,7 @@ def test_a_full_stride_frame_is_the_projection(model, renderer):
 def test_a_resting_view_converges_to_the_projection(model, renderer):
     clock = _Clock()
     source = MotionScores(model, _SlowRenderer(renderer, clock, 1e-4), strides=(4,),
-                          budget_s=0.05, clock=clock)
+                          budget_s=0.05, clock=clock, coarse=1.0)
     view = canonical_view(101.0, -12.0)
     first = source.frame(view)
     assert first.stride == 4 and not first.complete and first.prior == "interpolated"

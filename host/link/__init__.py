@@ -2,10 +2,9 @@
 
 Owns provisioning (``provisioning.py``: handshake, chunked image transfer with retransmission
 and resume, commit) and serving (``serving.py``: the session that answers view requests with
-score packets, optionally ray-casting or refining the shown view) and the frames that fit a
-deadline while the view moves (``motion.py``: sparse ray-casts, recovered scores). Both
-drive the shared protocol (`protocol.link`, `protocol.transport`, `protocol.scores`) from the
-host end.
+score packets, optionally ray-casting or refining the shown view, or sending the frames of
+`host.fit.MotionScores` that fit a deadline). Both drive the shared protocol
+(`protocol.link`, `protocol.transport`, `protocol.scores`) from the host end.
 
 Named ``link`` rather than ``serve``: it holds provisioning too and it is the host end of
 `protocol.link`. Its modules are ``provisioning.py``/``serving.py``, not ``provision.py``/
@@ -27,8 +26,6 @@ __all__ = [
     "SCORE_MODES",
     "FrameEncoder",
     "ImageInfo",
-    "MotionFrame",
-    "MotionScores",
     "ProvisionError",
     "ProvisionResult",
     "ServeError",

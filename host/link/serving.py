@@ -251,7 +251,7 @@ class FrameEncoder:
 
 #: What ``serve`` streams: interpolated training scores, the scores of a fresh ray-cast of
 #: every view, interpolated scores at once and the ray-cast's when the view rests, or the
-#: scores of a sparse ray-cast that fits each frame's deadline (`host.link.motion`).
+#: scores of a sparse ray-cast that fits each frame's deadline (`host.fit.motion`).
 SCORE_MODES = ("interpolate", "render", "refine", "motion")
 #: ``motion``: the frame deadline when ``fps`` sets none (a frame rate of 30), seconds.
 DEFAULT_DEADLINE_S = 1.0 / 30.0
@@ -555,14 +555,14 @@ def serve(
         view has rested ``refine_delay_s`` with no newer request, the ray-cast's scores as
         one more (delta) packet. Orbits are host-driven and never rest: ``refine`` sends
         their views interpolated. ``"motion"``: the scores of a sparse ray-cast as dense as
-        the frame's budget allows (`host.link.motion.MotionScores`) for every new view, orbits
+        the frame's budget allows (`host.fit.motion.MotionScores`) for every new view, orbits
         included, then, while the view rests, denser frames until the full projection.
     true_views : TrueViewScores, optional
         The ray-caster for ``render``/``refine`` (default: `open_true_view_scores` with the
         model's recorded volume).
     refine_delay_s : float
         ``refine``: how long a view must rest before it is ray-cast.
-    motion : host.link.motion.MotionScores, optional
+    motion : host.fit.motion.MotionScores, optional
         The source for ``motion`` (default: built on ``true_views``' renderer).
     deadline_s : float
         ``motion``: the frame budget, seconds; ``fps`` and the link's measured time per
@@ -599,7 +599,7 @@ def serve(
     if scores != "interpolate" and true_views is None and (scores != "motion" or motion is None):
         true_views = open_true_view_scores(model)
     if scores == "motion" and motion is None:
-        from host.link.motion import MotionScores
+        from host.fit.motion import MotionScores
 
         motion = MotionScores(model, true_views.renderer)
     pace = _Pace(deadline_s, fps)

@@ -39,21 +39,31 @@ from host.fit.recover import DEFAULT_LAMBDA, SamplePattern, SparseRecovery
 
 __all__ = [
     "BUDGET_SHARE",
+    "DEFAULT_COARSE",
     "DEFAULT_MOTION_FPS",
     "DEFAULT_STRIDES",
     "PRIOR_SWITCH_DEG",
+    "PROBE_EVERY",
     "MotionFrame",
     "MotionScores",
     "angle_between",
 ]
 
-#: Strides a moving frame may use (1: a full ray-cast, the projection itself).
-DEFAULT_STRIDES = (1, 2, 3, 4, 6, 8, 12, 16)
+#: Strides a moving frame may use (1: a full ray-cast, the projection itself). Sparser
+#: grids were measured to do worse than the interpolated prior alone (tooth at 256, cells
+#: 16: strides 12 and 16 lose 10 % of the gap).
+DEFAULT_STRIDES = (1, 2, 3, 4, 6, 8)
+#: When not even the sparsest stride fits, moving frames send the prior alone (no ray), but
+#: every this many frames one is ray-cast anyway to measure the host again.
+PROBE_EVERY = 8
 #: Below this angle between successive frames the previous frame's scores are the prior.
 PRIOR_SWITCH_DEG = 0.5
 #: Share of the frame budget a frame's ray-cast and recovery may take (the rest: encoding,
 #: the link, the scheduler).
 BUDGET_SHARE = 0.8
+#: Moving frames' sample-step factor (`Renderer.coarser`): half the samples per ray, a mean
+#: pixel difference of 0.4 (of 255) on the tooth at 256 (1000 samples).
+DEFAULT_COARSE = 2.0
 #: The frame rate the budget aims at when neither ``--fps`` nor the link sets one.
 DEFAULT_MOTION_FPS = 30.0
 _EMA = 0.3
@@ -79,7 +89,8 @@ class MotionFrame:
     scores : ndarray of shape (K,), float32, or None
         None: a resting view's step that only ray-cast more pixels (nothing new to send).
     stride : int
-        Of the sample grid (1: full ray-cast).
+        Of the sample grid (1: full ray-cast; 0: none fitted the budget, the scores are the
+        prior's).
     pixels : int
         Rays cast for this frame.
     seconds : float
@@ -117,8 +128,8 @@ class MotionScores:
         Use the previous frame's scores as the prior below this angle per frame.
     coarse : float
         Moving frames sample their rays ``coarse`` times farther apart
-        (`Renderer.coarser`; 1: the training database's exact renderer). Resting views are
-        always refined with the exact one.
+        (`Renderer.coarser`; 1: the training database's exact renderer; default
+        `DEFAULT_COARSE`). Resting views are always refined with the exact one.
     clock : callable
         Seconds (monotonic); tests pass a fake one.
 
@@ -134,7 +145,7 @@ class MotionScores:
 
     def __init__(self, model: Any, renderer: Any, *, budget_s: float = 1.0 / DEFAULT_MOTION_FPS,
                  lam: float = DEFAULT_LAMBDA, strides: tuple[int, ...] = DEFAULT_STRIDES,
-                 prior_switch_deg: float = PRIOR_SWITCH_DEG, coarse: float = 1.0,
+                 prior_switch_deg: float = PRIOR_SWITCH_DEG, coarse: float = DEFAULT_COARSE,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         h, w = (int(v) for v in model.image.image_shape)
         if tuple(renderer.image_shape) != (h, w):
@@ -154,6 +165,7 @@ class MotionScores:
         self.budget_s = float(budget_s)
         self.strides = strides
         self.prior_switch_deg = float(prior_switch_deg)
+        self.coarse = float(coarse)
         self.clock = clock
         self.recovery = SparseRecovery(model, lam=lam, max_patterns=4 * len(strides))
         self._patterns = {s: SamplePattern.strided(w, h, s) for s in strides}
@@ -166,6 +178,7 @@ class MotionScores:
         self._prior: np.ndarray | None = None
         self._stride = 1
         self._complete = False
+        self._skipped = 0
         self._image = np.zeros((h, w, 3), dtype=np.uint8)  # the view's ray-cast pixels
         self._known = np.zeros((h, w), dtype=bool)  # ... those cast exactly
         self.frames = self.refinements = self.pixels = 0
@@ -207,15 +220,16 @@ class MotionScores:
         self._recent.append(stride)
 
     def choose_stride(self) -> int:
-        """The densest stride whose estimated cost fits ``BUDGET_SHARE * budget_s`` (the
-        sparsest when none does, and before the first measurement)."""
+        """The densest stride whose estimated cost fits ``BUDGET_SHARE * budget_s``; the
+        sparsest before the first measurement; 0 (no ray: the prior alone) when none fits,
+        except every `PROBE_EVERY`-th such frame, which re-measures the sparsest."""
         if not self._recent:
             return self.strides[-1]
         room = BUDGET_SHARE * self.budget_s
         for s in self.strides:
             if self.estimate(s) <= room:
                 return s
-        return self.strides[-1]
+        return self.strides[-1] if self._skipped + 1 >= PROBE_EVERY else 0
 
     def prepare(self) -> None:
         """Compute the recovery factors of every stride now (not during the first frames)."""
@@ -242,6 +256,20 @@ class MotionScores:
             prior, prior_kind = self._scores, "previous"
         else:
             prior, prior_kind = self.model.scores(*view), "interpolated"
+        if stride == 0:  # nothing fits: the prior alone, ray-cast when the view rests
+            self._skipped += 1
+            h, w = self.shape
+            self._image = np.zeros((h, w, 3), dtype=np.uint8)
+            self._known = np.zeros((h, w), dtype=bool)
+            self._view, self._scores, self._prior = view, prior, prior
+            self._stride, self._complete = self.strides[-1] + 1, False
+            self.frames += 1
+            self.stride_frames[0] = self.stride_frames.get(0, 0) + 1
+            seconds = self.clock() - t0
+            self.seconds += seconds
+            return MotionFrame(np.asarray(prior, dtype=np.float32), 0, 0, seconds, prior_kind,
+                               False)
+        self._skipped = 0
         pattern = self._patterns[stride]
         if stride > 1:
             self.recovery.factor(pattern)  # cached after the first use of the stride
