@@ -313,6 +313,7 @@ def evaluate_model(
     qualities: Sequence[int] = DEFAULT_QUALITIES,
     webp_db_quality: int | None = DEFAULT_WEBP_DB_QUALITY,
     motion_deadline_s: float | None = 1.0 / 30.0,
+    motion_stride: int | None = None,
     metric_workers: int | None = None,
     progress: bool = True,
     info: dict | None = None,
@@ -344,6 +345,9 @@ def evaluate_model(
         view's frame is recovered from that stride with the interpolated prior (a drag at
         that speed), and costs the bytes of its delta packet against the frame
         `MOTION_STEP_DEG` before it (a streamed drag, not independent key packets).
+    motion_stride : int, optional
+        ``pca_motion`` at this stride instead of the one the deadline picks (reproducible
+        across machines).
     metric_workers : int, optional
         Processes computing the metrics (default `default_metric_workers`; 0: inline).
     progress : bool
@@ -384,7 +388,7 @@ def evaluate_model(
         evaluation.info["webp_db_quality"] = webp_db.quality
     motion = None
     if motion_deadline_s is not None:
-        motion = _motion_source(model, scene, motion_deadline_s, pairs[0])
+        motion = _motion_source(model, scene, motion_deadline_s, pairs[0], motion_stride)
         evaluation.info["motion"] = {"deadline_ms": motion_deadline_s * 1e3,
                                      "stride": motion.strides[0], "coarse": motion.coarse,
                                      "step_deg": MOTION_STEP_DEG}
@@ -499,19 +503,20 @@ def evaluate_model(
     return evaluation
 
 
-def _motion_source(model: Any, scene: Any, deadline_s: float, start: tuple[float, float]) -> Any:
-    """`MotionScores` at the one stride a warm-up drag from ``start`` settles on."""
+def _motion_source(model: Any, scene: Any, deadline_s: float, start: tuple[float, float],
+                   stride: int | None = None) -> Any:
+    """`MotionScores` at ``stride``, or the one a warm-up drag from ``start`` settles on
+    (at least the sparsest: evaluate measures frames that ray-cast)."""
     from device_runtime.runtime import canonical_view
     from host.fit.motion import MotionScores
 
-    probe = MotionScores(model, scene, budget_s=deadline_s)
-    probe.prepare()
-    for i in range(_MOTION_WARMUP):
-        probe.frame(canonical_view(start[0] + MOTION_STEP_DEG * i, start[1]))
-    fixed = MotionScores(model, scene, budget_s=deadline_s, strides=(probe.choose_stride(),),
-                         coarse=probe.coarse)
-    fixed.recovery = probe.recovery  # its factors are built
-    return fixed
+    if stride is None:
+        probe = MotionScores(model, scene, budget_s=deadline_s)
+        probe.prepare()
+        for i in range(_MOTION_WARMUP):
+            probe.frame(canonical_view(start[0] + MOTION_STEP_DEG * i, start[1]))
+        stride = probe.choose_stride() or probe.strides[-1]
+    return MotionScores(model, scene, budget_s=deadline_s, strides=(int(stride),))
 
 
 def _mean_point(rows: list[dict]) -> dict:
