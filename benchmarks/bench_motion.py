@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from device_runtime.runtime import canonical_view
 from host.evaluate import structural_similarity
 from host.fit.model import HostModel
-from host.fit.motion import MotionScores
+from host.fit.motion import DEFAULT_COARSE, MotionScores
 from host.link.serving import FrameEncoder
 from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
 
@@ -51,7 +51,7 @@ def _stream_bytes(model: HostModel, views: list, scores: list | None) -> float:
 
 
 def measure(path: Path, *, frames: int, step: float, theta: float, deadline_s: float,
-            rest: int, coarse: float = 1.0, warmup: int = 5) -> dict:
+            rest: int, coarse: float = DEFAULT_COARSE, warmup: int = 5) -> dict:
     """The figures of one model (module docstring)."""
     model = HostModel.load(path)
     settings = RenderSettings.from_record(model.render_settings, what=str(path))
