@@ -3,8 +3,11 @@ full projection (issue 13, "What done means").
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_motion.py MODEL.ecs [MODEL.ecs ...] \\
+    .venv/bin/python benchmarks/bench_motion.py [MODEL.ecs ...] [--quick] \\
         [--frames 40] [--step 3] [--theta 17.5] [--deadline-ms 33] [--rest 3] [--json out.json]
+
+Without a model it renders and fits a small one of the built-in tooth first (128 px, a
+minute on 2 cores; what ``make bench`` runs). ``--quick``: 10 frames, 1 resting view.
 
 For each model (its render settings name the volume), in one run on this machine:
 
@@ -126,9 +129,25 @@ def measure(path: Path, *, frames: int, step: float, theta: float, deadline_s: f
     }
 
 
+def _builtin_model() -> Path:
+    import tempfile
+
+    from host.cli import main as eigencast
+
+    work = Path(tempfile.mkdtemp(prefix="bench-motion-"))
+    db, model = work / "tooth.cdb", work / "tooth.ecs"
+    for cmd in (["render", "builtin:tooth", "-o", str(db), "--views", "grid:36x9", "--size",
+                 "128", "--samples", "300"],
+                ["fit", str(db), "-o", str(model), "--cell", "16", "--threshold", "0.99"]):
+        if eigencast(cmd) != 0:
+            raise SystemExit(f"bench_motion: eigencast {cmd[0]} failed")
+    return model
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("models", nargs="+", type=Path)
+    ap.add_argument("models", nargs="*", type=Path)
+    ap.add_argument("--quick", action="store_true")
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--step", type=float, default=3.0, help="degrees per frame")
     ap.add_argument("--theta", type=float, default=17.5)
@@ -138,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="moving frames' sample-step factor (default: MotionScores')")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.quick:
+        args.frames, args.rest = 10, 1
+    if not args.models:
+        args.models = [_builtin_model()]
     out = []
     for path in args.models:
         r = measure(path, frames=args.frames, step=args.step, theta=args.theta,
