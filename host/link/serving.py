@@ -14,7 +14,11 @@ streams one SCORES packet per view:
   [0, 360), both angles rounded to float32: exactly what the packet header carries),
   quantized at the model's score step, coded as a key or delta packet, zstd-compressed
   (`protocol.scores.encode_scores`). The device's frame is therefore bit-identical to
-  ``eigencast view`` at the same view.
+  ``eigencast view`` at the same view. Other ``scores`` modes send other scores through the
+  same encoder: a fresh ray-cast's projection (``render``, ``refine`` at rest) or the scores
+  recovered from a sparse ray-cast that fits the frame budget (``motion``,
+  `host.fit.MotionScores`; the budget is `_Pace`'s: the deadline, ``1/fps`` or the link's
+  measured time per packet, whichever is longest).
 * **Deltas.** Each delta is coded against the last packet *sent* in this session (the
   writer hands a packet to the transport before the next one is encoded, so none is
   replaced unsent). A device that misses a base (a packet lost on a noisy line) sends
