@@ -17,8 +17,11 @@ One command on a fresh clone (``make demo``), every step cached in a work folder
    window is closed; headless, the host drives an orbit (``steps:120:15``, at most 60 frames
    per second, the rate of a display), the device writes
    every 10th frame to ``WORK/frames`` and a short summary follows: frames, the device's
-   frame rate, bytes per frame beside the JPEG of equal quality (same SSIM against the
-   ray-cast) and the link rate.
+   frame rate, bytes per frame, the object SSIM of the streamed frames (the device's own
+   saved frames against the ray-cast of their views) beside the smallest WebP and AVIF of
+   the same views with equal object SSIM, the equal-quality JPEG (whole-image SSIM) and the
+   link rate. The orbit is served with ``--scores motion`` (sparse ray-casts within the
+   frame deadline), as a drag is.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from host.errors import EigencastError
 __all__ = [
     "DemoSettings",
     "display_available",
+    "equal_object_quality",
     "equal_quality_jpeg",
     "run_demo",
 ]
@@ -128,6 +132,44 @@ def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, flo
     assert chosen is not None
     return {"ssim": target, "jpeg_quality": chosen[1], "jpeg_bytes": chosen[0],
             "jpeg_ssim": chosen[2]}
+
+
+def equal_object_quality(reference: np.ndarray, frame: np.ndarray, mask: np.ndarray,
+                         codecs: tuple[str, ...] = ("webp", "avif")) -> dict[str, float]:
+    """The smallest file of each codec whose object SSIM against ``reference`` reaches
+    ``frame``'s.
+
+    Object SSIM is `host.evaluate.structural_similarity` over ``mask`` (the object's
+    pixels). Every quality 1..100 is tried (skipping those that cannot be smaller than the
+    best so far), as in `equal_quality_jpeg`.
+
+    Returns
+    -------
+    dict
+        ``object_ssim`` of ``frame``; per codec ``{codec}_bytes``, ``{codec}_quality`` and
+        ``{codec}_object_ssim`` of the smallest file reaching it (the best one if none does).
+    """
+    from host.evaluate import encode_image, structural_similarity
+
+    target = structural_similarity(reference, frame, mask=mask)
+    out = {"object_ssim": target}
+    for codec in codecs:
+        best: tuple[int, int, float] | None = None
+        top: tuple[int, int, float] | None = None
+        for quality in range(1, 101):
+            coded = encode_image(reference, codec, quality)
+            if best is not None and coded.size_bytes >= best[0]:
+                continue
+            value = structural_similarity(reference, coded.decode(), mask=mask)
+            if top is None or value > top[2]:
+                top = (coded.size_bytes, quality, value)
+            if value >= target:
+                best = (coded.size_bytes, quality, value)
+        chosen = best or top
+        assert chosen is not None
+        out.update({f"{codec}_bytes": chosen[0], f"{codec}_quality": chosen[1],
+                    f"{codec}_object_ssim": chosen[2]})
+    return out
 
 
 class _DeviceProcess:
@@ -290,14 +332,17 @@ def run_demo(
             from device_runtime.runtime import parse_orbit
 
             orbit = parse_orbit(settings.orbit)
-            _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s); the device writes every "
+            _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s at most, each frame a "
+                     "sparse ray-cast within the frame deadline); the device writes every "
                      f"{settings.every}th frame to {frames}")
             stats = serve(model_path, device.url, key=key, orbit=orbit, fps=60, model=model,
-                          stats_every_s=0, log=lambda line: None)
+                          stats_every_s=0, log=lambda line: None, scores="motion",
+                          true_views=open_true_view_scores(model))
             time.sleep(1.2)  # the device's statistics file is refreshed every second
         else:
             _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
-                     "s screenshot, Esc quits; a view you stop on is ray-cast and sharpens")
+                     "s screenshot, Esc quits; each frame is a sparse ray-cast, and a view "
+                     "you stop on sharpens to the full one")
             stop = threading.Event()
 
             def watch() -> None:
@@ -306,7 +351,7 @@ def run_demo(
 
             threading.Thread(target=watch, daemon=True).start()
             stats = serve(model_path, device.url, key=key, model=model, stop=stop,
-                          stats_every_s=10.0, max_reconnects=3, scores="refine",
+                          stats_every_s=10.0, max_reconnects=3, scores="motion",
                           true_views=open_true_view_scores(model))
         summary["serve"] = stats.as_dict()
     finally:
@@ -315,6 +360,9 @@ def run_demo(
         summary["device"] = json.loads(stats_path.read_text())
     if headless:
         summary["jpeg"] = _jpeg_comparison(settings, model, summary)
+        streamed = _streamed_comparison(settings, model, frames)
+        if streamed:
+            summary["streamed"] = streamed
         _print_summary(summary, frames)
     return summary
 
@@ -335,6 +383,38 @@ def _jpeg_comparison(settings: DemoSettings, model: Any, summary: dict) -> dict[
         truth = renderer.render_rgb8(phi, theta)
         rows.append(equal_quality_jpeg(truth, model.view(phi, theta)))
     return {key: float(np.mean([r[key] for r in rows])) for key in rows[0]}
+
+
+def _streamed_comparison(settings: DemoSettings, model: Any, frames: Path) -> dict[str, float]:
+    """Object SSIM of a few frames the device saved, and the equal-object-SSIM WebP/AVIF."""
+    import csv
+
+    from PIL import Image
+
+    from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
+
+    index = frames / "frames.csv"
+    if not index.exists():
+        return {}
+    with open(index, newline="") as handle:
+        rows = [r for r in csv.DictReader(handle) if r.get("phi_deg")]
+    if not rows:
+        return {}
+    pick = rows[:: max(1, len(rows) // settings.jpeg_views)][: settings.jpeg_views]
+    renderer = ViewRenderer.open(RenderSettings.from_record(model.render_settings,
+                                                            what="demo model"),
+                                 what="demo model")
+    out = []
+    for row in pick:
+        phi, theta = float(row["phi_deg"]), float(row["theta_deg"])
+        truth, alpha = renderer.render(phi, theta)
+        with Image.open(frames / row["file"]) as im:
+            shown = np.asarray(im.convert("RGB"))
+        result = equal_object_quality(truth, shown, alpha >= OBJECT_ALPHA_MIN)
+        result["interpolated_object_ssim"] = equal_object_quality(
+            truth, model.view(phi, theta), alpha >= OBJECT_ALPHA_MIN, codecs=())["object_ssim"]
+        out.append(result)
+    return {key: float(np.mean([r[key] for r in out])) for key in out[0]}
 
 
 def _print_summary(summary: dict, frames: Path) -> None:
@@ -360,6 +440,14 @@ def _print_summary(summary: dict, frames: Path) -> None:
             f"{jpeg['jpeg_quality']:.0f}, SSIM {jpeg['jpeg_ssim']:.3f} vs the reconstruction's "
             f"{jpeg['ssim']:.3f} against the ray-cast): delta frames are "
             f"{delta / max(jpeg['jpeg_bytes'], 1):.2f}x its size")
+    streamed = summary.get("streamed") or {}
+    if streamed:
+        lines.append(
+            f"  streamed frames  object SSIM {streamed['object_ssim']:.3f} (interpolated scores "
+            f"alone: {streamed['interpolated_object_ssim']:.3f}); the same views at equal object "
+            f"SSIM: WebP {streamed['webp_bytes']:.0f} bytes (q{streamed['webp_quality']:.0f}), "
+            f"AVIF {streamed['avif_bytes']:.0f} bytes (q{streamed['avif_quality']:.0f}); "
+            f"delta frames {delta:.0f} bytes")
     lines += [
         f"  link rate        {serve_stats['link_bytes_per_s'] / 1024:.1f} KiB/s while streaming",
         f"  frames           {frames}",

@@ -50,7 +50,8 @@ def test_tcp_provision_and_orbit_frames_equal_eigencast_view(tmp_path, model_pat
         assert run.returncode == 0, run.stderr
         assert "installed" in run.stdout and "confirmed" in run.stderr
         run = subprocess.run([*CLI, "serve", str(model_path), "--port", device.url, "--key",
-                              str(keyf), "--orbit", "steps:12:10", "--fps", "0"],
+                              str(keyf), "--orbit", "steps:12:10", "--fps", "0",
+                              "--scores", "interpolate"],  # what `eigencast view` shows
                              capture_output=True, text=True, timeout=60)
         assert run.returncode == 0, run.stderr
         assert "12 frames (1 key, 11 delta)" in run.stdout

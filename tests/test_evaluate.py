@@ -25,6 +25,7 @@ from host.evaluate import (
     structural_similarity,
 )
 from host.fit.model import HostModel, build_image, fit_database, save_model
+from host.fit.motion import DEFAULT_STRIDES
 from host.render.cinema import CinemaDB
 from host.render.settings import RenderSettings, SettingsError, ViewRenderer
 from protocol.scores import encode_scores
@@ -210,9 +211,9 @@ def test_metric_workers_give_the_same_results_as_inline(small_model):
     scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
     views = [(10.0, 5.0), (200.0, -40.0), (300.0, 70.0)]
     inline = evaluate_model(model, scene, views, rd_views=1, metric_workers=0, progress=False,
-                            sample_views=1)
+                            sample_views=1, motion_stride=2)  # the deadline's would vary
     pooled = evaluate_model(model, scene, views, rd_views=1, metric_workers=2, progress=False,
-                            sample_views=1)
+                            sample_views=1, motion_stride=2)
     assert inline.views == pooled.views
     assert [p["ssim"] for p in inline.rd] == [p["ssim"] for p in pooled.rd]
     np.testing.assert_array_equal(inline.samples[0]["flip_pca"], pooled.samples[0]["flip_pca"])
@@ -257,7 +258,7 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
                "--json", "--rd-views", "2", "--samples-shown", "2")
     summary = json.loads(res.stdout)  # exactly one JSON object on stdout
     for key in ("method", "threshold", "components_per_cell", "eigenspace_bytes", "views",
-                "pca", "pca_render", "jpeg", "webp", "nearest", "webp_db"):
+                "pca", "pca_render", "pca_motion", "jpeg", "webp", "avif", "nearest", "webp_db"):
         assert key in summary
     assert summary["method"] == "adaptive" and summary["threshold"] == pytest.approx(0.995)
     assert summary["views"] == 5
@@ -265,10 +266,20 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
     for v in summary["per_view"]:
         assert v["pca_render"]["psnr_object"] > v["pca"]["psnr_object"], v
         assert v["pca_render"]["bytes_per_view"] > 16  # a real key packet
-    for method in ("pca", "pca_render", "jpeg", "webp", "nearest", "webp_db"):
+    for method in ("pca", "pca_render", "pca_motion", "jpeg", "webp", "avif", "nearest",
+                   "webp_db"):
         for key in ("bytes_per_view", "psnr", "ssim", "flip", "psnr_object", "ssim_object",
                     "flip_object"):
             assert isinstance(summary[method][key], float), (method, key)
+    # AVIF: the same fields as WebP, in the table, the sweep and the per-view records
+    assert set(summary["avif"]) == set(summary["webp"])
+    assert {p["kind"] for p in summary["rate_distortion"]} >= {"jpeg", "webp", "avif"}
+    assert all(set(v["avif"]) == set(v["webp"]) for v in summary["per_view"])
+    # the frames serve --scores motion sends while moving: a stride, a deadline, delta bytes
+    motion = summary["pca_motion"]
+    assert motion["stride"] in DEFAULT_STRIDES and motion["deadline_ms"] == pytest.approx(1e3 / 30)
+    assert motion["step_deg"] == 3.0 and all(
+        v["pca_motion"]["bytes_per_view"] > 0 for v in summary["per_view"])
     # the on-device WebP database: nothing per frame, every training view stored
     db = summary["webp_db"]
     assert db["bytes_per_view"] == 0 and db["quality"] == 80
@@ -291,6 +302,7 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
     html = (report / "index.html").read_text()
     assert "Table 1" in html and "rd.png" in html and "view_00.png" in html
     assert "ray-cast scores" in html
+    assert "AVIF, equal bytes" in html and "sparse ray-cast while moving" in html
     assert "Traceback" not in res.stderr and "evaluate" in res.stderr  # progress on stderr
 
 

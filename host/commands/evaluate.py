@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="views shown side by side in the report (default 4)")
     parser.add_argument("--no-nearest", action="store_true",
                         help="skip the nearest-training-view comparison")
+    parser.add_argument("--motion-deadline", type=float, default=1000.0 / 30.0, metavar="MS",
+                        help="pca_motion: the frame deadline of serve --scores motion, in "
+                        "milliseconds (default 33; 0: skip pca_motion)")
     parser.add_argument("--webp-db-quality", type=int, default=80, metavar="Q",
                         help="the on-device image database baseline (webp_db): every training "
                              "view stored as WebP at quality Q and blended with the model's "
@@ -119,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.rd_views < 0 or args.samples_shown < 0:
         raise EigencastError("--rd-views and --samples-shown must be >= 0")
+    if not (0 <= args.motion_deadline < 1e6):
+        raise EigencastError(f"--motion-deadline {args.motion_deadline}: must be >= 0 "
+                             "milliseconds (0: skip pca_motion)")
     if not 0 <= args.webp_db_quality <= 100:
         raise EigencastError(f"--webp-db-quality {args.webp_db_quality}: must be within 0..100 "
                              "(0 skips the WebP database baseline)")
@@ -135,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
         sample_views=args.samples_shown if report is not None else 0,
         metric_workers=args.metric_workers,
         webp_db_quality=args.webp_db_quality or None,
+        motion_deadline_s=args.motion_deadline / 1000.0 or None,
         info={"view_spec": views.spec},
     )
     if report is not None:
@@ -189,6 +196,12 @@ def _text_summary(s: dict) -> str:
             lines.append(f"{m:<10} {r['bytes_per_view']:>10.0f} {f(r['psnr'], 2):>7} "
                          f"{f(r['ssim'], 4):>7} {f(r['flip'], 4):>7} "
                          f"{f(r.get('ssim_object'), 4):>8} {f(r.get('flip_object'), 4):>8}")
+    if "pca_motion" in s:
+        mo = s["pca_motion"]
+        lines.append(f"pca_motion: the frame serve --scores motion sends during a "
+                     f"{mo['step_deg']:g} deg/frame drag, stride {mo['stride']:.0f} at a "
+                     f"{mo['deadline_ms']:.0f} ms deadline on this machine; bytes/view = its "
+                     "delta packet")
     if "webp_db" in s:
         db = s["webp_db"]
         lines.append(f"webp_db: training views as WebP q{db['quality']:.0f}, device storage "

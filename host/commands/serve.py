@@ -43,18 +43,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="0: delta frames, key frames only at a (re)connect or when the "
                         "device asks (default); 1: key frames only; N: a key frame at least "
                         "every N frames")
-    parser.add_argument("--scores", choices=("auto", "interpolate", "render", "refine"),
+    parser.add_argument("--scores", choices=("auto", "interpolate", "render", "refine", "motion"),
                         default="auto",
                         help="what the packets carry: interpolate = the training views' "
                         "scores blended at the view (instant, shows the neighbouring views "
                         "cross-faded); render = the scores of a fresh ray-cast of every view "
                         "(the eigenspace's best frame; one ray-cast per packet); refine = "
                         "interpolated at once, the ray-cast's scores when the view rests; "
-                        "auto (default) = refine when the model's volume can be loaded, "
-                        "else interpolate")
+                        "motion = the scores of a sparse ray-cast of every view, as dense as "
+                        "--deadline allows, converging to the full ray-cast's while the view "
+                        "rests; auto (default) = motion when the model's volume can be "
+                        "loaded, else interpolate")
+    parser.add_argument("--deadline", metavar="MS", type=float, default=None,
+                        help="motion: milliseconds per frame the host may spend (default "
+                        "33; a lower --fps or a slower link lengthens it)")
     parser.add_argument("--volume", metavar="PATH",
-                        help="the volume to ray-cast for render/refine (default: the source "
-                        "recorded in the model; it must be the same volume)")
+                        help="the volume to ray-cast for render/refine/motion (default: the "
+                        "source recorded in the model; it must be the same volume)")
     parser.add_argument("--refine-delay", metavar="S", type=float, default=None,
                         help="refine: seconds a view must rest before it is ray-cast "
                         "(default 0.15)")
@@ -76,7 +81,12 @@ def run(args: argparse.Namespace) -> int:
     """Serve until interrupted, the orbit ends, or a --max-frames/--duration limit."""
     from device_runtime.runtime import parse_orbit
     from host.fit.model import HostModel
-    from host.link.serving import DEFAULT_REFINE_DELAY_S, open_true_view_scores, serve
+    from host.link.serving import (
+        DEFAULT_DEADLINE_S,
+        DEFAULT_REFINE_DELAY_S,
+        open_true_view_scores,
+        serve,
+    )
     from protocol.keys import load_key
 
     if args.baud <= 0:
@@ -97,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
             raise EigencastError(f"--orbit: {exc}") from None
     if args.refine_delay is not None and not args.refine_delay >= 0:
         raise EigencastError(f"--refine-delay {args.refine_delay}: must be >= 0")
+    if args.deadline is not None and not (args.deadline > 0 and args.deadline < 1e6):
+        raise EigencastError(f"--deadline {args.deadline}: must be > 0 milliseconds")
     if not args.model.is_file():
         raise EigencastError(f"{args.model}: no such eigenspace image")
     key = load_key(args.key) if args.key is not None else None
@@ -115,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
                       file=sys.stderr, flush=True)
             mode = "interpolate"
         else:
-            mode = "refine" if mode == "auto" else mode
+            mode = "motion" if mode == "auto" else mode
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends serving cleanly
@@ -141,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         true_views=true_views,
         refine_delay_s=(DEFAULT_REFINE_DELAY_S if args.refine_delay is None
                         else args.refine_delay),
+        deadline_s=(DEFAULT_DEADLINE_S if args.deadline is None else args.deadline / 1000.0),
     )
     if args.json:
         print(json.dumps(stats.as_dict()))

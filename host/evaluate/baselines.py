@@ -37,7 +37,7 @@ __all__ = [
     "webp_database_frames",
 ]
 
-CODECS = ("jpeg", "webp")
+CODECS = ("jpeg", "webp", "avif")
 """The equal-bytes baselines `eigencast evaluate` reports."""
 IMAGE_CODECS = ("jpeg", "webp", "avif")
 """Every codec `encode_image` and `encode_within_budget` speak (AVIF through Pillow's plugin)."""

@@ -71,3 +71,25 @@ class DevicePath:
                                image_digest=self.digest,
                                n_components=self.model.image.n_components).packet
         return self.model.reconstruct(self.decoder.decode(packet).y), len(packet)
+
+    def motion_frame(self, previous: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, int]:
+        """The frame of ``scores`` (float (K,)) sent as ``serve`` streams a drag: a delta
+        packet against the frame before it (``previous``, sent as a key packet first).
+
+        Returns the frame and the size of the delta packet (the bytes per frame of a
+        streamed drag).
+        """
+        from protocol.scores import ScoreDecoder, encode_scores
+
+        decoder = ScoreDecoder(self.model.image.n_coefficients, self.digest,
+                               n_components=self.model.image.n_components)
+        packets = []
+        base = None
+        for y in (previous, scores):
+            self._frame = (self._frame + 1) & 0xFFFFFFFF or 1
+            base = encode_scores(self.model.quantize(y), step=self.model.score_step,
+                                 frame=self._frame, view=(0.0, 0.0), image_digest=self.digest,
+                                 base=base, n_components=self.model.image.n_components)
+            packets.append(base.packet)
+        decoder.decode(packets[0])
+        return self.model.reconstruct(decoder.decode(packets[1]).y), len(packets[1])

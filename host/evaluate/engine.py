@@ -56,9 +56,14 @@ __all__ = [
 
 #: Methods an evaluation reports: the device frame from interpolated scores (``pca``), the
 #: device frame from the ray-cast's own scores (``pca_render``: what ``serve --scores
-#: render`` sends, and ``refine`` once a view rests), equal-bytes codecs, the nearest
+#: render`` sends, and ``motion``/``refine`` once a view rests), the frame ``serve --scores
+#: motion`` sends while the view moves (``pca_motion``), equal-bytes codecs, the nearest
 #: training view and the on-device WebP image database.
-METHODS = ("pca", "pca_render", "jpeg", "webp", "nearest", "webp_db")
+METHODS = ("pca", "pca_motion", "pca_render", "jpeg", "webp", "avif", "nearest", "webp_db")
+#: ``pca_motion``: the drag it is measured in, degrees per frame.
+MOTION_STEP_DEG = 3.0
+#: ``pca_motion``: frames of the warm-up drag whose last stride is used for every view.
+_MOTION_WARMUP = 8
 #: Thresholds tried by the rate-distortion sweep of an adaptive model (those below its own T).
 DEFAULT_THRESHOLDS = (0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.998, 0.999)
 #: Score-step multiples tried by the rate-distortion sweep at the model's own components.
@@ -123,8 +128,9 @@ class Evaluation:
     def summary(self) -> dict:
         """The ``--json`` object of ``eigencast evaluate``.
 
-        Model facts, the per-method means over the views (`METHODS`: ``pca``,
-        ``pca_render``, ``jpeg``, ``webp``, ``nearest``, ``webp_db``), the rate-distortion
+        Model facts, the per-method means over the views (`METHODS`: ``pca``, ``pca_motion``
+        (with its ``stride``, ``deadline_ms``, ``coarse``, ``step_deg``), ``pca_render``,
+        ``jpeg``, ``webp``, ``avif``, ``nearest``, ``webp_db``), the rate-distortion
         points, the time per phase and the per-view records;
         non-finite floats are ``None``.
         """
@@ -144,6 +150,9 @@ class Evaluation:
         for method in METHODS:
             if self.views and method in self.views[0]:
                 out[method] = self.means(method)
+        if "pca_motion" in out and info.get("motion"):
+            out["pca_motion"].update({k: info["motion"][k]
+                                      for k in ("deadline_ms", "coarse", "step_deg")})
         if "webp_db" in out:
             out["webp_db"]["storage_bytes"] = info.get("webp_db_storage_bytes")
             out["webp_db"]["storage_estimated"] = info.get("webp_db_storage_estimated")
@@ -303,6 +312,8 @@ def evaluate_model(
     step_factors: Sequence[float] = DEFAULT_STEP_FACTORS,
     qualities: Sequence[int] = DEFAULT_QUALITIES,
     webp_db_quality: int | None = DEFAULT_WEBP_DB_QUALITY,
+    motion_deadline_s: float | None = 1.0 / 30.0,
+    motion_stride: int | None = None,
     metric_workers: int | None = None,
     progress: bool = True,
     info: dict | None = None,
@@ -327,6 +338,16 @@ def evaluate_model(
     webp_db_quality : int or None
         WebP quality of the on-device image database baseline (`WebPDatabase`, method
         ``webp_db``); None skips it.
+    motion_deadline_s : float or None
+        ``pca_motion``: the frame deadline of `host.fit.MotionScores` (``serve --scores
+        motion``'s default); None skips the method. A warm-up drag at `MOTION_STEP_DEG` per
+        frame picks the stride that fits it on this machine (``info["motion"]``); then each
+        view's frame is recovered from that stride with the interpolated prior (a drag at
+        that speed), and costs the bytes of its delta packet against the frame
+        `MOTION_STEP_DEG` before it (a streamed drag, not independent key packets).
+    motion_stride : int, optional
+        ``pca_motion`` at this stride instead of the one the deadline picks (reproducible
+        across machines).
     metric_workers : int, optional
         Processes computing the metrics (default `default_metric_workers`; 0: inline).
     progress : bool
@@ -350,7 +371,8 @@ def evaluate_model(
             f"the model is {model.image.image_shape[1]}x{model.image.image_shape[0]}"
         )
     workers = default_metric_workers() if metric_workers is None else int(metric_workers)
-    timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "codecs": 0.0, "webp_db": 0.0,
+    timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "motion": 0.0, "codecs": 0.0,
+              "webp_db": 0.0,
               "metrics_wait": 0.0, "rate_distortion": 0.0}
     evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
     evaluation.info["metric_workers"] = workers
@@ -364,6 +386,12 @@ def evaluate_model(
         webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
         timing["webp_db"] += time.perf_counter() - t0
         evaluation.info["webp_db_quality"] = webp_db.quality
+    motion = None
+    if motion_deadline_s is not None:
+        motion = _motion_source(model, scene, motion_deadline_s, pairs[0], motion_stride)
+        evaluation.info["motion"] = {"deadline_ms": motion_deadline_s * 1e3,
+                                     "stride": motion.strides[0], "coarse": motion.coarse,
+                                     "step_deg": MOTION_STEP_DEG}
     rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
     metrics = _Metrics(workers)
     hints: dict[str, int | None] = {c: None for c in CODECS}
@@ -378,7 +406,8 @@ def evaluate_model(
             record[name].update(c.values())
         if sample is not None:
             sample.update({f"flip_{name}": results[name].flip_map
-                           for name in ("pca", "jpeg", "webp", "webp_db") if name in results})
+                           for name in ("pca", "jpeg", "webp", "avif", "webp_db")
+                           if name in results})
             evaluation.samples.append(sample)
         evaluation.views.append(record)
         if on_view is not None:
@@ -411,6 +440,18 @@ def evaluate_model(
                 futures = {"pca": metrics.submit(truth, frame, mask, keep)}
                 record["pca_render"] = {"bytes_per_view": render_bytes}
                 futures["pca_render"] = metrics.submit(truth, render_frame, mask, False)
+                motion_frame = None
+                if motion is not None:
+                    t4 = time.perf_counter()
+                    from device_runtime.runtime import canonical_view
+
+                    before = motion.frame(canonical_view(phi - MOTION_STEP_DEG, theta)).scores
+                    now = motion.frame(canonical_view(phi, theta)).scores
+                    motion_frame, motion_bytes = device.motion_frame(before, now)
+                    timing["motion"] = timing.get("motion", 0.0) + time.perf_counter() - t4
+                    record["pca_motion"] = {"bytes_per_view": motion_bytes,
+                                            "stride": motion.strides[0]}
+                    futures["pca_motion"] = metrics.submit(truth, motion_frame, mask, False)
                 for c in CODECS:
                     record[c] = {"bytes_per_view": coded[c].size_bytes,
                                  "quality": coded[c].quality,
@@ -435,7 +476,8 @@ def evaluate_model(
                 if keep:
                     sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
                               "pca": frame, "pca_render": render_frame,
-                              "jpeg": decoded["jpeg"], "webp": decoded["webp"],
+                              "pca_motion": motion_frame,
+                              **{c: decoded[c] for c in CODECS},
                               "record": record}
                     if webp_db is not None:
                         sample["webp_db"] = blended
@@ -459,6 +501,22 @@ def evaluate_model(
         evaluation.info["webp_db_storage_estimated"] = webp_db.storage_estimated
     evaluation.timing_s = {k: round(v, 3) for k, v in timing.items()}
     return evaluation
+
+
+def _motion_source(model: Any, scene: Any, deadline_s: float, start: tuple[float, float],
+                   stride: int | None = None) -> Any:
+    """`MotionScores` at ``stride``, or the one a warm-up drag from ``start`` settles on
+    (at least the sparsest: evaluate measures frames that ray-cast)."""
+    from device_runtime.runtime import canonical_view
+    from host.fit.motion import MotionScores
+
+    if stride is None:
+        probe = MotionScores(model, scene, budget_s=deadline_s)
+        probe.prepare()
+        for i in range(_MOTION_WARMUP):
+            probe.frame(canonical_view(start[0] + MOTION_STEP_DEG * i, start[1]))
+        stride = probe.choose_stride() or probe.strides[-1]
+    return MotionScores(model, scene, budget_s=deadline_s, strides=(int(stride),))
 
 
 def _mean_point(rows: list[dict]) -> dict:

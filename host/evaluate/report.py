@@ -33,10 +33,13 @@ __all__ = ["compose_side_by_side", "write_report"]
 #: Side-by-side panels smaller than this are zoomed (nearest neighbour) to at least it.
 MIN_PANEL_HEIGHT = 256
 _COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp": "#2166ac",
-           "nearest": "#8c6bb1", "webp_db": "#e08214", "pca_render": "#35978f"}
+           "nearest": "#8c6bb1", "webp_db": "#e08214", "pca_render": "#35978f",
+           "pca_motion": "#7fbc41", "avif": "#c51b7d"}
 _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
           "pca_render": "PCA, ray-cast scores (serve --scores render)",
+          "pca_motion": "PCA, sparse ray-cast while moving (serve --scores motion)",
           "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
+          "avif": "AVIF, equal bytes",
           "nearest": "nearest training view",
           "webp_db": "WebP image database on the device"}
 
@@ -137,7 +140,7 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.0), dpi=110)
     for ax, metric, label in ((axes[0], "ssim", "SSIM (higher is better)"),
                               (axes[1], "flip", "FLIP (lower is better)")):
-        for kind, marker in (("pca", "o"), ("jpeg", "s"), ("webp", "^")):
+        for kind, marker in (("pca", "o"), ("jpeg", "s"), ("webp", "^"), ("avif", "v")):
             pts = [p for p in evaluation.rd if p["kind"] == kind and p["label"].startswith(
                 ("T=", "k=", "q="))]
             pts.sort(key=lambda p: p["bytes_per_view"])
@@ -174,12 +177,17 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
             ax.plot([rendered["bytes_per_view"]], [rendered[metric]], "*",
                     color=_COLORS["pca_render"], markersize=13, zorder=5,
                     label="this model, ray-cast scores (all views)")
+        moving = summary.get("pca_motion") or {}
+        if moving:
+            ax.plot([moving["bytes_per_view"]], [moving[metric]], "*",
+                    color=_COLORS["pca_motion"], markersize=13, zorder=5,
+                    label="this model, sparse ray-cast while moving (streamed, all views)")
         db = summary.get("webp_db") or {}
         if db and db.get(metric) is not None:
             ax.axhline(db[metric], color=_COLORS["webp_db"], linestyle="--", linewidth=1.2,
                        label=f"WebP database q{db['quality']:.0f} on the device (0 B/frame, "
                              f"{_bytes(db.get('storage_bytes'))} stored)")
-        for codec in ("jpeg", "webp"):
+        for codec in ("jpeg", "webp", "avif"):
             c = summary.get(codec) or {}
             if c:
                 ax.plot([c["bytes_per_view"]], [c[metric]], "D", color=_COLORS[codec],
@@ -209,8 +217,9 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
     theta = np.array([v["theta_deg"] for v in evaluation.views])
     for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
         # dodge the methods sideways so that views at equal elevations stay visible
-        for dodge, method in zip((-3.0, -1.8, -0.6, 0.6, 1.8, 3.0),
-                                 ("nearest", "jpeg", "webp", "webp_db", "pca", "pca_render")):
+        for dodge, method in zip((-3.2, -2.4, -1.6, -0.8, 0.0, 0.8, 1.6, 2.4),
+                                 ("nearest", "jpeg", "webp", "avif", "webp_db", "pca",
+                                  "pca_motion", "pca_render")):
             if evaluation.views and method in evaluation.views[0]:
                 vals = np.array([v[method][metric] for v in evaluation.views], dtype=float)
                 ax.scatter(theta + dodge, vals, s=10, color=_COLORS[method],
@@ -233,6 +242,10 @@ def _sample_figure(sample: dict) -> np.ndarray:
         (f"PCA (device), {rec['pca']['bytes_per_view']} B\nSSIM {rec['pca']['ssim']:.3f}  "
          f"FLIP {rec['pca']['flip']:.3f}", sample["pca"]),
     ]
+    if sample.get("pca_motion") is not None and "pca_motion" in rec:
+        r = rec["pca_motion"]
+        panels.append((f"PCA, moving (s={r['stride']}), {r['bytes_per_view']} B\n"
+                       f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_motion"]))
     if sample.get("pca_render") is not None and "pca_render" in rec:
         r = rec["pca_render"]
         panels.append((f"PCA, ray-cast scores, {r['bytes_per_view']} B\n"
@@ -245,6 +258,11 @@ def _sample_figure(sample: dict) -> np.ndarray:
          f"{'' if rec['webp']['within_budget'] else ' (over budget)'}\n"
          f"SSIM {rec['webp']['ssim']:.3f}  FLIP {rec['webp']['flip']:.3f}", sample["webp"]),
     ]
+    if sample.get("avif") is not None and "avif" in rec:
+        a = rec["avif"]
+        panels.append((f"AVIF q{a['quality']}, {a['bytes_per_view']} B"
+                       f"{'' if a['within_budget'] else ' (over budget)'}\n"
+                       f"SSIM {a['ssim']:.3f}  FLIP {a['flip']:.3f}", sample["avif"]))
     if sample.get("webp_db") is not None and "webp_db" in rec:
         db = rec["webp_db"]
         panels.append((f"WebP database q{db['quality']}, 0 B\n"
@@ -318,6 +336,7 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
     h, w = info["image_shape"]
     name = vol.get("name") or "volume"
     pca, jpeg, webp = summary.get("pca", {}), summary.get("jpeg", {}), summary.get("webp", {})
+    avif = summary.get("avif", {})
     t = info.get("threshold")
     table1 = [
         ["volume dimensions", " × ".join(str(d) for d in dims) if dims else "–"],
@@ -331,9 +350,11 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         ["mean SSIM of PCA", _fmt(pca.get("ssim"), 4)],
         ["mean SSIM of equal-bytes JPEG", _fmt(jpeg.get("ssim"), 4)],
         ["mean SSIM of equal-bytes WebP", _fmt(webp.get("ssim"), 4)],
+        ["mean SSIM of equal-bytes AVIF", _fmt(avif.get("ssim"), 4)],
         ["mean FLIP of PCA", _fmt(pca.get("flip"), 4)],
         ["mean FLIP of equal-bytes JPEG", _fmt(jpeg.get("flip"), 4)],
         ["mean FLIP of equal-bytes WebP", _fmt(webp.get("flip"), 4)],
+        ["mean FLIP of equal-bytes AVIF", _fmt(avif.get("flip"), 4)],
     ]
     rows = []
     for method in METHODS:
@@ -345,7 +366,7 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
             extra = (f"q={m.get('quality', math.nan):.0f}, device storage "
                      f"{_bytes(m.get('storage_bytes'))}"
                      f"{' (estimated)' if m.get('storage_estimated') else ''}")
-        if method in ("jpeg", "webp"):
+        if method in ("jpeg", "webp", "avif"):
             extra = f"q≈{m.get('quality', math.nan):.0f}"
             if m.get("over_budget_views"):
                 extra += f", {m['over_budget_views']} views over budget at q=1"
@@ -353,6 +374,10 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
             extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
         elif method == "pca_render":
             extra = "key packets of the ray-cast's own scores (no view interpolation)"
+        elif method == "pca_motion":
+            extra = (f"stride {m.get('stride', math.nan):.0f} at a "
+                     f"{m.get('deadline_ms', math.nan):.0f} ms deadline, "
+                     f"{m.get('step_deg', math.nan):g}°/frame; delta packets of a drag")
         rows.append([
             _NAMES[method],
             _bytes(m.get("bytes_per_view")),

@@ -7,7 +7,9 @@ eigenspace to a bit budget (``quantize.py``), view interpolation of scores
 ``device_runtime/interpolation.py``) and the host model: fitting a database, building and
 saving the ``.ecs`` image with its annex, loading it back as a `HostModel` that reconstructs
 exactly what a device shows (``model.py``), and the recovery of a view's scores from a
-sparse ray-cast with a prior (``recover.py``: `SparseRecovery`, `ProgressiveRecovery`).
+sparse ray-cast with a prior (``recover.py``: `SparseRecovery`, `ProgressiveRecovery`) and
+the frames that fit a deadline while the view moves (``motion.py``: `MotionScores`, used by
+``serve --scores motion`` and evaluate's ``pca_motion``).
 
 May import: `host.render` (the database and its settings), `host.errors`, `host.progress`,
 `protocol` (the image format) and `device_runtime` (the device's own reconstruction and
@@ -22,19 +24,27 @@ __all__ = [
     "ANNEX_EIGENVALUES",
     "ANNEX_SCORES",
     "ANNEX_TOTAL_VARIANCE",
+    "BUDGET_SHARE",
     "DEFAULT_BIT_BUDGET",
+    "DEFAULT_COARSE",
     "DEFAULT_LAMBDA",
+    "DEFAULT_MOTION_FPS",
     "DEFAULT_SCORE_MSE",
+    "DEFAULT_STRIDES",
     "GRID_DEFAULT",
     "INT8_CHECK_VIEWS",
     "MAX_BITS",
     "METHODS",
     "MIN_BITS",
+    "PRIOR_SWITCH_DEG",
+    "PROBE_EVERY",
     "SIGN_CONVENTION",
     "CellEigenspace",
     "CellStack",
     "HostModel",
     "InvalidParameterError",
+    "MotionFrame",
+    "MotionScores",
     "NotFittedError",
     "ProgressiveRecovery",
     "QuantizationLoss",
@@ -44,6 +54,7 @@ __all__ = [
     "SparseRecovery",
     "add_standalone_table",
     "allocate_bits",
+    "angle_between",
     "auto_score_step",
     "build_image",
     "cell_grid",

@@ -14,7 +14,11 @@ streams one SCORES packet per view:
   [0, 360), both angles rounded to float32: exactly what the packet header carries),
   quantized at the model's score step, coded as a key or delta packet, zstd-compressed
   (`protocol.scores.encode_scores`). The device's frame is therefore bit-identical to
-  ``eigencast view`` at the same view.
+  ``eigencast view`` at the same view. Other ``scores`` modes send other scores through the
+  same encoder: a fresh ray-cast's projection (``render``, ``refine`` at rest) or the scores
+  recovered from a sparse ray-cast that fits the frame budget (``motion``,
+  `host.fit.MotionScores`; the budget is `_Pace`'s: the deadline, ``1/fps`` or the link's
+  measured time per packet, whichever is longest).
 * **Deltas.** Each delta is coded against the last packet *sent* in this session (the
   writer hands a packet to the transport before the next one is encoded, so none is
   replaced unsent). A device that misses a base (a packet lost on a noisy line) sends
@@ -99,6 +103,13 @@ class ServeStats:
         Packets of ray-cast views (``scores="render"``), refinement packets (``"refine"``).
     rendered_views, render_seconds : int, float
         Views ray-cast and projected, and the time it took.
+    motion_frames, motion_pixels, motion_seconds : int, int, float
+        ``scores="motion"``: packets of moving views (sparse ray-casts), rays cast for them
+        and their refinements, and the host time it took.
+    converged_frames : int
+        ``"motion"``: refinements that reached the full projection of a resting view.
+    stride_frames : dict
+        ``"motion"``: moving frames per stride (str keys).
     sessions, reconnects : int
     stream_seconds : float
         Time spent streaming (sessions, not connecting).
@@ -128,6 +139,11 @@ class ServeStats:
     refined_frames: int = 0
     rendered_views: int = 0
     render_seconds: float = 0.0
+    motion_frames: int = 0
+    motion_pixels: int = 0
+    motion_seconds: float = 0.0
+    converged_frames: int = 0
+    stride_frames: dict = field(default_factory=dict)
     views: list = field(default_factory=list, repr=False)
 
     @property
@@ -163,6 +179,8 @@ class ServeStats:
         kinds = f"{self.key_frames} key, {self.delta_frames} delta"
         if self.rendered_frames:
             kinds += f", {self.rendered_frames} ray-cast"
+        if self.motion_frames:
+            kinds += f", {self.motion_frames} sparse"
         if self.refined_frames:
             kinds += f", {self.refined_frames} refined"
         return (f"{self.frames} frames ({kinds}), "
@@ -236,8 +254,11 @@ class FrameEncoder:
 # --------------------------------------------------------------------------- true views
 
 #: What ``serve`` streams: interpolated training scores, the scores of a fresh ray-cast of
-#: every view, or interpolated scores at once and the ray-cast's when the view rests.
-SCORE_MODES = ("interpolate", "render", "refine")
+#: every view, interpolated scores at once and the ray-cast's when the view rests, or the
+#: scores of a sparse ray-cast that fits each frame's deadline (`host.fit.motion`).
+SCORE_MODES = ("interpolate", "render", "refine", "motion")
+#: ``motion``: the frame deadline when ``fps`` sets none (a frame rate of 30), seconds.
+DEFAULT_DEADLINE_S = 1.0 / 30.0
 #: ``refine``: how long a view must rest (no newer request) before it is ray-cast, seconds.
 DEFAULT_REFINE_DELAY_S = 0.15
 
@@ -485,6 +506,8 @@ def serve(
     scores: str = "interpolate",
     true_views: TrueViewScores | None = None,
     refine_delay_s: float = DEFAULT_REFINE_DELAY_S,
+    motion: Any | None = None,
+    deadline_s: float = DEFAULT_DEADLINE_S,
 ) -> ServeStats:
     """Serve score packets for ``model_path`` to the device at ``url``.
 
@@ -527,7 +550,7 @@ def serve(
         Already loaded from ``model_path``.
     on_frame : callable, optional
         ``on_frame(encoded, view)`` after each packet is queued.
-    scores : {"interpolate", "render", "refine"}
+    scores : {"interpolate", "render", "refine", "motion"}
         What the packets carry. ``"interpolate"``: the training views' scores interpolated
         at the view (instant; the frame shows the blend of neighbouring views).
         ``"render"``: the scores of a fresh ray-cast of every view (`TrueViewScores`: the
@@ -535,12 +558,19 @@ def serve(
         arrive meanwhile are coalesced). ``"refine"``: interpolated at once, then, once the
         view has rested ``refine_delay_s`` with no newer request, the ray-cast's scores as
         one more (delta) packet. Orbits are host-driven and never rest: ``refine`` sends
-        their views interpolated.
+        their views interpolated. ``"motion"``: the scores of a sparse ray-cast as dense as
+        the frame's budget allows (`host.fit.motion.MotionScores`) for every new view, orbits
+        included, then, while the view rests, denser frames until the full projection.
     true_views : TrueViewScores, optional
         The ray-caster for ``render``/``refine`` (default: `open_true_view_scores` with the
         model's recorded volume).
     refine_delay_s : float
         ``refine``: how long a view must rest before it is ray-cast.
+    motion : host.fit.motion.MotionScores, optional
+        The source for ``motion`` (default: built on ``true_views``' renderer).
+    deadline_s : float
+        ``motion``: the frame budget, seconds; ``fps`` and the link's measured time per
+        packet lengthen it when they are slower.
 
     Returns
     -------
@@ -565,11 +595,20 @@ def serve(
         raise ValueError(f"scores={scores!r}: expected one of {', '.join(SCORE_MODES)}")
     if refine_delay_s < 0:
         raise ValueError(f"refine_delay_s={refine_delay_s} must be >= 0")
+    if not deadline_s > 0:
+        raise ValueError(f"deadline_s={deadline_s} must be > 0")
     # the whole file is validated once, by HostModel.load (here or by the caller)
     info = inspect_image(model_path, key=key, whole_file=False)
     model = model or HostModel.load(model_path, key=key)
-    if scores != "interpolate" and true_views is None:
+    if scores != "interpolate" and true_views is None and (scores != "motion" or motion is None):
         true_views = open_true_view_scores(model)
+    if scores == "motion" and motion is None:
+        from host.fit.motion import MotionScores
+
+        motion = MotionScores(model, true_views.renderer)
+    pace = _Pace(deadline_s, fps)
+    if motion is not None:
+        motion.budget_s = pace.budget_s
     # this end sends frames as large as the model's largest score packet; the device's own
     # limit (HELLO's max_frame_bytes, eigencast-device --max-frame) is the one that binds
     k, n_cells = model.image.n_coefficients, model.image.n_cells
@@ -666,6 +705,8 @@ def serve(
                     view, sequence, fresh, want_key = events.take()
                     y: np.ndarray | None = None  # interpolated unless set
                     refined = False
+                    if motion is not None:
+                        motion.budget_s = pace.budget_s
                     if refiner is not None and refiner.error is not None:
                         say(f"ray-casting failed ({_short(refiner.error)}); sending interpolated "
                             "scores only")
@@ -690,7 +731,23 @@ def serve(
                         unrefined = (refiner is not None and current.view is not None
                                      and current.scores is None)
                         ready = refiner.take(current.view) if unrefined else None
-                        if ready is not None:  # the resting view, ray-cast: send its own scores
+                        step = None
+                        if motion is not None and current.view is not None and not want_key:
+                            step, error = _motion_step(motion.refine, current.view)
+                            if error is not None:
+                                say(f"ray-casting failed ({_short(error)}); sending "
+                                    "interpolated scores only")
+                                motion, scores = None, "interpolate"
+                        if step is not None:
+                            stats.motion_pixels += step.pixels
+                            stats.motion_seconds += step.seconds
+                            if step.scores is None:  # more pixels, nothing new to show yet
+                                continue
+                        if step is not None:  # the resting view, denser
+                            view, sequence, y, refined = (current.view, current.sequence,
+                                                          step.scores, True)
+                            stats.converged_frames += int(step.complete)
+                        elif ready is not None:  # the resting view, ray-cast: send its own scores
                             view, sequence, y, refined = current.view, current.sequence, ready, True
                         elif want_key and current.view is not None:
                             view, sequence, y = current.view, current.sequence, current.scores
@@ -709,13 +766,32 @@ def serve(
                     if scores == "render" and y is None:
                         y = true_views(view)
                         stats.rendered_frames += 1
+                    elif motion is not None and y is None:
+                        step, error = _motion_step(motion.frame, view)
+                        if error is not None:
+                            say(f"ray-casting failed ({_short(error)}); sending interpolated "
+                                "scores only")
+                            motion, scores = None, "interpolate"
+                        else:
+                            y = step.scores
+                            stats.motion_frames += 1
+                            stats.motion_pixels += step.pixels
+                            stats.motion_seconds += step.seconds
+                            stride = str(step.stride)
+                            stats.stride_frames[stride] = stats.stride_frames.get(stride, 0) + 1
                     current.view, current.sequence, current.scores = view, sequence, y
                     encoded = encoder.encode(view, key=want_key, scores=y)
                     sent.clear()
+                    queued = time.monotonic()
+
+                    def left(queued: float = queued, sent: threading.Event = sent) -> None:
+                        pace.left(time.monotonic() - queued)
+                        sent.set()
+
                     try:
                         session.send_scores(m.Scores(sequence=sequence,
                                                      packet=encoded.packet),
-                                            after_sent=sent.set)
+                                            after_sent=left)
                     except ValueError as exc:  # the packet does not fit the device's frames
                         kind = "key" if encoder.last_was_key else "delta"
                         raise ServeError(
@@ -773,6 +849,31 @@ def serve(
         stats.render_seconds = true_views.render_seconds
     say(f"done: {stats.line()}")
     return stats
+
+
+class _Pace:
+    """The ``motion`` frame budget: the deadline, or longer when ``fps`` or the link (its
+    measured seconds per packet, an exponential average) cannot carry frames that often."""
+
+    def __init__(self, deadline_s: float, fps: float) -> None:
+        self.floor = max(deadline_s, 1.0 / fps if fps > 0 else 0.0)
+        self.link_s = 0.0
+
+    def left(self, seconds: float) -> None:
+        self.link_s = seconds if self.link_s == 0.0 else 0.7 * self.link_s + 0.3 * seconds
+
+    @property
+    def budget_s(self) -> float:
+        return max(self.floor, self.link_s)
+
+
+def _motion_step(call: Callable[[tuple[float, float]], Any],
+                 view: tuple[float, float]) -> tuple[Any, BaseException | None]:
+    """``call(view)`` and the error it raised (serve then falls back to interpolation)."""
+    try:
+        return call(view), None
+    except Exception as exc:
+        return None, exc
 
 
 def _short(exc: BaseException) -> str:

@@ -55,6 +55,7 @@ fastmath, so the output is identical run to run and for any thread count.
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 
@@ -747,6 +748,31 @@ class Renderer:
         ny = len(range(int(offset[0]), int(height), int(stride)))
         nx = len(range(int(offset[1]), int(width), int(stride)))
         return self.render_pixels(camera, width, height, rows, cols).reshape(ny, nx, 4)
+
+    def coarser(self, factor: float) -> Renderer:
+        """A renderer of the same volume and settings whose rays take ``factor`` times
+        longer steps (about ``1 / factor`` of the samples), for interactive frames.
+
+        The opacity LUT is corrected for the longer step (``alpha' = 1 - (1 - alpha) **
+        factor``), so the images look the same up to sampling error; they are *not*
+        bit-identical to this renderer's (the training database keeps the exact one). The
+        volume and the empty-block map are shared, not copied.
+
+        Raises
+        ------
+        ValueError
+            ``factor`` is not a finite number >= 1.
+        """
+        factor = float(factor)
+        if not (math.isfinite(factor) and factor >= 1.0):
+            raise ValueError(f"coarser: factor={factor} must be a finite number >= 1")
+        out = copy.copy(self)
+        out.step_mm = self.step_mm * factor
+        out.samples = None if self.samples is None else max(1, round(self.samples / factor))
+        lut = self._lut.astype(np.float64)
+        lut[:, 3] = 1.0 - np.power(1.0 - lut[:, 3], factor)
+        out._lut = np.ascontiguousarray(lut, dtype=np.float32)
+        return out
 
     def composite(self, rgba: np.ndarray) -> np.ndarray:
         """Premultiplied float RGBA (h, w, 4) over the background: uint8 (h, w, 3)."""

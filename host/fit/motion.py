@@ -1,0 +1,349 @@
+"""Frames within a deadline while the view moves: ``serve --scores motion`` (issue 13).
+
+`MotionScores` makes the scores of each frame from a *sparse* ray-cast of the true view, as
+dense as the frame's time budget allows:
+
+* **Moving.** Each new view ray-casts every ``s``-th pixel in both directions (offset
+  (0, 0)) and recovers the scores per cell (`host.fit.SparseRecovery`, cached factors per
+  stride). ``s`` is the smallest of `DEFAULT_STRIDES` whose measured cost fits the budget
+  (``BUDGET_SHARE`` of ``budget_s``); stride 1 is a full ray-cast and sends
+  `HostModel.project` of it. The prior is the interpolated scores, or the previous frame's
+  when the view moved less than ``prior_switch_deg`` since it (slow drags: docs/
+  rate-distortion.md section 6).
+* **Resting.** `refine` continues a view that was not replaced: each step ray-casts as many
+  of the missing pixels as fit the budget, towards the next denser stride; once that
+  stride's grid is complete its recovered scores are sent (cached factors, ~1 ms), and
+  with the last pixel `HostModel.project` of the assembled full ray-cast: the frame is then
+  exactly ``--scores render``'s. (`host.fit.ProgressiveRecovery`'s per-offset accumulation
+  was measured too slow for this: a solve per cell per offset, 13-45 s to the projection
+  from stride 16 at 256.)
+
+The cost model is measured, not assumed: the seconds per frame at the two strides used
+last (ray-cast and recovery, exponential averages) give a fixed cost and a cost per ray,
+which predict the other strides. A slower host (or a larger model) therefore gets sparser
+frames, never later ones.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from host.errors import EigencastError
+from host.fit.recover import DEFAULT_LAMBDA, SamplePattern, SparseRecovery
+
+__all__ = [
+    "BUDGET_SHARE",
+    "DEFAULT_COARSE",
+    "DEFAULT_MOTION_FPS",
+    "DEFAULT_STRIDES",
+    "PRIOR_SWITCH_DEG",
+    "PROBE_EVERY",
+    "MotionFrame",
+    "MotionScores",
+    "angle_between",
+]
+
+#: Strides a moving frame may use (1: a full ray-cast, the projection itself). Sparser
+#: grids were measured to do worse than the interpolated prior alone (tooth at 256, cells
+#: 16: strides 12 and 16 lose 10 % of the gap).
+DEFAULT_STRIDES = (1, 2, 3, 4, 6, 8)
+#: When not even the sparsest stride fits, moving frames send the prior alone (no ray), but
+#: every this many frames one is ray-cast anyway to measure the host again.
+PROBE_EVERY = 8
+#: Below this angle between successive frames the previous frame's scores are the prior.
+PRIOR_SWITCH_DEG = 0.5
+#: Share of the frame budget a frame's ray-cast and recovery may take (the rest: encoding,
+#: the link, the scheduler).
+BUDGET_SHARE = 0.8
+#: Moving frames' sample-step factor (`Renderer.coarser`): half the samples per ray, a mean
+#: pixel difference of 0.4 (of 255) on the tooth at 256 (1000 samples).
+DEFAULT_COARSE = 2.0
+#: The frame rate the budget aims at when neither ``--fps`` nor the link sets one.
+DEFAULT_MOTION_FPS = 30.0
+_EMA = 0.3
+
+
+def angle_between(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """Great-circle angle in degrees between two views ``(phi, theta)`` (degrees)."""
+    def unit(view: tuple[float, float]) -> np.ndarray:
+        phi, theta = math.radians(view[0]), math.radians(view[1])
+        return np.array([math.cos(theta) * math.cos(phi), math.cos(theta) * math.sin(phi),
+                         math.sin(theta)])
+
+    c = float(np.clip(unit(a) @ unit(b), -1.0, 1.0))
+    return math.degrees(math.acos(c))
+
+
+@dataclass
+class MotionFrame:
+    """One frame's scores and how they were made.
+
+    Attributes
+    ----------
+    scores : ndarray of shape (K,), float32, or None
+        None: a resting view's step that only ray-cast more pixels (nothing new to send).
+    stride : int
+        Of the sample grid (1: full ray-cast; 0: none fitted the budget, the scores are the
+        prior's).
+    pixels : int
+        Rays cast for this frame.
+    seconds : float
+        Host time for the frame (ray-cast and recovery).
+    prior : str
+        ``"interpolated"``, ``"previous"`` (moving frames) or ``"progressive"`` (a resting
+        view's refinement).
+    complete : bool
+        The scores are `HostModel.project` of the full ray-cast.
+    """
+
+    scores: np.ndarray | None
+    stride: int
+    pixels: int
+    seconds: float
+    prior: str
+    complete: bool
+
+
+class MotionScores:
+    """Scores of views from sparse ray-casts that fit a frame budget (module docstring).
+
+    Parameters
+    ----------
+    model : HostModel
+    renderer : host.render.settings.ViewRenderer
+        The model's recorded render settings and volume.
+    budget_s : float
+        Seconds per frame (`serve` updates it from ``--fps`` and the link's measured rate).
+    lam : float
+        λ of the recovery.
+    strides : sequence of int
+        Candidate strides for moving frames (sorted; 1 means a full ray-cast).
+    prior_switch_deg : float
+        Use the previous frame's scores as the prior below this angle per frame.
+    coarse : float
+        Moving frames sample their rays ``coarse`` times farther apart
+        (`Renderer.coarser`; 1: the training database's exact renderer; default
+        `DEFAULT_COARSE`). Resting views are always refined with the exact one.
+    clock : callable
+        Seconds (monotonic); tests pass a fake one.
+
+    Attributes
+    ----------
+    frames, refinements, pixels : int
+        Moving frames and resting refinement steps made, rays cast.
+    seconds : float
+        Host time spent on them.
+    stride_frames : dict
+        Moving frames per stride.
+    """
+
+    def __init__(self, model: Any, renderer: Any, *, budget_s: float = 1.0 / DEFAULT_MOTION_FPS,
+                 lam: float = DEFAULT_LAMBDA, strides: tuple[int, ...] = DEFAULT_STRIDES,
+                 prior_switch_deg: float = PRIOR_SWITCH_DEG, coarse: float = DEFAULT_COARSE,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
+        h, w = (int(v) for v in model.image.image_shape)
+        if tuple(renderer.image_shape) != (h, w):
+            raise EigencastError(
+                f"the renderer makes {renderer.image_shape[1]}x{renderer.image_shape[0]} "
+                f"images, the model is {w}x{h}")
+        strides = tuple(sorted({int(s) for s in strides}))
+        if not strides or strides[0] < 1:
+            raise ValueError(f"strides={strides}: positive integers expected")
+        if not (coarse >= 1.0 and math.isfinite(coarse)):
+            raise ValueError(f"coarse={coarse} must be >= 1")
+        if not budget_s > 0:
+            raise ValueError(f"budget_s={budget_s} must be > 0")
+        self.model = model
+        self.renderer = renderer
+        self.shape = (h, w)
+        self.budget_s = float(budget_s)
+        self.strides = strides
+        self.prior_switch_deg = float(prior_switch_deg)
+        self.coarse = float(coarse)
+        self.clock = clock
+        self.recovery = SparseRecovery(model, lam=lam, max_patterns=4 * len(strides))
+        self._patterns = {s: SamplePattern.strided(w, h, s) for s in strides}
+        self._times: dict[int, float] = {}  # seconds per frame at each stride, EMA
+        self._recent: list[int] = []  # strides measured, the most recent last
+        self._moving = (renderer.renderer if coarse == 1.0
+                        else renderer.renderer.coarser(coarse))
+        self._view: tuple[float, float] | None = None
+        self._scores: np.ndarray | None = None
+        self._prior: np.ndarray | None = None
+        self._stride = 1
+        self._complete = False
+        self._skipped = 0
+        self._image = np.zeros((h, w, 3), dtype=np.uint8)  # the view's ray-cast pixels
+        self._known = np.zeros((h, w), dtype=bool)  # ... those cast exactly
+        self.frames = self.refinements = self.pixels = 0
+        self.seconds = 0.0
+        self.stride_frames: dict[int, int] = {}
+
+    # ------------------------------------------------------------------ cost model
+    def _n_pixels(self, stride: int) -> int:
+        h, w = self.shape
+        return (-(-h // stride)) * (-(-w // stride))
+
+    def _fit(self) -> tuple[float, float]:
+        """``(fixed, per_ray)`` seconds: the line through the two strides measured last
+        (through 0 when only one was, or when they disagree)."""
+        last = self._recent[-1]
+        n1, t1 = self._n_pixels(last), self._times[last]
+        if len(self._recent) >= 2:
+            other = self._recent[-2]
+            n0, t0 = self._n_pixels(other), self._times[other]
+            per_ray = (t1 - t0) / (n1 - n0)
+            fixed = t1 - per_ray * n1
+            if per_ray > 0 and fixed >= 0:
+                return fixed, per_ray
+        return 0.0, t1 / n1
+
+    def estimate(self, stride: int) -> float:
+        """Expected seconds of a frame at ``stride`` (0 before anything was measured)."""
+        if not self._recent:
+            return 0.0
+        fixed, per_ray = self._fit()
+        return fixed + per_ray * self._n_pixels(stride)
+
+    def _measured(self, stride: int, seconds: float) -> None:
+        if stride in self._times and self._recent[-1] == stride:
+            seconds = (1 - _EMA) * self._times[stride] + _EMA * seconds
+        self._times[stride] = seconds
+        if stride in self._recent:
+            self._recent.remove(stride)
+        self._recent.append(stride)
+
+    def choose_stride(self) -> int:
+        """The densest stride whose estimated cost fits ``BUDGET_SHARE * budget_s``; the
+        sparsest before the first measurement; 0 (no ray: the prior alone) when none fits,
+        except every `PROBE_EVERY`-th such frame, which re-measures the sparsest."""
+        if not self._recent:
+            return self.strides[-1]
+        room = BUDGET_SHARE * self.budget_s
+        for s in self.strides:
+            if self.estimate(s) <= room:
+                return s
+        return self.strides[-1] if self._skipped + 1 >= PROBE_EVERY else 0
+
+    def prepare(self) -> None:
+        """Compute the recovery factors of every stride now (not during the first frames)."""
+        for s in self.strides:
+            if s > 1:
+                self.recovery.factor(self._patterns[s])
+
+    # ------------------------------------------------------------------ frames
+    def _cast(self, phi_theta: tuple[float, float], rows: np.ndarray, cols: np.ndarray, *,
+              exact: bool = True) -> np.ndarray:
+        settings = self.renderer.settings
+        camera = settings.camera(*phi_theta)
+        caster = self.renderer.renderer if exact else self._moving
+        rgba = caster.render_pixels(camera, settings.width, settings.height, rows, cols)
+        return caster.composite(rgba)
+
+    def frame(self, view: tuple[float, float]) -> MotionFrame:
+        """The scores of a new view (canonical ``(phi, theta)``), at the stride that fits."""
+        t0 = self.clock()
+        stride = self.choose_stride()
+        previous = self._view
+        if (previous is not None and self._scores is not None
+                and angle_between(previous, view) < self.prior_switch_deg):
+            prior, prior_kind = self._scores, "previous"
+        else:
+            prior, prior_kind = self.model.scores(*view), "interpolated"
+        if stride == 0:  # nothing fits: the prior alone, ray-cast when the view rests
+            self._skipped += 1
+            h, w = self.shape
+            self._image = np.zeros((h, w, 3), dtype=np.uint8)
+            self._known = np.zeros((h, w), dtype=bool)
+            self._view, self._scores, self._prior = view, prior, prior
+            self._stride, self._complete = self.strides[-1] + 1, False
+            self.frames += 1
+            self.stride_frames[0] = self.stride_frames.get(0, 0) + 1
+            seconds = self.clock() - t0
+            self.seconds += seconds
+            return MotionFrame(np.asarray(prior, dtype=np.float32), 0, 0, seconds, prior_kind,
+                               False)
+        self._skipped = 0
+        pattern = self._patterns[stride]
+        if stride > 1:
+            self.recovery.factor(pattern)  # cached after the first use of the stride
+        exact = self._moving is self.renderer.renderer
+        rgb = self._cast(view, pattern.rows, pattern.cols, exact=exact)
+        h, w = self.shape
+        self._image = np.zeros((h, w, 3), dtype=np.uint8)
+        self._known = np.zeros((h, w), dtype=bool)
+        self._image[pattern.rows, pattern.cols] = rgb
+        if stride == 1:
+            y = self.model.project(self._image)
+        else:
+            y = self.recovery.recover(pattern, rgb, prior)
+        self._known[pattern.rows, pattern.cols] = exact
+        seconds = self.clock() - t0
+        self._measured(stride, seconds)
+        complete = stride == 1 and exact
+        self._view, self._scores, self._prior = view, y, prior
+        self._stride, self._complete = stride, complete
+        self.frames += 1
+        self.pixels += pattern.n_pixels
+        self.seconds += seconds
+        self.stride_frames[stride] = self.stride_frames.get(stride, 0) + 1
+        return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, complete)
+
+    def converged(self, view: tuple[float, float]) -> bool:
+        """``view`` is the last frame's and its scores are already the full projection
+        (False for another view: it has not been ray-cast yet)."""
+        return view == self._view and self._complete
+
+    def refine(self, view: tuple[float, float]) -> MotionFrame | None:
+        """The next step of the resting ``view``; None when it is not the last frame's view
+        or is already the full projection.
+
+        Each step ray-casts (exactly) as many of the pixels still missing as fit the budget,
+        towards the next denser stride of `strides` (then every pixel). A step that
+        completes that stride's grid carries its recovered scores, the last one
+        `HostModel.project` of the whole ray-cast; a step in between carries
+        ``scores=None`` (nothing new to show yet).
+        """
+        if view != self._view or self._complete:
+            return None
+        t0 = self.clock()
+        target = next((s for s in reversed(self.strides) if s < self._stride), 1)
+        pattern = self._patterns.get(target) or SamplePattern.strided(
+            self.shape[1], self.shape[0], 1)
+        todo = ~self._known[pattern.rows, pattern.cols]
+        rows, cols = pattern.rows[todo], pattern.cols[todo]
+        if self._recent:  # as many rays as the budget holds (at least a stride's worth)
+            fixed, per_ray = self._fit()
+            room = max(BUDGET_SHARE * self.budget_s - fixed, 0.0)
+            cap = max(int(room / per_ray), self._n_pixels(self.strides[-1]))
+            rows, cols = rows[:cap], cols[:cap]
+        rgb = self._cast(view, rows, cols)
+        self._image[rows, cols] = rgb
+        self._known[rows, cols] = True
+        y = None
+        complete = False
+        if self._known[pattern.rows, pattern.cols].all():
+            if target == 1:
+                y = self.model.project(self._image)
+                complete = True
+            else:
+                y = self.recovery.recover(pattern, self._image[pattern.rows, pattern.cols],
+                                          self._prior)
+            self._scores, self._stride, self._complete = y, target, complete
+        seconds = self.clock() - t0
+        self.refinements += 1
+        self.pixels += int(rows.size)
+        self.seconds += seconds
+        return MotionFrame(y, target, int(rows.size), seconds, "progressive", complete)
+
+    def stats(self) -> dict[str, Any]:
+        """JSON-able counters."""
+        return {"motion_frames": self.frames, "motion_refinements": self.refinements,
+                "motion_pixels": self.pixels, "motion_seconds": self.seconds,
+                "stride_frames": {str(k): v for k, v in sorted(self.stride_frames.items())}}
