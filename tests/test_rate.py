@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.fit.rate import eg_bits, rd_lambda, rd_quantize, ssim_cell_weights
+from host.fit.rate import eg_bits, rd_delta, rd_lambda, rd_quantize, ssim_cell_weights
 from host.link.serving import FrameEncoder
 from protocol.scores import ScoreDecoder, encode_scores
 
@@ -120,3 +120,20 @@ def test_ssim_weights_favour_smooth_object_cells():
     mask[:, :16] = False  # the smooth cell is background now: only the floor factor is left
     w2 = ssim_cell_weights(img, (16, 16), mask, floor=0.25)
     assert np.isclose(w2[0] / w2[1], 0.25 * w[0] / w[1])
+
+
+def test_rd_delta_codes_the_difference_and_keeps_the_base_where_nothing_is_sent(model):
+    step = model.score_step
+    prev = rd_quantize(model, _scores(model, seed=1), step=step, lam=0.0)
+    y = prev.astype(np.float64).copy()
+    y[:5] += np.array([3.0, -2.0, 4.0, 0.1, 0.2]) * step  # a small change of the frame
+    v = rd_delta(model, y, prev, step=step, kappa=0.2)
+    q = v / np.float32(step)
+    np.testing.assert_allclose(q, np.rint(q), atol=1e-3)  # still on the grid: a valid delta
+    np.testing.assert_array_equal(v[5:], prev[5:])  # unchanged coefficients cost nothing
+    assert np.any(v[:3] != prev[:3])
+    base = encode_scores(prev, step=step, frame=1, view=(0.0, 0.0), image_digest=model.digest,
+                         n_components=model.image.n_components)
+    delta = encode_scores(v, step=step, frame=2, view=(0.0, 0.0), image_digest=model.digest,
+                          n_components=model.image.n_components, base=base).packet
+    assert len(delta) < len(base.packet)

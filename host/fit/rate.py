@@ -18,11 +18,13 @@ gets nothing. The result is still integers times the one scalar step, so the pac
 and the device are unchanged: `protocol.scores.encode_scores` at ``step`` codes exactly
 these integers.
 
-Wiring (for ``serve``): ``FrameEncoder.encode(view, scores=rd_quantize(model, y, ...))``
-already sends the result unchanged when ``step`` is the model's score step, because
-`HostModel.quantize` of values on the step grid is the identity (and the water-fill mask
-only zeroes coefficients whose eigenvalue RD quantization would not pay for either;
-`rd_quantize` applies that mask too so the two agree exactly).
+Wiring (for ``serve``): ``FrameEncoder.encode(view, scores=rd_delta(model, y, prev))``,
+``prev`` the values of the encoder's base (``base.q * step``, None for a key frame), already
+sends the result unchanged when ``step`` is the model's score step, because
+`HostModel.quantize` of values on the step grid is the identity (`rd_quantize` applies the
+same water-fill mask, so the two agree exactly). A coarser RD step needs ``FrameEncoder`` to
+pass that step to `protocol.scores.encode_scores` and to send a key frame when the step
+changes (a delta needs its base's step).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import numpy as np
 __all__ = [
     "DEFAULT_RD_KAPPA",
     "eg_bits",
+    "rd_delta",
     "rd_lambda",
     "rd_quantize",
     "ssim_cell_weights",
@@ -132,6 +135,40 @@ def rd_quantize(
         m = int(np.argmin(seg))
         out[lo:lo + m] = q[lo:lo + m]
     return (out * s).astype(np.float32)
+
+
+def rd_delta(
+    model: Any,
+    scores: np.ndarray,
+    base: np.ndarray | None,
+    **kwargs: Any,
+) -> np.ndarray:
+    """RD-quantized scores (K,) float32 of a frame coded against ``base`` (a delta packet).
+
+    A delta packet codes ``q - q_base``: the rate is that of the difference, and a
+    coefficient not sent keeps the base's value. So the difference ``scores - base`` is what
+    `rd_quantize` decides on, and the frame is ``base + rd_quantize(scores - base)``: on the
+    step grid when ``base`` is (the previous frame at the same step), and with ``base`` the
+    device's own prediction, the correction of "the device predicts, the host corrects".
+
+    Parameters
+    ----------
+    model : host.fit.model.HostModel
+    scores : ndarray of shape (K,), float
+        The frame's float scores (e.g. the projection of a fresh ray-cast).
+    base : ndarray of shape (K,), float, or None
+        The values the decoder already holds (the previous frame's quantized scores);
+        None: a key frame.
+    **kwargs
+        ``step``, ``lam``, ``kappa``, ``weights`` of `rd_quantize`.
+    """
+    y = np.asarray(scores, dtype=np.float64)
+    if base is None:
+        return rd_quantize(model, y, **kwargs)
+    b = np.asarray(base, dtype=np.float64)
+    if b.shape != y.shape:
+        raise ValueError(f"rd_delta: base of shape {b.shape}, scores {y.shape}")
+    return (b + rd_quantize(model, y - b, **kwargs)).astype(np.float32)
 
 
 #: SSIM's C2 for 8-bit data, ``(0.03 * 255) ** 2``.
