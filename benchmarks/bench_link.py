@@ -43,6 +43,7 @@ Usage::
     .venv/bin/python benchmarks/bench_link.py [--cache /work/cache] [--sizes 128,256,512]
         [--volumes tooth,vismale_head] [--parts key,link,cells] [--bauds 115200,921600]
         [--traces orbit,drag] [--seconds 4] [--fps 10] [--key-views 8] [--write BENCHMARKS.md]
+        [--quick]
 
 Missing models in ``--cache`` (``VOLUME-SIZE.ecs``) are skipped with one line.
 """
@@ -483,7 +484,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", type=Path, default=None,
                     help="append the tables (markdown) to this file")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run: tooth at 128, drag, 115200, 2 s at 5 ticks/s, 2 views")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.sizes, args.volumes, args.traces, args.bauds = "128", "tooth", "drag", "115200"
+        args.seconds, args.fps, args.key_views, args.rd = 2.0, 5.0, 2, "2:0,2:0.2"
+        args.parts = ",".join(p for p in args.parts.split(",") if p != "cells") or "key"
     parts = args.parts.split(",")
     volumes = args.volumes.split(",")
     rd = rd_settings(args.rd)
