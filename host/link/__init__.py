@@ -3,7 +3,8 @@
 Owns provisioning (``provisioning.py``: handshake, chunked image transfer with retransmission
 and resume, commit) and serving (``serving.py``: the session that answers view requests with
 score packets, optionally ray-casting or refining the shown view, or sending the frames of
-`host.fit.MotionScores` that fit a deadline). Both drive the shared protocol
+`host.fit.MotionScores` that fit a deadline; ``true_views.py``: the scores of ray-cast views
+it sends; ``errors.py``: `ServeError`). Both drive the shared protocol
 (`protocol.link`, `protocol.transport`, `protocol.scores`) from the host end.
 
 Named ``link`` rather than ``serve``: it holds provisioning too and it is the host end of

@@ -31,6 +31,13 @@ streams one SCORES packet per view:
 * **Link loss.** The host reconnects with exponential backoff (50 ms doubling to 2 s) and
   carries on with a key frame; it logs frames sent, bytes per frame, the achieved frame
   rate and the link rate every few seconds.
+
+The steps are the methods of ``_Serving``: a session is ``_open``, ``_handshake``,
+``_holds_image`` (or provision and connect again), ``_begin``, ``_stream``, ``_end``, in
+that order in ``_Serving._attempt``, with ``_back_off`` between sessions; each turn of
+``_stream`` is ``_tick``, ``_may_send``, ``_choose`` (``_orbit_view``, ``_linger``,
+``_resting`` or the newest request), ``_score`` and ``_send``. :func:`serve` only checks
+its options, loads the model, picks the score sources and runs them.
 """
 
 from __future__ import annotations
@@ -41,7 +48,6 @@ import secrets
 import sys
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,9 +55,10 @@ from typing import Any
 
 import numpy as np
 
-from device_runtime.runtime import OrbitSpec, canonical_view
-from host.errors import EigencastError
+from device_runtime.orbit import Orbit, OrbitSpec, canonical_view
 from host.fit.model import HostModel
+from host.link.errors import ServeError
+from host.link.true_views import TrueViewScores, _Refiner, open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
     RemoteError,
@@ -59,7 +66,8 @@ from protocol.errors import (
     TransportError,
     TransportTimeout,
 )
-from protocol.link import HostSession, Link
+from protocol.host_session import HostSession
+from protocol.link import Link
 from protocol.scores import DEFAULT_LEVEL as SCORE_LEVEL
 from protocol.scores import EncodedScores, encode_scores, max_packet_size
 from protocol.transport import open_transport
@@ -76,10 +84,6 @@ _WAIT_S = 0.1
 _LINGER_S = 0.5
 """After an orbit's last packet, key-frame requests are still answered until the device has
 been quiet this long (a lost last delta would otherwise never be repaired), seconds."""
-
-
-class ServeError(EigencastError):
-    """Serving cannot go on (the device lacks the image, ...): one line for the user."""
 
 
 # --------------------------------------------------------------------------- stats
@@ -251,7 +255,7 @@ class FrameEncoder:
         return encoded
 
 
-# --------------------------------------------------------------------------- true views
+# --------------------------------------------------------------------------- score modes
 
 #: What ``serve`` streams: interpolated training scores, the scores of a fresh ray-cast of
 #: every view, interpolated scores at once and the ray-cast's when the view rests, or the
@@ -261,148 +265,6 @@ SCORE_MODES = ("interpolate", "render", "refine", "motion")
 DEFAULT_DEADLINE_S = 1.0 / 30.0
 #: ``refine``: how long a view must rest (no newer request) before it is ray-cast, seconds.
 DEFAULT_REFINE_DELAY_S = 0.15
-
-
-class TrueViewScores:
-    """Scores of freshly ray-cast views: ``model.project(renderer.render(view)[0])``.
-
-    The frame a device makes from them is the eigenspace's best approximation of the true
-    view (the *projection*, docs/rate-distortion.md), with no view-interpolation error.
-    The last ``cache`` views are remembered (a device asking for a key frame, or going back
-    and forth, costs no new ray-cast).
-
-    Parameters
-    ----------
-    model : HostModel
-    renderer : host.render.settings.ViewRenderer
-        Built from the model's recorded render settings (`open_true_view_scores`).
-    cache : int
-    """
-
-    def __init__(self, model: HostModel, renderer: Any, *, cache: int = 64) -> None:
-        if tuple(renderer.image_shape) != tuple(model.image.image_shape):
-            raise ServeError(
-                f"the renderer makes {renderer.image_shape[1]}x{renderer.image_shape[0]} "
-                f"images, the model is {model.image.image_shape[1]}x"
-                f"{model.image.image_shape[0]}")
-        self.model = model
-        self.renderer = renderer
-        self._cache: OrderedDict[tuple[float, float], np.ndarray] = OrderedDict()
-        self._size = max(1, int(cache))
-        self._lock = threading.Lock()
-        self.renders = 0
-        self.render_seconds = 0.0
-
-    def __call__(self, view: tuple[float, float]) -> np.ndarray:
-        """Float32 scores (K,) of ``view`` (canonical: phi in [0, 360), degrees)."""
-        key = (float(view[0]), float(view[1]))
-        with self._lock:
-            hit = self._cache.get(key)
-            if hit is not None:
-                self._cache.move_to_end(key)
-                return hit
-        t0 = time.perf_counter()
-        rgb, _alpha = self.renderer.render(*key)
-        y = self.model.project(rgb)
-        with self._lock:
-            self.renders += 1
-            self.render_seconds += time.perf_counter() - t0
-            self._cache[key] = y
-            while len(self._cache) > self._size:
-                self._cache.popitem(last=False)
-        return y
-
-
-def open_true_view_scores(
-    model: HostModel, volume: str | None = None, *, workers: int | None = None
-) -> TrueViewScores:
-    """`TrueViewScores` for ``model``, ray-casting with its recorded render settings.
-
-    ``volume`` replaces the recorded volume source (a moved file); the model's render
-    settings check that it is the same volume (dims, spacing).
-
-    Raises
-    ------
-    EigencastError
-        The model records no render settings, or the volume cannot be loaded or is
-        another one (one line for the user).
-    """
-    from host.render.settings import RenderSettings, ViewRenderer
-
-    recorded = model.render_settings
-    if not recorded:
-        raise ServeError(
-            f"{model.path or 'the model'} records no render settings (its training database "
-            "was not made by eigencast render), so its views cannot be ray-cast")
-    settings = RenderSettings.from_record(recorded, what=str(model.path or "the model"))
-    renderer = ViewRenderer.open(settings, volume, workers=workers,
-                                 what=str(model.path or "the model"))
-    return TrueViewScores(model, renderer)
-
-
-class _Refiner:
-    """A worker thread that ray-casts the newest submitted view (older ones are dropped)."""
-
-    def __init__(self, source: TrueViewScores, notify: Callable[[], None]) -> None:
-        self.source = source
-        self.notify = notify
-        self._cond = threading.Condition()
-        self._pending: tuple[float, float] | None = None
-        self._busy: tuple[float, float] | None = None
-        self._done: tuple[tuple[float, float], np.ndarray] | None = None  # the newest result
-        self.error: BaseException | None = None
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="eigencast-refine", daemon=True)
-        self._thread.start()
-
-    def submit(self, view: tuple[float, float]) -> None:
-        with self._cond:
-            if view != self._busy and not self._holds(view):
-                self._pending = view
-                self._cond.notify_all()
-
-    def wanted(self, view: tuple[float, float]) -> bool:
-        """``view`` is queued, being ray-cast or done."""
-        with self._cond:
-            return view in (self._pending, self._busy) or self._holds(view)
-
-    def take(self, view: tuple[float, float]) -> np.ndarray | None:
-        """The scores of ``view`` once ray-cast (each result is handed out once)."""
-        with self._cond:
-            if not self._holds(view):
-                return None
-            y, self._done = self._done[1], None
-            return y
-
-    def _holds(self, view: tuple[float, float]) -> bool:
-        return self._done is not None and self._done[0] == view
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while self._pending is None and not self._closed:
-                    self._cond.wait()
-                if self._closed:
-                    return
-                view, self._pending = self._pending, None
-                self._busy = view
-            try:
-                y = self.source(view)
-            except BaseException as exc:  # reported by serve, which stops refining
-                with self._cond:
-                    self.error = exc
-                    self._busy = None
-                self.notify()
-                return
-            with self._cond:
-                self._busy = None
-                self._done = (view, y)  # only the newest result is worth sending
-            self.notify()
 
 
 # --------------------------------------------------------------------------- events
@@ -460,24 +322,6 @@ class _DeviceEvents:
 
 
 # --------------------------------------------------------------------------- serve
-
-
-@dataclass
-class _Shown:
-    """The view the device was last sent: its request sequence, the ray-cast scores it was
-    sent with (None: interpolated) and when it was requested (monotonic seconds)."""
-
-    view: tuple[float, float] | None = None
-    sequence: int = 0
-    scores: np.ndarray | None = None
-    requested_at: float = 0.0
-
-
-def _active_digest(hello: m.HelloReply) -> bytes | None:
-    for slot in hello.slots:
-        if slot.active and slot.state in (m.SlotState.TEST, m.SlotState.CONFIRMED):
-            return bytes(slot.digest)
-    return None
 
 
 def serve(
@@ -585,10 +429,8 @@ def serve(
     TransportError
         The device cannot be reached (``reconnect`` off, or ``max_reconnects`` exceeded).
     """
-    from host.link.provisioning import inspect_image, provision
+    from host.link.provisioning import inspect_image
 
-    say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
-    stop = stop or threading.Event()
     if fps < 0:
         raise ValueError(f"fps={fps} must be >= 0")
     if scores not in SCORE_MODES:
@@ -600,255 +442,499 @@ def serve(
     # the whole file is validated once, by HostModel.load (here or by the caller)
     info = inspect_image(model_path, key=key, whole_file=False)
     model = model or HostModel.load(model_path, key=key)
+    true_views, motion = _score_sources(model, scores, true_views, motion)
+    pace = _Pace(deadline_s, fps)
+    if motion is not None:
+        motion.budget_s = pace.budget_s
+    settings = _Settings(
+        model_path=model_path, url=url, key=key, insecure=insecure, baud=baud, orbit=orbit,
+        fps=fps, provision_missing=provision_missing, max_frames=max_frames,
+        duration_s=duration_s, reconnect=reconnect, max_reconnects=max_reconnects,
+        transport_factory=transport_factory, stats_every_s=stats_every_s,
+        request_timeout_s=request_timeout_s, host_id=host_id, refine_delay_s=refine_delay_s,
+    )
+    run = _Serving(
+        settings, info.digest,
+        factory=transport_factory or _device_opener(url, baud, request_timeout_s, model),
+        say=log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True)),
+        stop=stop or threading.Event(),
+        encoder=FrameEncoder(model, keyframe_interval=keyframe_interval),
+        pace=pace, on_frame=on_frame, scores=scores, true_views=true_views, motion=motion,
+        orbit=orbit.start() if orbit is not None else None,
+    )
+    return run.run()
+
+
+def _score_sources(
+    model: HostModel, scores: str, true_views: TrueViewScores | None, motion: Any | None
+) -> tuple[TrueViewScores | None, Any | None]:
+    """The ray-caster (``render``, ``refine``, ``motion``) and the sparse source (``motion``)
+    that ``scores`` needs, built on the model's recorded render settings unless given."""
     if scores != "interpolate" and true_views is None and (scores != "motion" or motion is None):
         true_views = open_true_view_scores(model)
     if scores == "motion" and motion is None:
         from host.fit.motion import MotionScores
 
         motion = MotionScores(model, true_views.renderer)
-    pace = _Pace(deadline_s, fps)
-    if motion is not None:
-        motion.budget_s = pace.budget_s
+    return true_views, motion
+
+
+def _device_opener(
+    url: str, baud: int, request_timeout_s: float, model: HostModel
+) -> Callable[[int], Any]:
+    """``factory(attempt)`` opening ``url``, its frames as large as the model's largest packet."""
     # this end sends frames as large as the model's largest score packet; the device's own
     # limit (HELLO's max_frame_bytes, eigencast-device --max-frame) is the one that binds
     k, n_cells = model.image.n_coefficients, model.image.n_cells
     frame_limit = max(16384, max_packet_size(k, max(k, n_cells), n_cells=n_cells) + 256)
-    factory = transport_factory or (
-        lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s),
-                                       max_frame_bytes=frame_limit))
-    stats = ServeStats()
-    encoder = FrameEncoder(model, keyframe_interval=keyframe_interval)
-    running_orbit = orbit.start() if orbit is not None else None
-    started = time.monotonic()
-    last_stats = [started]
-    failures = 0
-    attempt = 0
-    current = _Shown()
+    return lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s),
+                                          max_frame_bytes=frame_limit)
+
+
+# --------------------------------------------------------------------------- the steps
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """The options of :func:`serve` that the steps read (see its parameters)."""
+
+    model_path: str | os.PathLike
+    url: str
+    key: bytes | None
+    insecure: bool
+    baud: int
+    orbit: OrbitSpec | None
+    fps: float
+    provision_missing: bool
+    max_frames: int | None
+    duration_s: float | None
+    reconnect: bool
+    max_reconnects: int | None
+    transport_factory: Callable[[int], Any] | None
+    stats_every_s: float
+    request_timeout_s: float
+    host_id: str
+    refine_delay_s: float
+
+
+@dataclass
+class _Connection:
+    """One session's way to the device (the link engine, the host session on it, the
+    device's events) and its stream's state: ``sent`` is set while no packet is in flight,
+    ``clock`` and the link's byte counts are what the statistics already hold, ``next_due``
+    is the earliest time of the next packet (``fps``), ``linger_until`` the end of an
+    orbit's linger."""
+
+    link: Link
+    session: HostSession
+    events: _DeviceEvents
+    sent: threading.Event = field(default_factory=threading.Event)
+    clock: float = 0.0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    next_due: float = 0.0
+    linger_until: float | None = None
+
+    def __post_init__(self) -> None:
+        self.sent.set()
+
+
+@dataclass
+class _Frame:
+    """The next packet: its view, the request sequence it answers, its scores (None: the
+    model's interpolated ones), whether a key frame was asked for, whether it refines the
+    view on show."""
+
+    view: tuple[float, float]
+    sequence: int
+    scores: np.ndarray | None = None
+    key: bool = False
+    refined: bool = False
+
+
+@dataclass
+class _Shown:
+    """The view the device was last sent: its request sequence, the ray-cast scores it was
+    sent with (None: interpolated) and when it was requested (monotonic seconds)."""
+
+    view: tuple[float, float] | None = None
+    sequence: int = 0
+    scores: np.ndarray | None = None
+    requested_at: float = 0.0
+
+
+@dataclass
+class _Serving:
+    """One run of :func:`serve`: its steps in order, and what carries over a reconnect.
+
+    :meth:`run` repeats :meth:`_attempt` (open, handshake, check or provision the image,
+    begin, stream, end) until serving is done, backing off between attempts after a lost
+    link (:meth:`_back_off`). Each turn of :meth:`_stream` accounts the link (:meth:`_tick`),
+    waits for the pacing (:meth:`_may_send`), chooses the next frame (:meth:`_choose`: a new
+    request, the orbit, the linger, or the resting view's refinement), gives it its scores
+    (:meth:`_score`) and sends it (:meth:`_send`). The encoder, the running orbit, the
+    refiner, the view on show and the statistics carry over sessions; ``scores`` falls back
+    to ``"interpolate"`` for good when ray-casting fails.
+    """
+
+    settings: _Settings
+    digest: bytes
+    factory: Callable[[int], Any]
+    say: Callable[[str], None]
+    stop: threading.Event
+    encoder: FrameEncoder
+    pace: _Pace
+    on_frame: Callable[[EncodedScores, tuple[float, float]], None] | None
+    scores: str
+    true_views: TrueViewScores | None
+    motion: Any | None
+    orbit: Orbit | None
+    stats: ServeStats = field(default_factory=ServeStats)
+    last_stats: float = field(default_factory=time.monotonic)
+    current: _Shown = field(default_factory=_Shown)
     refiner: _Refiner | None = None
-    warned_insecure = False
+    link: Link | None = None
+    attempt: int = 0
+    failures: int = 0
+    warned_insecure: bool = False
 
-    def done() -> bool:
-        if stop.is_set():
-            return True
-        if max_frames is not None and stats.frames >= max_frames:
-            return True
-        return duration_s is not None and stats.stream_seconds >= duration_s
-
-    try:
-        while not done():
-            link: Link | None = None
-            try:
-                transport = factory(attempt)
-                attempt += 1
-                events = _DeviceEvents(stats, say)
-                link = Link(transport, handler=events, owns_transport=True).start()
-                session = HostSession(link, key=key, host_id=host_id,
-                                      request_timeout_s=request_timeout_s, insecure=insecure)
-                hello = session.start()
-                stats.device_id = hello.device_id
-                if key is not None and not session.authenticated and not warned_insecure:
-                    warned_insecure = True
-                    say(f"WARNING: --insecure: device '{hello.device_id}' holds no key; "
-                        "serving it unauthenticated")
-                if _active_digest(hello) != info.digest:
-                    if not provision_missing:
-                        held = _active_digest(hello)
-                        raise ServeError(
-                            f"device '{hello.device_id}' does not hold {model_path} (active image: "
-                            f"{held.hex()[:16] + '...' if held else 'none'}); run eigencast "
-                            f"provision {model_path} --port {url} first, or pass --provision"
-                        )
-                    session.bye("provisioning")
-                    link.close(flush_timeout_s=0.5)
-                    link = None
-                    say(f"device '{hello.device_id}' lacks the image: provisioning it")
-                    provision(model_path, url, baud=baud, key=key, insecure=insecure, log=say,
-                              transport_factory=transport_factory)
-                    stats.provisioned = True
-                    continue
-                stats.sessions += 1
-                if stats.sessions > 1:
-                    stats.reconnects += 1
-                failures = 0
-                say(f"serving {Path(model_path).name} to device '{hello.device_id}' "
-                    f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
-                    f"{hello.display_width}x{hello.display_height} display; {scores} scores)")
-                encoder.reset()
-                if scores == "refine" and refiner is None and true_views is not None:
-                    refiner = _Refiner(true_views, events.poke)
-                elif refiner is not None:  # one refiner for all sessions: wake this one's
-                    refiner.notify = events.poke
-                sent = threading.Event()
-                sent.set()
-                session_start = time.monotonic()
-                base_sent, base_recv = 0, 0
-                next_due = 0.0
-                linger_until: float | None = None
-                while not done():
-                    now = time.monotonic()
-                    stats.stream_seconds += now - session_start
-                    session_start = now
-                    stats.wire_bytes_sent += link.stats.bytes_sent - base_sent
-                    stats.wire_bytes_received += link.stats.bytes_received - base_recv
-                    base_sent, base_recv = link.stats.bytes_sent, link.stats.bytes_received
-                    if link.closed:
-                        raise TransportClosed(f"{url}: link lost")
-                    if stats_every_s and now - last_stats[0] >= stats_every_s:
-                        last_stats[0] = now
-                        say(stats.line())
-                    # one packet in flight at most, and at most fps per second
-                    if not sent.wait(_WAIT_S):
-                        continue
-                    if fps > 0 and now < next_due:
-                        stop.wait(min(next_due - now, _WAIT_S))
-                        continue
-                    view, sequence, fresh, want_key = events.take()
-                    y: np.ndarray | None = None  # interpolated unless set
-                    refined = False
-                    if motion is not None:
-                        motion.budget_s = pace.budget_s
-                    if refiner is not None and refiner.error is not None:
-                        say(f"ray-casting failed ({_short(refiner.error)}); sending interpolated "
-                            "scores only")
-                        refiner.close()
-                        refiner, scores = None, "interpolate"
-                    if running_orbit is not None and linger_until is None:
-                        view = running_orbit.next_view(now)
-                        if view is None:  # done: still answer key-frame requests a moment
-                            linger_until = now + _LINGER_S
-                            say("orbit done")
-                            continue
-                        sequence = 0
-                    elif linger_until is not None:
-                        if now >= linger_until:
-                            break
-                        if not want_key or current.view is None:
-                            events.wait(_WAIT_S)
-                            continue
-                        view, sequence, y = current.view, current.sequence, current.scores
-                        linger_until = max(linger_until, now + _LINGER_S)
-                    elif not fresh:
-                        unrefined = (refiner is not None and current.view is not None
-                                     and current.scores is None)
-                        ready = refiner.take(current.view) if unrefined else None
-                        step = None
-                        if motion is not None and current.view is not None and not want_key:
-                            step, error = _motion_step(motion.refine, current.view)
-                            if error is not None:
-                                say(f"ray-casting failed ({_short(error)}); sending "
-                                    "interpolated scores only")
-                                motion, scores = None, "interpolate"
-                        if step is not None:
-                            stats.motion_pixels += step.pixels
-                            stats.motion_seconds += step.seconds
-                            if step.scores is None:  # more pixels, nothing new to show yet
-                                continue
-                        if step is not None:  # the resting view, denser
-                            view, sequence, y, refined = (current.view, current.sequence,
-                                                          step.scores, True)
-                            stats.converged_frames += int(step.complete)
-                        elif ready is not None:  # the resting view, ray-cast: send its own scores
-                            view, sequence, y, refined = current.view, current.sequence, ready, True
-                        elif want_key and current.view is not None:
-                            view, sequence, y = current.view, current.sequence, current.scores
-                        else:
-                            wait = _WAIT_S
-                            if unrefined and not refiner.wanted(current.view):
-                                rest = current.requested_at + refine_delay_s - now
-                                if rest <= 0:
-                                    refiner.submit(current.view)
-                                else:
-                                    wait = min(wait, rest)
-                            events.wait(wait)
-                            continue
-                    if fresh:
-                        current.requested_at = now
-                    if scores == "render" and y is None:
-                        y = true_views(view)
-                        stats.rendered_frames += 1
-                    elif motion is not None and y is None:
-                        step, error = _motion_step(motion.frame, view)
-                        if error is not None:
-                            say(f"ray-casting failed ({_short(error)}); sending interpolated "
-                                "scores only")
-                            motion, scores = None, "interpolate"
-                        else:
-                            y = step.scores
-                            stats.motion_frames += 1
-                            stats.motion_pixels += step.pixels
-                            stats.motion_seconds += step.seconds
-                            stride = str(step.stride)
-                            stats.stride_frames[stride] = stats.stride_frames.get(stride, 0) + 1
-                    current.view, current.sequence, current.scores = view, sequence, y
-                    encoded = encoder.encode(view, key=want_key, scores=y)
-                    sent.clear()
-                    queued = time.monotonic()
-
-                    def left(queued: float = queued, sent: threading.Event = sent) -> None:
-                        pace.left(time.monotonic() - queued)
-                        sent.set()
-
-                    try:
-                        session.send_scores(m.Scores(sequence=sequence,
-                                                     packet=encoded.packet),
-                                            after_sent=left)
-                    except ValueError as exc:  # the packet does not fit the device's frames
-                        kind = "key" if encoder.last_was_key else "delta"
-                        raise ServeError(
-                            f"{' '.join(str(exc).split())}: a {kind} score packet of this model "
-                            f"({len(encoded.packet)} bytes) does not fit the device's frames; "
-                            "start eigencast-device with a larger --max-frame (e.g. --max-frame "
-                            "65536)") from None
-                    next_due = now + (1.0 / fps if fps > 0 else 0.0)
-                    size = len(encoded.packet)
-                    stats.frames += 1
-                    stats.packet_bytes += size
-                    if encoder.last_was_key:
-                        stats.key_frames += 1
-                        stats.key_bytes += size
-                    else:
-                        stats.delta_frames += 1
-                        stats.delta_bytes += size
-                    stats.last_view = view
-                    if refined:
-                        stats.refined_frames += 1
-                    if on_frame is not None:
-                        on_frame(encoded, view)
-                # finished: let the last packet leave, say goodbye
-                sent.wait(2.0)
-                link.wait_writer_idle(2.0)
-                session.bye("done")
-                link.close(flush_timeout_s=1.0)
-                link = None
-                break
-            except (TransportClosed, TransportTimeout, TransportError) as exc:
-                if isinstance(exc, RemoteError):
-                    raise
-                if link is not None:
-                    with contextlib.suppress(Exception):
-                        link.close(flush_timeout_s=0.0)
-                    link = None
-                failures += 1
-                if not reconnect or (max_reconnects is not None and failures > max_reconnects):
-                    if stats.sessions == 0:
+    def run(self) -> ServeStats:
+        """Serve sessions until done; reconnect after a lost link (or give up)."""
+        try:
+            while not self._done():
+                self.link = None
+                try:
+                    if self._attempt():
+                        break
+                except (TransportClosed, TransportTimeout, TransportError) as exc:
+                    if isinstance(exc, RemoteError):
                         raise
-                    say(f"link lost ({_short(exc)}); not reconnecting")
-                    break
-                delay = min(_BACKOFF_S[0] * 2 ** (failures - 1), _BACKOFF_S[1])
-                say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
-                stop.wait(delay)  # reconnect backoff (a protocol timer)
-            finally:
-                if link is not None:
-                    with contextlib.suppress(Exception):
-                        link.close(flush_timeout_s=0.5)
-    finally:
-        if refiner is not None:
-            refiner.close()
-    if true_views is not None:
-        stats.rendered_views = true_views.renders
-        stats.render_seconds = true_views.render_seconds
-    say(f"done: {stats.line()}")
-    return stats
+                    if self.link is not None:
+                        with contextlib.suppress(Exception):
+                            self.link.close(flush_timeout_s=0.0)
+                        self.link = None
+                    if not self._back_off(exc):
+                        break
+                finally:
+                    if self.link is not None:
+                        with contextlib.suppress(Exception):
+                            self.link.close(flush_timeout_s=0.5)
+        finally:
+            if self.refiner is not None:
+                self.refiner.close()
+        return self._finish()
+
+    def _done(self) -> bool:
+        if self.stop.is_set():
+            return True
+        settings, stats = self.settings, self.stats
+        if settings.max_frames is not None and stats.frames >= settings.max_frames:
+            return True
+        return settings.duration_s is not None and stats.stream_seconds >= settings.duration_s
+
+    def _attempt(self) -> bool:
+        """One session, start to BYE. False: the image was provisioned first (connect again)."""
+        conn = self._open()
+        hello = self._handshake(conn)
+        if not self._holds_image(conn, hello):
+            return False
+        self._begin(conn, hello)
+        self._stream(conn)
+        self._end(conn)
+        return True
+
+    def _open(self) -> _Connection:
+        """Open the transport and start the link engine and a host session on it."""
+        transport = self.factory(self.attempt)
+        self.attempt += 1
+        events = _DeviceEvents(self.stats, self.say)
+        self.link = Link(transport, handler=events, owns_transport=True).start()
+        settings = self.settings
+        session = HostSession(self.link, key=settings.key, host_id=settings.host_id,
+                              request_timeout_s=settings.request_timeout_s,
+                              insecure=settings.insecure)
+        return _Connection(self.link, session, events)
+
+    def _handshake(self, conn: _Connection) -> m.HelloReply:
+        """HELLO, and AUTH when the device holds a key (warn once when it holds none)."""
+        hello = conn.session.start()
+        self.stats.device_id = hello.device_id
+        unauthenticated = self.settings.key is not None and not conn.session.authenticated
+        if unauthenticated and not self.warned_insecure:
+            self.warned_insecure = True
+            self.say(f"WARNING: --insecure: device '{hello.device_id}' holds no key; "
+                     "serving it unauthenticated")
+        return hello
+
+    def _holds_image(self, conn: _Connection, hello: m.HelloReply) -> bool:
+        """The device's active image is the model's; else provision it (``provision_missing``:
+        False, the link is closed) or stop with one line."""
+        from host.link.provisioning import provision
+
+        held = _active_digest(hello)
+        if held == self.digest:
+            return True
+        settings = self.settings
+        model_path, url = settings.model_path, settings.url
+        if not settings.provision_missing:
+            raise ServeError(
+                f"device '{hello.device_id}' does not hold {model_path} (active image: "
+                f"{held.hex()[:16] + '...' if held else 'none'}); run eigencast "
+                f"provision {model_path} --port {url} first, or pass --provision"
+            )
+        conn.session.bye("provisioning")
+        conn.link.close(flush_timeout_s=0.5)
+        self.link = None
+        self.say(f"device '{hello.device_id}' lacks the image: provisioning it")
+        provision(model_path, url, baud=settings.baud, key=settings.key,
+                  insecure=settings.insecure, log=self.say,
+                  transport_factory=settings.transport_factory)
+        self.stats.provisioned = True
+        return False
+
+    def _begin(self, conn: _Connection, hello: m.HelloReply) -> None:
+        """Count the session, say what is served, start with a key frame (and a refiner)."""
+        stats, orbit = self.stats, self.settings.orbit
+        stats.sessions += 1
+        if stats.sessions > 1:
+            stats.reconnects += 1
+        self.failures = 0
+        self.say(f"serving {Path(self.settings.model_path).name} to device '{hello.device_id}' "
+                 f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
+                 f"{hello.display_width}x{hello.display_height} display; {self.scores} scores)")
+        self.encoder.reset()
+        if self.scores == "refine" and self.refiner is None and self.true_views is not None:
+            self.refiner = _Refiner(self.true_views, conn.events.poke)
+        elif self.refiner is not None:  # one refiner for all sessions: wake this one's
+            self.refiner.notify = conn.events.poke
+        conn.clock = time.monotonic()
+
+    def _stream(self, conn: _Connection) -> None:
+        """One packet per turn until done (or an orbit's linger is over)."""
+        while not self._done():
+            now = self._tick(conn)
+            if not self._may_send(conn, now):
+                continue
+            request = conn.events.take()
+            self._check_sources()
+            if conn.linger_until is not None and now >= conn.linger_until:
+                break
+            frame = self._choose(conn, request, now)
+            if frame is None:
+                continue
+            self._score(frame)
+            self._send(conn, frame, now)
+
+    def _tick(self, conn: _Connection) -> float:
+        """Add the time and wire bytes since the last turn; the statistics line when due."""
+        now, stats, link = time.monotonic(), self.stats, conn.link
+        stats.stream_seconds += now - conn.clock
+        conn.clock = now
+        stats.wire_bytes_sent += link.stats.bytes_sent - conn.bytes_sent
+        stats.wire_bytes_received += link.stats.bytes_received - conn.bytes_received
+        conn.bytes_sent, conn.bytes_received = link.stats.bytes_sent, link.stats.bytes_received
+        if link.closed:
+            raise TransportClosed(f"{self.settings.url}: link lost")
+        every = self.settings.stats_every_s
+        if every and now - self.last_stats >= every:
+            self.last_stats = now
+            self.say(stats.line())
+        return now
+
+    def _may_send(self, conn: _Connection, now: float) -> bool:
+        """One packet in flight at most, and at most ``fps`` per second (else wait a bit)."""
+        if not conn.sent.wait(_WAIT_S):
+            return False
+        if self.settings.fps > 0 and now < conn.next_due:
+            self.stop.wait(min(conn.next_due - now, _WAIT_S))
+            return False
+        return True
+
+    def _check_sources(self) -> None:
+        """The sparse source's budget follows the pace; a failed refiner is dropped."""
+        if self.motion is not None:
+            self.motion.budget_s = self.pace.budget_s
+        if self.refiner is not None and self.refiner.error is not None:
+            self._fall_back(self.refiner.error)
+            self.refiner.close()
+            self.refiner = None
+
+    def _fall_back(self, error: BaseException) -> None:
+        """Ray-casting failed: say so and send interpolated scores from now on."""
+        self.say(f"ray-casting failed ({_short(error)}); sending interpolated scores only")
+        self.scores = "interpolate"
+
+    def _choose(self, conn: _Connection, request: tuple[Any, int, bool, bool],
+                now: float) -> _Frame | None:
+        """The next frame: the orbit's next view, a key frame while lingering, the resting
+        view refined (or repeated as a key frame), or the newest request. None: nothing to
+        send this turn."""
+        view, sequence, fresh, want_key = request
+        if self.orbit is not None and conn.linger_until is None:
+            frame = self._orbit_view(conn, want_key, now)
+        elif conn.linger_until is not None:
+            frame = self._linger(conn, want_key, now)
+        elif not fresh:
+            frame = self._resting(conn, want_key, now)
+        else:
+            frame = _Frame(view, sequence, key=want_key)
+        if frame is not None and fresh:
+            self.current.requested_at = now
+        return frame
+
+    def _orbit_view(self, conn: _Connection, want_key: bool, now: float) -> _Frame | None:
+        """The host-driven view; at the orbit's end, start lingering."""
+        assert self.orbit is not None
+        view = self.orbit.next_view(now)
+        if view is None:  # done: still answer key-frame requests a moment
+            conn.linger_until = now + _LINGER_S
+            self.say("orbit done")
+            return None
+        return _Frame(view, 0, key=want_key)
+
+    def _linger(self, conn: _Connection, want_key: bool, now: float) -> _Frame | None:
+        """After the orbit: the last view again as a key frame when the device asks for one."""
+        shown = self.current
+        if not want_key or shown.view is None:
+            conn.events.wait(_WAIT_S)
+            return None
+        assert conn.linger_until is not None
+        conn.linger_until = max(conn.linger_until, now + _LINGER_S)
+        return _Frame(shown.view, shown.sequence, shown.scores, key=True)
+
+    def _resting(self, conn: _Connection, want_key: bool, now: float) -> _Frame | None:
+        """No new request: the view on show refined (denser sparse frame, or its ray-cast),
+        or repeated as a key frame; else wait (starting its ray-cast once it rested)."""
+        shown, refiner = self.current, self.refiner
+        unrefined = refiner is not None and shown.view is not None and shown.scores is None
+        ready = refiner.take(shown.view) if unrefined else None
+        step = None
+        if self.motion is not None and shown.view is not None and not want_key:
+            step = self._sparse(self.motion.refine, shown.view)
+        if step is not None:
+            if step.scores is None:  # more pixels, nothing new to show yet
+                return None
+            self.stats.converged_frames += int(step.complete)
+            return _Frame(shown.view, shown.sequence, step.scores, want_key, refined=True)
+        if ready is not None:  # the resting view, ray-cast: send its own scores
+            return _Frame(shown.view, shown.sequence, ready, want_key, refined=True)
+        if want_key and shown.view is not None:
+            return _Frame(shown.view, shown.sequence, shown.scores, key=True)
+        wait = _WAIT_S
+        if unrefined and not refiner.wanted(shown.view):
+            rest = shown.requested_at + self.settings.refine_delay_s - now
+            if rest <= 0:
+                refiner.submit(shown.view)
+            else:
+                wait = min(wait, rest)
+        conn.events.wait(wait)
+        return None
+
+    def _sparse(self, call: Callable[[tuple[float, float]], Any],
+                view: tuple[float, float]) -> Any | None:
+        """``call(view)`` of the sparse source, its rays and time counted; None when it
+        failed (then serving falls back to interpolation)."""
+        try:
+            step = call(view)
+        except Exception as exc:
+            self._fall_back(exc)
+            self.motion = None
+            return None
+        self.stats.motion_pixels += step.pixels
+        self.stats.motion_seconds += step.seconds
+        return step
+
+    def _score(self, frame: _Frame) -> None:
+        """Scores for a frame that carries none: a ray-cast (``render``) or a sparse
+        ray-cast (``motion``); interpolated otherwise (left None)."""
+        if frame.scores is not None:
+            return
+        stats = self.stats
+        if self.scores == "render":
+            frame.scores = self.true_views(frame.view)
+            stats.rendered_frames += 1
+        elif self.motion is not None:
+            step = self._sparse(self.motion.frame, frame.view)
+            if step is not None:
+                frame.scores = step.scores
+                stats.motion_frames += 1
+                stride = str(step.stride)
+                stats.stride_frames[stride] = stats.stride_frames.get(stride, 0) + 1
+
+    def _send(self, conn: _Connection, frame: _Frame, now: float) -> None:
+        """Encode the frame (key or delta), hand it to the link, count it."""
+        shown = self.current
+        shown.view, shown.sequence, shown.scores = frame.view, frame.sequence, frame.scores
+        encoded = self.encoder.encode(frame.view, key=frame.key, scores=frame.scores)
+        sent = conn.sent
+        sent.clear()
+        queued = time.monotonic()
+
+        def left() -> None:
+            self.pace.left(time.monotonic() - queued)
+            sent.set()
+
+        try:
+            conn.session.send_scores(m.Scores(sequence=frame.sequence, packet=encoded.packet),
+                                     after_sent=left)
+        except ValueError as exc:  # the packet does not fit the device's frames
+            kind = "key" if self.encoder.last_was_key else "delta"
+            raise ServeError(
+                f"{' '.join(str(exc).split())}: a {kind} score packet of this model "
+                f"({len(encoded.packet)} bytes) does not fit the device's frames; "
+                "start eigencast-device with a larger --max-frame (e.g. --max-frame "
+                "65536)") from None
+        fps = self.settings.fps
+        conn.next_due = now + (1.0 / fps if fps > 0 else 0.0)
+        self._count(encoded, frame)
+        if self.on_frame is not None:
+            self.on_frame(encoded, frame.view)
+
+    def _count(self, encoded: EncodedScores, frame: _Frame) -> None:
+        stats, size = self.stats, len(encoded.packet)
+        stats.frames += 1
+        stats.packet_bytes += size
+        if self.encoder.last_was_key:
+            stats.key_frames += 1
+            stats.key_bytes += size
+        else:
+            stats.delta_frames += 1
+            stats.delta_bytes += size
+        stats.last_view = frame.view
+        if frame.refined:
+            stats.refined_frames += 1
+
+    def _end(self, conn: _Connection) -> None:
+        """Finished: let the last packet leave, say goodbye, close the link."""
+        conn.sent.wait(2.0)
+        conn.link.wait_writer_idle(2.0)
+        conn.session.bye("done")
+        conn.link.close(flush_timeout_s=1.0)
+        self.link = None
+
+    def _back_off(self, exc: BaseException) -> bool:
+        """After a lost link: wait (exponential backoff) and reconnect (True), or stop
+        (False; ``exc`` again when no session ever started)."""
+        self.failures += 1
+        settings = self.settings
+        if not settings.reconnect or (settings.max_reconnects is not None
+                                      and self.failures > settings.max_reconnects):
+            if self.stats.sessions == 0:
+                raise exc
+            self.say(f"link lost ({_short(exc)}); not reconnecting")
+            return False
+        delay = min(_BACKOFF_S[0] * 2 ** (self.failures - 1), _BACKOFF_S[1])
+        self.say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
+        self.stop.wait(delay)  # reconnect backoff (a protocol timer)
+        return True
+
+    def _finish(self) -> ServeStats:
+        """The ray-caster's counts, the closing line."""
+        if self.true_views is not None:
+            self.stats.rendered_views = self.true_views.renders
+            self.stats.render_seconds = self.true_views.render_seconds
+        self.say(f"done: {self.stats.line()}")
+        return self.stats
 
 
 class _Pace:
@@ -867,13 +953,11 @@ class _Pace:
         return max(self.floor, self.link_s)
 
 
-def _motion_step(call: Callable[[tuple[float, float]], Any],
-                 view: tuple[float, float]) -> tuple[Any, BaseException | None]:
-    """``call(view)`` and the error it raised (serve then falls back to interpolation)."""
-    try:
-        return call(view), None
-    except Exception as exc:
-        return None, exc
+def _active_digest(hello: m.HelloReply) -> bytes | None:
+    for slot in hello.slots:
+        if slot.active and slot.state in (m.SlotState.TEST, m.SlotState.CONFIRMED):
+            return bytes(slot.digest)
+    return None
 
 
 def _short(exc: BaseException) -> str:
