@@ -12,6 +12,8 @@
 from __future__ import annotations
 
 import csv
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -146,3 +148,10 @@ class RuntimeThread:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def serve_cli(*args: str) -> subprocess.CompletedProcess:
+    """Run ``eigencast serve ARGS`` in a subprocess from the repository root (60 s at most)."""
+    return subprocess.run([sys.executable, "-m", "host.cli", "serve", *args],
+                          cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                          text=True, timeout=60)

@@ -4,23 +4,18 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import subprocess
-import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, read_frames, wait_until
+from runtime_helpers import RuntimeThread, read_frames, serve_cli, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
 from host.fit.motion import BUDGET_SHARE, PROBE_EVERY, MotionScores, angle_between
 from host.link.provisioning import provision
 from host.link.serving import _Pace, open_true_view_scores, serve
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -249,22 +244,9 @@ def test_a_resting_view_on_a_device_converges_to_the_projection(tmp_path, model_
     assert not np.array_equal(first, projected)  # the first frame was the sparse one
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "host.cli", "serve", *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=60)
-
-
-def test_cli_motion_without_the_volume_is_one_line(tmp_path, model_path):
-    run = _cli(str(model_path), "--port", "mem://nobody", "--scores", "motion", "--volume",
-               str(tmp_path / "missing.mhd"))
-    assert run.returncode != 0
-    lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--scores motion" in lines[0] and "Traceback" not in run.stderr
-
-
 @pytest.mark.parametrize("value", ["0", "-5", "nan"])
 def test_cli_deadline_must_be_positive(model_path, value):
-    run = _cli(str(model_path), "--port", "mem://nobody", "--deadline", value)
+    run = serve_cli(str(model_path), "--port", "mem://nobody", "--deadline", value)
     assert run.returncode != 0 and "--deadline" in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1 and "Traceback" not in run.stderr
 

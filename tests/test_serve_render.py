@@ -8,8 +8,6 @@ reproduce it on the device's own eigenimages.
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -17,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, read_frames, wait_until
+from runtime_helpers import RuntimeThread, read_frames, serve_cli, wait_until
 
 from device_runtime.orbit import canonical_view, parse_orbit
 from host.fit.model import HostModel
@@ -25,8 +23,6 @@ from host.link.provisioning import provision
 from host.link.serving import TrueViewScores, open_true_view_scores, serve
 from host.render.cinema import CinemaDB
 from host.render.settings import RenderSettings, ViewRenderer
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -201,20 +197,16 @@ def test_serve_rejects_an_unknown_score_mode(model_path):
         serve(model_path, "mem://nowhere", scores="magic", log=_quiet)
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "host.cli", "serve", *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=60)
-
-
-def test_cli_render_without_the_volume_is_one_line(tmp_path, model_path):
-    run = _cli(str(model_path), "--port", "mem://nobody", "--scores", "render", "--volume",
-               str(tmp_path / "missing.mhd"))
+@pytest.mark.parametrize("mode", ["render", "motion"])
+def test_cli_ray_cast_modes_without_the_volume_are_one_line(tmp_path, model_path, mode):
+    run = serve_cli(str(model_path), "--port", "mem://nobody", "--scores", mode, "--volume",
+                    str(tmp_path / "missing.mhd"))
     assert run.returncode != 0
     lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--scores render" in lines[0] and "Traceback" not in run.stderr
+    assert len(lines) == 1 and f"--scores {mode}" in lines[0] and "Traceback" not in run.stderr
 
 
 def test_cli_refine_delay_must_not_be_negative(model_path):
-    run = _cli(str(model_path), "--port", "mem://nobody", "--refine-delay", "-1")
+    run = serve_cli(str(model_path), "--port", "mem://nobody", "--refine-delay", "-1")
     assert run.returncode != 0 and "--refine-delay" in run.stderr
     assert "Traceback" not in run.stderr
