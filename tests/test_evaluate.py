@@ -396,3 +396,18 @@ def test_evaluate_foreign_model_needs_explicit_render_options(tooth_db, tmp_path
                "--views", "random:2", "--json", "--rd-views", "0", "--no-nearest")
     summary = json.loads(res.stdout)
     assert summary["pca"]["ssim"] > 0.5 and "nearest" not in summary
+
+
+def test_pca_motion_ray_casts_at_its_stride_however_slow_the_machine(small_model, monkeypatch):
+    import host.fit.motion as motion
+    from host.evaluate import evaluate_model
+
+    model = HostModel.load(small_model)
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
+    # a host that takes 10 s per ray-cast: none fits serve's deadline, evaluate's must still
+    monkeypatch.setattr(motion.MotionScores, "estimate", lambda self, stride: 10.0)
+    views = [(10.0, 5.0), (200.0, -40.0)]
+    result = evaluate_model(model, scene, views, rd_views=1, metric_workers=0, progress=False,
+                            sample_views=0, motion_stride=2)
+    for record in result.views:  # the prior alone would be the interpolated frame again
+        assert record["pca_motion"]["ssim_object"] != record["pca"]["ssim_object"]
