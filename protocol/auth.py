@@ -47,6 +47,11 @@ _SESSION_LABEL = b"eigencast/v1 session\x00"
 _TAG_PREFIX = struct.Struct("<QB")
 
 
+def _check_counter(counter: int, where: str) -> None:
+    if isinstance(counter, bool) or not isinstance(counter, int) or not 1 <= counter <= U64:
+        raise ValueError(f"{where}: counter={counter!r} must be an int in [1, 2**64 - 1]")
+
+
 def _check_key(key: bytes, name: str) -> bytes:
     if not isinstance(key, (bytes, bytearray)) or len(key) != KEY_BYTES:
         size = len(key) if isinstance(key, (bytes, bytearray)) else type(key).__name__
@@ -153,8 +158,7 @@ def sign(msg: SignedRequest, session_key: bytes, counter: int) -> SignedRequest:
     if not isinstance(msg, SignedRequest):
         raise ValueError(f"sign: {type(msg).__name__} is not a signed request")
     key = _check_key(session_key, "session_key")
-    if isinstance(counter, bool) or not isinstance(counter, int) or not 1 <= counter <= U64:
-        raise ValueError(f"sign: counter={counter!r} must be an int in [1, 2**64 - 1]")
+    _check_counter(counter, "sign")
     tag = _session_tag(msg, key, counter)
     return dataclasses.replace(msg, session_counter=counter, session_tag=tag)
 
@@ -238,8 +242,7 @@ def tag_event(msg: TaggedEvent, session_key: bytes, counter: int) -> TaggedEvent
     if not isinstance(msg, TaggedEvent):
         raise ValueError(f"tag_event: {type(msg).__name__} is not a tagged event")
     key = _check_key(session_key, "session_key")
-    if isinstance(counter, bool) or not isinstance(counter, int) or not 1 <= counter <= U64:
-        raise ValueError(f"tag_event: counter={counter!r} must be an int in [1, 2**64 - 1]")
+    _check_counter(counter, "tag_event")
     return dataclasses.replace(msg, session_counter=counter,
                                session_tag=_event_tag(msg, key, counter))
 
