@@ -23,7 +23,6 @@ __all__ = [
     "DEFAULT_THRESHOLDS",
     "DEFAULT_WEBP_DB_QUALITY",
     "HIGHER_IS_BETTER",
-    "IMAGE_CODECS",
     "MAX_QUALITY",
     "METHODS",
     "METRICS",

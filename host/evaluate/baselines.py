@@ -38,9 +38,8 @@ __all__ = [
 ]
 
 CODECS = ("jpeg", "webp", "avif")
-"""The equal-bytes baselines `eigencast evaluate` reports."""
-IMAGE_CODECS = ("jpeg", "webp", "avif")
-"""Every codec `encode_image` and `encode_within_budget` speak (AVIF through Pillow's plugin)."""
+"""The codecs `encode_image` speaks (AVIF through Pillow's plugin): the equal-bytes baselines
+`eigencast evaluate` reports."""
 MAX_QUALITY = 100
 
 
@@ -79,8 +78,8 @@ class CodedImage:
 
 
 def _check_codec(codec: str) -> None:
-    if codec not in IMAGE_CODECS:
-        raise ValueError(f"codec={codec!r} is unknown; use one of {list(IMAGE_CODECS)}")
+    if codec not in CODECS:
+        raise ValueError(f"codec={codec!r} is unknown; use one of {list(CODECS)}")
 
 
 def encode_image(image: np.ndarray, codec: str, quality: int) -> CodedImage:
