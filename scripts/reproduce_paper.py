@@ -94,10 +94,13 @@ def paper_test_views(path: Path, count: int, seed: int = 0) -> Path:
 
 
 class Study:
-    def __init__(self, cache: Path, views: int, results: dict) -> None:
+    def __init__(self, cache: Path, views: int, results: dict,
+                 scheduler: str | None = None) -> None:
         self.cache = cache
         self.views = views
         self.results = results
+        #: ``--scheduler`` for render and fit (a Dask address or ``local:N``), or in-process.
+        self.cluster = ["--scheduler", scheduler] if scheduler else []
         (cache / "logs").mkdir(parents=True, exist_ok=True)
         (cache / "reports").mkdir(exist_ok=True)
 
@@ -110,7 +113,7 @@ class Study:
         if key not in self.results:
             log(f"render {db.name} (1500 views at {size}x{size})")
             r = run_measured(["render", str(volume), "-o", str(db), "--views", "grid:100x15",
-                              "--size", str(size)],
+                              "--size", str(size), *self.cluster],
                              self.cache / "logs" / f"render-{name}-{size}.log")
             self.results[key] = {k: v for k, v in r.items() if k != "stdout"}
             self.save()
@@ -123,7 +126,7 @@ class Study:
         if rkey not in self.results or ("error" not in self.results[rkey]
                                         and not model.exists()):
             log(f"fit {key}: {' '.join(options)}")
-            r = run_measured(["fit", str(db), "-o", str(model), *options],
+            r = run_measured(["fit", str(db), "-o", str(model), *options, *self.cluster],
                              self.cache / "logs" / f"fit-{key}.log", allow_fail=True)
             self.results[rkey] = {"options": options, **r}
             self.save()
@@ -151,7 +154,7 @@ def _f(v: float | None, d: int = 3) -> str:
     return "–" if v is None else f"{v:.{d}f}"
 
 
-def markdown(results: dict, datasets: list[str]) -> str:
+def markdown(results: dict, datasets: list[str], size: int = 512) -> str:
     """The result tables of docs/paper-reproduction.md."""
     out = ["### Feasibility study (300 × 300, 1500 training views, 100 components)", "",
            "| dataset | method | dims/cell | eigenspace | bytes/view | PSNR | SSIM | FLIP | "
@@ -172,16 +175,16 @@ def markdown(results: dict, datasets: list[str]) -> str:
                 f"{_f(ev['webp']['flip'], 4)} | {_f(ev['nearest']['ssim'], 4)} / "
                 f"{_f(ev['nearest']['flip'], 4)} | {fit.get('wall_s', '–')} / "
                 f"{fit.get('peak_rss_mb', '–')} |")
-    out += ["", "### Adaptive-cell study (512 × 512, cells 30 × 30)", "",
+    out += ["", f"### Adaptive-cell study ({size} × {size}, cells 30 × 30)", "",
             "| dataset | setting | T | dims/cell | eigenspace | bytes/view | PSNR | SSIM | FLIP "
             "| JPEG (q) SSIM / FLIP | WebP (q) SSIM / FLIP | nearest SSIM / FLIP | int8 loss dB "
             "| fit s / MB |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name in datasets:
-        prefix = f"fit/{name}-512-"
+        prefix = f"fit/{name}-{size}-"
         found = sorted(k[len(prefix):] for k in results if k.startswith(prefix + "target-"))
         for setting in ["paper-T", *found]:
-            key = f"{name}-512-{setting}"
+            key = f"{name}-{size}-{setting}"
             ev = results.get(f"evaluate/{key}", {}).get("summary")
             fit = results.get(f"fit/{key}", {})
             if "error" in fit:
@@ -203,13 +206,14 @@ def markdown(results: dict, datasets: list[str]) -> str:
     return "\n".join(out) + "\n"
 
 
-def docs_images(cache: Path, dest: Path, datasets: list[str], setting: str) -> None:
+def docs_images(cache: Path, dest: Path, datasets: list[str], setting: str,
+                size: int = 512) -> None:
     """Small copies of the figures for the docs (each < 300 KB)."""
     from PIL import Image
 
     dest.mkdir(parents=True, exist_ok=True)
     for name in datasets:
-        report = cache / "reports" / f"{name}-512-{setting}"
+        report = cache / "reports" / f"{name}-{size}-{setting}"
         if not (report / "rd.png").exists():
             continue
         with Image.open(report / "rd.png") as im:
@@ -238,6 +242,10 @@ def main() -> int:
                         help="copy small figures here (e.g. docs/images)")
     parser.add_argument("--studies", default="feasibility,adaptive",
                         help="which studies to run (default feasibility,adaptive)")
+    parser.add_argument("--size", type=int, default=512,
+                        help="image size of the adaptive study (default 512; the paper's 1080)")
+    parser.add_argument("--scheduler", default=None,
+                        help="run render and fit on a Dask cluster: an address or local:N")
     args = parser.parse_args()
     datasets = [d for d in args.datasets.split(",") if d]
     targets = [t for t in args.targets.split(",") if t]
@@ -245,7 +253,8 @@ def main() -> int:
     cache.mkdir(parents=True, exist_ok=True)
     results_path = cache / "results.json"
     results = json.loads(results_path.read_text()) if results_path.exists() else {}
-    study = Study(cache, args.views, results)
+    study = Study(cache, args.views, results, args.scheduler)
+    size = args.size
     test_views = paper_test_views(cache / f"paper-test-views-{args.views}.csv", args.views)
     for name in datasets:
         volume = shared_volume(name)
@@ -261,21 +270,21 @@ def main() -> int:
                 study.evaluate(f"{name}-300-{method}", model, str(test_views))
         if "adaptive" not in args.studies:
             continue
-        db = study.database(name, volume, 512)
-        model = study.fit(f"{name}-512-paper-T", db, ["--method", "adaptive", "--cell", "30",
+        db = study.database(name, volume, size)
+        model = study.fit(f"{name}-{size}-paper-T", db, ["--method", "adaptive", "--cell", "30",
                                                       "--threshold", str(PAPER_T[name])])
-        study.evaluate(f"{name}-512-paper-T", model, f"random:{args.views}")
+        study.evaluate(f"{name}-{size}-paper-T", model, f"random:{args.views}")
         for target in targets:
-            key = f"{name}-512-target-{target}"
+            key = f"{name}-{size}-target-{target}"
             model = study.fit(key, db, ["--method", "adaptive", "--cell", "30",
                                         "--target", target])
             if model is not None:
                 study.evaluate(key, model, f"random:{args.views}")
-    table = markdown(results, datasets)
+    table = markdown(results, datasets, size)
     (cache / "results.md").write_text(table)
     print(table)
     if args.docs_images is not None:
-        docs_images(cache, args.docs_images, datasets, "paper-T")
+        docs_images(cache, args.docs_images, datasets, "paper-T", size)
     return 0
 
 
