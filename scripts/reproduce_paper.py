@@ -2,6 +2,13 @@
 
     .venv/bin/python scripts/reproduce_paper.py [--cache /work/cache/repro] [--views 100]
         [--datasets tooth,vismale_head] [--targets ssim=0.95,flip=0.1] [--docs-images DIR]
+        [--size 512] [--scheduler ADDRESS|local:N] [--evaluate-options '...']
+
+The paper's own 1080 x 1080 Table 1, through a Dask LocalCluster (issue 16; what ran here)::
+
+    nice -n 19 .venv/bin/python scripts/reproduce_paper.py --cache /work/cache/repro1080 \
+        --studies adaptive --size 1080 --scheduler local:2 --targets "" \
+        --evaluate-options "--webp-db-quality 0 --motion-deadline 0 --rd-views 0"
 
 For each dataset (real volumes from ../shared/data, located with `host.shared_data`):
 
@@ -10,7 +17,7 @@ For each dataset (real volumes from ../shared/data, located with `host.shared_da
 2. feasibility study (section 4), 300x300: ``fit --method standard --components 100`` and
    ``fit --method cell --cell 20 --components 100``, evaluated off-grid on a seeded random
    subset of the paper's 2400 test views (0.9 degrees in phi x 30 degrees in theta);
-3. adaptive study (section 5, Table 1), 512x512: ``fit --method adaptive --cell 30
+3. adaptive study (section 5, Table 1), 512x512 (``--size``): ``fit --method adaptive --cell 30
    --threshold T`` with the paper's T (98 % head, 99.7 % tooth), evaluated on ``random:N``
    (the paper used 100 random views);
 4. automatic threshold: ``fit --target METRIC=VALUE`` for each ``--targets`` entry, evaluated
@@ -31,6 +38,7 @@ import argparse
 import csv
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -95,12 +103,13 @@ def paper_test_views(path: Path, count: int, seed: int = 0) -> Path:
 
 class Study:
     def __init__(self, cache: Path, views: int, results: dict,
-                 scheduler: str | None = None) -> None:
+                 scheduler: str | None = None, evaluate_options: list[str] | None = None) -> None:
         self.cache = cache
         self.views = views
         self.results = results
         #: ``--scheduler`` for render and fit (a Dask address or ``local:N``), or in-process.
         self.cluster = ["--scheduler", scheduler] if scheduler else []
+        self.evaluate_options = evaluate_options or []
         (cache / "logs").mkdir(parents=True, exist_ok=True)
         (cache / "reports").mkdir(exist_ok=True)
 
@@ -139,7 +148,7 @@ class Study:
         rkey = f"evaluate/{key}"
         if rkey not in self.results:
             log(f"evaluate {key} on {views}")
-            args = ["evaluate", str(model), "--views", views, "--json"]
+            args = ["evaluate", str(model), "--views", views, "--json", *self.evaluate_options]
             if report:
                 args += ["--report", str(self.cache / "reports" / key)]
             r = run_measured(args, self.cache / "logs" / f"evaluate-{key}.log")
@@ -246,6 +255,9 @@ def main() -> int:
                         help="image size of the adaptive study (default 512; the paper's 1080)")
     parser.add_argument("--scheduler", default=None,
                         help="run render and fit on a Dask cluster: an address or local:N")
+    parser.add_argument("--evaluate-options", default="",
+                        help="extra options for every evaluate, e.g. '--webp-db-quality 0 "
+                             "--motion-deadline 0 --rd-views 0' to skip baselines at 1080")
     args = parser.parse_args()
     datasets = [d for d in args.datasets.split(",") if d]
     targets = [t for t in args.targets.split(",") if t]
@@ -253,7 +265,7 @@ def main() -> int:
     cache.mkdir(parents=True, exist_ok=True)
     results_path = cache / "results.json"
     results = json.loads(results_path.read_text()) if results_path.exists() else {}
-    study = Study(cache, args.views, results, args.scheduler)
+    study = Study(cache, args.views, results, args.scheduler, shlex.split(args.evaluate_options))
     size = args.size
     test_views = paper_test_views(cache / f"paper-test-views-{args.views}.csv", args.views)
     for name in datasets:
