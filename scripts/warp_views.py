@@ -338,6 +338,50 @@ class DepthEigenspace:
         return merge(cells, self.cell, self.shape) + np.float32(self.offset)
 
 
+def zstd_bytes(pca: DepthEigenspace, order: np.ndarray) -> dict[str, int]:
+    """Compressed sizes as an ``.ecs`` would hold the depth eigenspace: int8 components and
+    float16 means zstd-compressed at the image's level, the score table delta-coded in the
+    standalone order like the colour's (`host.fit.model.add_standalone_table`), the scales."""
+    import zstandard
+
+    from protocol.image import DEFAULT_LEVEL
+
+    cctx = zstandard.ZstdCompressor(level=DEFAULT_LEVEL)
+
+    def size(a: np.ndarray) -> int:
+        return len(cctx.compress(np.ascontiguousarray(a).tobytes()))
+
+    peak = np.maximum(np.abs(pca.comps).max(axis=1, keepdims=True), 1e-30)
+    comps = np.rint(pca.comps / (peak / 127.0)).astype(np.int8)
+    diffs = np.ascontiguousarray(pca.table[order].T)
+    diffs[:, 1:] = diffs[:, 1:] - diffs[:, :-1]
+    wide = diffs.astype(np.int32)
+    zz = ((wide << 1) ^ (wide >> 15)).astype(np.uint16)
+    coded = np.stack([(zz & 0xFF).astype(np.uint8), (zz >> 8).astype(np.uint8)], axis=1)
+    out = {"components": size(comps), "means": size(pca.mean.astype(np.float16)),
+           "table": min(size(coded), size(pca.table)), "scales": 4 * pca.n_components}
+    out["total"] = int(sum(out.values()))
+    return out
+
+
+def colour_bytes(model: HostModel) -> dict[str, int]:
+    """The colour device image's size and its standalone table's (delta-coded, zstd)."""
+    import dataclasses
+
+    import zstandard
+
+    from host.evaluate import eigenspace_bytes
+    from host.fit.model import add_standalone_table
+    from protocol.image import DEFAULT_LEVEL
+
+    image = dataclasses.replace(model.image, sections=dict(model.image.sections))
+    info = add_standalone_table(image, model.training_scores, eigenvalues=model.eigenvalues)
+    table = np.ascontiguousarray(image.sections[info["section"]])
+    packed = len(zstandard.ZstdCompressor(level=DEFAULT_LEVEL).compress(table.tobytes()))
+    return {"image": int(eigenspace_bytes(model)), "standalone_table": packed,
+            "components": int(model.image.n_coefficients)}
+
+
 def split(img: np.ndarray, cell: int) -> np.ndarray:
     h, w = img.shape
     return img.reshape(h // cell, cell, w // cell, cell).swapaxes(1, 2).reshape(-1, cell * cell)
@@ -496,7 +540,10 @@ def depth_pcas(vol: Volume, thresholds: list[float]
                 err.append(np.square(pca.reconstruct(int(i))[ok] - truth[ok]))
             rmse = float(np.sqrt(np.concatenate(err).mean()))
             b = pca.bytes()
+            order = np.lexsort((np.mod(vol.dbs[DEPTH_SIZE].phi_deg, 360.0),
+                                vol.dbs[DEPTH_SIZE].theta_deg))
             report[variant][str(t)] = {
+                "zstd_bytes": zstd_bytes(pca, order),
                 "threshold": t,
                 "components": pca.n_components,
                 "components_per_cell": float(pca.counts.mean()),
@@ -507,7 +554,8 @@ def depth_pcas(vol: Volume, thresholds: list[float]
                 "fit_s": fit_s,
             }
             print(f"  {vol.name} depth PCA {variant}: T={t} K={pca.n_components} "
-                  f"({pca.counts.mean():.2f}/cell), {sum(b.values()) / 1e6:.2f} MB, "
+                  f"({pca.counts.mean():.2f}/cell), {sum(b.values()) / 1e6:.2f} MB raw, "
+                  f"{report[variant][str(t)]['zstd_bytes']['total'] / 1e6:.2f} MB zstd, "
                   f"RMSE {rmse:.3f} mm", file=sys.stderr, flush=True)
         out[variant] = pcas
     return out, report
@@ -619,6 +667,7 @@ def run_case(vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace
     if images is not None and picture is not None:
         save_picture(images / f"warp-{vol.name}-{size}.jpg", *picture)
     return {"volume": vol.name, "size": size, "views": len(per_view), "means": means,
+            "colour_bytes": colour_bytes(model),
             "gap_closed": gap, "median_ms": ms,
             "ratio_to_blend": {k: ms[k] / ms["blend"] for k in ms},
             "z_tolerance_mm": warper.tol_mm, "per_view": per_view}
@@ -679,7 +728,12 @@ def print_tables(results: list[dict], depth: dict) -> None:
             for v in by_t.values():
                 print(f"depth PCA {name} {variant}: T={v['threshold']} K={v['components']} "
                       f"({v['components_per_cell']:.2f}/cell) {v['bytes_total'] / 1e6:.2f} MB "
-                      f"{v['bytes']} RMSE {v['rmse_object_mm']:.3f} mm")
+                      f"raw {v['bytes']}, zstd {v['zstd_bytes']} RMSE "
+                      f"{v['rmse_object_mm']:.3f} mm")
+    for r in results:
+        c = r["colour_bytes"]
+        print(f"colour {r['volume']} {r['size']}: image {c['image'] / 1e6:.2f} MB, standalone "
+              f"table {c['standalone_table'] / 1e6:.2f} MB (K={c['components']})")
 
 
 def main(argv: list[str] | None = None) -> int:
