@@ -1,7 +1,8 @@
 """Stage 2, render: ray-cast a volume from many views into a Cinema database (DB.cdb).
 
 Owns the camera and view sets (``camera.py``), transfer functions and their presets
-(``transfer.py``), the numba ray-caster (``raycast.py``) and its slow numpy reference
+(``transfer.py``), the numba ray-caster (``raycast.py``; its depth kernel for
+``Renderer.render_with_depth`` in ``raycast_depth.py``) and its slow numpy reference
 (``raycast_reference.py``, for tests), the recorded render settings that let any later
 stage re-render a view exactly as the database was rendered (``settings.py``:
 `RenderSettings`, `ViewRenderer`, `OBJECT_ALPHA_MIN`) and the Cinema database itself

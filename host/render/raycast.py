@@ -47,7 +47,9 @@ Model (the numpy reference in `host.render.raycast_reference` implements the sam
 `Renderer.render` returns premultiplied RGBA before the background;
 `Renderer.render_pixels` / `Renderer.render_strided` cast only a subset of the same
 pixel grid (same rays, same kernel), equal bit for bit to those pixels of `render`;
-`Renderer.render_rgb8` composites over the background:
+`Renderer.render_with_depth` also returns two representative depths per pixel (a separate
+kernel, so the colour-only path is unchanged); `Renderer.render_rgb8` composites over the
+background:
 ``rgb8 = round(255 * clip(C + (1 - A) * background, 0, 1))``.
 Every pixel is computed independently in a fixed order, in float64, without
 fastmath, so the output is identical run to run and for any thread count.
@@ -72,6 +74,8 @@ __all__ = [
     "AMBIENT",
     "BLOCK_SIZE",
     "DEFAULT_SAMPLES",
+    "DEPTH_HALF",
+    "DEPTH_MEAN",
     "DIFFUSE",
     "EARLY_TERMINATION_ALPHA",
     "LUT_SIZE",
@@ -87,6 +91,10 @@ __all__ = [
 ]
 
 RENDERER_VERSION = "eigencast-raycast/1"
+#: Channels of `Renderer.render_with_depth`'s depth: where the opacity crosses 0.5, and
+#: the opacity-weighted mean depth.
+DEPTH_HALF = 0
+DEPTH_MEAN = 1
 DEFAULT_SAMPLES = 1000
 MAX_SAMPLES = 100_000  # samples across the bounding-sphere diameter
 MAX_IMAGE_SIDE = 8192
@@ -655,6 +663,63 @@ class Renderer:
             finally:
                 numba.set_num_threads(previous)
         return out
+
+    def render_with_depth(
+        self, camera: Camera, width: int, height: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Ray-cast one image and, per pixel, two representative depths.
+
+        A separate kernel (`host.render.raycast_depth`), so `render` pays nothing for it;
+        the RGBA is bit-identical to `render`'s. Depths are distances in mm along each
+        pixel's unit ray from its origin (``camera.rays``), so the point a depth ``t`` stands
+        for is ``origin + t * direction``.
+
+        Parameters
+        ----------
+        camera : Camera
+        width, height : int
+            Image size in pixels, each within [1, MAX_IMAGE_SIDE].
+
+        Returns
+        -------
+        rgba : ndarray of shape (height, width, 4), float32
+            As `render` returns it.
+        depth : ndarray of shape (height, width, 2), float32
+            ``depth[..., DEPTH_HALF]``: where the accumulated opacity crosses 0.5 (linear
+            within the crossing sample's step), NaN where it never does;
+            ``depth[..., DEPTH_MEAN]``: the opacity-weighted mean ``sum(w_i t_i) /
+            sum(w_i)``, ``w_i`` the sample's contribution to the colour, NaN where no
+            sample contributes. NaN marks "no object here".
+        """
+        from host.render.raycast_depth import _render_depth_kernel
+
+        width, height = _check_size(width, height)
+        origins, directions = camera.rays(width, height)
+        out = np.zeros((height, width, 4), dtype=np.float32)
+        depth = np.full((height, width, 2), np.nan, dtype=np.float32)
+        with _KERNEL_LOCK:
+            previous = numba.get_num_threads()
+            threads = self.workers or int(numba.config.NUMBA_NUM_THREADS)
+            numba.set_num_threads(threads)
+            try:
+                _render_depth_kernel(
+                    self._u,
+                    self._block_empty,
+                    origins,
+                    directions,
+                    self._inv_spacing,
+                    self.step_mm,
+                    self._lut,
+                    self.empty_space_skipping,
+                    self.shading,
+                    self._params,
+                    4 * threads,
+                    out,
+                    depth,
+                )
+            finally:
+                numba.set_num_threads(previous)
+        return out, depth
 
     def render_pixels(
         self, camera: Camera, width: int, height: int, rows: object, cols: object

@@ -354,6 +354,27 @@ class ViewRenderer:
         rgba = self.renderer.render(camera, self.settings.width, self.settings.height)
         return self.renderer.composite(rgba), np.ascontiguousarray(rgba[..., 3])
 
+    def render_with_depth(
+        self, phi_deg: float, theta_deg: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Ray-cast one view with its depths (`host.render.raycast.Renderer.render_with_depth`).
+
+        Returns
+        -------
+        rgb8 : ndarray of shape (height, width, 3), uint8
+            Bit-identical to `render`'s.
+        alpha : ndarray of shape (height, width), float32
+        depth : ndarray of shape (height, width, 2), float32
+            Distances in mm along each pixel's ray from the camera
+            (``self.settings.camera(phi_deg, theta_deg).rays``): channel 0 where the
+            opacity crosses 0.5, channel 1 the opacity-weighted mean; NaN where none.
+        """
+        camera = self.settings.camera(phi_deg, theta_deg)
+        rgba, depth = self.renderer.render_with_depth(
+            camera, self.settings.width, self.settings.height
+        )
+        return self.renderer.composite(rgba), np.ascontiguousarray(rgba[..., 3]), depth
+
     def render_rgb8(self, phi_deg: float, theta_deg: float) -> np.ndarray:
         """Ray-cast one view: uint8 (height, width, 3)."""
         return self.render(phi_deg, theta_deg)[0]

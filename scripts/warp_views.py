@@ -1,0 +1,777 @@
+"""Go / no-go for issue 15: depth-aware view synthesis from the training views' depth.
+
+For the shared tooth and VisMale head at 256 and 512 on the paper's grid (``grid:100x15``,
+the cached databases and models ``/work/cache/{tooth,vismale_head}-{256,512}.{cdb,ecs}``) and
+N held-out random views (``random:N:SEED``, ray-cast fresh with their opacity), every novel
+view is made by:
+
+``blend``
+    Today's frame: the model's bilinear interpolation of the training scores, rounded to the
+    score step, reconstructed by the device code from the int8 eigenspace (`HostModel.view`;
+    a standalone device blends the same four views).
+``webp_db``
+    The on-device WebP image database (quality 80, `host.evaluate.WebPDatabase`): the four
+    training images as decoded WebP, blended with the same weights.
+``oracle``
+    The held-out view projected onto the eigenspace and sent through the score packet
+    (`host.evaluate.DevicePath.projection_frame`): the best the eigenspace can show.
+``warp_true_{half,mean}``
+    (a) The four training views the bilinear interpolation uses, from their TRUE images and
+    TRUE depths (ray-cast at the frame's size with `Renderer.render_with_depth`), each
+    forward-warped into the novel camera (`forward_warp`), blended by the interpolation weights
+    where their depths agree, holes filled. ``half``: the depth where the opacity crosses 0.5
+    (the mean where it never does); ``mean``: the opacity-weighted mean depth.
+``warp_true_half_d256`` (512 only)
+    (a) with the depth ray-cast at 256 and upsampled: what half-resolution depth costs.
+``warp_rec_{half,mean}``
+    (b) The same from what a device holds: each training view's colour reconstructed from
+    the model's training scores (quantized to the score step, int8 eigenspace, device code)
+    and its depth from a cell PCA of the 1500 training depth maps at 256 (`DepthEigenspace`:
+    cells 16, adaptive at the colour model's threshold T, int8 components, quantized score
+    table; upsampled x2 for 512).
+``warp_rec_half_T<t>``
+    (b) with the depth eigenspace at another threshold (``--depth-thresholds``): what the
+    depth's components buy.
+``warp_rec_half_truedepth``
+    Diagnostic: reconstructed colour, true depth (separates colour from depth error).
+
+Quality: object SSIM / FLIP (and PSNR) over the held-out view's object pixels (ray-cast alpha
+>= `OBJECT_ALPHA_MIN`), `host.evaluate.compare_images`. "Gap closed" = (warp - blend) /
+(oracle - blend) of the mean object SSIM (and of FLIP). Device cost: median ms per frame in
+numpy on this machine, of the warp alone (4 views' colour and depth given) and of the whole
+frame (``device_frame``: 4 colour reconstructions through the device code, 4 depth
+reconstructions, upsampling at 512, the warp), with today's frame (`HostModel.view`:
+interpolated scores, one reconstruction) timed in the same run.
+
+Every parameter of the warp (z tolerance, coverage threshold, hole filling) is fixed here
+before looking at the held-out views; nothing is tuned on them.
+
+Cost: ray-casting the 1500 training depths at 256 (~3-5 min per volume on 2 cores, cached),
+the neighbours' depths at 512 (~80 views per volume, cached) and the held-out views; then
+~1-3 min per case for the frames and metrics. Everything is cached under ``--cache``
+(default ``/work/cache/warp``).
+
+Usage::
+
+    .venv/bin/python scripts/warp_views.py [--volumes tooth,vismale_head] [--sizes 256,512] \\
+        [--views 20] [--seed 15] [--cache /work/cache/warp] [--images docs/images] \\
+        [-o /work/cache/warp/results.json]
+
+Produces: docs/rate-distortion.md, section 9 "Depth-aware view synthesis (issue 15)" (the
+tables printed at the end, and the pictures ``docs/images/warp-<volume>.jpg``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from host.evaluate import DevicePath, TrainingImages, WebPDatabase, compare_images
+from host.evaluate.masks import OBJECT_LEVEL, alpha_object_mask
+from host.fit.model import HostModel
+from host.render.camera import Camera, parse_view_set
+from host.render.cinema import CinemaDB
+from host.render.raycast import DEPTH_HALF, DEPTH_MEAN
+from host.render.settings import RenderSettings, ViewRenderer
+from host.shared_data import shared_volume
+
+#: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
+#: within this of the nearest one are blended, the rest are hidden.
+Z_TOLERANCE = 0.02
+#: Only splat corners with at least this bilinear weight write the z-buffer (each source pixel
+#: writes at least its nearest target pixel): a neighbour's far corner would otherwise hide
+#: a pixel on a steep surface, e.g. at the silhouette.
+ZBUF_SPLAT_MIN = 0.25
+#: A pixel is covered when the bilinear splat weights landing on it (z-test passed) sum
+#: to at least this.
+COVERAGE_MIN = 0.5
+#: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
+#: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
+HOLE_PASSES = 2
+HOLE_NEIGHBOURS = 4
+#: Depth PCA: score quantization noise (mm^2 per pixel) and the depth cells' side.
+DEPTH_SCORE_MSE = 0.05
+DEPTH_CELL = 16
+DEPTH_SIZE = 256
+#: WebP image database quality (evaluate's default).
+WEBP_QUALITY = 80
+#: Training views whose depth reconstruction error is reported (evenly spread).
+DEPTH_CHECK_VIEWS = 60
+VARIANTS = {"half": DEPTH_HALF, "mean": DEPTH_MEAN}
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+class Warper:
+    """Forward warping between the orbit cameras of one framing, at one image size.
+
+    Every orbit camera of a database has the same intrinsics, so each pixel's unit ray in
+    camera coordinates (right, up, forward) is computed once; a view's world rays are its
+    rotation of them (`host.render.camera.Camera.rays`, perspective only).
+    """
+
+    def __init__(self, settings: RenderSettings, width: int, height: int) -> None:
+        if settings.projection != "perspective":
+            raise SystemExit("warp_views: only perspective databases are supported")
+        self.settings = settings
+        self.width, self.height = int(width), int(height)
+        self.half = math.tan(math.radians(settings.fov_deg) / 2.0)
+        xs, ys = Camera._pixel_centres(self.width, self.height)
+        gx, gy = np.meshgrid(xs * self.half, ys * self.half)
+        d = np.stack([gx, gy, np.ones_like(gx)], axis=-1)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        d = d.reshape(-1, 3).astype(np.float32)  # (h*w, 3) camera coordinates
+        self.dx, self.dy, self.dz = (np.ascontiguousarray(d[:, k]) for k in range(3))
+        self.tol_mm = Z_TOLERANCE * 2.0 * settings.radius_mm
+
+    def camera(self, phi: float, theta: float) -> tuple[np.ndarray, np.ndarray]:
+        """(position (3,), rotation (3, 3) whose columns are right, up, forward)."""
+        cam = self.settings.camera(phi, theta)
+        f, r, u = cam.basis()
+        return cam.position.astype(np.float64), np.stack([r, u, f], axis=1)
+
+    def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
+             valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
+             weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """`forward_warp` with this warper's geometry; uint8 (h, w, 3)."""
+        return forward_warp(self, colours, depths, valid, sources, weights, target)
+
+
+def forward_warp(w: Warper, colours: list[np.ndarray], depths: list[np.ndarray],
+                 valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
+                 weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Forward-warp source views into the target camera, z-test, blend, fill holes.
+
+    Each valid source pixel is unprojected with its depth (distance along its ray) and
+    projected into the target camera; it splats bilinearly onto the 4 pixels around where it
+    lands. A z-buffer (``np.minimum.at``) keeps, per target pixel, the nearest splat's
+    forward distance (of the splats with bilinear weight >= ``ZBUF_SPLAT_MIN``); splats within
+    ``Z_TOLERANCE`` of it are blended with weight (splat
+    weight x the view's interpolation weight), the rest are hidden. Pixels whose passing
+    splat weights (without the view weights: a pixel one view alone sees counts) sum below
+    ``COVERAGE_MIN`` are holes; `fill_holes` closes the cracks among covered pixels. Pure
+    numpy, no per-pixel Python loop; splats land on a grid one pixel larger on every side,
+    so nothing needs masking.
+
+    Parameters
+    ----------
+    colours : list of ndarray (h, w, 3) uint8
+    depths : list of ndarray (h, w) float32
+        Distances in mm along each pixel's ray from the camera (NaN: none).
+    valid : list of ndarray (h, w) bool
+        Pixels that carry the object.
+    sources, target : (position (3,), rotation (3, 3)) from `Warper.camera`
+    weights : ndarray (m,)
+        Interpolation weights of the sources.
+    """
+    h, wd = w.height, w.width
+    w2 = wd + 2
+    n = (h + 2) * w2
+    p_t, r_t = target
+    idx_parts, z_parts, ws_parts, wv_parts, col_parts = [], [], [], [], []
+    for colour, depth, ok, (p_s, r_s), wv in zip(colours, depths, valid, sources, weights):
+        if wv <= 0.0:
+            continue
+        flat = (ok & np.isfinite(depth)).reshape(-1)
+        src = np.flatnonzero(flat)
+        t = depth.reshape(-1)[src].astype(np.float32)
+        m = (r_t.T @ r_s).astype(np.float32)
+        b = (r_t.T @ (p_s - p_t)).astype(np.float32)
+        dx, dy, dz = w.dx[src], w.dy[src], w.dz[src]
+        cx = (dx * m[0, 0] + dy * m[0, 1] + dz * m[0, 2]) * t + b[0]
+        cy = (dx * m[1, 0] + dy * m[1, 1] + dz * m[1, 2]) * t + b[1]
+        z = (dx * m[2, 0] + dy * m[2, 1] + dz * m[2, 2]) * t + b[2]
+        scale = np.float32(1.0 / w.half) / np.maximum(z, np.float32(1e-3))
+        col = (cx * scale * np.float32(h / wd) + 1.0) * np.float32(0.5 * wd) - 0.5
+        row = (1.0 - cy * scale) * np.float32(0.5 * h) - 0.5
+        # beyond the padded grid (or behind the camera): no weight, parked on the border
+        out = (col < -1) | (col >= wd) | (row < -1) | (row >= h) | (z <= 1e-3)
+        col[out] = -1.0
+        row[out] = -1.0
+        c0 = np.floor(col)
+        r0 = np.floor(row)
+        fx = col - c0
+        fy = row - r0
+        inside = (~out).astype(np.float32) * np.float32(wv > 0)
+        base = (r0.astype(np.int64) + 1) * w2 + (c0.astype(np.int64) + 1)
+        idx_parts += [base, base + 1, base + w2, base + w2 + 1]
+        z_parts += [z] * 4
+        ws_parts += [(1 - fx) * (1 - fy) * inside, fx * (1 - fy) * inside,
+                     (1 - fx) * fy * inside, fx * fy * inside]
+        wv_parts.append(np.full(4 * src.size, wv, np.float32))
+        rgb = colour.reshape(-1, 3)[src].astype(np.float32)
+        col_parts += [rgb] * 4
+    frame = np.zeros((h, wd, 3), dtype=np.uint8)
+    if not idx_parts:
+        return frame
+    idx = np.concatenate(idx_parts)
+    z = np.concatenate(z_parts)
+    ws = np.concatenate(ws_parts)
+    rgb = np.concatenate(col_parts)
+    zbuf = np.full(n, np.inf, dtype=np.float32)
+    near = ws >= ZBUF_SPLAT_MIN
+    np.minimum.at(zbuf, idx[near], z[near])
+    ws *= z <= zbuf[idx] + np.float32(w.tol_mm)
+    # coverage counts the splat weights alone: a pixel that one view alone sees is covered
+    # however small that view's interpolation weight
+    covered = np.bincount(idx, ws, minlength=n) >= COVERAGE_MIN
+    ws *= np.concatenate(wv_parts)
+    total = np.bincount(idx, ws, minlength=n)
+    acc = np.stack([np.bincount(idx, ws * rgb[:, k], minlength=n) for k in range(3)], axis=1)
+    covered &= total > 0
+    acc[covered] /= total[covered, None]
+    acc[~covered] = 0.0
+    inner = acc.reshape(h + 2, w2, 3)[1:-1, 1:-1].astype(np.float32)
+    inner = fill_holes(inner, covered.reshape(h + 2, w2)[1:-1, 1:-1])
+    np.clip(np.rint(inner), 0, 255, out=inner)
+    frame[...] = inner
+    return frame
+
+
+def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """Fill uncovered pixels with the mean of their covered 3x3 neighbours where at least
+    ``HOLE_NEIGHBOURS`` of the 8 are covered, ``HOLE_PASSES`` times (cracks close, the
+    silhouette does not grow)."""
+    h, w = covered.shape
+    for _ in range(HOLE_PASSES):
+        if covered.all():
+            break
+        cp = np.pad(covered, 1).astype(np.float32)
+        fp = np.pad(frame * covered[..., None], ((1, 1), (1, 1), (0, 0)))
+        count = np.zeros((h, w), np.float32)
+        acc = np.zeros((h, w, 3), np.float32)
+        for dy in range(3):
+            for dx in range(3):
+                if dy == 1 and dx == 1:
+                    continue
+                count += cp[dy:dy + h, dx:dx + w]
+                acc += fp[dy:dy + h, dx:dx + w]
+        fill = ~covered & (count >= HOLE_NEIGHBOURS)
+        if not fill.any():
+            break
+        frame[fill] = acc[fill] / count[fill, None]
+        covered = covered | fill
+    return frame
+
+
+def upsample2(d: np.ndarray) -> np.ndarray:
+    """Bilinear x2 upsampling with pixel centres aligned (edges clamped), float32."""
+    d = np.asarray(d, dtype=np.float32)
+
+    def along(a: np.ndarray, axis: int) -> np.ndarray:
+        a = np.moveaxis(a, axis, 0)
+        prev = np.concatenate([a[:1], a[:-1]])
+        nxt = np.concatenate([a[1:], a[-1:]])
+        out = np.empty((2 * a.shape[0], *a.shape[1:]), np.float32)
+        out[0::2] = 0.75 * a + 0.25 * prev
+        out[1::2] = 0.75 * a + 0.25 * nxt
+        return np.moveaxis(out, 0, axis)
+
+    return along(along(d, 0), 1)
+
+
+def fill_nearest(depth: np.ndarray) -> np.ndarray:
+    """NaN pixels take the nearest finite pixel's value (smooth silhouettes for the PCA)."""
+    from scipy.ndimage import distance_transform_edt
+
+    bad = ~np.isfinite(depth)
+    if not bad.any():
+        return depth.astype(np.float32)
+    if bad.all():
+        return np.zeros_like(depth, dtype=np.float32)
+    i = distance_transform_edt(bad, return_distances=False, return_indices=True)
+    return depth[tuple(i)].astype(np.float32)
+
+
+def variant_depth(depth2: np.ndarray, variant: str) -> np.ndarray:
+    """One depth variant from (h, w, 2); ``half`` falls back to the mean where the opacity
+    never reaches 0.5 (faint rims)."""
+    if variant == "mean":
+        return depth2[..., DEPTH_MEAN]
+    half = depth2[..., DEPTH_HALF]
+    return np.where(np.isfinite(half), half, depth2[..., DEPTH_MEAN])
+
+
+# ----------------------------------------------------------------------------- depth PCA
+
+
+@dataclass
+class DepthEigenspace:
+    """A cell PCA of depth maps (mm relative to the camera distance), device-style storage:
+    float16 cell means, int8 components with a float32 scale each, an int16 score table."""
+
+    cell: int
+    shape: tuple[int, int]
+    mean: np.ndarray  # (n_cells, d) float32 (stored float16)
+    comps: np.ndarray  # (K, d) float32 = int8 * scale
+    counts: np.ndarray  # (n_cells,)
+    table: np.ndarray  # (n_views, K) int16
+    step: float
+    offset: float  # the camera distance subtracted
+
+    @property
+    def n_components(self) -> int:
+        return int(self.counts.sum())
+
+    def bytes(self) -> dict[str, int]:
+        d = self.cell * self.cell
+        return {"components_int8": self.n_components * d, "scales": 4 * self.n_components,
+                "means_f16": 2 * self.mean.shape[0] * d, "table_int16": 2 * self.table.size}
+
+    def reconstruct(self, view: int) -> np.ndarray:
+        """Depth map (h, w) float32 in mm along the rays, of training view ``view``."""
+        y = self.table[view].astype(np.float32) * np.float32(self.step)
+        cells = self.mean.copy()
+        nz = self.counts > 0
+        starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]])[nz]
+        cells[nz] += np.add.reduceat(self.comps * y[:, None], starts, axis=0)
+        return merge(cells, self.cell, self.shape) + np.float32(self.offset)
+
+
+def zstd_bytes(pca: DepthEigenspace, order: np.ndarray) -> dict[str, int]:
+    """Compressed sizes as an ``.ecs`` would hold the depth eigenspace: int8 components and
+    float16 means zstd-compressed at the image's level, the score table delta-coded in the
+    standalone order like the colour's (`host.fit.model.add_standalone_table`), the scales."""
+    import zstandard
+
+    from protocol.image import DEFAULT_LEVEL
+
+    cctx = zstandard.ZstdCompressor(level=DEFAULT_LEVEL)
+
+    def size(a: np.ndarray) -> int:
+        return len(cctx.compress(np.ascontiguousarray(a).tobytes()))
+
+    peak = np.maximum(np.abs(pca.comps).max(axis=1, keepdims=True), 1e-30)
+    comps = np.rint(pca.comps / (peak / 127.0)).astype(np.int8)
+    diffs = np.ascontiguousarray(pca.table[order].T)
+    diffs[:, 1:] = diffs[:, 1:] - diffs[:, :-1]
+    wide = diffs.astype(np.int32)
+    zz = ((wide << 1) ^ (wide >> 15)).astype(np.uint16)
+    coded = np.stack([(zz & 0xFF).astype(np.uint8), (zz >> 8).astype(np.uint8)], axis=1)
+    out = {"components": size(comps), "means": size(pca.mean.astype(np.float16)),
+           "table": min(size(coded), size(pca.table)), "scales": 4 * pca.n_components}
+    out["total"] = int(sum(out.values()))
+    return out
+
+
+def colour_bytes(model: HostModel) -> dict[str, int]:
+    """The colour device image's size and its standalone table's (delta-coded, zstd)."""
+    import dataclasses
+
+    import zstandard
+
+    from host.evaluate import eigenspace_bytes
+    from host.fit.model import add_standalone_table
+    from protocol.image import DEFAULT_LEVEL
+
+    image = dataclasses.replace(model.image, sections=dict(model.image.sections))
+    info = add_standalone_table(image, model.training_scores, eigenvalues=model.eigenvalues)
+    table = np.ascontiguousarray(image.sections[info["section"]])
+    packed = len(zstandard.ZstdCompressor(level=DEFAULT_LEVEL).compress(table.tobytes()))
+    return {"image": int(eigenspace_bytes(model)), "standalone_table": packed,
+            "components": int(model.image.n_coefficients)}
+
+
+def split(img: np.ndarray, cell: int) -> np.ndarray:
+    h, w = img.shape
+    return img.reshape(h // cell, cell, w // cell, cell).swapaxes(1, 2).reshape(-1, cell * cell)
+
+
+def merge(cells: np.ndarray, cell: int, shape: tuple[int, int]) -> np.ndarray:
+    h, w = shape
+    return cells.reshape(h // cell, w // cell, cell, cell).swapaxes(1, 2).reshape(h, w)
+
+
+def fit_depth_pcas(depths: np.ndarray, thresholds: list[float], offset: float
+                   ) -> dict[float, DepthEigenspace]:
+    """Adaptive cell PCA (the colour fit's rule: the fewest components per cell whose
+    eigenvalues reach ``threshold`` of the cell's variance) of filled depth maps (n, h, w)
+    float32, one eigenspace per threshold from one eigendecomposition per cell."""
+    n, h, w = depths.shape
+    cell = DEPTH_CELL
+    x = np.stack([split(d - np.float32(offset), cell) for d in depths], axis=1)  # (cells, n, d)
+    per_t: dict[float, tuple[list, list, list]] = {t: ([], [], []) for t in thresholds}
+    means = []
+    for c in range(x.shape[0]):
+        xc = x[c].astype(np.float64)
+        mu = xc.mean(axis=0)
+        xc -= mu
+        lam, vec = np.linalg.eigh(xc.T @ xc / max(n - 1, 1))
+        lam, vec = lam[::-1], vec[:, ::-1]
+        trace = float(lam.sum())
+        means.append(mu.astype(np.float16).astype(np.float32))
+        kmax = 0
+        ks = {}
+        for t in thresholds:
+            k = 0 if trace <= 1e-12 else min(
+                int(np.searchsorted(np.cumsum(lam) / trace, t - 1e-12) + 1), lam.size)
+            ks[t] = k
+            kmax = max(kmax, k)
+        y = xc @ vec[:, :kmax]
+        for t, k in ks.items():
+            comps, counts, scores = per_t[t]
+            comps.append(vec[:, :k].T)
+            counts.append(k)
+            scores.append(y[:, :k])
+    out = {}
+    for t, (comps, counts, scores) in per_t.items():
+        counts = np.array(counts)
+        v = np.concatenate(comps)
+        scale = np.maximum(np.abs(v).max(axis=1), 1e-12) / 127.0
+        vq = (np.rint(v / scale[:, None]) * scale[:, None]).astype(np.float32)
+        y = np.concatenate(scores, axis=1)
+        kmean = max(float(counts[counts > 0].mean()), 1.0) if counts.any() else 1.0
+        step = math.sqrt(12.0 * DEPTH_SCORE_MSE * cell * cell / kmean)
+        table = np.clip(np.rint(y / step), -32768, 32767).astype(np.int16)
+        out[t] = DepthEigenspace(cell, (h, w), np.stack(means), vq, counts, table, step, offset)
+    return out
+
+
+# ----------------------------------------------------------------------------- caches
+
+
+class Volume:
+    """One shared volume: its databases, models, renderers and depth caches."""
+
+    def __init__(self, name: str, cache: Path, sizes: list[int]) -> None:
+        self.name = name
+        self.cache = cache
+        self.dbs = {s: CinemaDB.open(f"/work/cache/{name}-{s}.cdb") for s in sizes}
+        if DEPTH_SIZE not in self.dbs:
+            self.dbs[DEPTH_SIZE] = CinemaDB.open(f"/work/cache/{name}-{DEPTH_SIZE}.cdb")
+        self.models = {s: HostModel.load(f"/work/cache/{name}-{s}.ecs") for s in sizes}
+        source = shared_volume(name)
+        if source is None:
+            raise SystemExit(f"warp_views: shared volume {name!r} not found (../shared/data)")
+        self.scenes: dict[int, ViewRenderer] = {}
+        self.settings: dict[int, RenderSettings] = {}
+        for s, db in self.dbs.items():
+            st = RenderSettings.from_record(db.settings, what=str(db.path))
+            self.settings[s] = st
+            self.scenes[s] = ViewRenderer.open(st, str(source), what=str(db.path))
+        st = self.settings[DEPTH_SIZE]
+        self.distance = st.radius_mm / math.sin(math.radians(st.fov_deg) / 2.0)
+
+    def training_depths(self) -> np.ndarray:
+        """(n_views, 256, 256, 2) float32 memmap of every training view's two depths."""
+        path = self.cache / f"{self.name}-{DEPTH_SIZE}-train-depth.npy"
+        done = path.with_suffix(".done")
+        db = self.dbs[DEPTH_SIZE]
+        if done.exists():
+            return np.load(path, mmap_mode="r")
+        h, w = db.image_shape
+        arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32,
+                                        shape=(db.n_views, h, w, 2))
+        scene = self.scenes[DEPTH_SIZE]
+        t0 = time.perf_counter()
+        for i in range(db.n_views):
+            rgb, _alpha, depth = scene.render_with_depth(float(db.phi_deg[i]),
+                                                         float(db.theta_deg[i]))
+            if i % 300 == 0 and not np.array_equal(rgb, db.read_image(i)):
+                raise SystemExit(f"{self.name}: view {i} differs from the database's image")
+            arr[i] = depth
+            if (i + 1) % 100 == 0:
+                print(f"  {self.name} training depths {i + 1}/{db.n_views} "
+                      f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+        arr.flush()
+        del arr
+        done.write_text("ok")
+        return np.load(path, mmap_mode="r")
+
+    def view_depth(self, size: int, index: int) -> np.ndarray:
+        """Training view ``index``'s two depths at ``size`` (cached per view)."""
+        if size == DEPTH_SIZE:
+            return np.asarray(self.training_depths()[index])
+        path = self.cache / f"{self.name}-{size}-depth-{index:04d}.npy"
+        if path.exists():
+            return np.load(path)
+        db = self.dbs[size]
+        rgb, _alpha, depth = self.scenes[size].render_with_depth(float(db.phi_deg[index]),
+                                                                 float(db.theta_deg[index]))
+        if not np.array_equal(rgb, db.read_image(index)):
+            raise SystemExit(f"{self.name}-{size}: view {index} differs from the database's")
+        np.save(path, depth)
+        return depth
+
+    def held_out(self, size: int, phi: float, theta: float, k: int) -> tuple[np.ndarray, ...]:
+        """A fresh ray-cast of held-out view ``k``: (rgb8, alpha)."""
+        path = self.cache / f"{self.name}-{size}-test-{k:03d}-{phi:.6f}-{theta:.6f}.npz"
+        if path.exists():
+            z = np.load(path)
+            return z["rgb"], z["alpha"]
+        rgb, alpha = self.scenes[size].render(phi, theta)
+        np.savez(path, rgb=rgb, alpha=alpha)
+        return rgb, alpha
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def depth_pcas(vol: Volume, thresholds: list[float]
+               ) -> tuple[dict[str, dict[float, DepthEigenspace]], dict]:
+    """Fit the depth eigenspaces of each variant at each threshold; report components, bytes
+    and the depth error on object pixels of training views."""
+    depths = vol.training_depths()
+    out, report = {}, {}
+    n = depths.shape[0]
+    check = np.unique(np.linspace(0, n - 1, DEPTH_CHECK_VIEWS).round().astype(int))
+    for variant in VARIANTS:
+        t0 = time.perf_counter()
+        filled = np.stack([fill_nearest(variant_depth(depths[i], variant)) for i in range(n)])
+        pcas = fit_depth_pcas(filled, thresholds, vol.distance)
+        del filled
+        fit_s = time.perf_counter() - t0
+        report[variant] = {}
+        for t, pca in pcas.items():
+            err = []
+            for i in check:
+                truth = variant_depth(depths[i], variant)
+                ok = np.isfinite(truth)
+                err.append(np.square(pca.reconstruct(int(i))[ok] - truth[ok]))
+            rmse = float(np.sqrt(np.concatenate(err).mean()))
+            b = pca.bytes()
+            order = np.lexsort((np.mod(vol.dbs[DEPTH_SIZE].phi_deg, 360.0),
+                                vol.dbs[DEPTH_SIZE].theta_deg))
+            report[variant][str(t)] = {
+                "zstd_bytes": zstd_bytes(pca, order),
+                "threshold": t,
+                "components": pca.n_components,
+                "components_per_cell": float(pca.counts.mean()),
+                "bytes": b,
+                "bytes_total": int(sum(b.values())),
+                "score_step_mm": pca.step,
+                "rmse_object_mm": rmse,
+                "fit_s": fit_s,
+            }
+            print(f"  {vol.name} depth PCA {variant}: T={t} K={pca.n_components} "
+                  f"({pca.counts.mean():.2f}/cell), {sum(b.values()) / 1e6:.2f} MB raw, "
+                  f"{report[variant][str(t)]['zstd_bytes']['total'] / 1e6:.2f} MB zstd, "
+                  f"RMSE {rmse:.3f} mm", file=sys.stderr, flush=True)
+        out[variant] = pcas
+    return out, report
+
+
+def run_case(vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace]],
+             threshold: float, views: np.ndarray, images: Path | None) -> dict:
+    model = vol.models[size]
+    db = vol.dbs[size]
+    st = vol.settings[size]
+    warper = Warper(st, st.width, st.height)
+    device = DevicePath(model)
+    training = TrainingImages(model, None)
+    training.db = db  # the model's provenance names the database relatively
+    webp = WebPDatabase(model, training, WEBP_QUALITY, encode_all=False)
+    step_rec: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def rec_colour(i: int) -> np.ndarray:
+        if i not in step_rec:
+            y = model.quantize(model.training_scores[i])
+            step_rec[i] = (model.reconstruct(y), y)
+        return step_rec[i][0]
+
+    def rec_depth(i: int, variant: str, t: float = threshold) -> np.ndarray:
+        d = pcas[variant][t].reconstruct(i)
+        return upsample2(d) if size == 2 * DEPTH_SIZE else d
+
+    per_view = []
+    timing: dict[str, list[float]] = {"blend": [], "warp": [], "device_frame": [],
+                                      "colour_reconstructs": [], "depth_reconstructs": []}
+    picture = None
+    for k, (phi, theta) in enumerate(views):
+        phi, theta = float(phi), float(theta)
+        truth, alpha = vol.held_out(size, phi, theta, k)
+        mask = alpha_object_mask(alpha)
+        idx, w = model.interpolator.weights(phi, theta)
+        idx = np.asarray(idx).ravel().astype(int)
+        w = np.asarray(w, dtype=np.float64).ravel()
+        target = warper.camera(phi, theta)
+        sources = [warper.camera(float(db.phi_deg[i]), float(db.theta_deg[i])) for i in idx]
+        true_rgb = [db.read_image(int(i)) for i in idx]
+        true_d = [vol.view_depth(size, int(i)) for i in idx]
+        true_ok = [c.max(axis=2) > 0 for c in true_rgb]
+        rec_rgb = [rec_colour(int(i)) for i in idx]
+        rec_ok = [c.max(axis=2) > OBJECT_LEVEL for c in rec_rgb]
+        frames: dict[str, np.ndarray] = {}
+        t0 = time.perf_counter()
+        frames["blend"] = model.view(phi, theta)
+        timing["blend"].append(time.perf_counter() - t0)
+        frames["webp_db"] = webp.frame(phi, theta)
+        frames["oracle"], _ = device.projection_frame(truth)
+        for variant in VARIANTS:
+            d = [variant_depth(x, variant) for x in true_d]
+            frames[f"warp_true_{variant}"] = warper.warp(true_rgb, d, true_ok, sources, w,
+                                                         target)
+            if variant == "half":
+                frames["warp_rec_half_truedepth"] = warper.warp(rec_rgb, d, rec_ok, sources, w,
+                                                                target)
+                if size == 2 * DEPTH_SIZE:
+                    low = [upsample2(fill_nearest(variant_depth(vol.view_depth(DEPTH_SIZE,
+                                                                               int(i)), variant)))
+                           for i in idx]
+                    frames["warp_true_half_d256"] = warper.warp(true_rgb, low, true_ok,
+                                                                sources, w, target)
+            rd = [rec_depth(int(i), variant) for i in idx]
+            t0 = time.perf_counter()
+            frames[f"warp_rec_{variant}"] = warper.warp(rec_rgb, rd, rec_ok, sources, w, target)
+            if variant == "half":
+                timing["warp"].append(time.perf_counter() - t0)
+                for t in pcas[variant]:
+                    if t != threshold:
+                        rd = [rec_depth(int(i), variant, t) for i in idx]
+                        frames[f"warp_rec_half_T{t}"] = warper.warp(rec_rgb, rd, rec_ok,
+                                                                    sources, w, target)
+        # the whole device frame: 4 colour + 4 depth reconstructions, upsampling, the warp
+        t0 = time.perf_counter()
+        cols = [model.reconstruct(step_rec[int(i)][1]) for i in idx]
+        t1 = time.perf_counter()
+        oks = [c.max(axis=2) > OBJECT_LEVEL for c in cols]
+        ds = [rec_depth(int(i), "half") for i in idx]
+        t2 = time.perf_counter()
+        warper.warp(cols, ds, oks, sources, w, target)
+        t3 = time.perf_counter()
+        timing["device_frame"].append(t3 - t0)
+        timing["colour_reconstructs"].append(t1 - t0)
+        timing["depth_reconstructs"].append(t2 - t1)
+        rec = {"phi_deg": phi, "theta_deg": theta, "object_fraction": float(mask.mean())}
+        for name, fr in frames.items():
+            c = compare_images(truth, fr, mask=mask)
+            rec[name] = {"ssim_object": c.ssim_object, "flip_object": c.flip_object,
+                         "psnr_object": c.psnr_object}
+        per_view.append(rec)
+        if k == 0:
+            picture = (truth, frames)
+        print(f"  {vol.name}-{size} view {k + 1}/{len(views)}: blend "
+              f"{rec['blend']['ssim_object']:.3f} warp_rec_half "
+              f"{rec['warp_rec_half']['ssim_object']:.3f} oracle "
+              f"{rec['oracle']['ssim_object']:.3f}", file=sys.stderr, flush=True)
+    names = list(per_view[0].keys() - {"phi_deg", "theta_deg", "object_fraction"})
+    means = {m: {key: float(np.mean([v[m][key] for v in per_view]))
+                 for key in ("ssim_object", "flip_object", "psnr_object")} for m in names}
+    blend, oracle = means["blend"], means["oracle"]
+    gap = {}
+    for m in names:
+        gap[m] = {key: (means[m][key] - blend[key]) / (oracle[key] - blend[key])
+                  if oracle[key] != blend[key] else math.nan
+                  for key in ("ssim_object", "flip_object")}
+    ms = {k: 1e3 * float(np.median(v)) for k, v in timing.items()}
+    if images is not None and picture is not None:
+        save_picture(images / f"warp-{vol.name}-{size}.jpg", *picture)
+    return {"volume": vol.name, "size": size, "views": len(per_view), "means": means,
+            "colour_bytes": colour_bytes(model),
+            "gap_closed": gap, "median_ms": ms,
+            "ratio_to_blend": {k: ms[k] / ms["blend"] for k in ms},
+            "z_tolerance_mm": warper.tol_mm, "per_view": per_view}
+
+
+def save_picture(path: Path, truth: np.ndarray, frames: dict[str, np.ndarray]) -> None:
+    """true | blend | warp (b) | oracle, and the warp's FLIP error map, as one JPEG."""
+    from PIL import Image
+
+    from host.evaluate.metrics import flip_error_map
+
+    err = flip_error_map(truth, frames["warp_rec_half"])
+    heat = (np.clip(err, 0, 1)[..., None] * np.array([255, 200, 60])).astype(np.uint8)
+    tiles = [truth, frames["blend"], frames["warp_rec_half"], frames["oracle"], heat]
+    row = np.concatenate([np.pad(t, ((2, 2), (2, 2), (0, 0)), constant_values=255)
+                          for t in tiles], axis=1)
+    image = Image.fromarray(row)
+    if image.width > 1300:
+        image = image.resize((image.width // 2, image.height // 2), Image.LANCZOS)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image.save(path, quality=85, optimize=True)
+
+
+def print_tables(results: list[dict], depth: dict) -> None:
+    methods = ["blend", "webp_db", "oracle", "warp_true_half", "warp_true_mean",
+               "warp_true_half_d256", "warp_rec_half", "warp_rec_mean",
+               "warp_rec_half_truedepth"]
+    methods += sorted({m for r in results for m in r["means"] if m.startswith("warp_rec_half_T")})
+    heads = [f"{r['volume']} {r['size']}" for r in results]
+    print("| method (SSIM obj / FLIP obj) | " + " | ".join(heads) + " |")
+    print("|---" * (len(heads) + 1) + "|")
+    for m in methods:
+        cells = []
+        for r in results:
+            v = r["means"].get(m)
+            cells.append("–" if v is None else f"{v['ssim_object']:.4f} / {v['flip_object']:.4f}")
+        print(f"| {m} | " + " | ".join(cells) + " |")
+    print()
+    print("| gap closed (SSIM obj / FLIP obj) | " + " | ".join(heads) + " |")
+    print("|---" * (len(heads) + 1) + "|")
+    for m in methods:
+        if m in ("blend", "oracle"):
+            continue
+        cells = []
+        for r in results:
+            v = r["gap_closed"].get(m)
+            cells.append("–" if v is None else f"{v['ssim_object']:.2f} / {v['flip_object']:.2f}")
+        print(f"| {m} | " + " | ".join(cells) + " |")
+    print()
+    print("| median ms per frame | " + " | ".join(heads) + " |")
+    print("|---" * (len(heads) + 1) + "|")
+    for key in ("blend", "warp", "colour_reconstructs", "depth_reconstructs", "device_frame"):
+        cells = [f"{r['median_ms'][key]:.1f} ({r['ratio_to_blend'][key]:.1f}x)" for r in results]
+        print(f"| {key} | " + " | ".join(cells) + " |")
+    print()
+    for name, rep in depth.items():
+        for variant, by_t in rep.items():
+            for v in by_t.values():
+                print(f"depth PCA {name} {variant}: T={v['threshold']} K={v['components']} "
+                      f"({v['components_per_cell']:.2f}/cell) {v['bytes_total'] / 1e6:.2f} MB "
+                      f"raw {v['bytes']}, zstd {v['zstd_bytes']} RMSE "
+                      f"{v['rmse_object_mm']:.3f} mm")
+    for r in results:
+        c = r["colour_bytes"]
+        print(f"colour {r['volume']} {r['size']}: image {c['image'] / 1e6:.2f} MB, standalone "
+              f"table {c['standalone_table'] / 1e6:.2f} MB (K={c['components']})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--volumes", default="tooth,vismale_head")
+    ap.add_argument("--sizes", default="256,512")
+    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=15)
+    ap.add_argument("--cache", default="/work/cache/warp")
+    ap.add_argument("--images", default="docs/images", help="'' for no pictures")
+    ap.add_argument("-o", "--output", default="/work/cache/warp/results.json")
+    ap.add_argument("--depth-thresholds", default="0.99,0.999",
+                    help="depth PCA thresholds measured besides the colour model's T")
+    args = ap.parse_args(argv)
+    extra = [float(t) for t in args.depth_thresholds.split(",") if t]
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    sizes = [int(s) for s in args.sizes.split(",") if s]
+    if any(s not in (DEPTH_SIZE, 2 * DEPTH_SIZE) for s in sizes):
+        raise SystemExit(f"warp_views: sizes must be {DEPTH_SIZE} or {2 * DEPTH_SIZE}")
+    views = parse_view_set(f"random:{args.views}:{args.seed}").angles_deg()
+    images = Path(args.images) if args.images else None
+    results, depth = [], {}
+    for name in [v for v in args.volumes.split(",") if v]:
+        vol = Volume(name, cache, sizes)
+        threshold = next(iter(vol.models.values())).threshold or 0.98
+        thresholds = sorted({threshold, *extra})
+        pcas, depth[name] = depth_pcas(vol, thresholds)
+        for size in sizes:
+            results.append(run_case(vol, size, pcas, threshold, views, images))
+            Path(args.output).write_text(json.dumps({"partial": results}, default=float))
+    out = {"views": f"random:{args.views}:{args.seed}", "z_tolerance": Z_TOLERANCE,
+           "coverage_min": COVERAGE_MIN, "hole_passes": HOLE_PASSES,
+           "hole_neighbours": HOLE_NEIGHBOURS, "depth": depth, "cases": results}
+    Path(args.output).write_text(json.dumps(out, indent=1, default=float))
+    print_tables(results, depth)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

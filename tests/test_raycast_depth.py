@@ -1,0 +1,136 @@
+"""`Renderer.render_with_depth`: the two representative depths against closed forms.
+
+A sphere (signed-distance volume, opaque) gives the ray-sphere intersection distance; a
+homogeneous semi-transparent box gives Beer-Lambert's half-opacity distance and weighted
+mean; the RGBA equals `Renderer.render`'s bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from host.render.camera import View, orbit_camera
+from host.render.raycast import DEPTH_HALF, DEPTH_MEAN, Renderer
+from host.render.transfer import TransferFunction
+from host.volume import Volume
+
+
+def step_tf(alpha: float) -> TransferFunction:
+    """Nothing below u = 0.49, opacity ``alpha`` per unit length above u = 0.51."""
+    return TransferFunction(
+        name="step",
+        color_points=np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]),
+        opacity_points=np.array([[0.0, 0.0], [0.49, 0.0], [0.51, alpha], [1.0, alpha]]),
+        window=(0.0, 1.0),
+    )
+
+
+def sphere_volume(n: int = 40, radius: float = 12.0, center=(19.0, 21.0, 18.5)) -> Volume:
+    """u = 0.5 + (radius - r) / 2 (a signed distance, mm): u = 0.5 on the sphere."""
+    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float64)
+    r = np.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2)
+    return Volume((0.5 + (radius - r) / 2.0).astype(np.float32))
+
+
+def ray_sphere(origins, dirs, center, radius):
+    """Distance along each unit ray to its first sphere hit, NaN on a miss; and the miss
+    distance (closest approach minus radius)."""
+    oc = origins - np.asarray(center)
+    b = np.einsum("...k,...k", oc, dirs)
+    closest = np.sqrt(np.maximum(np.einsum("...k,...k", oc, oc) - b * b, 0.0))
+    disc = b * b - (np.einsum("...k,...k", oc, oc) - radius**2)
+    with np.errstate(invalid="ignore"):
+        t = -b - np.sqrt(disc)
+    t[disc < 0] = np.nan
+    return t, closest - radius
+
+
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+@pytest.mark.parametrize("view", [(0.0, 0.0), (37.0, 25.0), (200.0, -60.0)])
+def test_opaque_sphere_depth_is_the_ray_sphere_distance(projection, view):
+    center, radius = (19.0, 21.0, 18.5), 12.0
+    volume = sphere_volume(center=center, radius=radius)
+    renderer = Renderer(volume, step_tf(0.999), samples=400, shading=True)
+    camera = orbit_camera(View(*view), volume.center_mm, volume.radius_mm, projection=projection)
+    rgba, depth = renderer.render_with_depth(camera, 48, 40)
+    origins, dirs = camera.rays(48, 40)
+    t, miss = ray_sphere(origins, dirs, center, radius)
+    inside = miss < -1.0  # rays that hit the sphere away from its silhouette
+    outside = miss > 1.0
+    assert inside.sum() > 100 and outside.sum() > 100
+    # past the surface the extinction is sigma per mm: the opacity reaches 0.5 ln(2)/sigma
+    # behind it and the weighted mean lies 1/sigma behind it (exponential weights)
+    sigma = -math.log(1.0 - 0.999)
+    for channel, behind in ((DEPTH_HALF, math.log(2.0) / sigma), (DEPTH_MEAN, 1.0 / sigma)):
+        err = np.abs(depth[..., channel][inside] - (t[inside] + behind))
+        assert err.max() <= renderer.step_mm, (channel, err.max(), renderer.step_mm)
+        assert np.all(np.isnan(depth[..., channel][outside]))  # no object: marked NaN
+    # the mean lies behind the half-opacity point (opacity keeps adding behind it)
+    assert np.all(depth[..., DEPTH_MEAN][inside] >= depth[..., DEPTH_HALF][inside] - 1e-4)
+    assert np.all(rgba[..., 3][outside] == 0.0)
+
+
+def test_semi_transparent_box_depths_follow_beer_lambert():
+    # homogeneous box, orthographic rays along -x through 39 mm of it
+    volume = Volume(np.full((20, 20, 40), 0.5, dtype=np.float32))
+    alpha = 0.05  # per mm: 1 - 0.95**39 = 0.86 in total, below early termination
+    tf = TransferFunction(
+        name="constant",
+        color_points=np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]),
+        opacity_points=np.array([[0.0, alpha], [1.0, alpha]]),
+        window=(0.0, 1.0),
+    )
+    renderer = Renderer(volume, tf, step=0.25, shading=False)
+    camera = orbit_camera(View(0.0, 0.0), volume.center_mm, volume.radius_mm,
+                          projection="orthographic")
+    _rgba, depth = renderer.render_with_depth(camera, 24, 24)
+    origins, _ = camera.rays(24, 24)
+    t_in = origins[..., 0] - 39.0  # the box face x = 39 mm
+    hits = (np.abs(origins[..., 1] - 9.5) < 9.0) & (np.abs(origins[..., 2] - 9.5) < 9.0)
+    assert hits.sum() > 50
+    sigma = -math.log(1.0 - alpha)
+    length = 39.0
+    half = math.log(2.0) / sigma
+    e = math.exp(-sigma * length)
+    mean = (1.0 / sigma - (length + 1.0 / sigma) * e) / (1.0 - e)
+    np.testing.assert_allclose(depth[..., DEPTH_HALF][hits] - t_in[hits], half,
+                               atol=renderer.step_mm)
+    np.testing.assert_allclose(depth[..., DEPTH_MEAN][hits] - t_in[hits], mean,
+                               atol=renderer.step_mm)
+    assert min(half, mean) > 40 * renderer.step_mm  # deep inside, not at the entry face
+    # a box too thin to reach 0.5 has a mean depth but no half-opacity depth
+    thin = Renderer(volume, TransferFunction(
+        name="faint", color_points=tf.color_points,
+        opacity_points=np.array([[0.0, 0.005], [1.0, 0.005]]), window=(0.0, 1.0),
+    ), step=0.25, shading=False)
+    rgba_thin, depth_thin = thin.render_with_depth(camera, 24, 24)
+    assert np.all(np.isnan(depth_thin[..., DEPTH_HALF][hits]))
+    assert np.all(np.isfinite(depth_thin[..., DEPTH_MEAN][hits]))
+    assert np.all(rgba_thin[..., 3][hits] > 0.1)
+
+
+def test_rgba_is_bit_identical_to_render():
+    rng = np.random.default_rng(4)
+    from scipy.ndimage import gaussian_filter
+
+    data = gaussian_filter(rng.random((22, 20, 24)), 2.0)
+    data = ((data - data.min()) / (data.max() - data.min())).astype(np.float32)
+    volume = Volume(data, (1.0, 0.8, 1.2))
+    tf = TransferFunction(
+        name="ramp",
+        color_points=np.array([[0.0, 0.9, 0.3, 0.1], [0.5, 0.8, 0.8, 0.2], [1.0, 0.2, 0.4, 1.0]]),
+        opacity_points=np.array([[0.0, 0.0], [0.3, 0.0], [0.6, 0.25], [1.0, 0.7]]),
+        window=(0.0, 1.0),
+    )
+    renderer = Renderer(volume, tf, samples=200)
+    for view in [(30.0, 20.0), (250.0, -45.0)]:
+        camera = orbit_camera(View(*view), volume.center_mm, volume.radius_mm)
+        rgba, depth = renderer.render_with_depth(camera, 36, 30)
+        assert np.array_equal(rgba, renderer.render(camera, 36, 30))
+        assert depth.shape == (30, 36, 2) and depth.dtype == np.float32
+        hit = rgba[..., 3] > 0
+        assert hit.any() and np.all(np.isfinite(depth[..., DEPTH_MEAN][hit]))
+        assert np.all(np.isnan(depth[..., DEPTH_MEAN][~hit]))
