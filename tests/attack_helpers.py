@@ -35,7 +35,7 @@ import zstandard as zstd
 from protocol import messages as m
 from protocol._cobs import cobs_encode
 from protocol.framing import CRC, FRAME_VERSION, HEADER, FrameDecoder, encode_frame
-from protocol.scores import MAGIC, VERSION
+from protocol.scores import MAGIC
 
 __all__ = [
     "RawPeer",
@@ -82,6 +82,7 @@ def score_packet(
     base_frame: int = 0,
     flags: int = 0,
     payload: bytes | None = None,
+    version: int = 1,
 ) -> bytes:
     """A score packet built field by field (CODING 0 varints unless ``payload`` is given).
 
@@ -94,7 +95,7 @@ def score_packet(
         if steps is not None:
             body = np.asarray(steps, dtype="<f4").tobytes() + body
         payload = body
-    header = _HEADER.pack(MAGIC, VERSION, flags | (step_mode << 2), frame, base_frame,
+    header = _HEADER.pack(MAGIC, version, flags | (step_mode << 2), frame, base_frame,
                           view[0], view[1], k, tag[:4], step)
     return header + payload
 
