@@ -170,6 +170,37 @@ def overflow_packets(k: int, tag: bytes, view: tuple[float, float]) -> list[tupl
     return [(label, scores_frame(p, sequence=i + 1)) for i, (label, p) in enumerate(packets)]
 
 
+def correction_attacks(k: int, tag: bytes, view: tuple[float, float]) -> list[tuple[str, bytes]]:
+    """Version-2 (predicted correction) score packets with every new field wrong: DELTA and
+    PREDICTED together (an unknown base), PREDICTED in a version-1 packet, the reserved bit 7,
+    a NaN / infinite / huge / out-of-range view, an overflowing step; last a well-formed one.
+
+    The right K and tag: only the checks of the new fields can stop them (the last one is
+    valid and must still not be shown by a device that does not predict or whose view is
+    another one).
+    """
+    big = float(2**31 - 1)
+    packets = [
+        ("DELTA and PREDICTED", score_packet(k, tag, flags=0x41, base_frame=3, view=view,
+                                             version=2)),
+        ("PREDICTED in version 1", score_packet(k, tag, flags=0x40, view=view, version=1)),
+        ("reserved bit 7 in version 2", score_packet(k, tag, flags=0xC0, view=view,
+                                                     version=2)),
+        ("unknown version 3", score_packet(k, tag, flags=0x40, view=view, version=3)),
+        ("view NaN", score_packet(k, tag, flags=0x40, view=(float("nan"), 0.0), version=2)),
+        ("view inf", score_packet(k, tag, flags=0x40, view=(0.0, float("-inf")), version=2)),
+        ("view huge", score_packet(k, tag, flags=0x40, view=(3e38, 0.0), version=2)),
+        ("phi 360", score_packet(k, tag, flags=0x40, view=(360.0, 0.0), version=2)),
+        ("theta 90.5", score_packet(k, tag, flags=0x40, view=(10.0, 90.5), version=2)),
+        ("step 3e38, q = 2^31-1", score_packet(k, tag, flags=0x40, q=[int(big)], step=3e38,
+                                               view=view, version=2)),
+    ]
+    valid = ("well-formed correction", score_packet(k, tag, flags=0x40, q=[3, -2], view=view,
+                                                    version=2, frame=99))
+    return [(label, scores_frame(p, sequence=i + 1))
+            for i, (label, p) in enumerate([*packets, valid])]
+
+
 def _deep(depth: int) -> bytes:
     return b"\x81" * depth + b"\x00"
 
