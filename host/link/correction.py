@@ -28,7 +28,13 @@ import numpy as np
 
 from device_runtime.prediction import PREDICTION_PACKET_VERSION, Predictor, corrected
 from host.fit.model import HostModel
-from host.fit.rate import DEFAULT_RD_KAPPA, rd_delta, rd_quantize, ssim_cell_weights
+from host.fit.rate import (
+    DEFAULT_CORRECTION_KAPPA,
+    DEFAULT_CORRECTION_STEP_FACTOR,
+    rd_delta,
+    rd_quantize,
+    ssim_cell_weights,
+)
 from host.link.serving import SCORE_LEVEL, FrameEncoder
 from host.link.true_views import TrueViewScores
 from protocol import messages as m
@@ -45,11 +51,6 @@ __all__ = [
     "predict_encoder",
 ]
 
-#: Correction step = this x the model's score step (bench_link: x2 with kappa 0.15 gave the
-#: best object SSIM over the drag and orbit traces on a 115200 line).
-DEFAULT_CORRECTION_STEP_FACTOR = 2.0
-#: Lagrangian factor of the correction's RD quantizer (`host.fit.rate.rd_lambda`).
-DEFAULT_CORRECTION_KAPPA = DEFAULT_RD_KAPPA
 
 
 def model_predictor(model: HostModel) -> Predictor | None:
@@ -105,13 +106,14 @@ def begin_predict(run: Any, hello: m.HelloReply) -> None:
     if why is None:
         if run.scores != "predict":
             run.say(f"device '{hello.device_id}' predicts: sending corrections again")
-        run.scores = "predict"
+        run.scores, run.motion = "predict", None  # no sparse refinements between corrections
         return
-    if run.motion is None:
+    if encoder.fallback is None:
         from host.fit.motion import MotionScores
 
-        run.motion = MotionScores(encoder.model, run.true_views.renderer)
-        run.motion.budget_s = run.pace.budget_s
+        encoder.fallback = MotionScores(encoder.model, run.true_views.renderer)
+    run.motion = encoder.fallback
+    run.motion.budget_s = run.pace.budget_s
     if run.scores == "predict":
         run.say(f"device '{hello.device_id}' {why}: sending motion scores instead of "
                 "corrections")
@@ -203,6 +205,7 @@ class CorrectionEncoder(FrameEncoder):
         self.step = float(model.score_step * step_factor)
         self.kappa = float(kappa)
         self.enabled = True
+        self.fallback: Any = None  # the motion source of sessions with a device that cannot
         self.last_kind = "key"
         self._full: EncodedScores | None = None  # the last full frame sent (delta base)
         self._full_y: np.ndarray | None = None
