@@ -494,7 +494,9 @@ class _DeviceThreads:
         on_frame = ((lambda f, info: self.shown.append((time.monotonic(), f.copy(),
                                                         dict(info or {}))))
                     if record else None)
-        self.device = RuntimeDevice(DeviceConfig(flash_dir=flash, key=None, insecure=True),
+        # frames as large as the model's key packets (eigencast-device --max-frame 65536)
+        config = DeviceConfig(flash_dir=flash, key=None, insecure=True, max_frame_bytes=65536)
+        self.device = RuntimeDevice(config,
                                     predict=predict, view=view, on_frame=on_frame,
                                     presenter=_Presenter(), log=lambda line: None)
         self.stop_event = threading.Event()
@@ -553,6 +555,7 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
     import threading
     import uuid
 
+    from device_runtime.orbit import canonical_view
     from host.link.serving import serve
     from host.link.true_views import TrueViewScores
 
@@ -588,7 +591,8 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
         for i, view in enumerate(trace):
             target = t0 + i * dt
             time.sleep(max(0.0, target - time.monotonic()))
-            device.set_view(*view)
+            if canonical_view(*view) != device.view:  # a resting hand sends no event
+                device.set_view(*view)
         time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
         t_end = time.monotonic()
         wire = (device.link.stats.bytes_received if device.link else 0) - sent0
