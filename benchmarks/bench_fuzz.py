@@ -46,6 +46,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from attack_helpers import (  # noqa: E402
     RawPeer,
+    correction_attacks,
     mutated_frames,
     overflow_packets,
     parser_attacks,
@@ -121,10 +122,15 @@ class Session:
 
 
 def _mutated_packet(rng: random.Random, k: int, tag: bytes) -> bytes:
+    # half of them predicted corrections (version 2, flags bit 6; issue 14), whose base kind,
+    # view and version bytes the mutations below then hit like any other field
+    predicted = rng.random() < 0.5
     packet = bytearray(score_packet(k, tag, q=[rng.randrange(-50, 50) for _ in range(8)],
                                     step=rng.choice([0.5, 14.4, 1e3]),
                                     view=(rng.uniform(0, 360), rng.uniform(-90, 90)),
-                                    frame=rng.randrange(1, 1 << 32)))
+                                    frame=rng.randrange(1, 1 << 32),
+                                    flags=0x40 if predicted else 0,
+                                    version=2 if predicted else 1))
     for _ in range(rng.randrange(0, 4)):
         at = rng.randrange(len(packet))
         packet[at] = rng.randrange(256)
@@ -141,6 +147,7 @@ def fuzz(open_peer, restart, n_inputs: int, *, seed: int, batch: int, k: int,
     stream = mutated_frames(rng, k, tag)
     named = (parser_attacks(random.Random(seed + 1), k, tag)
              + overflow_packets(k, tag, (123.0, 45.0))
+             + correction_attacks(k, tag, (123.0, 45.0))
              + unauthenticated_state_changes(random.Random(seed + 2)))
     sent = restarts = batches = dropped = resent = 0
     per_role = dict.fromkeys(ROLES, 0)

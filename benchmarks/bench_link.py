@@ -35,6 +35,22 @@ Per tick, what the device shows is compared to a fresh ray-cast of the tick's vi
 SSIM and FLIP (mask: ray-cast alpha). ``fps`` is the number of ticks showing a new frame per
 second of trace (at most ``--fps``).
 
+``real`` (issue 14): the same traces through a *real* session: ``eigencast serve`` (the
+`host.link.serving.serve` function, ray-casting on this machine's CPU) and a real
+`device_runtime.runtime.RuntimeDevice` (its own threads, its display loop at a window's
+60 Hz) over a paced ``mem://`` line at each baud. The trace's view is set on the device at
+each tick (as a drag in the window does); per tick the frame the device shows
+`SAMPLE_DELAY_S` after the tick's view was set (two display ticks) is compared with a fresh
+ray-cast of the tick's view (object SSIM, FLIP); fps counts ticks showing a frame not shown
+at the previous tick; bytes are wire bytes per score packet received during the trace.
+Modes (``--real-modes``): ``predict`` (``serve --scores predict`` to a device that
+predicts: the simulated ``pc``), ``render`` (the simulated ``project``) and ``interpolate``
+(``interp``) to a device that does not. The models get the standalone table first
+(``--predict-cache``: a copy of each cached model with `host.fit.model.add_standalone_table`
+attached, made once). The key part then also measures the *correction at rest*: the
+correction packet of a view (prediction + RD correction at the link step) against the
+smallest equal-SSIM WebP/AVIF.
+
 ``cells``: cell sizes (``--cells``) at 128 and 256: ``eigencast fit DB --cell C`` into
 ``--work``, then the ``key`` measurement of each (plus the interpolated frame's SSIM).
 
@@ -151,10 +167,11 @@ class Case:
         return self._renders[key]
 
     def packet(self, y: np.ndarray, step: float, base: EncodedScores | None = None,
-               frame: int = 1) -> EncodedScores:
+               frame: int = 1, predicted: bool = False) -> EncodedScores:
         m = self.model
         return encode_scores(y, step=step, frame=frame, view=(0.0, 0.0), image_digest=m.digest,
-                             base=base, n_components=m.image.n_components)
+                             base=base, n_components=m.image.n_components,
+                             predicted=predicted)
 
 
 def open_case(path: Path) -> Case:
@@ -208,7 +225,8 @@ def rd_settings(text: str) -> list[tuple[float, float]]:
 
 
 def key_frames(case: Case, n_views: int, rd: list[tuple[float, float]], *,
-               seed: int = 0) -> dict[str, dict[str, float]]:
+               seed: int = 0, correction_rd: tuple[float, float] = (2.0, DEFAULT_RD_KAPPA)
+               ) -> dict[str, dict[str, float]]:
     """Medians over random views of bytes, SSIM and the ratio to equal-SSIM WebP/AVIF."""
     m = case.model
     rng = np.random.default_rng(seed)
@@ -220,15 +238,22 @@ def key_frames(case: Case, n_views: int, rd: list[tuple[float, float]], *,
         w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
         ladders: dict[str, dict] = {c: {} for c in CODECS}
         tries = [("project (serve today)", m.score_step, m.quantize(y))]
+        pred = m.quantized_scores(*view) if "table_step" in m.image.score_quantization else None
         for f, k in rd:
             s = m.score_step * f
             tries.append((f"plain step x{f:g}", s, rd_quantize(m, y, step=s, lam=0.0))
                          if k == 0 else
                          (f"RD step x{f:g} kappa {k:g}", s,
                           rd_quantize(m, y, step=s, kappa=k, weights=w)))
+        if pred is not None:  # predict + correct at rest: the correction packet alone
+            f, k = correction_rd
+            c = rd_quantize(m, y - pred, step=m.score_step * f, kappa=k, weights=w)
+            tries.append((f"correction at rest (predict, step x{f:g} kappa {k:g})",
+                          m.score_step * f, c))
         for name, s, v in tries:
-            n = len(case.packet(v, s).packet)
-            ss = ssim_obj(rgb, m.reconstruct(v), mask)
+            predicted = name.startswith("correction")
+            n = len(case.packet(v, s, predicted=predicted).packet)
+            ss = ssim_obj(rgb, m.reconstruct(pred + v if predicted else v), mask)
             row = [n, ss] + [n / smallest_file(rgb, mask, ss, c, ladders[c]) for c in CODECS]
             rows.setdefault(name, []).append(row)
     return {name: dict(zip(["bytes", "ssim_object", "x_webp", "x_avif"],
@@ -298,7 +323,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
                 w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
                 pred = m.quantized_scores(*view)
                 corr = rd_quantize(m, p - pred, step=s_rd, kappa=kappa, weights=w)
-                enc = case.packet(corr, s_rd, frame=frame_no)
+                enc = case.packet(corr, s_rd, frame=frame_no, predicted=True)
                 return None, len(enc.packet), corr
         enc = case.packet(y, s, base=base, frame=frame_no)
         base, base_y = enc, y.astype(np.float64)
@@ -407,6 +432,220 @@ def link_table(title: str, res: dict[int, dict[str, dict]]) -> str:
     return "\n".join(lines)
 
 
+# --------------------------------------------------------------------------- real
+
+
+#: Simulated mode each real mode is checked against.
+REAL_MODES = {"predict": "pc", "render": "project", "interpolate": "interp"}
+
+
+def standalone_copy(path: Path, folder: Path) -> Path:
+    """``path``'s model with the standalone table attached, in ``folder`` (made once)."""
+    from host.fit.model import add_standalone_table, save_model
+
+    out = folder / path.name
+    if out.exists():
+        return out
+    folder.mkdir(parents=True, exist_ok=True)
+    model = HostModel.load(path)
+    if "table_step" not in model.image.score_quantization:
+        add_standalone_table(model.image, model.training_scores, eigenvalues=model.eigenvalues)
+    tmp = out.with_suffix(".tmp.ecs")
+    save_model(tmp, model.image, model.annex())
+    tmp.replace(out)
+    return out
+
+
+#: When a tick's frame is sampled, after the tick's view was set: two 60 Hz display ticks.
+SAMPLE_DELAY_S = 2.0 / 60.0
+
+
+class _Presenter:
+    """A window-like presenter that shows nothing: the runtime's display loop then runs at a
+    window's 60 Hz (a headless presenter polls at 20 Hz)."""
+
+    headless = False
+    overlay = False
+    zoom = 1.0
+
+    def poll(self) -> list:
+        return []
+
+    def present(self, frame: np.ndarray, info: dict | None = None, *,
+                overlay_lines: list[str] | None = None) -> bool:
+        return True
+
+    def close(self) -> None:
+        pass
+
+
+class _DeviceThreads:
+    """A keyless (``--insecure``) `RuntimeDevice` on ``url``: its link and its headless
+    display loop on threads; ``shown`` records (monotonic time, frame, info) per present."""
+
+    def __init__(self, flash: Path, url: str, baud: int, *, predict: bool,
+                 view: tuple[float, float], record: bool = True) -> None:
+        import threading
+
+        from device_runtime.device import DeviceConfig
+        from device_runtime.runtime import RuntimeDevice
+
+        self.shown: list[tuple[float, np.ndarray, dict]] = []
+        on_frame = ((lambda f, info: self.shown.append((time.monotonic(), f.copy(),
+                                                        dict(info or {}))))
+                    if record else None)
+        # frames as large as the model's key packets (eigencast-device --max-frame 65536)
+        config = DeviceConfig(flash_dir=flash, key=None, insecure=True, max_frame_bytes=65536)
+        self.device = RuntimeDevice(config,
+                                    predict=predict, view=view, on_frame=on_frame,
+                                    presenter=_Presenter(), log=lambda line: None)
+        self.stop_event = threading.Event()
+        ready = threading.Event()
+        self.threads = [
+            threading.Thread(target=self.device.run, args=(url,), daemon=True,
+                             kwargs={"baud": baud, "stop": self.stop_event,
+                                     "on_ready": lambda t: ready.set()}),
+            threading.Thread(target=self.device.run_display, args=(self.stop_event,),
+                             daemon=True)]
+        for t in self.threads:
+            t.start()
+        ready.wait(10)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        for t in self.threads:
+            t.join(10)
+        self.device.close_display()
+
+
+def _wait(predicate: Any, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def provisioned_flash(model_path: Path, work: Path) -> Path:
+    """A flash folder holding ``model_path``'s image (provisioned once, unpaced)."""
+    import uuid
+
+    from host.link.provisioning import provision
+
+    flash = work / f"flash-{model_path.stem}"
+    if (flash / ".done").exists():
+        return flash
+    name = f"bench-prov-{uuid.uuid4().hex[:8]}"
+    dev = _DeviceThreads(flash, f"mem://{name}?end=b&pace=0", 115200, predict=False,
+                         view=(0.0, 0.0), record=False)
+    try:
+        provision(model_path, f"mem://{name}?end=a&pace=0", insecure=True, show_progress=False,
+                  log=lambda line: None)
+    finally:
+        dev.stop()
+    (flash / ".done").write_text("ok")
+    return flash
+
+
+def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[float, float]],
+                 fps: float, baud: int, mode: str, work: Path) -> dict[str, float]:
+    """One real serve session over a paced mem:// line, driven by ``trace``."""
+    import shutil
+    import threading
+    import uuid
+
+    from device_runtime.orbit import canonical_view
+    from host.link.serving import serve
+    from host.link.true_views import TrueViewScores
+
+    flash = work / f"flash-run-{uuid.uuid4().hex[:8]}"
+    shutil.copytree(flash0, flash)
+    name = f"bench-real-{uuid.uuid4().hex[:8]}"
+    dev = _DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=mode == "predict",
+                         view=trace[0])
+    device = dev.device
+    stop = threading.Event()
+    out: dict[str, Any] = {}
+    views = TrueViewScores(case.model, case.renderer)  # a fresh cache: real ray-casts
+
+    def host() -> None:
+        out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
+                             scores=mode, stop=stop, log=lambda line: None, model=case.model,
+                             true_views=views, stats_every_s=0)
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    try:
+        # steady state before the trace: the device shows the host's frame of view 0
+        def settled() -> bool:
+            return any(i.get("sequence") and (i.get("phi_deg"), i.get("theta_deg")) == trace[0]
+                       for _, _, i in dev.shown)
+        if not _wait(settled, 60):
+            raise RuntimeError(f"{mode} at {baud}: no frame for the first view in 60 s")
+        time.sleep(0.2)
+        sent0 = device.link.stats.bytes_received if device.link else 0
+        packets0 = device.runtime_stats.packets
+        dt = 1.0 / fps
+        t0 = time.monotonic()
+        for i, view in enumerate(trace):
+            target = t0 + i * dt
+            time.sleep(max(0.0, target - time.monotonic()))
+            if canonical_view(*view) != device.view:  # a resting hand sends no event
+                device.set_view(*view)
+        time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
+        t_end = time.monotonic()
+        wire = (device.link.stats.bytes_received if device.link else 0) - sent0
+        packets = device.runtime_stats.packets - packets0
+    finally:
+        stop.set()
+        thread.join(30)
+        dev.stop()
+        shutil.rmtree(flash, ignore_errors=True)
+    stats = out.get("stats")
+    shown = dev.shown
+    ssims, flips, new = [], [], 0
+    prev = None
+    for i, view in enumerate(trace):
+        t_tick = min(t0 + i * dt + SAMPLE_DELAY_S, t_end)
+        k = max((j for j, (t, _, _) in enumerate(shown) if t <= t_tick), default=None)
+        if k is None:
+            continue
+        if prev is not None and k != prev:
+            new += 1
+        prev = k
+        rgb, mask = case.render(view)
+        s_, f_ = quality(rgb, shown[k][1], mask)
+        ssims.append(s_)
+        flips.append(f_)
+    seconds = len(trace) * dt
+    rs = device.runtime_stats
+    return {"fps": new / seconds, "ssim_object": float(np.mean(ssims)),
+            "flip_object": float(np.mean(flips)),
+            "bytes_per_frame": wire / packets if packets else float("nan"),
+            "line_use": wire / (baud / 10.0) / seconds,
+            "predicted": rs.predicted_frames, "corrected": rs.corrected_frames,
+            "stale": rs.stale_dropped,
+            "corrections": stats.correction_frames if stats else 0,
+            "host_frames": stats.frames if stats else 0,
+            "render_s": (stats.render_seconds / max(1, stats.rendered_views)) if stats else 0}
+
+
+def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
+    lines = [f"**{title}**", "",
+             "| baud | mode | fps shown | SSIM obj | FLIP obj | bytes/frame | line use | "
+             "predicted / corrected / stale |",
+             "|---|---|---|---|---|---|---|---|"]
+    for baud, modes in res.items():
+        for mode, r in modes.items():
+            extra = (f"{r['predicted']} / {r['corrected']} / {r['stale']}"
+                     if "predicted" in r else "")
+            lines.append(f"| {baud} | {mode} | {r['fps']:.1f} | {r['ssim_object']:.4f} | "
+                         f"{r['flip_object']:.4f} | {r['bytes_per_frame']:.0f} | "
+                         f"{100 * r['line_use']:.0f} % | {extra} |")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------- cells
 
 
@@ -479,6 +718,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="key part: step factor:kappa pairs (kappa 0: plain rounding)")
     ap.add_argument("--link-rd", default=f"2:{DEFAULT_RD_KAPPA}",
                     help="link part: step factor:kappa of the rd and pc modes")
+    ap.add_argument("--real-modes", default="predict,render,interpolate",
+                    help="real part: serve modes (each beside its simulated mode)")
+    ap.add_argument("--predict-cache", type=Path, default=Path("/work/cache/predict"),
+                    help="real part: where the models with the standalone table go")
     ap.add_argument("--cells", default="8,12,16,24")
     ap.add_argument("--cell-sizes", default="128,256")
     ap.add_argument("--write", type=Path, default=None,
@@ -501,18 +744,20 @@ def main(argv: list[str] | None = None) -> int:
     for size in [int(s) for s in args.sizes.split(",")]:
         for vol in volumes:
             path = args.cache / f"{vol}-{size}.ecs"
-            if not ({"key", "link"} & set(parts)):
+            if not ({"key", "link", "real"} & set(parts)):
                 break
             if not path.exists():
                 print(f"skip {vol}-{size}: no model {path}", flush=True)
                 continue
+            if "real" in parts:  # the device needs the table; the host predicts from it too
+                path = standalone_copy(path, args.predict_cache)
             case = open_case(path)
             m = case.model
             desc = (f"{vol} {size}x{size}, cells {m.image.cell_shape[0]}, K "
                     f"{m.image.n_coefficients}, step {m.score_step:.3g}")
             if "key" in parts:
                 t0 = time.perf_counter()
-                res = key_frames(case, args.key_views, rd)
+                res = key_frames(case, args.key_views, rd, correction_rd=link_rd)
                 table = key_table(f"key frames at rest: {desc} (median of "
                                   f"{args.key_views} views)", res)
                 print(table + f"\n({time.perf_counter() - t0:.0f} s)\n", flush=True)
@@ -530,6 +775,30 @@ def main(argv: list[str] | None = None) -> int:
                     print(table + f"\n({time.perf_counter() - t0:.0f} s)\n", flush=True)
                     tables.append(table)
                     record[f"link/{vol}-{size}/{trace}"] = {str(k): v for k, v in res.items()}
+            if "real" in parts:
+                flash0 = provisioned_flash(path, args.predict_cache / "work")
+                for trace_name in args.traces.split(","):
+                    t0 = time.perf_counter()
+                    trace = TRACES[trace_name](args.seconds, args.fps)
+                    res = {}
+                    for baud in [int(b) for b in args.bauds.split(",")]:
+                        res[baud] = {}
+                        for mode in args.real_modes.split(","):
+                            r = real_session(case, path, flash0, trace, args.fps, baud, mode,
+                                             args.predict_cache / "work")
+                            res[baud][f"real {mode}"] = r
+                            if "link" not in parts:  # the simulated twin, for the check
+                                sim = simulate(case, trace, args.fps, baud, REAL_MODES[mode],
+                                               rd=link_rd)
+                                res[baud][f"sim {REAL_MODES[mode]}"] = sim
+                            print(f"  {trace_name} {baud} {mode}: {r}", flush=True)
+                    table = real_table(
+                        f"real session: {desc}, {trace_name} {args.seconds:g} s at "
+                        f"{args.fps:g} ticks/s (serve + RuntimeDevice over a paced mem:// line; "
+                        f"host ray-casts on this CPU)", res)
+                    print(table + f"\n({time.perf_counter() - t0:.0f} s)\n", flush=True)
+                    tables.append(table)
+                    record[f"real/{vol}-{size}/{trace_name}"] = {str(k): v for k, v in res.items()}
     if "cells" in parts:
         tables += cells_part(args.cache, args.work, volumes,
                              [int(s) for s in args.cell_sizes.split(",")],

@@ -161,6 +161,10 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--standalone", action="store_true",
                       help="interpolate scores locally from the image's table (no host needed; "
                       "fit it with eigencast fit --standalone)")
+    show.add_argument("--no-predict", action="store_true",
+                      help="with a host: do not show this device's own prediction of a new "
+                      "view (default: when the image has the standalone table, show it at "
+                      "once and accept the host's corrections to it)")
     drive = show.add_mutually_exclusive_group()
     drive.add_argument("--orbit", metavar="SPEC", type=_orbit,
                        help="drive the view: turn:SECONDS[:THETA[:TURNS]] (a full turn every "
@@ -360,6 +364,7 @@ def _serve(args: argparse.Namespace) -> int:
             config,
             presenter=presenter,
             standalone=args.standalone,
+            predict=not args.no_predict,
             view=args.view or DEFAULT_VIEW,
             orbit=args.orbit,
             views=args.views,

@@ -28,6 +28,15 @@ HELLO, provisioning and every other request) that also shows frames. Threads::
   (serial) the port with backoff, and the new session starts with a key frame.
 * Memory is flat: one frame buffer, one slot, bounded rings for statistics.
 
+Predict (``predict=True``, issue 14): when the active image carries the standalone table,
+the device shows its *own* prediction of a new view at once (no bytes, no latency;
+:mod:`device_runtime.prediction`) while the view request goes out as before; a
+correction (a version-2 packet relative to the prediction) for the view on show then
+makes it ``prediction + correction``, and one for a view the user has already left is
+dropped as stale (counted) while the device keeps predicting. A full (key/delta) frame
+for a view no longer on show is dropped the same way (its delta base is still kept).
+HELLO_REPLY tells the host whether this device predicts (``predicts``).
+
 Standalone (``standalone=True``): the image carries a quantized table of the training
 views' scores and the runtime interpolates scores locally, needing no host:
 :mod:`device_runtime.standalone`. Orbits and view lists (``--orbit``, ``--views``) are
@@ -38,6 +47,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import math
 import os
 import threading
@@ -60,6 +70,7 @@ from device_runtime.display import (
 )
 from device_runtime.errors import DeviceError, FlashError
 from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
+from device_runtime.prediction import Predictor, can_predict, corrected
 from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import (
     STANDALONE_DELTA_SECTION,
@@ -73,6 +84,7 @@ from protocol.errors import ProtocolError
 from protocol.framing import Frame
 from protocol.image import EigenspaceImage
 from protocol.scores import (
+    VERSIONS,
     DecodedScores,
     ImageMismatch,
     MissingBase,
@@ -209,12 +221,14 @@ class LoadedModel:
     test: bool
     standalone: StandaloneScores | None = None
     confirmed: bool = False
+    predictor: Predictor | None = None
 
     @classmethod
     def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
-              max_packet_bytes: int | None = None, want_standalone: bool = False
-              ) -> LoadedModel:
-        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data.
+              max_packet_bytes: int | None = None, want_standalone: bool = False,
+              want_predictor: bool = False) -> LoadedModel:
+        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data
+        and (``want_predictor``, when the image has a table) the predictor.
 
         The reconstructor runs on two threads when the machine has two CPUs and the
         eigenspace is large (``threads="auto"``); its frames are the same bit for bit.
@@ -227,8 +241,10 @@ class LoadedModel:
             max_packet_bytes=max_packet_bytes,
             max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
         )
+        predictor = (Predictor(image) if want_predictor and not want_standalone
+                     and can_predict(image) else None)
         return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
-                   generation, test, standalone)
+                   generation, test, standalone, predictor=predictor)
 
     def close(self) -> None:
         self.reconstructor.close()
@@ -304,6 +320,11 @@ class RuntimeStats:
     coalesced: int = 0
     sessions: int = 0
     frame_failures: int = 0
+    correction_packets: int = 0
+    predicted_frames: int = 0
+    corrected_frames: int = 0
+    stale_dropped: int = 0
+    corrections_without_table: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     reconstruct_s: _Ema = field(default_factory=_Ema)
     present_s: _Ema = field(default_factory=_Ema)
@@ -351,6 +372,11 @@ class RuntimeStats:
             "coalesced": self.coalesced,  # frames decoded but never presented
             "frame_failures": self.frame_failures,  # frames the display could not show
             "sessions": self.sessions,
+            "correction_packets": self.correction_packets,  # decoded corrections
+            "predicted_frames": self.predicted_frames,  # own predictions shown (issue 14)
+            "corrected_frames": self.corrected_frames,  # prediction + correction shown
+            "stale_dropped": self.stale_dropped,  # packets for a view no longer on show
+            "corrections_without_table": self.corrections_without_table,
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
             "decode_ms": ms(self.decode_s),
@@ -381,6 +407,9 @@ class RuntimeDevice(Device):
     standalone : bool
         Interpolate scores locally from the image's table (no host needed); SCORES from a
         host are then ignored.
+    predict : bool
+        With a host: show the device's own prediction of every new view at once when the
+        image has a standalone table, and accept corrections to it (issue 14).
     view : (float, float)
         Initial ``(phi_deg, theta_deg)``.
     orbit : OrbitSpec, optional
@@ -403,6 +432,7 @@ class RuntimeDevice(Device):
         *,
         presenter: Any = None,
         standalone: bool = False,
+        predict: bool = False,
         view: tuple[float, float] = DEFAULT_VIEW,
         orbit: OrbitSpec | None = None,
         views: Iterable[tuple[float, float]] | None = None,
@@ -413,6 +443,7 @@ class RuntimeDevice(Device):
     ) -> None:
         self.presenter = presenter if presenter is not None else HeadlessPresenter(None)
         self.standalone = standalone
+        self.predict = predict
         self.view = canonical_view(*view)
         self.orbit_spec = orbit
         self._script = collections.deque(canonical_view(*v) for v in (views or ()))
@@ -474,6 +505,7 @@ class RuntimeDevice(Device):
                 test=test,
                 max_packet_bytes=None,
                 want_standalone=self.standalone,
+                want_predictor=self.predict,
             )
         except (ProtocolError, DeviceError, OSError, ValueError) as exc:
             # this run's mode cannot use it (e.g. --standalone without a table): a test
@@ -528,9 +560,20 @@ class RuntimeDevice(Device):
             confirm()
 
     # ------------------------------------------------------------------ link side
+    @property
+    def predicts(self) -> bool:
+        """The active image has a table and this device shows corrections to its predictions."""
+        model = self._decoder_model
+        return model is not None and model.predictor is not None
+
     def handle_hello(self, msg: m.Hello, frame: Frame) -> m.Message:
-        """A new session: forget delta bases, then ask the host for the current view."""
+        """A new session: forget delta bases, then ask the host for the current view.
+
+        HELLO_REPLY also says which score packet versions this device reads and whether it
+        predicts (a keyed device says the latter only in AUTH_RESPONSE)."""
         reply = super().handle_hello(msg, frame)
+        reply = dataclasses.replace(reply, score_versions=VERSIONS, predicts=(
+            None if self.config.key is not None else self.predicts))
         self.runtime_stats.sessions += 1
         model = self._decoder_model
         if model is not None:
@@ -543,6 +586,8 @@ class RuntimeDevice(Device):
     def handle_auth_challenge(self, msg: m.AuthChallenge, frame: Frame) -> m.Message:
         """A keyed device asks for its view once the host has authenticated (not before)."""
         reply = super().handle_auth_challenge(msg, frame)
+        if isinstance(reply, m.AuthResponse):
+            reply = dataclasses.replace(reply, predicts=self.predicts)
         if not self.standalone:
             self.limiter.offer(self.view)
         return reply
@@ -559,6 +604,11 @@ class RuntimeDevice(Device):
         t0 = time.perf_counter()
         try:
             decoded = model.decoder.decode(msg.packet)
+            if decoded.predicted and model.predictor is None:
+                stats.corrections_without_table += 1
+                self._log_limited("no-table", "a correction for a device that does not "
+                                  "predict (no standalone table, or --no-predict) dropped")
+                return
         except MissingBase as exc:
             stats.missing_base += 1
             self._need_key = True
@@ -579,7 +629,9 @@ class RuntimeDevice(Device):
         decode_s = time.perf_counter() - t0
         stats.decode_s.add(decode_s)
         self._need_key = False
-        if decoded.is_key:
+        if decoded.predicted:
+            stats.correction_packets += 1
+        elif decoded.is_key:
             stats.key_frames += 1
         else:
             stats.delta_frames += 1
@@ -710,6 +762,9 @@ class RuntimeDevice(Device):
             y = model.standalone.scores(*self.view)
             self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
                                      "key": True, "frame": 0})
+        elif model.predictor is not None:  # its own prediction, while the host is asked
+            self._present_prediction(model)
+            self.limiter.offer(self.view)
         else:  # the image's own first frame (the mean), while the host is asked for the view
             y = np.zeros(model.image.n_coefficients, dtype=np.float32)
             self._present(model, y, {"frame": 0})
@@ -759,6 +814,8 @@ class RuntimeDevice(Device):
                         self._present(model, y, {"phi_deg": self.view[0],
                                                  "theta_deg": self.view[1], "key": True})
                     else:
+                        if model.predictor is not None:
+                            self._present_prediction(model)
                         self.limiter.offer(self.view)
                 if not self.standalone:
                     view = self.limiter.due(now)
@@ -772,11 +829,14 @@ class RuntimeDevice(Device):
                 if item is not None and item.model is self._model:
                     d = item.scores
                     try:
-                        self._present(item.model, d.y, {
-                            "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg,
-                            "key": d.is_key, "packet_bytes": d.packet_bytes,
-                            "sequence": item.sequence, "decode_s": 0.0,
-                        })
+                        y = self._shown_scores(item)
+                        if y is not None:
+                            self._present(item.model, y, {
+                                "frame": d.frame, "phi_deg": d.phi_deg,
+                                "theta_deg": d.theta_deg, "key": d.is_key,
+                                "packet_bytes": d.packet_bytes, "sequence": item.sequence,
+                                "decode_s": 0.0, "corrected": d.predicted,
+                            })
                     except Exception as exc:
                         # A frame that cannot be shown must not stop the device: skip it.
                         self._frame_failed(d.frame, exc)
@@ -793,6 +853,35 @@ class RuntimeDevice(Device):
                                            overlay_lines=self.overlay_lines())
         finally:
             self.stop_event.set()
+
+    def _present_prediction(self, model: LoadedModel) -> None:
+        """Show the device's own prediction of the current view (no bytes, no latency)."""
+        assert model.predictor is not None
+        y = model.predictor(*self.view)
+        self.runtime_stats.predicted_frames += 1
+        self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
+                                 "key": False, "predicted": True})
+
+    def _shown_scores(self, item: ScoreItem) -> np.ndarray | None:
+        """The scores to show for a decoded packet, or None when it is stale.
+
+        A device that predicts shows a packet answering a view request (sequence > 0) only
+        while its view is still the one on show (else the prediction already shows a newer
+        view); a correction is added to the prediction of the packet's view. Host-driven
+        packets (sequence 0: ``serve --orbit``) are shown whatever the current view.
+        """
+        d, model = item.scores, item.model
+        view = (d.phi_deg, d.theta_deg)
+        if model.predictor is not None and item.sequence and view != self.view:
+            self.runtime_stats.stale_dropped += 1
+            return None
+        if not d.predicted:
+            return d.y
+        if model.predictor is None:  # checked on decode; kept for safety
+            self.runtime_stats.corrections_without_table += 1
+            return None
+        self.runtime_stats.corrected_frames += 1
+        return corrected(model.predictor(*view), d.y)
 
     def _frame_failed(self, frame: int, exc: BaseException) -> None:
         """Count a frame the display could not show; log the first one of a run of them."""

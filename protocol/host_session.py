@@ -184,7 +184,7 @@ class HostSession:
         # A keyed device tells its slots and budgets only after AUTH (protocol 2).
         full = {
             name: getattr(reply, name)
-            for name in ("slots", "ram_budget_bytes", "slot_size_bytes")
+            for name in ("slots", "ram_budget_bytes", "slot_size_bytes", "predicts")
             if getattr(reply, name) is not None
         }
         if full:

@@ -505,6 +505,8 @@ class HelloReply(Message):
     """.ecs format versions the device reads (empty: unknown)."""
     software: str = wire(14, default="", max_len=64)
     """Device software name/version, informational."""
+    score_versions: tuple[int, ...] | None = wire(15, default=None, ge=1, le=U8, max_items=8)
+    predicts: bool | None = wire(16, default=None)  # docs/protocol.md "Predicted corrections"
 
     def _check(self) -> None:
         if self.min_version > self.max_version:
@@ -553,6 +555,7 @@ class AuthResponse(Message):
     """RAM the eigenspace may use (hidden in HELLO_REPLY before AUTH)."""
     slot_size_bytes: int | None = wire(3, default=None, ge=0, le=U64)
     """Capacity of each flash slot (hidden in HELLO_REPLY before AUTH)."""
+    predicts: bool | None = wire(4, default=None)  # as in HELLO_REPLY (hidden there)
 
 
 @dataclass(frozen=True, kw_only=True)

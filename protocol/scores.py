@@ -4,11 +4,12 @@ A packet is a fixed 32-byte header followed by a payload (little-endian througho
 
     offset size field
     0      2    magic b"\\xecS"
-    2      1    version (1)
+    2      1    version (1; 2 when PREDICTED is set, below)
     3      1    flags: bit 0 DELTA; bit 1 ZSTD (payload is one zstd frame, content size
                 recorded); bits 2-3 STEP_MODE (0 scalar, 1 per cell, 2 per component,
                 3 reserved); bits 4-5 CODING (0 zigzag LEB128 varints; 1 per-cell
-                end-of-block varints, below; 2-3 reserved); bits 6-7 reserved, 0
+                end-of-block varints, below; 2-3 reserved); bit 6 PREDICTED (version 2
+                only; reserved, 0, in version 1); bit 7 reserved, 0
     4      4    frame number u32
     8      4    base frame number u32 (the frame a DELTA packet is relative to; 0 in a key)
     12     4    phi_deg float32
@@ -50,6 +51,18 @@ codes both and keeps the smaller. The encoder's zstd level is 19 (default `DEFAU
 decoding cost does not depend on the level. CODING 1 was a reserved value of version 1, which
 decoders without it refuse with a clear error, so the packet version stays 1.
 
+Predicted corrections (version 2, issue 14): with PREDICTED set the scores are a
+*correction* to the device's own prediction of the header's view ``(phi_deg, theta_deg)``:
+the device interpolates its standalone training-score table at exactly that view
+(`device_runtime.prediction`, the same code the host runs) and shows ``prediction + q *
+step``. The packet's base kind is therefore one of three: none (a key packet), an earlier
+frame (DELTA) or the prediction (PREDICTED); DELTA and PREDICTED together are refused. A
+correction is not kept as a delta base (its integers mean nothing without the prediction).
+Only packets with PREDICTED carry version 2, so every other packet stays readable by
+version-1 decoders; a version-1 decoder refuses a correction in one line ("unsupported
+packet version 2"), and a version-2 decoder reads both. A host sends corrections only to a
+device whose HELLO_REPLY says it predicts (docs/protocol.md, "Predicted corrections").
+
 Decoded scores are finite and bounded: every step (header or array) must be finite, > 0 and
 at most ``max_abs_score``, and every decoded score ``|q * step|`` at most ``max_abs_score``
 (else ``LimitExceeded``), checked before the frame is kept as a delta base. A device passes
@@ -86,6 +99,7 @@ __all__ = [
     "HEADER_SIZE",
     "MAGIC",
     "VERSION",
+    "VERSIONS",
     "DecodedScores",
     "EncodedScores",
     "ImageMismatch",
@@ -101,19 +115,24 @@ __all__ = [
 ]
 
 MAGIC = b"\xecS"
-VERSION = 1
+#: The newest packet version: 2 adds the PREDICTED base kind (bit 6); packets without it
+#: are still written as version 1.
+VERSION = 2
+#: Versions a decoder of this module reads.
+VERSIONS = (1, 2)
 _HEADER = struct.Struct("<2sBBIIffI4sf")
 HEADER_SIZE = _HEADER.size  # 32
 
 FLAG_DELTA = 0x01
 FLAG_ZSTD = 0x02
+FLAG_PREDICTED = 0x40
 _STEP_SHIFT = 2
 _STEP_MASK = 0x0C
 STEP_SCALAR, STEP_PER_CELL, STEP_PER_COMPONENT = 0, 1, 2
 _CODING_SHIFT = 4
 _CODING_MASK = 0x30
 CODING_VARINT, CODING_EOB = 0, 1
-_RESERVED_MASK = 0xC0
+_RESERVED_MASK = {1: 0xC0, 2: 0x80}  # per version
 _MAX_VARINT_BYTES = 5
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
 #: Largest |score| (and step) a decoder accepts unless told a bound (see the module docstring).
@@ -211,6 +230,8 @@ class DecodedScores:
     q : ndarray of shape (n_coefficients,), int32
     step : float or ndarray of float32
     packet_bytes : int
+    predicted : bool
+        ``y`` is a correction to the decoder's own prediction of the view (version 2).
     """
 
     frame: int
@@ -221,6 +242,7 @@ class DecodedScores:
     q: np.ndarray
     step: float | np.ndarray
     packet_bytes: int
+    predicted: bool = False
 
     @property
     def is_key(self) -> bool:
@@ -241,9 +263,16 @@ class PacketHeader:
     image_tag: bytes
     step: float
 
+    version: int = 1
+
     @property
     def is_delta(self) -> bool:
         return bool(self.flags & FLAG_DELTA)
+
+    @property
+    def is_predicted(self) -> bool:
+        """A correction to the receiver's own prediction of the view (version 2)."""
+        return bool(self.flags & FLAG_PREDICTED)
 
     @property
     def step_mode(self) -> int:
@@ -351,6 +380,7 @@ def encode_scores(
     per_cell: bool = False,
     level: int = _DEFAULT_LEVEL,
     coding: int | None = None,
+    predicted: bool = False,
 ) -> EncodedScores:
     """Quantize a score vector and encode it as a key or delta packet.
 
@@ -378,6 +408,10 @@ def encode_scores(
     coding : {None, 0, 1}
         `CODING_VARINT`, `CODING_EOB` (needs ``n_components``), or None: with
         ``n_components`` both are tried and the smaller packet is kept, else varints.
+    predicted : bool
+        ``y`` is a correction to the device's own prediction of ``view`` (a version-2
+        packet with PREDICTED; no ``base``). ``view`` must then be the canonical view the
+        prediction was made at (`device_runtime.orbit.canonical_view`).
 
     Returns
     -------
@@ -414,6 +448,10 @@ def encode_scores(
     base_frame = 0
     coded = q.astype(np.int64)
     kept_step: float | np.ndarray = header_step if step_sent is None else step_sent
+    if predicted and base is not None:
+        raise ValueError("encode_scores: a predicted correction has no delta base")
+    if predicted:
+        flags |= FLAG_PREDICTED
     if base is not None:
         if base.q.shape != q.shape or not _same_step(base.step, kept_step):
             raise ValueError(
@@ -442,7 +480,7 @@ def encode_scores(
     payload = best[1]
     header = _HEADER.pack(
         MAGIC,
-        VERSION,
+        VERSION if predicted else 1,
         flags,
         frame,
         base_frame,
@@ -464,9 +502,10 @@ def _same_step(a: float | np.ndarray, b: float | np.ndarray) -> bool:
 # --------------------------------------------------------------------------- decoding
 
 
-def decode_header(packet: bytes) -> PacketHeader:
+def decode_header(packet: bytes, *, versions: tuple[int, ...] = VERSIONS) -> PacketHeader:
     """Decode and check the fixed header of a packet (no payload, no image checks).
 
+    ``versions``: the packet versions accepted (``(1,)`` is what a version-1 decoder did).
     Raises `ScorePacketError` when it is short or malformed.
     """
     if len(packet) < HEADER_SIZE:
@@ -479,24 +518,37 @@ def decode_header(packet: bytes) -> PacketHeader:
     )
     if magic != MAGIC:
         raise ScorePacketError(f"decode scores: bad magic {magic!r} (expected {MAGIC!r})")
-    if version != VERSION:
+    if version not in versions:
+        supported = ", ".join(str(v) for v in versions)
         raise ScorePacketError(
-            f"decode scores: unsupported packet version {version} (supported: {VERSION})"
+            f"decode scores: unsupported packet version {version} (supported: {supported})"
         )
-    if flags & _RESERVED_MASK:
+    if flags & _RESERVED_MASK[version]:
+        bits = "6-7" if version == 1 else "7"
         raise ScorePacketError(
-            f"decode scores: unknown flags 0x{flags:02x} (reserved bits 6-7 must be 0)"
+            f"decode scores: unknown flags 0x{flags:02x} (reserved bits {bits} must be 0 in "
+            f"version {version})"
+        )
+    if flags & FLAG_PREDICTED and flags & FLAG_DELTA:
+        raise ScorePacketError(
+            "decode scores: a packet is relative to a frame (DELTA) or to the prediction "
+            "(PREDICTED), not both"
         )
     if (flags & _CODING_MASK) >> _CODING_SHIFT > CODING_EOB:
         raise ScorePacketError(
             f"decode scores: unsupported coding {(flags & _CODING_MASK) >> _CODING_SHIFT} "
             f"(flags 0x{flags:02x}; supported: 0 varints, 1 end-of-block)"
         )
-    header = PacketHeader(flags, frame, base_frame, phi, theta, n_coeff, tag, step)
+    header = PacketHeader(flags, frame, base_frame, phi, theta, n_coeff, tag, step, version)
     if header.step_mode > STEP_PER_COMPONENT:
         raise ScorePacketError(f"decode scores: unsupported step mode {header.step_mode}")
     if not (np.isfinite(phi) and np.isfinite(theta)):
         raise ScorePacketError(f"decode scores: view ({phi}, {theta}) is not finite")
+    if flags & FLAG_PREDICTED and not (0.0 <= phi < 360.0 and -90.0 <= theta <= 90.0):
+        raise ScorePacketError(
+            f"decode scores: a correction's view ({phi:.6g}, {theta:.6g}) is not canonical "
+            "(phi in [0, 360), theta in [-90, 90])"
+        )
     if header.step_mode == STEP_SCALAR:
         if not (np.isfinite(step) and step > 0):
             raise ScorePacketError(f"decode scores: step {step} must be finite and > 0")
@@ -555,6 +607,9 @@ class ScoreDecoder:
     max_abs_score : float, optional
         Largest step and |decoded score| accepted (default ``DEFAULT_MAX_ABS_SCORE``; a
         device passes :func:`score_bound` of its image).
+    versions : tuple of int
+        Packet versions accepted (default `VERSIONS`; ``(1,)`` behaves as a decoder written
+        before predicted corrections).
     """
 
     def __init__(
@@ -566,6 +621,7 @@ class ScoreDecoder:
         n_components: np.ndarray | None = None,
         keep_bases: int = 4,
         max_abs_score: float | None = None,
+        versions: tuple[int, ...] = VERSIONS,
     ) -> None:
         if n_coefficients < 0:
             raise ValueError(f"ScoreDecoder: n_coefficients={n_coefficients} must be >= 0")
@@ -578,6 +634,7 @@ class ScoreDecoder:
             raise ValueError(f"ScoreDecoder: max_abs_score={max_abs_score} must be in "
                              f"(0, {DEFAULT_MAX_ABS_SCORE:g}]")
         self.max_abs_score = bound
+        self.versions = tuple(versions)
         self.n_coefficients = int(n_coefficients)
         self.image_tag = bytes(image_digest[:4])
         self.n_components = None
@@ -628,7 +685,7 @@ class ScoreDecoder:
                 f"decode scores: packet is {len(packet)} bytes, over the limit "
                 f"max_packet_bytes={self.max_packet_bytes}"
             )
-        header = decode_header(packet)
+        header = decode_header(packet, versions=self.versions)
         if header.image_tag != self.image_tag:
             raise ImageMismatch(
                 f"decode scores: packet is for image {header.image_tag.hex()}..., this "
@@ -675,10 +732,11 @@ class ScoreDecoder:
                     f"decode scores: frame {header.frame} has a score of magnitude {peak:.3g}, "
                     f"over the bound {self.max_abs_score:.3g} for this image"
                 )
-        self._bases.pop(header.frame, None)
-        self._bases[header.frame] = (q, steps)
-        while len(self._bases) > self.keep_bases:
-            self._bases.popitem(last=False)
+        if not header.is_predicted:  # a correction means nothing without its prediction
+            self._bases.pop(header.frame, None)
+            self._bases[header.frame] = (q, steps)
+            while len(self._bases) > self.keep_bases:
+                self._bases.popitem(last=False)
         return DecodedScores(
             frame=header.frame,
             base_frame=base_frame,
@@ -688,6 +746,7 @@ class ScoreDecoder:
             q=q,
             step=steps,
             packet_bytes=len(packet),
+            predicted=header.is_predicted,
         )
 
     def _decode_eob(self, data: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ import zstandard as zstd
 from protocol import messages as m
 from protocol._cobs import cobs_encode
 from protocol.framing import CRC, FRAME_VERSION, HEADER, FrameDecoder, encode_frame
-from protocol.scores import MAGIC, VERSION
+from protocol.scores import MAGIC
 
 __all__ = [
     "RawPeer",
@@ -82,6 +82,7 @@ def score_packet(
     base_frame: int = 0,
     flags: int = 0,
     payload: bytes | None = None,
+    version: int = 1,
 ) -> bytes:
     """A score packet built field by field (CODING 0 varints unless ``payload`` is given).
 
@@ -94,7 +95,7 @@ def score_packet(
         if steps is not None:
             body = np.asarray(steps, dtype="<f4").tobytes() + body
         payload = body
-    header = _HEADER.pack(MAGIC, VERSION, flags | (step_mode << 2), frame, base_frame,
+    header = _HEADER.pack(MAGIC, version, flags | (step_mode << 2), frame, base_frame,
                           view[0], view[1], k, tag[:4], step)
     return header + payload
 
@@ -167,6 +168,37 @@ def overflow_packets(k: int, tag: bytes, view: tuple[float, float]) -> list[tupl
                                   frame=10)),
     ]
     return [(label, scores_frame(p, sequence=i + 1)) for i, (label, p) in enumerate(packets)]
+
+
+def correction_attacks(k: int, tag: bytes, view: tuple[float, float]) -> list[tuple[str, bytes]]:
+    """Version-2 (predicted correction) score packets with every new field wrong: DELTA and
+    PREDICTED together (an unknown base), PREDICTED in a version-1 packet, the reserved bit 7,
+    a NaN / infinite / huge / out-of-range view, an overflowing step; last a well-formed one.
+
+    The right K and tag: only the checks of the new fields can stop them (the last one is
+    valid and must still not be shown by a device that does not predict or whose view is
+    another one).
+    """
+    big = float(2**31 - 1)
+    packets = [
+        ("DELTA and PREDICTED", score_packet(k, tag, flags=0x41, base_frame=3, view=view,
+                                             version=2)),
+        ("PREDICTED in version 1", score_packet(k, tag, flags=0x40, view=view, version=1)),
+        ("reserved bit 7 in version 2", score_packet(k, tag, flags=0xC0, view=view,
+                                                     version=2)),
+        ("unknown version 3", score_packet(k, tag, flags=0x40, view=view, version=3)),
+        ("view NaN", score_packet(k, tag, flags=0x40, view=(float("nan"), 0.0), version=2)),
+        ("view inf", score_packet(k, tag, flags=0x40, view=(0.0, float("-inf")), version=2)),
+        ("view huge", score_packet(k, tag, flags=0x40, view=(3e38, 0.0), version=2)),
+        ("phi 360", score_packet(k, tag, flags=0x40, view=(360.0, 0.0), version=2)),
+        ("theta 90.5", score_packet(k, tag, flags=0x40, view=(10.0, 90.5), version=2)),
+        ("step 3e38, q = 2^31-1", score_packet(k, tag, flags=0x40, q=[int(big)], step=3e38,
+                                               view=view, version=2)),
+    ]
+    valid = ("well-formed correction", score_packet(k, tag, flags=0x40, q=[3, -2], view=view,
+                                                    version=2, frame=99))
+    return [(label, scores_frame(p, sequence=i + 1))
+            for i, (label, p) in enumerate([*packets, valid])]
 
 
 def _deep(depth: int) -> bytes:

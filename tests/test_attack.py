@@ -10,8 +10,11 @@ The attacks: random bytes, garbage CBOR in valid frames, deep nesting, huge decl
 (CBOR and frame), zstd bombs with and without a content size, score packets with a wrong K,
 overflowing steps, NaN and inf, every unauthenticated state change, replays of authenticated
 frames captured from a real host (inside its session and in a new one), a slot hog, and a host
-given ``--key`` talking to a keyless impostor. Every random choice comes from a seeded RNG whose
-seed is in the failure message. ``benchmarks/bench_fuzz.py`` runs the long version.
+given ``--key`` talking to a keyless impostor; and (issue 14) every field of a predicted
+correction: a wrong base kind, NaN / inf / huge views, a correction to a device without the
+table, an unauthenticated correction to a keyed device, and replayed corrections. Every
+random choice comes from a seeded RNG whose seed is in the failure message.
+``benchmarks/bench_fuzz.py`` runs the long version.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import cbor2
 import pytest
 from attack_helpers import (
     RawPeer,
+    correction_attacks,
     flash_fingerprint,
     overflow_packets,
     parser_attacks,
@@ -299,6 +303,21 @@ def test_score_decoder_refuses_overflowing_and_non_finite_scores(model):
             pytest.fail(f"{label}: decoded to scores {decoded.y[:3]}... instead of an error")
 
 
+def test_score_decoder_refuses_malformed_corrections(model):
+    """Issue 14: every new field of a version-2 packet is checked where it is decoded."""
+    image = model.image
+    k, tag = image.n_coefficients, model.digest[:4]
+    attacks = correction_attacks(k, tag, ATTACK_VIEW)
+    for label, wire in attacks[:-1]:
+        packet = m.decode_message(FrameDecoder(1 << 16).feed(wire)[0]).packet
+        decoder = ScoreDecoder(k, model.digest, n_components=image.n_components)
+        with pytest.raises(ProtocolError):
+            decoder.decode(packet)
+            pytest.fail(f"{label}: decoded")
+    packet = m.decode_message(FrameDecoder(1 << 16).feed(attacks[-1][1])[0]).packet
+    assert ScoreDecoder(k, model.digest).decode(packet).predicted  # the control is valid
+
+
 # --------------------------------------------------------------------------- groups
 
 ALL = ["tcp-keyed", "mem-keyed", "tcp-keyless"]
@@ -537,6 +556,71 @@ def test_replayed_authenticated_frames_are_not_shown_or_stored(targets, name, tm
         finally:
             peer.close()
     target.check("replays of a captured session", since, stored=stored_after)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_malformed_and_misplaced_corrections_are_never_shown(targets, name, image_facts):
+    """Issue 14: corrections with a wrong base kind or view, before and after HELLO; a
+    well-formed one for a view the device is not showing (tcp devices predict: stale) or to a
+    device that does not predict (mem): dropped and counted, never shown, never a crash.
+    On keyed devices nothing unauthenticated is even decoded."""
+    target = targets(name)
+    since = target.mark()
+    k, tag, _ = image_facts
+    attacks = correction_attacks(k, tag, ATTACK_VIEW)
+    peer = target.peer()
+    try:
+        _send_all(peer, attacks)  # without HELLO
+        _hello(peer)
+        _send_all(peer, attacks)  # in a session (a keyless device decodes them)
+        assert peer.barrier(30), f"{name}: no PONG after the correction attacks"
+    finally:
+        peer.close()
+    target.check("malformed and misplaced corrections", since)
+    if isinstance(target, MemTarget) and not target.keyed:
+        stats = target.device.device.runtime_stats
+        assert stats.corrections_without_table >= 1  # the valid one reached it, and was dropped
+
+
+def test_replayed_corrections_are_not_applied(targets):
+    """Corrections captured from a real ``serve --scores predict`` session to a predicting
+    device (the CLI device predicts by default): replayed inside the session and in new
+    ones, none is decoded again."""
+    target = targets("tcp-keyed")
+    since = target.mark()
+    recorders: list[_Recorder] = []
+
+    def make(attempt):
+        rec = _Recorder(open_transport(target.host_url(), timeout_s=5), 2)
+        recorders.append(rec)
+        return rec
+
+    def corrections() -> int:
+        target.decoded()  # waits for a fresh --stats file
+        return json.loads(target.stats.read_text())["correction_packets"]
+
+    before = corrections()
+    stats = serve(target.model_path, target.host_url(), key=KEY, scores="predict",
+                  orbit=parse_orbit("steps:3:66"), fps=0, log=_quiet, reconnect=False,
+                  transport_factory=make, stats_every_s=60)
+    assert stats.frames == 3 and stats.correction_frames >= 2, stats
+    assert recorders[0].replayed
+    after = corrections()
+    assert after - before == stats.correction_frames  # the in-session replay was dropped
+    captured = [wire for t, wire in recorders[0].frames if t == m.MessageType.SCORES]
+    for with_hello in (False, True):
+        peer = target.peer()
+        try:
+            if with_hello:
+                _hello(peer)
+            for wire in captured:
+                peer.send(wire)
+            assert peer.barrier(30)
+        finally:
+            peer.close()
+    assert corrections() == after
+    # the session's full frames (sent when smaller than a correction) are key/delta frames
+    target.check("replayed corrections", since, decoded=stats.frames - stats.correction_frames)
 
 
 def peer_barrier(target: Target) -> bool:

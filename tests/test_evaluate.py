@@ -411,3 +411,31 @@ def test_pca_motion_ray_casts_at_its_stride_however_slow_the_machine(small_model
                             sample_views=0, motion_stride=2)
     for record in result.views:  # the prior alone would be the interpolated frame again
         assert record["pca_motion"]["ssim_object"] != record["pca"]["ssim_object"]
+
+
+def test_evaluate_reports_prediction_plus_correction_for_a_standalone_model(model_path,
+                                                                            small_model,
+                                                                            tmp_path):
+    """``pca_predict``: what ``serve --scores predict`` makes a predicting device show at rest
+    (its prediction plus the correction packet), in the JSON, the table and the report; only
+    for models with the standalone table."""
+    report = tmp_path / "report"
+    res = _run("evaluate", str(model_path), "--views", "random:4", "--json", "--rd-views", "0",
+               "--samples-shown", "1", "--no-nearest", "--motion-deadline", "0",
+               "--webp-db-quality", "0", "--report", str(report))
+    summary = json.loads(res.stdout)
+    predicted = summary["pca_predict"]
+    for key in ("bytes_per_view", "ssim_object", "flip_object"):
+        assert isinstance(predicted[key], float), key
+    for v in summary["per_view"]:
+        # the correction lifts the prediction (= the interpolated frame) towards the ray-cast,
+        # for fewer bytes than the ray-cast's own key packet
+        assert v["pca_predict"]["psnr_object"] > v["pca"]["psnr_object"], v
+        assert 0 < v["pca_predict"]["bytes_per_view"] < v["pca_render"]["bytes_per_view"], v
+    assert "device prediction + correction" in (report / "index.html").read_text()
+    table = _run("evaluate", str(model_path), "--views", "random:2", "--rd-views", "0",
+                 "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0").stdout
+    assert "pca_predict" in table
+    plain = _run("evaluate", str(small_model), "--views", "random:2", "--json", "--rd-views",
+                 "0", "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0")
+    assert "pca_predict" not in json.loads(plain.stdout)

@@ -187,13 +187,13 @@ def _text_summary(s: dict) -> str:
         f"{s['components_per_cell']:.2f} components/cell, eigenspace "
         f"{s['eigenspace_bytes'] / 1e6:.2f} MB, {s['views']} novel views "
         f"({s.get('view_spec')}), score step {s['score_step']:.4g}",
-        f"{'method':<10} {'bytes/view':>10} {'PSNR':>7} {'SSIM':>7} {'FLIP':>7}",
+        f"{'method':<11} {'bytes/view':>10} {'PSNR':>7} {'SSIM':>7} {'FLIP':>7}",
     ]
     lines[-1] += f" {'SSIM obj':>8} {'FLIP obj':>8}"
     for m in METHODS:
         if m in s:
             r = s[m]
-            lines.append(f"{m:<10} {r['bytes_per_view']:>10.0f} {f(r['psnr'], 2):>7} "
+            lines.append(f"{m:<11} {r['bytes_per_view']:>10.0f} {f(r['psnr'], 2):>7} "
                          f"{f(r['ssim'], 4):>7} {f(r['flip'], 4):>7} "
                          f"{f(r.get('ssim_object'), 4):>8} {f(r.get('flip_object'), 4):>8}")
     if "pca_motion" in s:
@@ -202,6 +202,10 @@ def _text_summary(s: dict) -> str:
                      f"{mo['step_deg']:g} deg/frame drag, stride {mo['stride']:.0f} at a "
                      f"{mo['deadline_ms']:.0f} ms deadline on this machine; bytes/view = its "
                      "delta packet")
+    if "pca_predict" in s:
+        lines.append("pca_predict: what serve --scores predict makes a predicting device show at "
+                     "rest (its own prediction + the host's correction); bytes/view = the "
+                     "correction packet")
     if "webp_db" in s:
         db = s["webp_db"]
         lines.append(f"webp_db: training views as WebP q{db['quality']:.0f}, device storage "

@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="0: delta frames, key frames only at a (re)connect or when the "
                         "device asks (default); 1: key frames only; N: a key frame at least "
                         "every N frames")
-    parser.add_argument("--scores", choices=("auto", "interpolate", "render", "refine", "motion"),
+    parser.add_argument("--scores", choices=("auto", "interpolate", "render", "refine", "motion",
+                                                 "predict"),
                         default="auto",
                         help="what the packets carry: interpolate = the training views' "
                         "scores blended at the view (instant, shows the neighbouring views "
@@ -52,7 +53,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "interpolated at once, the ray-cast's scores when the view rests; "
                         "motion = the scores of a sparse ray-cast of every view, as dense as "
                         "--deadline allows, converging to the full ray-cast's while the view "
-                        "rests; auto (default) = motion when the model's volume can be "
+                        "rests; predict = the device shows its own prediction of every view "
+                        "at once and the host sends only the correction to the ray-cast's "
+                        "scores (a model fitted --standalone and a device that predicts; "
+                        "another device gets motion); auto (default) = predict for a "
+                        "--standalone model, else motion, when the model's volume can be "
                         "loaded, else interpolate")
     parser.add_argument("--deadline", metavar="MS", type=float, default=None,
                         help="motion: milliseconds per frame the host may spend (default "
@@ -127,7 +132,10 @@ def run(args: argparse.Namespace) -> int:
                       file=sys.stderr, flush=True)
             mode = "interpolate"
         else:
-            mode = "motion" if mode == "auto" else mode
+            if mode == "auto":
+                from host.link.correction import model_predictor
+
+                mode = "predict" if model_predictor(model) is not None else "motion"
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends serving cleanly

@@ -93,3 +93,43 @@ class DevicePath:
             packets.append(base.packet)
         decoder.decode(packets[0])
         return self.model.reconstruct(decoder.decode(packets[1]).y), len(packets[1])
+
+    def correction_frame(self, phi_deg: float, theta_deg: float, image: np.ndarray,
+                         mask: np.ndarray | None = None) -> tuple[np.ndarray, int] | None:
+        """What a predicting device shows at rest under ``serve --scores predict``: its own
+        prediction of the view plus the host's correction, and the correction's bytes.
+
+        ``image`` (the view's ray-cast) is projected; the device's prediction
+        (`device_runtime.prediction.Predictor` of the image's standalone table) is subtracted
+        and the difference RD-quantized at ``serve``'s defaults
+        (`host.fit.rate.DEFAULT_CORRECTION_STEP_FACTOR` x the score step,
+        `~host.fit.rate.DEFAULT_CORRECTION_KAPPA`, SSIM cell weights from ``image`` and
+        ``mask``), coded as a version-2 correction packet, decoded and added to the
+        prediction as the device does. None for a model without the standalone table.
+        """
+        from device_runtime.prediction import Predictor, can_predict, corrected, prediction_view
+        from host.fit.rate import (
+            DEFAULT_CORRECTION_KAPPA,
+            DEFAULT_CORRECTION_STEP_FACTOR,
+            rd_quantize,
+            ssim_cell_weights,
+        )
+        from protocol.scores import encode_scores
+
+        model = self.model
+        if getattr(self, "_predictor", None) is None:
+            if not can_predict(model.image):
+                return None
+            self._predictor = Predictor(model.image)
+        view = prediction_view(phi_deg, theta_deg)
+        prediction = self._predictor(*view)
+        step = model.score_step * DEFAULT_CORRECTION_STEP_FACTOR
+        weights = ssim_cell_weights(image, model.image.cell_shape, mask)
+        c = rd_quantize(model, model.project(image) - prediction, step=step,
+                        kappa=DEFAULT_CORRECTION_KAPPA, weights=weights)
+        self._frame = (self._frame + 1) & 0xFFFFFFFF
+        packet = encode_scores(c, step=step, frame=self._frame, view=view,
+                               image_digest=self.digest, predicted=True,
+                               n_components=model.image.n_components).packet
+        d = self.decoder.decode(packet)
+        return model.reconstruct(corrected(prediction, d.y)), len(packet)

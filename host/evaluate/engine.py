@@ -57,9 +57,12 @@ __all__ = [
 #: Methods an evaluation reports: the device frame from interpolated scores (``pca``), the
 #: device frame from the ray-cast's own scores (``pca_render``: what ``serve --scores
 #: render`` sends, and ``motion``/``refine`` once a view rests), the frame ``serve --scores
-#: motion`` sends while the view moves (``pca_motion``), equal-bytes codecs, the nearest
-#: training view and the on-device WebP image database.
-METHODS = ("pca", "pca_motion", "pca_render", "jpeg", "webp", "avif", "nearest", "webp_db")
+#: motion`` sends while the view moves (``pca_motion``), what a predicting device shows at
+#: rest under ``serve --scores predict`` (``pca_predict``: its own prediction plus the host's
+#: correction; models fitted ``--standalone`` only), equal-bytes codecs, the nearest training
+#: view and the on-device WebP image database.
+METHODS = ("pca", "pca_motion", "pca_predict", "pca_render", "jpeg", "webp", "avif", "nearest",
+           "webp_db")
 #: ``pca_motion``: the drag it is measured in, degrees per frame.
 MOTION_STEP_DEG = 3.0
 #: ``pca_motion``: frames of the warm-up drag whose last stride is used for every view.
@@ -425,6 +428,8 @@ def evaluate_model(
                 frame, packet_bytes = device.frame(phi, theta)
                 # what `serve --scores render|refine` sends: the ray-cast's own scores
                 render_frame, render_bytes = device.projection_frame(truth)
+                # what `serve --scores predict` makes a predicting device show at rest
+                predicted = device.correction_frame(phi, theta, truth, mask)
                 t2 = time.perf_counter()
                 timing["device"] += t2 - t1
                 coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=hints[c])
@@ -440,6 +445,9 @@ def evaluate_model(
                 futures = {"pca": metrics.submit(truth, frame, mask, keep)}
                 record["pca_render"] = {"bytes_per_view": render_bytes}
                 futures["pca_render"] = metrics.submit(truth, render_frame, mask, False)
+                if predicted is not None:
+                    record["pca_predict"] = {"bytes_per_view": predicted[1]}
+                    futures["pca_predict"] = metrics.submit(truth, predicted[0], mask, False)
                 motion_frame = None
                 if motion is not None:
                     t4 = time.perf_counter()
@@ -476,6 +484,7 @@ def evaluate_model(
                 if keep:
                     sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
                               "pca": frame, "pca_render": render_frame,
+                              "pca_predict": None if predicted is None else predicted[0],
                               "pca_motion": motion_frame,
                               **{c: decoded[c] for c in CODECS},
                               "record": record}

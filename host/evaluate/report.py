@@ -34,10 +34,11 @@ __all__ = ["compose_side_by_side", "write_report"]
 MIN_PANEL_HEIGHT = 256
 _COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp": "#2166ac",
            "nearest": "#8c6bb1", "webp_db": "#e08214", "pca_render": "#35978f",
-           "pca_motion": "#7fbc41", "avif": "#c51b7d"}
+           "pca_motion": "#7fbc41", "avif": "#c51b7d", "pca_predict": "#543005"}
 _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
           "pca_render": "PCA, ray-cast scores (serve --scores render)",
           "pca_motion": "PCA, sparse ray-cast while moving (serve --scores motion)",
+          "pca_predict": "PCA, device prediction + correction (serve --scores predict)",
           "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
           "avif": "AVIF, equal bytes",
           "nearest": "nearest training view",
@@ -182,6 +183,11 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
             ax.plot([moving["bytes_per_view"]], [moving[metric]], "*",
                     color=_COLORS["pca_motion"], markersize=13, zorder=5,
                     label="this model, sparse ray-cast while moving (streamed, all views)")
+        corrected = summary.get("pca_predict") or {}
+        if corrected:
+            ax.plot([corrected["bytes_per_view"]], [corrected[metric]], "*",
+                    color=_COLORS["pca_predict"], markersize=13, zorder=5,
+                    label="this model, prediction + correction at rest (all views)")
         db = summary.get("webp_db") or {}
         if db and db.get(metric) is not None:
             ax.axhline(db[metric], color=_COLORS["webp_db"], linestyle="--", linewidth=1.2,
@@ -217,9 +223,9 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
     theta = np.array([v["theta_deg"] for v in evaluation.views])
     for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
         # dodge the methods sideways so that views at equal elevations stay visible
-        for dodge, method in zip((-3.2, -2.4, -1.6, -0.8, 0.0, 0.8, 1.6, 2.4),
+        for dodge, method in zip((-3.2, -2.4, -1.6, -0.8, 0.0, 0.8, 1.6, 2.4, 3.2),
                                  ("nearest", "jpeg", "webp", "avif", "webp_db", "pca",
-                                  "pca_motion", "pca_render")):
+                                  "pca_motion", "pca_render", "pca_predict")):
             if evaluation.views and method in evaluation.views[0]:
                 vals = np.array([v[method][metric] for v in evaluation.views], dtype=float)
                 ax.scatter(theta + dodge, vals, s=10, color=_COLORS[method],
@@ -246,6 +252,10 @@ def _sample_figure(sample: dict) -> np.ndarray:
         r = rec["pca_motion"]
         panels.append((f"PCA, moving (s={r['stride']}), {r['bytes_per_view']} B\n"
                        f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_motion"]))
+    if sample.get("pca_predict") is not None and "pca_predict" in rec:
+        r = rec["pca_predict"]
+        panels.append((f"PCA, predicted + correction, {r['bytes_per_view']} B\n"
+                       f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_predict"]))
     if sample.get("pca_render") is not None and "pca_render" in rec:
         r = rec["pca_render"]
         panels.append((f"PCA, ray-cast scores, {r['bytes_per_view']} B\n"
@@ -374,6 +384,9 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
             extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
         elif method == "pca_render":
             extra = "key packets of the ray-cast's own scores (no view interpolation)"
+        elif method == "pca_predict":
+            extra = ("at rest: the device's own prediction plus the host's correction "
+                     "packet (version 2, step x2, RD kappa 0.15)")
         elif method == "pca_motion":
             extra = (f"stride {m.get('stride', math.nan):.0f} at a "
                      f"{m.get('deadline_ms', math.nan):.0f} ms deadline, "

@@ -34,6 +34,8 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "DEFAULT_CORRECTION_KAPPA",
+    "DEFAULT_CORRECTION_STEP_FACTOR",
     "DEFAULT_RD_KAPPA",
     "eg_bits",
     "rd_delta",
@@ -46,6 +48,11 @@ __all__ = [
 #: uniform quantizer of that step (chosen from a sweep of 0.05-0.5 on the tooth at 256;
 #: docs/rate-distortion.md, section 8).
 DEFAULT_RD_KAPPA = 0.15
+#: ``serve --scores predict``: a correction's step in model score steps (bench_link: step x2
+#: with kappa 0.15 gave the best object SSIM over its drag and orbit traces at 115200 baud).
+DEFAULT_CORRECTION_STEP_FACTOR = 2.0
+#: ``serve --scores predict``: the RD factor of a correction's quantizer.
+DEFAULT_CORRECTION_KAPPA = DEFAULT_RD_KAPPA
 
 
 def eg_bits(q: np.ndarray) -> np.ndarray:

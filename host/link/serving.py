@@ -18,7 +18,8 @@ streams one SCORES packet per view:
   same encoder: a fresh ray-cast's projection (``render``, ``refine`` at rest) or the scores
   recovered from a sparse ray-cast that fits the frame budget (``motion``,
   `host.fit.MotionScores`; the budget is `_Pace`'s: the deadline, ``1/fps`` or the link's
-  measured time per packet, whichever is longest).
+  measured time per packet, whichever is longest), or a correction to the device's own
+  prediction of the view (``predict``, `host.link.correction`).
 * **Deltas.** Each delta is coded against the last packet *sent* in this session (the
   writer hands a packet to the transport before the next one is encoded, so none is
   replaced unsent). A device that misses a base (a packet lost on a noisy line) sends
@@ -112,6 +113,8 @@ class ServeStats:
         and their refinements, and the host time it took.
     converged_frames : int
         ``"motion"``: refinements that reached the full projection of a resting view.
+    correction_frames, correction_bytes : int
+        ``"predict"``: corrections sent (not counted as key or delta frames) and their bytes.
     stride_frames : dict
         ``"motion"``: moving frames per stride (str keys).
     sessions, reconnects : int
@@ -147,6 +150,8 @@ class ServeStats:
     motion_pixels: int = 0
     motion_seconds: float = 0.0
     converged_frames: int = 0
+    correction_frames: int = 0
+    correction_bytes: int = 0
     stride_frames: dict = field(default_factory=dict)
     views: list = field(default_factory=list, repr=False)
 
@@ -187,6 +192,8 @@ class ServeStats:
             kinds += f", {self.motion_frames} sparse"
         if self.refined_frames:
             kinds += f", {self.refined_frames} refined"
+        if self.correction_frames:
+            kinds += f", {self.correction_frames} corrections ({self.correction_bytes} B)"
         return (f"{self.frames} frames ({kinds}), "
                 f"{self.bytes_per_frame:.0f} B/frame (key {key:.0f} B, delta {delta:.0f} B), "
                 f"{self.fps:.1f} fps, link {self.link_bytes_per_s / 1024:.1f} KiB/s")
@@ -260,7 +267,7 @@ class FrameEncoder:
 #: What ``serve`` streams: interpolated training scores, the scores of a fresh ray-cast of
 #: every view, interpolated scores at once and the ray-cast's when the view rests, or the
 #: scores of a sparse ray-cast that fits each frame's deadline (`host.fit.motion`).
-SCORE_MODES = ("interpolate", "render", "refine", "motion")
+SCORE_MODES = ("interpolate", "render", "refine", "motion", "predict")
 #: ``motion``: the frame deadline when ``fps`` sets none (a frame rate of 30), seconds.
 DEFAULT_DEADLINE_S = 1.0 / 30.0
 #: ``refine``: how long a view must rest (no newer request) before it is ray-cast, seconds.
@@ -405,6 +412,8 @@ def serve(
         their views interpolated. ``"motion"``: the scores of a sparse ray-cast as dense as
         the frame's budget allows (`host.fit.motion.MotionScores`) for every new view, orbits
         included, then, while the view rests, denser frames until the full projection.
+        ``"predict"``: corrections to the device's own prediction (`host.link.correction`;
+        needs a ``--standalone`` model; a device that cannot predict gets ``motion``).
     true_views : TrueViewScores, optional
         The ray-caster for ``render``/``refine`` (default: `open_true_view_scores` with the
         model's recorded volume).
@@ -443,6 +452,11 @@ def serve(
     info = inspect_image(model_path, key=key, whole_file=False)
     model = model or HostModel.load(model_path, key=key)
     true_views, motion = _score_sources(model, scores, true_views, motion)
+    encoder = FrameEncoder(model, keyframe_interval=keyframe_interval)
+    if scores == "predict":
+        from host.link.correction import predict_encoder
+
+        true_views, encoder = predict_encoder(model, true_views, keyframe_interval)
     pace = _Pace(deadline_s, fps)
     if motion is not None:
         motion.budget_s = pace.budget_s
@@ -458,7 +472,7 @@ def serve(
         factory=transport_factory or _device_opener(url, baud, request_timeout_s, model),
         say=log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True)),
         stop=stop or threading.Event(),
-        encoder=FrameEncoder(model, keyframe_interval=keyframe_interval),
+        encoder=encoder,
         pace=pace, on_frame=on_frame, scores=scores, true_views=true_views, motion=motion,
         orbit=orbit.start() if orbit is not None else None,
     )
@@ -703,6 +717,9 @@ class _Serving:
                  f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
                  f"{hello.display_width}x{hello.display_height} display; {self.scores} scores)")
         self.encoder.reset()
+        if hasattr(self.encoder, "predictor"):  # --scores predict: can this device?
+            from host.link.correction import begin_predict
+            begin_predict(self, hello)
         if self.scores == "refine" and self.refiner is None and self.true_views is not None:
             self.refiner = _Refiner(self.true_views, conn.events.poke)
         elif self.refiner is not None:  # one refiner for all sessions: wake this one's
@@ -850,7 +867,7 @@ class _Serving:
         if frame.scores is not None:
             return
         stats = self.stats
-        if self.scores == "render":
+        if self.scores in ("render", "predict"):
             frame.scores = self.true_views(frame.view)
             stats.rendered_frames += 1
         elif self.motion is not None:
@@ -894,7 +911,10 @@ class _Serving:
         stats, size = self.stats, len(encoded.packet)
         stats.frames += 1
         stats.packet_bytes += size
-        if self.encoder.last_was_key:
+        if getattr(self.encoder, "last_kind", "") == "correction":
+            stats.correction_frames += 1
+            stats.correction_bytes += size
+        elif self.encoder.last_was_key:
             stats.key_frames += 1
             stats.key_bytes += size
         else:
