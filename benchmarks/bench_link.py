@@ -250,6 +250,9 @@ def key_frames(case: Case, n_views: int, rd: list[tuple[float, float]], *,
             c = rd_quantize(m, y - pred, step=m.score_step * f, kappa=k, weights=w)
             tries.append((f"correction at rest (predict, step x{f:g} kappa {k:g})",
                           m.score_step * f, c))
+            # what serve sends once the view has rested (host.link.correction.sharpen_at_rest)
+            tries.append(("correction at rest, sharpened (predict, step x1, plain)",
+                          m.score_step, rd_quantize(m, y - pred, step=m.score_step, lam=0.0)))
         for name, s, v in tries:
             predicted = name.startswith("correction")
             n = len(case.packet(v, s, predicted=predicted).packet)

@@ -322,6 +322,11 @@ def test_served_session_shows_the_prediction_at_once_then_the_corrected_frame(
             device.device.set_view(*target)
             wait_until(lambda: any(i.get("corrected") and (i["phi_deg"], i["theta_deg"])
                                    == target for _, i in frames), 30, "the corrected target")
+            # at rest, the correction again at the model's own step (sharpen_at_rest)
+            wait_until(lambda: any(v == target and _fine(e, model) for e, v in sent), 30,
+                       "the sharpened target at rest")
+            wait_until(lambda: sum((i.get("phi_deg"), i.get("theta_deg")) == target
+                                   for _, i in frames) >= 3, 30, "the sharp frame shown")
         finally:
             stop.set()
             thread.join(20)
@@ -348,6 +353,17 @@ def test_served_session_shows_the_prediction_at_once_then_the_corrected_frame(
 
     assert err(last[0]) < err(first[0])  # the correction moved it towards the projection
     assert err(last[0]) < 6.0  # within the correction's quantization
+    steps = [float(e.step) for e, v in sent if v == target]
+    assert steps[0] == pytest.approx(2 * model.score_step)  # moving: the coarse correction
+    assert [_fine(e, model) for e, v in sent if v == target][1:] == [True]  # at rest, once
+    coarse = next(f for f, i in frames if i.get("corrected")
+              and (i["phi_deg"], i["theta_deg"]) == target)
+    assert err(last[0]) < err(coarse)  # sharper than the coarse correction
+
+
+def _fine(encoded, model) -> bool:
+    """A packet at the model's own score step (`sharpen_at_rest`), not the coarse x2."""
+    return float(encoded.step) == pytest.approx(model.score_step, rel=1e-6)
 
 
 def model_renderer(model):

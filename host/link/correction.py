@@ -49,6 +49,7 @@ __all__ = [
     "cannot_predict",
     "model_predictor",
     "predict_encoder",
+    "sharpen_at_rest",
 ]
 
 
@@ -94,6 +95,23 @@ def predict_encoder(model: HostModel, true_views: TrueViewScores | None,
              else CorrectedViews(model, true_views.renderer))
     return views, CorrectionEncoder(model, predictor, views=views,
                                     keyframe_interval=keyframe_interval)
+
+
+def sharpen_at_rest(run: Any, conn: Any, now: float) -> bool | None:
+    """``predict`` sessions, no newer request (``_Serving._resting``): once the view on show
+    has rested ``refine_delay_s``, its correction is sent again at the model's own score
+    step (``fine``), so a resting view is as sharp as today's key frames; the coarse
+    corrections (step x2) are what moving views get. True: send the fine frame now; None:
+    not yet (waited); False: nothing to sharpen (the caller goes on as for other modes)."""
+    shown = run.current
+    if (run.scores != "predict" or not getattr(run.encoder, "enabled", False)
+            or shown.view is None or shown.scores is None or shown.fine):
+        return False
+    rest = shown.requested_at + run.settings.refine_delay_s - now
+    if rest > 0:
+        conn.events.wait(rest)
+        return None
+    return True
 
 
 def begin_predict(run: Any, hello: m.HelloReply) -> None:
@@ -216,12 +234,14 @@ class CorrectionEncoder(FrameEncoder):
         self._full, self._full_y = None, None
 
     def encode(self, view: tuple[float, float], *, key: bool = False,
-               scores: np.ndarray | None = None) -> EncodedScores:
+               scores: np.ndarray | None = None, fine: bool = False) -> EncodedScores:
         """The packet for ``view`` (canonical) whose true scores are ``scores`` (the
         projection of a fresh ray-cast): the correction, or the full frame when smaller.
 
-        Without ``scores`` (nothing ray-cast) or while ``enabled`` is off this is
-        `FrameEncoder.encode`."""
+        ``fine``: the view has come to rest, so quantize at the model's own score step by
+        plain rounding (the quality of today's key frames) instead of ``step_factor`` and
+        ``kappa`` (`sharpen_at_rest`). Without ``scores`` (nothing ray-cast) or while
+        ``enabled`` is off this is `FrameEncoder.encode`."""
         if not self.enabled or scores is None:
             encoded = super().encode(view, key=key, scores=scores)
             self.last_kind = "key" if self.last_was_key else "delta"
@@ -230,9 +250,10 @@ class CorrectionEncoder(FrameEncoder):
         if frame > 0xFFFFFFFF:
             frame, self._full = 1, None
         self.next_frame = frame + 1
-        model, s = self.model, self.step
+        model = self.model
+        s = float(model.score_step) if fine else self.step
         weights = None if self.views is None else self.views.weights(view)
-        rd = {"step": s, "kappa": self.kappa, "weights": weights}
+        rd = {"step": s, "kappa": 0.0 if fine else self.kappa, "weights": weights}
         y = np.asarray(scores, dtype=np.float64)
         prediction = self.predictor(*view)
         common = {"step": s, "frame": frame, "view": view, "image_digest": model.digest,
@@ -240,6 +261,8 @@ class CorrectionEncoder(FrameEncoder):
         correction = encode_scores(rd_quantize(model, y - prediction, **rd), predicted=True,
                                    **common)
         base = None if key else self._full
+        if base is not None and not (np.ndim(base.step) == 0 and float(base.step) == s):
+            base = None  # a fine frame after coarse ones (or back): steps differ, no delta
         full_y = rd_delta(model, y, None if base is None else self._full_y, **rd)
         full = encode_scores(full_y, base=base, **common)
         if len(full.packet) < len(correction.packet):

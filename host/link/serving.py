@@ -564,6 +564,7 @@ class _Frame:
     scores: np.ndarray | None = None
     key: bool = False
     refined: bool = False
+    fine: bool = False  # ``predict``: at the model's own step (`sharpen_at_rest`)
 
 
 @dataclass
@@ -575,6 +576,7 @@ class _Shown:
     sequence: int = 0
     scores: np.ndarray | None = None
     requested_at: float = 0.0
+    fine: bool = False
 
 
 @dataclass
@@ -822,6 +824,12 @@ class _Serving:
     def _resting(self, conn: _Connection, want_key: bool, now: float) -> _Frame | None:
         """No new request: the view on show refined (denser sparse frame, or its ray-cast),
         or repeated as a key frame; else wait (starting its ray-cast once it rested)."""
+        if self.scores == "predict":
+            from host.link.correction import sharpen_at_rest
+            if (due := sharpen_at_rest(self, conn, now)) is not False:
+                shown = self.current
+                return _Frame(shown.view, shown.sequence, shown.scores, want_key, refined=True,
+                              fine=True) if due else None
         shown, refiner = self.current, self.refiner
         unrefined = refiner is not None and shown.view is not None and shown.scores is None
         ready = refiner.take(shown.view) if unrefined else None
@@ -882,7 +890,9 @@ class _Serving:
         """Encode the frame (key or delta), hand it to the link, count it."""
         shown = self.current
         shown.view, shown.sequence, shown.scores = frame.view, frame.sequence, frame.scores
-        encoded = self.encoder.encode(frame.view, key=frame.key, scores=frame.scores)
+        shown.fine = frame.fine
+        fine = {"fine": True} if frame.fine else {}
+        encoded = self.encoder.encode(frame.view, key=frame.key, scores=frame.scores, **fine)
         sent = conn.sent
         sent.clear()
         queued = time.monotonic()
