@@ -557,6 +557,8 @@ class ViewSynthesizer:
         idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
         idx = np.asarray(idx).ravel().astype(np.int64)
         wts = np.asarray(wts, dtype=np.float64).ravel()
+        used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
+        idx, wts = idx[used], wts[used]
         clouds = [self.view_cloud(int(i)) for i in idx]
         sources = [self.warper.pose(float(self.phi[i]), float(self.theta[i])) for i in idx]
         return forward_warp(self.warper, clouds, sources, wts,
