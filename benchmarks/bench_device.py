@@ -35,6 +35,14 @@ f. **Cost of the SCORES event tag** (protocol 2, a keyed device) at each ``--siz
    reconstructor), and the verification alone as a fraction of the untagged frame.
    Target (issue 11): under 5 % of the frame time at 512.
 
+w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a standalone
+   image fitted with ``--depth``): the standalone device's frame over a drag (3 degrees of phi
+   per frame at theta 15) made by `device_runtime.synthesis.ViewSynthesizer` (4 neighbours'
+   colour and depth reconstructed on a cache miss, warped, blended, holes filled) against
+   today's blended standalone frame (`StandaloneScores` + ``Reconstructor.update``, threads
+   "auto") on the same views in the same run; the ratio, the cache misses, and the synthesis'
+   declared scratch (`synthesis_memory_bytes`) and depth sections. Target: < 40 ms at 512.
+
 Models. Real ones where it matters: ``--volume`` (default the shared vismale_head if
 present, else ``builtin:head``) rendered from ``--views`` (default ``grid:36x7``) at each of
 ``--real-sizes`` (default 256 and 512) into ``--work`` (default ``bench-out/device``) and
@@ -702,6 +710,54 @@ def print_serial(r: dict) -> None:
 # --------------------------------------------------------------------------- main
 
 
+def section_warp(path: Path, frames: int) -> dict:
+    """(w): synthesized vs blended standalone frames over the same drag."""
+    from device_runtime.image_receiver import required_ram_bytes
+    from device_runtime.standalone import StandaloneScores
+    from device_runtime.synthesis import DEPTH_SECTIONS, ViewSynthesizer, synthesis_memory_bytes
+    from protocol.image import read_image, read_manifest
+
+    image = read_image(path, read_annex=False)
+    standalone = StandaloneScores(image)
+    blend = Reconstructor.from_image(image, threads="auto")
+    synth = ViewSynthesizer(image, standalone, Reconstructor.from_image(image, threads="auto"))
+    views = orbit_views(frames, theta=15.0, turns=frames * 3.0 / 360.0)
+    t_blend, t_warp = [], []
+    synth.frame(*views[0])  # the first view's neighbours: a cold start, timed apart below
+    misses0 = synth.misses
+    for view in views:
+        t0 = time.perf_counter()
+        blend.update(standalone.scores(*view))
+        t1 = time.perf_counter()
+        synth.frame(*view)
+        t2 = time.perf_counter()
+        t_blend.append(t1 - t0)
+        t_warp.append(t2 - t1)
+    cold = ViewSynthesizer(image, standalone, Reconstructor.from_image(image, threads="auto"))
+    t0 = time.perf_counter()
+    cold.frame(*views[-1])
+    cold_ms = (time.perf_counter() - t0) * 1e3
+    manifest = read_manifest(path)
+    depth_bytes = sum(int(image.sections[s].nbytes) for s in DEPTH_SECTIONS)
+    return {"size": image.image_shape[0], "frames": len(views),
+            "blend_ms": med_ms(t_blend), "warp_ms": med_ms(t_warp),
+            "warp_p90_ms": float(np.percentile(t_warp, 90) * 1e3),
+            "ratio": med_ms(t_warp) / med_ms(t_blend), "cold_ms": cold_ms,
+            "misses_per_frame": (synth.misses - misses0) / len(views),
+            "depth_sections_bytes": depth_bytes,
+            "synthesis_scratch_bytes": synthesis_memory_bytes(manifest),
+            "required_ram_bytes": required_ram_bytes(manifest)}
+
+
+def print_warp(r: dict) -> None:
+    print(f"  {r['size']:>5} px: blended {r['blend_ms']:.1f} ms, synthesized "
+          f"{r['warp_ms']:.1f} ms (p90 {r['warp_p90_ms']:.1f}, cold {r['cold_ms']:.0f}) = "
+          f"{r['ratio']:.1f}x; {r['misses_per_frame']:.2f} neighbour reconstructions per frame; "
+          f"depth sections {r['depth_sections_bytes'] / MB:.1f} MB, synthesis scratch "
+          f"{r['synthesis_scratch_bytes'] / MB:.1f} MB (image needs "
+          f"{r['required_ram_bytes'] / MB:.1f} MB)", flush=True)
+
+
 def parse_sizes(text: str) -> list[int]:
     return [int(s) for s in text.split(",") if s.strip()]
 
@@ -723,7 +779,18 @@ def main() -> int:
     parser.add_argument("--jpeg-views", type=int, default=None)
     parser.add_argument("--sections", default="abcdef")
     parser.add_argument("--json", action="store_true", help="print one JSON object at the end")
+    parser.add_argument("--warp-image", type=Path, default=None,
+                        help="section w: a standalone image fitted with --depth")
     args = parser.parse_args()
+    if args.warp_image is not None and args.sections == "w":
+        frames = args.frames or 40
+        print(f"(w) standalone frame: synthesized (warp by depth) vs blended, median of "
+              f"{frames} drag frames; load {os.getloadavg()[0]:.1f}", flush=True)
+        row = section_warp(args.warp_image, frames)
+        print_warp(row)
+        if args.json:
+            print(json.dumps({"warp": row}))
+        return 0
     q = args.quick
     volume = args.volume or ("builtin:head" if q else default_volume())
     views = args.views or ("grid:12x4" if q else "grid:36x7")

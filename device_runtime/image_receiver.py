@@ -30,6 +30,7 @@ from typing import Any
 from device_runtime.errors import BudgetError, DeviceError, FlashError
 from device_runtime.image_writer import ImageWriter
 from device_runtime.reconstruct import reconstruction_memory_bytes
+from device_runtime.synthesis import check_synthesis, synthesis_memory_bytes
 from device_runtime.wire_errors import DeviceRefusal, _one_line
 from protocol import messages as m
 from protocol.errors import ImageFormatError, NotAuthenticated, ProtocolError
@@ -56,7 +57,9 @@ def required_ram_bytes(manifest: dict) -> int:
     The reconstruction's arrays, frame buffers and scratch
     (:func:`device_runtime.reconstruct.reconstruction_memory_bytes`, from the
     image and cell shapes and the number of components) plus the decompressed
-    size of every extra section.
+    size of every extra section, plus the view synthesis' cache and scratch when the
+    image names one (:func:`device_runtime.synthesis.synthesis_memory_bytes`). A
+    synthesis method this device does not know refuses the image here (one line).
 
     Parameters
     ----------
@@ -99,7 +102,8 @@ def required_ram_bytes(manifest: dict) -> int:
     base = reconstruction_memory_bytes(
         (image_shape[0], image_shape[1]), (cell_shape[0], cell_shape[1]), n_coefficients
     )
-    return int(base + extra)
+    check_synthesis(manifest.get("synthesis"), (image_shape[0], image_shape[1]))
+    return int(base + extra + synthesis_memory_bytes(manifest))
 
 
 def read_device_image(stream: Any, *, key: bytes | None, ram_budget_bytes: int) -> Any:

@@ -79,6 +79,7 @@ from device_runtime.standalone import (
     standalone_order,
     standalone_table,
 )
+from device_runtime.synthesis import ViewSynthesizer
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
@@ -222,6 +223,8 @@ class LoadedModel:
     standalone: StandaloneScores | None = None
     confirmed: bool = False
     predictor: Predictor | None = None
+    #: Depth-aware view synthesis (standalone, image fitted with ``--depth``).
+    synthesis: ViewSynthesizer | None = None
 
     @classmethod
     def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
@@ -243,8 +246,13 @@ class LoadedModel:
         )
         predictor = (Predictor(image) if want_predictor and not want_standalone
                      and can_predict(image) else None)
+        synthesis = None
+        if standalone is not None and image.synthesis is not None:
+            # its own reconstructor: the neighbours' colours must not touch the display's
+            synthesis = ViewSynthesizer(image, standalone,
+                                        Reconstructor.from_image(image, threads="auto"))
         return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
-                   generation, test, standalone, predictor=predictor)
+                   generation, test, standalone, predictor=predictor, synthesis=synthesis)
 
     def close(self) -> None:
         self.reconstructor.close()
@@ -725,7 +733,13 @@ class RuntimeDevice(Device):
     def _present(self, model: LoadedModel, y: np.ndarray, info: dict) -> None:
         stats = self.runtime_stats
         t0 = time.perf_counter()
-        frame = model.reconstructor.update(y)
+        if model.synthesis is not None and "phi_deg" in info:
+            # standalone with depth: the neighbours warped into the view, shown from the
+            # reconstructor's frame buffer (which redraws present)
+            frame = model.reconstructor.frame
+            frame[...] = model.synthesis.frame(info["phi_deg"], info["theta_deg"])
+        else:
+            frame = model.reconstructor.update(y)
         t1 = time.perf_counter()
         overlay = self.overlay_lines() if self.presenter.overlay else None
         self.presenter.present(frame, info, overlay_lines=overlay)

@@ -33,7 +33,9 @@ Manifest keys (device image, ``kind`` = ``"image"``):
 map (defaults for score packets, e.g. ``{"step": 1.0}``); ``views`` map or null (the training
 view set); ``interpolation`` map or null (data for standalone score interpolation);
 ``provenance`` map (opaque: fit parameters, solver, sign convention, render settings, creation
-time); ``annex`` null or ``{"sha256": 32 bytes, "size": int}``; ``sections`` list of
+time); optional ``synthesis`` map (absent: the device blends; ``{"method": "warp-depth-1",
+...}``: depth-aware view synthesis, see `device_runtime.synthesis`); ``annex`` null or
+``{"sha256": 32 bytes, "size": int}``; ``sections`` list of
 ``{"name", "dtype", "shape", "offset", "size", "raw_size"}`` where ``dtype`` is a numpy
 little-endian type string (``"|u1"``, ``"|i1"``, ``"<f4"`` ...), ``offset`` counts from the
 first byte after the manifest, ``size`` is the compressed and ``raw_size`` the decompressed byte
@@ -197,6 +199,10 @@ class EigenspaceImage:
         Extra named device sections (e.g. a training score table for standalone mode).
     annex : dict of str to ndarray or None
         Host-only arrays stored in the annex (``None``: no annex).
+    synthesis : dict or None
+        How a device makes novel views from the training views beyond blending them
+        (``{"method": "warp-depth-1", ...}``, `device_runtime.synthesis`); written to the
+        manifest only when set, so images without it are byte-identical to older ones.
 
     Attributes
     ----------
@@ -221,6 +227,7 @@ class EigenspaceImage:
     interpolation: dict | None = None
     provenance: dict = field(default_factory=dict)
     sections: dict[str, np.ndarray] = field(default_factory=dict)
+    synthesis: dict | None = None
     annex: dict[str, np.ndarray] | None = None
     digest: bytes | None = None
     signed: bool = False
@@ -433,6 +440,8 @@ def write_image(
                 "provenance": dict(image.provenance),
                 "annex": annex_record,
             }
+            if image.synthesis is not None:
+                manifest["synthesis"] = dict(image.synthesis)
             arrays = [
                 ("n_components", np.asarray(image.n_components, dtype=np.int32)),
                 ("scales", np.asarray(image.scales, dtype=np.float32)),
@@ -808,6 +817,7 @@ def read_image(
         interpolation=manifest["interpolation"],
         provenance=manifest["provenance"],
         sections=arrays,
+        synthesis=manifest.get("synthesis"),
         annex=annex_arrays,
         digest=digest,
         signed=signed,
@@ -1063,6 +1073,8 @@ def _check_image_manifest(manifest: dict, table: list[dict], what: str) -> None:
     _field(manifest, "provenance", dict, what)
     for key in ("views", "interpolation"):
         _field(manifest, key, (dict, type(None)), what)
+    if not isinstance(manifest.get("synthesis"), (dict, type(None))):
+        raise ImageFormatError(f"read {what}: manifest 'synthesis' must be a map or null")
     annex = _field(manifest, "annex", (dict, type(None)), what)
     if annex is not None:
         sha = _field(annex, "sha256", bytes, f"{what} annex record")

@@ -68,38 +68,37 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from device_runtime.synthesis import (
+    COVERAGE_MIN,
+    HOLE_NEIGHBOURS,
+    HOLE_PASSES,
+    Z_TOLERANCE,
+    DepthEigenspace,
+    fill_holes,
+    forward_warp,
+    upsample2,
+)
+from device_runtime.synthesis import Warper as _Warper
 from host.evaluate import DevicePath, TrainingImages, WebPDatabase, compare_images
 from host.evaluate.masks import OBJECT_LEVEL, alpha_object_mask
+from host.fit.depth import fill_nearest, fit_depth_eigenspaces
 from host.fit.model import HostModel
-from host.render.camera import Camera, parse_view_set
+from host.render.camera import parse_view_set
 from host.render.cinema import CinemaDB
 from host.render.raycast import DEPTH_HALF, DEPTH_MEAN
 from host.render.settings import RenderSettings, ViewRenderer
 from host.shared_data import shared_volume
 
-#: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
-#: within this of the nearest one are blended, the rest are hidden.
-Z_TOLERANCE = 0.02
-#: Only splat corners with at least this bilinear weight write the z-buffer (each source pixel
-#: writes at least its nearest target pixel): a neighbour's far corner would otherwise hide
-#: a pixel on a steep surface, e.g. at the silhouette.
-ZBUF_SPLAT_MIN = 0.25
-#: A pixel is covered when the bilinear splat weights landing on it (z-test passed) sum
-#: to at least this.
-COVERAGE_MIN = 0.5
-#: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
-#: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
-HOLE_PASSES = 2
-HOLE_NEIGHBOURS = 4
-#: Depth PCA: score quantization noise (mm^2 per pixel) and the depth cells' side.
-DEPTH_SCORE_MSE = 0.05
+#: The warp (z tolerance, coverage, hole filling: `forward_warp`, `fill_holes`) and the depth
+#: fit are the product's, `device_runtime.synthesis` and `host.fit.depth`, imported above.
+__all__ = ["Warper", "fill_holes", "forward_warp", "upsample2"]
+#: The depth cells' side.
 DEPTH_CELL = 16
 DEPTH_SIZE = 256
 #: WebP image database quality (evaluate's default).
@@ -112,185 +111,19 @@ VARIANTS = {"half": DEPTH_HALF, "mean": DEPTH_MEAN}
 # ----------------------------------------------------------------------------- geometry
 
 
-class Warper:
-    """Forward warping between the orbit cameras of one framing, at one image size.
-
-    Every orbit camera of a database has the same intrinsics, so each pixel's unit ray in
-    camera coordinates (right, up, forward) is computed once; a view's world rays are its
-    rotation of them (`host.render.camera.Camera.rays`, perspective only).
-    """
+class Warper(_Warper):
+    """`device_runtime.synthesis.Warper` for a database's recorded framing."""
 
     def __init__(self, settings: RenderSettings, width: int, height: int) -> None:
         if settings.projection != "perspective":
             raise SystemExit("warp_views: only perspective databases are supported")
-        self.settings = settings
-        self.width, self.height = int(width), int(height)
-        self.half = math.tan(math.radians(settings.fov_deg) / 2.0)
-        xs, ys = Camera._pixel_centres(self.width, self.height)
-        gx, gy = np.meshgrid(xs * self.half, ys * self.half)
-        d = np.stack([gx, gy, np.ones_like(gx)], axis=-1)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        d = d.reshape(-1, 3).astype(np.float32)  # (h*w, 3) camera coordinates
-        self.dx, self.dy, self.dz = (np.ascontiguousarray(d[:, k]) for k in range(3))
-        self.tol_mm = Z_TOLERANCE * 2.0 * settings.radius_mm
+        distance = settings.radius_mm / math.sin(math.radians(settings.fov_deg) / 2.0)
+        super().__init__(settings.fov_deg, distance, width, height,
+                         Z_TOLERANCE * 2.0 * settings.radius_mm)
 
     def camera(self, phi: float, theta: float) -> tuple[np.ndarray, np.ndarray]:
         """(position (3,), rotation (3, 3) whose columns are right, up, forward)."""
-        cam = self.settings.camera(phi, theta)
-        f, r, u = cam.basis()
-        return cam.position.astype(np.float64), np.stack([r, u, f], axis=1)
-
-    def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
-             valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
-             weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """`forward_warp` with this warper's geometry; uint8 (h, w, 3)."""
-        return forward_warp(self, colours, depths, valid, sources, weights, target)
-
-
-def forward_warp(w: Warper, colours: list[np.ndarray], depths: list[np.ndarray],
-                 valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
-                 weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Forward-warp source views into the target camera, z-test, blend, fill holes.
-
-    Each valid source pixel is unprojected with its depth (distance along its ray) and
-    projected into the target camera; it splats bilinearly onto the 4 pixels around where it
-    lands. A z-buffer (``np.minimum.at``) keeps, per target pixel, the nearest splat's
-    forward distance (of the splats with bilinear weight >= ``ZBUF_SPLAT_MIN``); splats within
-    ``Z_TOLERANCE`` of it are blended with weight (splat
-    weight x the view's interpolation weight), the rest are hidden. Pixels whose passing
-    splat weights (without the view weights: a pixel one view alone sees counts) sum below
-    ``COVERAGE_MIN`` are holes; `fill_holes` closes the cracks among covered pixels. Pure
-    numpy, no per-pixel Python loop; splats land on a grid one pixel larger on every side,
-    so nothing needs masking.
-
-    Parameters
-    ----------
-    colours : list of ndarray (h, w, 3) uint8
-    depths : list of ndarray (h, w) float32
-        Distances in mm along each pixel's ray from the camera (NaN: none).
-    valid : list of ndarray (h, w) bool
-        Pixels that carry the object.
-    sources, target : (position (3,), rotation (3, 3)) from `Warper.camera`
-    weights : ndarray (m,)
-        Interpolation weights of the sources.
-    """
-    h, wd = w.height, w.width
-    w2 = wd + 2
-    n = (h + 2) * w2
-    p_t, r_t = target
-    idx_parts, z_parts, ws_parts, wv_parts, col_parts = [], [], [], [], []
-    for colour, depth, ok, (p_s, r_s), wv in zip(colours, depths, valid, sources, weights):
-        if wv <= 0.0:
-            continue
-        flat = (ok & np.isfinite(depth)).reshape(-1)
-        src = np.flatnonzero(flat)
-        t = depth.reshape(-1)[src].astype(np.float32)
-        m = (r_t.T @ r_s).astype(np.float32)
-        b = (r_t.T @ (p_s - p_t)).astype(np.float32)
-        dx, dy, dz = w.dx[src], w.dy[src], w.dz[src]
-        cx = (dx * m[0, 0] + dy * m[0, 1] + dz * m[0, 2]) * t + b[0]
-        cy = (dx * m[1, 0] + dy * m[1, 1] + dz * m[1, 2]) * t + b[1]
-        z = (dx * m[2, 0] + dy * m[2, 1] + dz * m[2, 2]) * t + b[2]
-        scale = np.float32(1.0 / w.half) / np.maximum(z, np.float32(1e-3))
-        col = (cx * scale * np.float32(h / wd) + 1.0) * np.float32(0.5 * wd) - 0.5
-        row = (1.0 - cy * scale) * np.float32(0.5 * h) - 0.5
-        # beyond the padded grid (or behind the camera): no weight, parked on the border
-        out = (col < -1) | (col >= wd) | (row < -1) | (row >= h) | (z <= 1e-3)
-        col[out] = -1.0
-        row[out] = -1.0
-        c0 = np.floor(col)
-        r0 = np.floor(row)
-        fx = col - c0
-        fy = row - r0
-        inside = (~out).astype(np.float32) * np.float32(wv > 0)
-        base = (r0.astype(np.int64) + 1) * w2 + (c0.astype(np.int64) + 1)
-        idx_parts += [base, base + 1, base + w2, base + w2 + 1]
-        z_parts += [z] * 4
-        ws_parts += [(1 - fx) * (1 - fy) * inside, fx * (1 - fy) * inside,
-                     (1 - fx) * fy * inside, fx * fy * inside]
-        wv_parts.append(np.full(4 * src.size, wv, np.float32))
-        rgb = colour.reshape(-1, 3)[src].astype(np.float32)
-        col_parts += [rgb] * 4
-    frame = np.zeros((h, wd, 3), dtype=np.uint8)
-    if not idx_parts:
-        return frame
-    idx = np.concatenate(idx_parts)
-    z = np.concatenate(z_parts)
-    ws = np.concatenate(ws_parts)
-    rgb = np.concatenate(col_parts)
-    zbuf = np.full(n, np.inf, dtype=np.float32)
-    near = ws >= ZBUF_SPLAT_MIN
-    np.minimum.at(zbuf, idx[near], z[near])
-    ws *= z <= zbuf[idx] + np.float32(w.tol_mm)
-    # coverage counts the splat weights alone: a pixel that one view alone sees is covered
-    # however small that view's interpolation weight
-    covered = np.bincount(idx, ws, minlength=n) >= COVERAGE_MIN
-    ws *= np.concatenate(wv_parts)
-    total = np.bincount(idx, ws, minlength=n)
-    acc = np.stack([np.bincount(idx, ws * rgb[:, k], minlength=n) for k in range(3)], axis=1)
-    covered &= total > 0
-    acc[covered] /= total[covered, None]
-    acc[~covered] = 0.0
-    inner = acc.reshape(h + 2, w2, 3)[1:-1, 1:-1].astype(np.float32)
-    inner = fill_holes(inner, covered.reshape(h + 2, w2)[1:-1, 1:-1])
-    np.clip(np.rint(inner), 0, 255, out=inner)
-    frame[...] = inner
-    return frame
-
-
-def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """Fill uncovered pixels with the mean of their covered 3x3 neighbours where at least
-    ``HOLE_NEIGHBOURS`` of the 8 are covered, ``HOLE_PASSES`` times (cracks close, the
-    silhouette does not grow)."""
-    h, w = covered.shape
-    for _ in range(HOLE_PASSES):
-        if covered.all():
-            break
-        cp = np.pad(covered, 1).astype(np.float32)
-        fp = np.pad(frame * covered[..., None], ((1, 1), (1, 1), (0, 0)))
-        count = np.zeros((h, w), np.float32)
-        acc = np.zeros((h, w, 3), np.float32)
-        for dy in range(3):
-            for dx in range(3):
-                if dy == 1 and dx == 1:
-                    continue
-                count += cp[dy:dy + h, dx:dx + w]
-                acc += fp[dy:dy + h, dx:dx + w]
-        fill = ~covered & (count >= HOLE_NEIGHBOURS)
-        if not fill.any():
-            break
-        frame[fill] = acc[fill] / count[fill, None]
-        covered = covered | fill
-    return frame
-
-
-def upsample2(d: np.ndarray) -> np.ndarray:
-    """Bilinear x2 upsampling with pixel centres aligned (edges clamped), float32."""
-    d = np.asarray(d, dtype=np.float32)
-
-    def along(a: np.ndarray, axis: int) -> np.ndarray:
-        a = np.moveaxis(a, axis, 0)
-        prev = np.concatenate([a[:1], a[:-1]])
-        nxt = np.concatenate([a[1:], a[-1:]])
-        out = np.empty((2 * a.shape[0], *a.shape[1:]), np.float32)
-        out[0::2] = 0.75 * a + 0.25 * prev
-        out[1::2] = 0.75 * a + 0.25 * nxt
-        return np.moveaxis(out, 0, axis)
-
-    return along(along(d, 0), 1)
-
-
-def fill_nearest(depth: np.ndarray) -> np.ndarray:
-    """NaN pixels take the nearest finite pixel's value (smooth silhouettes for the PCA)."""
-    from scipy.ndimage import distance_transform_edt
-
-    bad = ~np.isfinite(depth)
-    if not bad.any():
-        return depth.astype(np.float32)
-    if bad.all():
-        return np.zeros_like(depth, dtype=np.float32)
-    i = distance_transform_edt(bad, return_distances=False, return_indices=True)
-    return depth[tuple(i)].astype(np.float32)
+        return self.pose(phi, theta)
 
 
 def variant_depth(depth2: np.ndarray, variant: str) -> np.ndarray:
@@ -303,39 +136,6 @@ def variant_depth(depth2: np.ndarray, variant: str) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- depth PCA
-
-
-@dataclass
-class DepthEigenspace:
-    """A cell PCA of depth maps (mm relative to the camera distance), device-style storage:
-    float16 cell means, int8 components with a float32 scale each, an int16 score table."""
-
-    cell: int
-    shape: tuple[int, int]
-    mean: np.ndarray  # (n_cells, d) float32 (stored float16)
-    comps: np.ndarray  # (K, d) float32 = int8 * scale
-    counts: np.ndarray  # (n_cells,)
-    table: np.ndarray  # (n_views, K) int16
-    step: float
-    offset: float  # the camera distance subtracted
-
-    @property
-    def n_components(self) -> int:
-        return int(self.counts.sum())
-
-    def bytes(self) -> dict[str, int]:
-        d = self.cell * self.cell
-        return {"components_int8": self.n_components * d, "scales": 4 * self.n_components,
-                "means_f16": 2 * self.mean.shape[0] * d, "table_int16": 2 * self.table.size}
-
-    def reconstruct(self, view: int) -> np.ndarray:
-        """Depth map (h, w) float32 in mm along the rays, of training view ``view``."""
-        y = self.table[view].astype(np.float32) * np.float32(self.step)
-        cells = self.mean.copy()
-        nz = self.counts > 0
-        starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]])[nz]
-        cells[nz] += np.add.reduceat(self.comps * y[:, None], starts, axis=0)
-        return merge(cells, self.cell, self.shape) + np.float32(self.offset)
 
 
 def zstd_bytes(pca: DepthEigenspace, order: np.ndarray) -> dict[str, int]:
@@ -351,8 +151,7 @@ def zstd_bytes(pca: DepthEigenspace, order: np.ndarray) -> dict[str, int]:
     def size(a: np.ndarray) -> int:
         return len(cctx.compress(np.ascontiguousarray(a).tobytes()))
 
-    peak = np.maximum(np.abs(pca.comps).max(axis=1, keepdims=True), 1e-30)
-    comps = np.rint(pca.comps / (peak / 127.0)).astype(np.int8)
+    comps = pca.components
     diffs = np.ascontiguousarray(pca.table[order].T)
     diffs[:, 1:] = diffs[:, 1:] - diffs[:, :-1]
     wide = diffs.astype(np.int32)
@@ -382,59 +181,17 @@ def colour_bytes(model: HostModel) -> dict[str, int]:
             "components": int(model.image.n_coefficients)}
 
 
-def split(img: np.ndarray, cell: int) -> np.ndarray:
-    h, w = img.shape
-    return img.reshape(h // cell, cell, w // cell, cell).swapaxes(1, 2).reshape(-1, cell * cell)
-
-
-def merge(cells: np.ndarray, cell: int, shape: tuple[int, int]) -> np.ndarray:
-    h, w = shape
-    return cells.reshape(h // cell, w // cell, cell, cell).swapaxes(1, 2).reshape(h, w)
-
-
 def fit_depth_pcas(depths: np.ndarray, thresholds: list[float], offset: float
                    ) -> dict[float, DepthEigenspace]:
-    """Adaptive cell PCA (the colour fit's rule: the fewest components per cell whose
-    eigenvalues reach ``threshold`` of the cell's variance) of filled depth maps (n, h, w)
-    float32, one eigenspace per threshold from one eigendecomposition per cell."""
-    n, h, w = depths.shape
-    cell = DEPTH_CELL
-    x = np.stack([split(d - np.float32(offset), cell) for d in depths], axis=1)  # (cells, n, d)
-    per_t: dict[float, tuple[list, list, list]] = {t: ([], [], []) for t in thresholds}
-    means = []
-    for c in range(x.shape[0]):
-        xc = x[c].astype(np.float64)
-        mu = xc.mean(axis=0)
-        xc -= mu
-        lam, vec = np.linalg.eigh(xc.T @ xc / max(n - 1, 1))
-        lam, vec = lam[::-1], vec[:, ::-1]
-        trace = float(lam.sum())
-        means.append(mu.astype(np.float16).astype(np.float32))
-        kmax = 0
-        ks = {}
-        for t in thresholds:
-            k = 0 if trace <= 1e-12 else min(
-                int(np.searchsorted(np.cumsum(lam) / trace, t - 1e-12) + 1), lam.size)
-            ks[t] = k
-            kmax = max(kmax, k)
-        y = xc @ vec[:, :kmax]
-        for t, k in ks.items():
-            comps, counts, scores = per_t[t]
-            comps.append(vec[:, :k].T)
-            counts.append(k)
-            scores.append(y[:, :k])
-    out = {}
-    for t, (comps, counts, scores) in per_t.items():
-        counts = np.array(counts)
-        v = np.concatenate(comps)
-        scale = np.maximum(np.abs(v).max(axis=1), 1e-12) / 127.0
-        vq = (np.rint(v / scale[:, None]) * scale[:, None]).astype(np.float32)
-        y = np.concatenate(scores, axis=1)
-        kmean = max(float(counts[counts > 0].mean()), 1.0) if counts.any() else 1.0
-        step = math.sqrt(12.0 * DEPTH_SCORE_MSE * cell * cell / kmean)
-        table = np.clip(np.rint(y / step), -32768, 32767).astype(np.int16)
-        out[t] = DepthEigenspace(cell, (h, w), np.stack(means), vq, counts, table, step, offset)
-    return out
+    """`host.fit.depth.fit_depth_eigenspaces` (the product's fit) at the script's cell."""
+    return fit_depth_eigenspaces(depths, thresholds, offset, DEPTH_CELL)
+
+
+def depth_bytes(pca: DepthEigenspace) -> dict[str, int]:
+    """Raw sizes of a depth eigenspace's parts."""
+    d = pca.cell * pca.cell
+    return {"components_int8": pca.n_components * d, "scales": 4 * pca.n_components,
+            "means_f16": 2 * pca.mean.shape[0] * d, "table_int16": 2 * pca.table.size}
 
 
 # ----------------------------------------------------------------------------- caches
@@ -539,7 +296,7 @@ def depth_pcas(vol: Volume, thresholds: list[float]
                 ok = np.isfinite(truth)
                 err.append(np.square(pca.reconstruct(int(i))[ok] - truth[ok]))
             rmse = float(np.sqrt(np.concatenate(err).mean()))
-            b = pca.bytes()
+            b = depth_bytes(pca)
             order = np.lexsort((np.mod(vol.dbs[DEPTH_SIZE].phi_deg, 360.0),
                                 vol.dbs[DEPTH_SIZE].theta_deg))
             report[variant][str(t)] = {

@@ -212,6 +212,9 @@ def _text_summary(s: dict) -> str:
                      f"{db['storage_bytes'] / 1e6:.2f} MB"
                      f"{' (estimated)' if db.get('storage_estimated') else ''} vs eigenspace "
                      f"image {s['eigenspace_bytes'] / 1e6:.2f} MB")
+    if "pca_warp" in s:
+        lines.append("pca_warp: what eigencast-device --standalone shows with this image's "
+                     "depth (the 4 neighbouring training views warped by depth, no packets)")
     int8 = s.get("int8") or {}
     if int8.get("train_loss_db") is not None:
         lines.append(f"int8 loss vs float (fit, training views): {int8['train_loss_db']:.3f} dB")

@@ -72,6 +72,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--standalone", action="store_true",
                         help="also store the training views' quantized scores in the image so a "
                              "device interpolates by itself (eigencast-device --standalone)")
+    parser.add_argument("--depth", action="store_true",
+                        help="also store a depth eigenspace of the database's depth maps "
+                             "(render --depth) so a standalone device warps its neighbouring "
+                             "views instead of blending them; implies --standalone")
+    parser.add_argument("--depth-threshold", type=float, default=None, metavar="T",
+                        help="cumulative variance each depth cell keeps (default: the "
+                             "colour's --threshold)")
     parser.add_argument("--interpolation", choices=("auto", "bilinear", "bicubic", "barycentric"),
                         default="auto",
                         help="how novel views' scores are interpolated between training views "
@@ -133,6 +140,16 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
     db = CinemaDB.open(args.database)
+    depth_threshold = args.depth_threshold if args.depth_threshold is not None else threshold
+    if args.depth_threshold is not None and not args.depth:
+        raise EigencastError("--depth-threshold is used only with --depth")
+    if args.depth:
+        if db.depth is None:
+            raise EigencastError(f"{args.database}: has no depth maps; render it with "
+                                 "eigencast render --depth")
+        if not 0.0 < depth_threshold <= 1.0:
+            raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
+        args.standalone = True  # the device needs the colour and the depth training scores
     if args.interpolation in ("bilinear", "bicubic"):  # refuse before the (long) fit
         from device_runtime.interpolation import detect_grid
 
@@ -159,9 +176,18 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
 
         standalone = add_standalone_table(image, annex[ANNEX_SCORES],
                                           eigenvalues=annex.get(ANNEX_EIGENVALUES))
+    depth = None
+    if args.depth:
+        from host.fit.depth import add_depth
+
+        depth = add_depth(image, db, depth_threshold)
     save_model(out, image, annex, key=key)
     if standalone is not None:
         print(_standalone_line(out, standalone))
+    if depth is not None:
+        print(f"depth: {depth['components']} components ({depth['components_per_cell']:.2f}/"
+              f"cell at T={depth['threshold']}), {depth['raw_bytes'] / 1e6:.2f} MB raw; "
+              f"synthesis {image.synthesis['method']}")
     device_bytes = image_device_bytes(out)
     int8 = image.provenance["int8"]
     print(

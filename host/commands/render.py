@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
@@ -13,9 +14,10 @@ from host.commands._render_options import (
     parse_size,
     render_setup,
 )
+from host.errors import CinemaError
 from host.progress import progress
 from host.render.camera import orbit_camera, parse_view_set
-from host.render.cinema import CinemaWriter, absolute_source, encode_png
+from host.render.cinema import CinemaWriter, absolute_source, encode_depth, encode_png
 from host.render.transfer import add_transfer_function_argument
 from host.volume import add_volume_arguments
 
@@ -36,6 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_volume_arguments(parser)
     add_transfer_function_argument(parser)
     add_render_arguments(parser)
+    parser.add_argument("--depth", action="store_true",
+                        help="also store each view's half-opacity depth at half resolution "
+                             "(depth/*.npz, for fit --depth; perspective, even sizes, "
+                             "in-process only)")
     from host.cluster import add_scheduler_argument
 
     add_scheduler_argument(parser)
@@ -63,6 +69,15 @@ def database_settings(volume, tf, renderer, view_set, size, camera_opts) -> dict
     }
 
 
+def _render_with_depth(renderer, cameras, pending, width, height, writer, offset):  # noqa: ANN001
+    """Yield ``(index, png)`` like the colour path, each view's depth map written first
+    (one ray-cast per view: `Renderer.render_with_depth`, the same colour bits)."""
+    for i in pending:
+        rgba, depth = renderer.render_with_depth(cameras[i], width, height)
+        writer.write_depth(i, encode_depth(depth, offset))
+        yield i, encode_png(renderer.composite(rgba))
+
+
 def run(args: argparse.Namespace) -> int:
     width, height = parse_size(args.size)
     view_set = parse_view_set(args.views)
@@ -75,7 +90,17 @@ def run(args: argparse.Namespace) -> int:
     ]
     rows = [(v.phi_deg, v.theta_deg, c.to_dict()) for v, c in zip(view_set.views, cameras)]
     settings = database_settings(volume, tf, renderer, view_set, (width, height), camera_opts)
-    writer = CinemaWriter(args.output, settings, rows, (height, width), overwrite=args.overwrite)
+    depth_offset = None
+    if getattr(args, "depth", False):
+        if args.scheduler:
+            raise CinemaError("--depth is in-process only (drop --scheduler)")
+        if args.projection != "perspective":
+            raise CinemaError("--depth needs --projection perspective (the warp's camera model)")
+        if width % 2 or height % 2:
+            raise CinemaError(f"--depth needs an even image size, got {width}x{height}")
+        depth_offset = camera_opts["radius_mm"] / math.sin(math.radians(args.fov) / 2.0)
+    writer = CinemaWriter(args.output, settings, rows, (height, width), overwrite=args.overwrite,
+                          depth_offset_mm=depth_offset)
     pending = writer.pending
     kept = len(rows) - len(pending)
     if kept:
@@ -84,7 +109,10 @@ def run(args: argparse.Namespace) -> int:
     from host.cluster import open_cluster, render_pngs
 
     cluster = open_cluster(args.scheduler)  # None: in-process threads
-    if cluster is None:
+    if cluster is None and depth_offset is not None:
+        pngs = _render_with_depth(renderer, cameras, pending, width, height, writer,
+                                  depth_offset)
+    elif cluster is None:
         pngs = ((i, encode_png(renderer.render_rgb8(cameras[i], width, height)))
                 for i in pending)
     else:

@@ -59,10 +59,11 @@ __all__ = [
 #: render`` sends, and ``motion``/``refine`` once a view rests), the frame ``serve --scores
 #: motion`` sends while the view moves (``pca_motion``), what a predicting device shows at
 #: rest under ``serve --scores predict`` (``pca_predict``: its own prediction plus the host's
-#: correction; models fitted ``--standalone`` only), equal-bytes codecs, the nearest training
-#: view and the on-device WebP image database.
+#: correction; models fitted ``--standalone`` only), what a standalone device synthesizes
+#: from its neighbours' depth (``pca_warp``: models fitted ``--depth`` only), equal-bytes
+#: codecs, the nearest training view and the on-device WebP image database.
 METHODS = ("pca", "pca_motion", "pca_predict", "pca_render", "jpeg", "webp", "avif", "nearest",
-           "webp_db")
+           "webp_db", "pca_warp")
 #: ``pca_motion``: the drag it is measured in, degrees per frame.
 MOTION_STEP_DEG = 3.0
 #: ``pca_motion``: frames of the warm-up drag whose last stride is used for every view.
@@ -133,7 +134,8 @@ class Evaluation:
 
         Model facts, the per-method means over the views (`METHODS`: ``pca``, ``pca_motion``
         (with its ``stride``, ``deadline_ms``, ``coarse``, ``step_deg``), ``pca_render``,
-        ``jpeg``, ``webp``, ``avif``, ``nearest``, ``webp_db``), the rate-distortion
+        ``jpeg``, ``webp``, ``avif``, ``nearest``, ``webp_db``, ``pca_warp`` for a model fitted
+        with ``--depth``), the rate-distortion
         points, the time per phase and the per-view records;
         non-finite floats are ``None``.
         """
@@ -389,6 +391,13 @@ def evaluate_model(
         webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
         timing["webp_db"] += time.perf_counter() - t0
         evaluation.info["webp_db_quality"] = webp_db.quality
+    warp = None
+    if model.image.synthesis is not None and "pca_warp" in METHODS:
+        from host.evaluate.warp import WarpFrames  # a model fitted with --depth
+
+        warp = WarpFrames(model)
+        timing["warp"] = 0.0
+        evaluation.info["synthesis"] = model.image.synthesis.get("method")
     motion = None
     if motion_deadline_s is not None:
         motion = _motion_source(model, scene, motion_deadline_s, pairs[0], motion_stride)
@@ -409,7 +418,7 @@ def evaluate_model(
             record[name].update(c.values())
         if sample is not None:
             sample.update({f"flip_{name}": results[name].flip_map
-                           for name in ("pca", "jpeg", "webp", "avif", "webp_db")
+                           for name in ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp")
                            if name in results})
             evaluation.samples.append(sample)
         evaluation.views.append(record)
@@ -471,6 +480,13 @@ def evaluate_model(
                     timing["webp_db"] += time.perf_counter() - t4
                     record["webp_db"] = {"bytes_per_view": 0, "quality": webp_db.quality}
                     futures["webp_db"] = metrics.submit(truth, blended, mask, keep)
+                warped = None
+                if warp is not None:
+                    t4 = time.perf_counter()
+                    warped = warp.frame(phi, theta)
+                    timing["warp"] += time.perf_counter() - t4
+                    record["pca_warp"] = {"bytes_per_view": 0}
+                    futures["pca_warp"] = metrics.submit(truth, warped, mask, keep)
                 t3 = time.perf_counter()
                 if nearest and training is not None:
                     index, angle = nearest_training_view(phi, theta, training.phi,
@@ -490,6 +506,8 @@ def evaluate_model(
                               "record": record}
                     if webp_db is not None:
                         sample["webp_db"] = blended
+                    if warped is not None:
+                        sample["pca_warp"] = warped
                 if i < rd_views:
                     rd_refs.append((truth, mask, phi, theta))
                 in_flight.append((i, record, futures, sample))

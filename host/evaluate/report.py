@@ -34,7 +34,8 @@ __all__ = ["compose_side_by_side", "write_report"]
 MIN_PANEL_HEIGHT = 256
 _COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp": "#2166ac",
            "nearest": "#8c6bb1", "webp_db": "#e08214", "pca_render": "#35978f",
-           "pca_motion": "#7fbc41", "avif": "#c51b7d", "pca_predict": "#543005"}
+           "pca_motion": "#7fbc41", "avif": "#c51b7d", "pca_predict": "#543005",
+           "pca_warp": "#01665e"}
 _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
           "pca_render": "PCA, ray-cast scores (serve --scores render)",
           "pca_motion": "PCA, sparse ray-cast while moving (serve --scores motion)",
@@ -42,7 +43,8 @@ _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (dev
           "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
           "avif": "AVIF, equal bytes",
           "nearest": "nearest training view",
-          "webp_db": "WebP image database on the device"}
+          "webp_db": "WebP image database on the device",
+          "pca_warp": "PCA, neighbours warped by depth (standalone, fit --depth)"}
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
@@ -223,9 +225,9 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
     theta = np.array([v["theta_deg"] for v in evaluation.views])
     for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
         # dodge the methods sideways so that views at equal elevations stay visible
-        for dodge, method in zip((-3.2, -2.4, -1.6, -0.8, 0.0, 0.8, 1.6, 2.4, 3.2),
+        for dodge, method in zip((-3.6, -2.8, -2.0, -1.2, -0.4, 0.4, 1.2, 2.0, 2.8, 3.6),
                                  ("nearest", "jpeg", "webp", "avif", "webp_db", "pca",
-                                  "pca_motion", "pca_render", "pca_predict")):
+                                  "pca_motion", "pca_render", "pca_predict", "pca_warp")):
             if evaluation.views and method in evaluation.views[0]:
                 vals = np.array([v[method][metric] for v in evaluation.views], dtype=float)
                 ax.scatter(theta + dodge, vals, s=10, color=_COLORS[method],
@@ -277,6 +279,10 @@ def _sample_figure(sample: dict) -> np.ndarray:
         db = rec["webp_db"]
         panels.append((f"WebP database q{db['quality']}, 0 B\n"
                        f"SSIM {db['ssim']:.3f}  FLIP {db['flip']:.3f}", sample["webp_db"]))
+    if sample.get("pca_warp") is not None and "pca_warp" in rec:
+        w = rec["pca_warp"]
+        panels.append((f"PCA warped by depth, 0 B\n"
+                       f"SSIM {w['ssim']:.3f}  FLIP {w['flip']:.3f}", sample["pca_warp"]))
     if sample.get("flip_pca") is not None:
         panels.append(("FLIP error map\nPCA", _colormap(sample["flip_pca"])))
     if sample.get("flip_jpeg") is not None:
@@ -382,6 +388,8 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
                 extra += f", {m['over_budget_views']} views over budget at q=1"
         elif method == "nearest":
             extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
+        elif method == "pca_warp":
+            extra = "standalone device: the 4 neighbours warped by their depth, no packets"
         elif method == "pca_render":
             extra = "key packets of the ray-cast's own scores (no view interpolation)"
         elif method == "pca_predict":

@@ -10,6 +10,15 @@ A database is a folder ``NAME.cdb/`` holding
   renderer settings, image size and view set. Databases written by other tools
   (ParaView, VisIt, a path tracer) have no sidecar and are still valid input.
 
+With ``eigencast render --depth`` each view also has a depth map, ``depth/view_00000.npz``
+(the image's name with ``.npz``; `depth_file`): one float16 array ``depth`` of shape
+(H/2, W/2), the distance in mm along each pixel's ray where the accumulated opacity crosses
+one half (the opacity-weighted mean where it never does), averaged over each 2x2 block of
+pixels, minus the camera distance ``offset_mm``; NaN off the object. float16 keeps depths
+within the bounding sphere to ~0.06 mm at 128 mm, far below a voxel. ``depth/depth.json``
+records the format (`DEPTH_RECORD`) and ``offset_mm``. A depth map is written before its PNG
+and a view counts as done only when both are valid, so resume works as for the PNGs.
+
 Writing is crash-safe: every PNG is written to a temporary name and renamed
 into place, and ``data.csv`` is rewritten atomically listing only images that
 exist, so a killed run never leaves a corrupt PNG or a row naming a missing
@@ -34,17 +43,26 @@ from PIL import Image
 from host.errors import CinemaError
 
 __all__ = [
+    "DEPTH_DIR",
+    "DEPTH_RECORD",
     "SIDECAR",
     "CinemaDB",
     "CinemaWriter",
     "absolute_source",
     "atomic_write_bytes",
+    "decode_depth",
+    "depth_file",
+    "encode_depth",
     "format_float",
 ]
 
 SIDECAR = "eigencast.json"
 DATA_CSV = "data.csv"
 IMAGE_DIR = "images"
+DEPTH_DIR = "depth"
+DEPTH_JSON = "depth.json"
+#: ``depth/depth.json``'s format name (``offset_mm`` is recorded beside it).
+DEPTH_RECORD = "half-opacity-depth-f16-x2"
 CAMERA_COLUMNS = (
     "cam_x", "cam_y", "cam_z", "look_x", "look_y", "look_z", "up_x", "up_y", "up_z",
 )
@@ -84,6 +102,51 @@ def encode_png(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def depth_file(image_file: str) -> str:
+    """The depth map's path (relative to the database) of an image path: ``depth/NAME.npz``."""
+    return f"{DEPTH_DIR}/{Path(image_file).stem}.npz"
+
+
+def encode_depth(depth: np.ndarray, offset_mm: float) -> bytes:
+    """A view's stored depth from `Renderer.render_with_depth`'s (H, W, 2), as npz bytes.
+
+    The half-opacity depth (channel 0) with the mean (channel 1) where it is NaN, averaged
+    over 2x2 blocks of finite values (NaN where none is), minus ``offset_mm``, float16.
+    H and W must be even.
+    """
+    half = depth[..., 0]
+    d = np.where(np.isfinite(half), half, depth[..., 1]).astype(np.float64)
+    h, w = d.shape
+    blocks = d.reshape(h // 2, 2, w // 2, 2).swapaxes(1, 2).reshape(h // 2, w // 2, 4)
+    ok = np.isfinite(blocks)
+    count = ok.sum(axis=2)
+    total = np.where(ok, blocks, 0.0).sum(axis=2)
+    out = np.full((h // 2, w // 2), np.nan, dtype=np.float64)
+    np.divide(total, count, out=out, where=count > 0)
+    out -= float(offset_mm)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, depth=out.astype(np.float16))
+    return buf.getvalue()
+
+
+def decode_depth(path: Path, shape: tuple[int, int], offset_mm: float) -> np.ndarray:
+    """Read a stored depth map: float32 ``shape`` in mm along the rays (NaN off the object).
+
+    Raises
+    ------
+    CinemaError
+        Unreadable, or not a float16 array of ``shape``.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = z["depth"]
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        raise CinemaError(f"{path}: not a readable depth map: {exc}") from None
+    if d.dtype != np.float16 or d.shape != tuple(shape):
+        raise CinemaError(f"{path}: depth map is {d.dtype} {d.shape}, expected float16 {shape}")
+    return d.astype(np.float32) + np.float32(offset_mm)
+
+
 @dataclass
 class CinemaDB:
     """A Cinema Spec D database opened for reading.
@@ -98,6 +161,9 @@ class CinemaDB:
     settings : dict or None
         The eigencast sidecar, or None for databases from other tools.
     image_shape : tuple (height, width)
+    depth : dict or None
+        ``depth/depth.json`` (``format``, ``offset_mm``) when every view has a depth map
+        (``render --depth``), else None.
     """
 
     path: Path
@@ -106,6 +172,7 @@ class CinemaDB:
     files: list[str]
     settings: dict | None
     image_shape: tuple[int, int]
+    depth: dict | None = None
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> CinemaDB:
@@ -163,6 +230,18 @@ class CinemaDB:
             except (OSError, ValueError) as exc:
                 raise CinemaError(f"{root / SIDECAR}: unreadable sidecar: {exc}") from None
         first = _read_png(root / files[0])
+        depth = None
+        if (root / DEPTH_DIR / DEPTH_JSON).is_file():
+            try:
+                depth = json.loads((root / DEPTH_DIR / DEPTH_JSON).read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                raise CinemaError(f"{root / DEPTH_DIR / DEPTH_JSON}: unreadable: {exc}") from None
+            if not isinstance(depth, dict) or depth.get("format") != DEPTH_RECORD or not (
+                isinstance(depth.get("offset_mm"), (int, float))
+            ):
+                raise CinemaError(f"{root / DEPTH_DIR / DEPTH_JSON}: unknown depth format")
+            if not all((root / depth_file(name)).is_file() for name in files):
+                depth = None
         return cls(
             path=root,
             phi_deg=np.mod(np.array(phis), 360.0),
@@ -170,6 +249,7 @@ class CinemaDB:
             files=files,
             settings=settings,
             image_shape=first.shape[:2],
+            depth=depth,
         )
 
     @property
@@ -185,6 +265,19 @@ class CinemaDB:
                 f"differs from the first image's {self.image_shape[1]}x{self.image_shape[0]}"
             )
         return image
+
+    @property
+    def depth_shape(self) -> tuple[int, int]:
+        """Shape of the stored depth maps: half the image's."""
+        return (self.image_shape[0] // 2, self.image_shape[1] // 2)
+
+    def read_depth(self, index: int) -> np.ndarray:
+        """View ``index``'s depth (`encode_depth`): float32 (H/2, W/2), mm along the rays
+        from the camera, NaN off the object. `CinemaError` when the database has no depth."""
+        if self.depth is None:
+            raise CinemaError(f"{self.path}: has no depth maps (render it with --depth)")
+        return decode_depth(self.path / depth_file(self.files[index]), self.depth_shape,
+                            float(self.depth["offset_mm"]))
 
     def iter_images(self) -> Iterator[np.ndarray]:
         """Yield every image in row order as uint8 (height, width, 3)."""
@@ -217,6 +310,9 @@ class CinemaWriter:
         One per view, in database order; ``camera_dict`` holds ``position``,
         ``look_at`` and ``up`` 3-vectors.
     image_shape : (height, width)
+    depth_offset_mm : float or None
+        Also keep a depth map per view (`encode_depth` with this offset; even sizes only):
+        a view is done only when its PNG and its depth map are both valid.
     """
 
     def __init__(
@@ -227,12 +323,14 @@ class CinemaWriter:
         image_shape: tuple[int, int],
         *,
         overwrite: bool = False,
+        depth_offset_mm: float | None = None,
     ) -> None:
         self.path = Path(path)
         self.settings = settings
         self.rows = list(rows)
         self.image_shape = tuple(image_shape)
         self.files = [f"{IMAGE_DIR}/view_{i:05d}.png" for i in range(len(self.rows))]
+        self.depth_offset_mm = depth_offset_mm
         self._prepare(overwrite)
         self.done = [self._valid(i) for i in range(len(self.rows))]
 
@@ -263,6 +361,22 @@ class CinemaWriter:
         for stale in self.path.glob(f"{IMAGE_DIR}/.*.tmp"):
             stale.unlink(missing_ok=True)
         atomic_write_bytes(sidecar, text.encode("utf-8"))
+        if self.depth_offset_mm is not None:
+            folder = self.path / DEPTH_DIR
+            folder.mkdir(exist_ok=True)
+            for stale in folder.glob(".*.tmp"):
+                stale.unlink(missing_ok=True)
+            record = {"format": DEPTH_RECORD, "offset_mm": float(self.depth_offset_mm)}
+            old = folder / DEPTH_JSON
+            if old.is_file():
+                try:
+                    same = json.loads(old.read_text(encoding="utf-8")) == record
+                except ValueError:
+                    same = False
+                if not same:  # another framing: the old depth maps are meaningless
+                    for stale in folder.glob("*.npz"):
+                        stale.unlink()
+            atomic_write_bytes(old, (json.dumps(record, indent=2) + "\n").encode("utf-8"))
 
     def _valid(self, index: int) -> bool:
         path = self.path / self.files[index]
@@ -276,6 +390,14 @@ class CinemaWriter:
         if image.shape[:2] != self.image_shape:
             path.unlink(missing_ok=True)
             return False
+        if self.depth_offset_mm is not None:
+            depth = self.path / depth_file(self.files[index])
+            shape = (self.image_shape[0] // 2, self.image_shape[1] // 2)
+            try:
+                decode_depth(depth, shape, 0.0)
+            except CinemaError:
+                depth.unlink(missing_ok=True)
+                return False
         return True
 
     # -- writing ---------------------------------------------------------
@@ -289,6 +411,10 @@ class CinemaWriter:
         if image.shape != (*self.image_shape, 3) or image.dtype != np.uint8:
             raise ValueError(f"image {index}: expected uint8 {(*self.image_shape, 3)}")
         self.write_png(index, encode_png(image))
+
+    def write_depth(self, index: int, data: bytes) -> None:
+        """Store view ``index``'s depth map from `encode_depth` bytes (before its PNG)."""
+        atomic_write_bytes(self.path / depth_file(self.files[index]), data)
 
     def write_png(self, index: int, data: bytes) -> None:
         """Store view ``index`` from PNG bytes made by `encode_png` (e.g. on a cluster worker)."""

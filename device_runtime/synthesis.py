@@ -1,0 +1,565 @@
+"""Depth-aware view synthesis on the device (issue 15): warp the neighbours, do not blend them.
+
+A standalone device used to show a novel view as the eigenspace reconstruction of the
+interpolated training scores: a weighted sum of the 4 neighbouring training views, 12 degrees
+apart, which shows every edge twice (docs/rate-distortion.md, section 9). An image fitted with
+``eigencast fit --depth`` also carries a cell eigenspace of every training view's depth (the
+distance along each pixel's ray where the opacity crosses one half, at half resolution) and
+names the synthesis method in its manifest (``"synthesis": {"method": "warp-depth-1", ...}``,
+:data:`SYNTHESIS_METHOD`). For a novel view the device then
+
+1. takes the interpolator's neighbours and weights (:class:`StandaloneScores`' interpolator);
+2. reconstructs each neighbour's colour (the int8 eigenspace, the device's `Reconstructor`)
+   and depth (:class:`DepthEigenspace`, upsampled 2x by :func:`upsample2`), and unprojects
+   its object pixels once into points in that camera's frame; both are cached per training
+   view (:class:`ViewSynthesizer`, an LRU of :data:`CACHE_VIEWS` views: while a drag moves,
+   the neighbours change only every grid step);
+3. forward-warps every neighbour's points into the new camera with a z-test, blends them by
+   the interpolation weights and fills the cracks (:func:`forward_warp`, :func:`fill_holes`).
+
+Everything is numpy, float32, with no per-pixel Python loop; scratch memory is bounded by
+the frame size (:func:`synthesis_memory_bytes`). The same code makes the host's frames
+(``eigencast evaluate``'s ``pca_warp``) so host and device frames are identical, and
+``scripts/warp_views.py`` (the go/no-go measurement) imports it.
+
+Geometry: the orbit cameras of an eigencast database look at the bounding sphere's centre
+from ``distance = radius / sin(fov / 2)`` (`host.render.camera.orbit_camera`); only relative
+poses matter for a warp, so the device places the centre at the origin (:func:`orbit_pose`).
+Perspective databases only (``fit --depth`` refuses the others).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from device_runtime.reconstruct import DEFAULT_SCRATCH_BYTES
+from protocol.errors import ImageFormatError
+
+__all__ = [
+    "CACHE_VIEWS",
+    "DEPTH_SECTIONS",
+    "KNOWN_SYNTHESIS",
+    "SYNTHESIS_METHOD",
+    "DepthEigenspace",
+    "ViewSynthesizer",
+    "Warper",
+    "check_synthesis",
+    "fill_holes",
+    "forward_warp",
+    "orbit_pose",
+    "synthesis_memory_bytes",
+    "upsample2",
+]
+
+#: The one synthesis method this device knows: forward warp by half-opacity depth.
+SYNTHESIS_METHOD = "warp-depth-1"
+KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD})
+#: Image sections of the depth eigenspace (``fit --depth``), in this order.
+DEPTH_SECTIONS = ("depth_counts", "depth_scales", "depth_mean", "depth_components",
+                  "depth_scores")
+#: Training views whose colour and depth stay cached (a view at 512: ~2.4 MB).
+CACHE_VIEWS = 8
+
+#: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
+#: within this of the nearest one are blended, the rest are hidden.
+Z_TOLERANCE = 0.02
+#: Only splat corners with at least this bilinear weight write the z-buffer (each source pixel
+#: writes at least its nearest target pixel): a neighbour's far corner would otherwise hide
+#: a pixel on a steep surface, e.g. at the silhouette.
+ZBUF_SPLAT_MIN = 0.25
+#: A pixel is covered when the bilinear splat weights landing on it (z-test passed) sum
+#: to at least this.
+COVERAGE_MIN = 0.5
+#: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
+#: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
+HOLE_PASSES = 2
+HOLE_NEIGHBOURS = 4
+#: A reconstructed pixel whose largest channel is above this (0..255) carries the object
+#: (`host.evaluate.masks.OBJECT_LEVEL`; the renderings have a black background).
+OBJECT_LEVEL = 2
+
+
+# ----------------------------------------------------------------------------- manifest
+
+
+def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> dict | None:
+    """Validate an image manifest's ``synthesis`` record; return it (None: no synthesis).
+
+    Raises
+    ------
+    ImageFormatError
+        The record is not a map, names a method this device does not know (one line:
+        the device refuses such an image), or lacks a parameter the method needs.
+    """
+    if record is None:
+        return None
+    if not isinstance(record, dict):
+        raise ImageFormatError("image manifest: 'synthesis' must be a map or null")
+    method = record.get("method")
+    if method not in KNOWN_SYNTHESIS:
+        raise ImageFormatError(
+            f"image manifest: synthesis method {str(method)[:40]!r} is unknown to this device "
+            f"(it knows {', '.join(sorted(KNOWN_SYNTHESIS))}); update the device runtime"
+        )
+    numbers = ("fov_deg", "distance_mm", "depth_step", "z_tolerance_mm")
+    for key in numbers:
+        v = record.get(key)
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not (
+            math.isfinite(v) and v > 0
+        ):
+            raise ImageFormatError(f"image manifest: synthesis.{key}={v!r} must be a number > 0")
+    if not 0 < record["fov_deg"] < 180:
+        raise ImageFormatError("image manifest: synthesis.fov_deg must be within (0, 180)")
+    for key in ("depth_shape",):
+        v = record.get(key)
+        if not (isinstance(v, list) and len(v) == 2 and all(
+                isinstance(x, int) and not isinstance(x, bool) and 0 < x < 1 << 16 for x in v)):
+            raise ImageFormatError(f"image manifest: synthesis.{key}={v!r} must be [h, w] > 0")
+    cell = record.get("depth_cell")
+    if not isinstance(cell, int) or isinstance(cell, bool) or not 0 < cell <= 256:
+        raise ImageFormatError(f"image manifest: synthesis.depth_cell={cell!r} must be 1..256")
+    offset = record.get("depth_offset_mm")
+    if not isinstance(offset, (int, float)) or isinstance(offset, bool) or not math.isfinite(
+            offset):
+        raise ImageFormatError("image manifest: synthesis.depth_offset_mm must be a number")
+    if image_shape is not None and [2 * v for v in record["depth_shape"]] != list(image_shape):
+        raise ImageFormatError(
+            f"image manifest: synthesis.depth_shape {record['depth_shape']} is not half the "
+            f"image shape {list(image_shape)}"
+        )
+    return record
+
+
+def synthesis_memory_bytes(manifest: dict) -> int:
+    """RAM the synthesis needs beyond the sections: the view cache and the warp's scratch.
+
+    Per cached view: the colour (3 bytes per pixel), the object pixels' points and colours
+    (24 bytes per pixel at most) and the flat index (8); per frame, the splats of 4 views
+    (4 corners x ~40 bytes per source pixel, all pixels at most) and the accumulators.
+    """
+    record = manifest.get("synthesis")
+    if record is None:
+        return 0
+    h, w = (2 * v for v in record["depth_shape"])
+    n = h * w
+    cache = CACHE_VIEWS * n * (3 + 24 + 8)
+    depth = 4 * n * 2  # one depth at full size and its half-size source
+    warp = 4 * n * 4 * 40 + (h + 2) * (w + 2) * 4 * 8
+    # the neighbours' own reconstructor: frame buffers and its scratch
+    colour = 2 * n * 3 + DEFAULT_SCRATCH_BYTES
+    return int(cache + depth + warp + colour)
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def orbit_pose(phi_deg: float, theta_deg: float, distance: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The orbit camera of a view with the sphere's centre at the origin.
+
+    Returns
+    -------
+    position : ndarray (3,), float64
+    rotation : ndarray (3, 3), float64
+        Columns right, up, forward (`host.render.camera.Camera.basis`).
+    """
+    phi, theta = math.radians(phi_deg), math.radians(theta_deg)
+    cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
+    direction = np.array([ct * cp, ct * sp, st])
+    position = distance * direction
+    f = -direction
+    u = np.array([-st * cp, -st * sp, ct])
+    r = np.cross(f, u)
+    r /= np.linalg.norm(r)
+    return position, np.stack([r, u, f], axis=1)
+
+
+class Warper:
+    """Forward warping between the orbit cameras of one framing, at one image size.
+
+    Every orbit camera has the same intrinsics, so each pixel's unit ray in camera
+    coordinates (right, up, forward) is computed once here.
+
+    Parameters
+    ----------
+    fov_deg : float
+        Vertical field of view.
+    distance_mm : float
+        Camera distance from the orbit centre.
+    width, height : int
+    z_tolerance_mm : float
+        Splats within this of a pixel's nearest one are blended (`Z_TOLERANCE` x the
+        bounding-sphere diameter).
+    """
+
+    def __init__(self, fov_deg: float, distance_mm: float, width: int, height: int,
+                 z_tolerance_mm: float) -> None:
+        self.width, self.height = int(width), int(height)
+        self.distance = float(distance_mm)
+        self.half = math.tan(math.radians(fov_deg) / 2.0)
+        xs = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * (self.width / self.height)
+        ys = 1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0
+        gx, gy = np.meshgrid(xs * self.half, ys * self.half)
+        d = np.stack([gx, gy, np.ones_like(gx)], axis=-1)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        self.rays = np.ascontiguousarray(d.reshape(-1, 3).astype(np.float32))  # (h*w, 3)
+        self.tol_mm = float(z_tolerance_mm)
+
+    def pose(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """`orbit_pose` at this warper's distance."""
+        return orbit_pose(phi_deg, theta_deg, self.distance)
+
+    def unproject(self, colour: np.ndarray, depth: np.ndarray, valid: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """A source view's object pixels as points in its camera frame, and their colours.
+
+        Returns
+        -------
+        points : ndarray (n, 3) float32
+            ``ray * depth`` of each valid pixel with a finite depth.
+        rgb : ndarray (n, 3) float32
+        """
+        flat = (valid & np.isfinite(depth)).reshape(-1)
+        src = np.flatnonzero(flat)
+        t = depth.reshape(-1)[src].astype(np.float32)
+        points = self.rays[src] * t[:, None]
+        rgb = colour.reshape(-1, 3)[src].astype(np.float32)
+        return points, rgb
+
+    def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
+             valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
+             weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """Unproject each source and `forward_warp` it; uint8 (h, w, 3)."""
+        clouds = [self.unproject(c, d, ok) for c, d, ok in zip(colours, depths, valid)]
+        return forward_warp(self, clouds, sources, weights, target)
+
+
+def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
+                 sources: list[tuple[np.ndarray, np.ndarray]], weights: np.ndarray,
+                 target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Forward-warp source views into the target camera, z-test, blend, fill holes.
+
+    Each source point (a pixel unprojected with its depth, `Warper.unproject`) is projected
+    into the target camera and splats bilinearly onto the 4 pixels around where it lands.
+    A z-buffer (``np.minimum.at``) keeps, per target pixel, the nearest splat's forward
+    distance (of the splats with bilinear weight >= `ZBUF_SPLAT_MIN`); splats within the
+    z tolerance of it are blended with weight (splat weight x the view's interpolation
+    weight), the rest are hidden. Pixels whose passing splat weights (without the view
+    weights: a pixel one view alone sees counts) sum below `COVERAGE_MIN` are holes;
+    `fill_holes` closes the cracks among covered pixels. Splats land on a grid one pixel
+    larger on every side, so nothing needs masking.
+
+    Parameters
+    ----------
+    w : Warper
+    clouds : list of (points (n, 3) float32, rgb (n, 3) float32)
+        Each source's object points in its camera frame and their colours.
+    sources, target : (position (3,), rotation (3, 3)) from `Warper.pose`
+    weights : ndarray (m,)
+        Interpolation weights of the sources.
+
+    Returns
+    -------
+    ndarray (h, w, 3) uint8
+    """
+    h, wd = w.height, w.width
+    w2 = wd + 2
+    n = (h + 2) * w2
+    p_t, r_t = target
+    f32 = np.float32
+    idx_parts, z_parts, ws_parts, wv_parts, col_parts = [], [], [], [], []
+    for (pts, rgb), (p_s, r_s), wv in zip(clouds, sources, weights):
+        if wv <= 0.0 or pts.shape[0] == 0:
+            continue
+        m = (r_t.T @ r_s).astype(f32)
+        b = (r_t.T @ (p_s - p_t)).astype(f32)
+        cam = pts @ m.T
+        cam += b
+        cx, cy, z = cam[:, 0], cam[:, 1], cam[:, 2]
+        scale = f32(1.0 / w.half) / np.maximum(z, f32(1e-3))
+        col = (cx * scale * f32(h / wd) + f32(1.0)) * f32(0.5 * wd) - f32(0.5)
+        row = (f32(1.0) - cy * scale) * f32(0.5 * h) - f32(0.5)
+        # beyond the padded grid (or behind the camera): no weight, parked on the border
+        out = (col < -1) | (col >= wd) | (row < -1) | (row >= h) | (z <= 1e-3)
+        col[out] = -1.0
+        row[out] = -1.0
+        c0 = np.floor(col)
+        r0 = np.floor(row)
+        fx = col - c0
+        fy = row - r0
+        gx = f32(1.0) - fx
+        gy = f32(1.0) - fy
+        inside = (~out).astype(f32)
+        base = (r0.astype(np.int64) + 1) * w2 + (c0.astype(np.int64) + 1)
+        idx_parts += [base, base + 1, base + w2, base + w2 + 1]
+        z_parts += [z] * 4
+        ws_parts += [gx * gy * inside, fx * gy * inside, gx * fy * inside, fx * fy * inside]
+        wv_parts.append(np.full(4 * pts.shape[0], wv, f32))
+        col_parts += [rgb] * 4
+    frame = np.zeros((h, wd, 3), dtype=np.uint8)
+    if not idx_parts:
+        return frame
+    idx = np.concatenate(idx_parts)
+    z = np.concatenate(z_parts)
+    ws = np.concatenate(ws_parts)
+    rgb = np.concatenate(col_parts)
+    zbuf = np.full(n, np.inf, dtype=f32)
+    near = ws >= ZBUF_SPLAT_MIN
+    np.minimum.at(zbuf, idx[near], z[near])
+    ws *= z <= zbuf[idx] + f32(w.tol_mm)
+    # coverage counts the splat weights alone: a pixel that one view alone sees is covered
+    # however small that view's interpolation weight
+    covered = np.bincount(idx, ws, minlength=n) >= COVERAGE_MIN
+    ws *= np.concatenate(wv_parts)
+    total = np.bincount(idx, ws, minlength=n)
+    acc = np.stack([np.bincount(idx, ws * rgb[:, k], minlength=n) for k in range(3)], axis=1)
+    covered &= total > 0
+    acc[covered] /= total[covered, None]
+    acc[~covered] = 0.0
+    inner = acc.reshape(h + 2, w2, 3)[1:-1, 1:-1].astype(f32)
+    inner = fill_holes(inner, covered.reshape(h + 2, w2)[1:-1, 1:-1])
+    np.clip(np.rint(inner), 0, 255, out=inner)
+    frame[...] = inner
+    return frame
+
+
+def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """Fill uncovered pixels with the mean of their covered 3x3 neighbours where at least
+    `HOLE_NEIGHBOURS` of the 8 are covered, `HOLE_PASSES` times (cracks close, the
+    silhouette does not grow). ``frame`` (h, w, 3) float32 is filled in place and returned."""
+    h, w = covered.shape
+    for _ in range(HOLE_PASSES):
+        if covered.all():
+            break
+        cp = np.pad(covered, 1).astype(np.float32)
+        fp = np.pad(frame * covered[..., None], ((1, 1), (1, 1), (0, 0)))
+        count = np.zeros((h, w), np.float32)
+        acc = np.zeros((h, w, 3), np.float32)
+        for dy in range(3):
+            for dx in range(3):
+                if dy == 1 and dx == 1:
+                    continue
+                count += cp[dy:dy + h, dx:dx + w]
+                acc += fp[dy:dy + h, dx:dx + w]
+        fill = ~covered & (count >= HOLE_NEIGHBOURS)
+        if not fill.any():
+            break
+        frame[fill] = acc[fill] / count[fill, None]
+        covered = covered | fill
+    return frame
+
+
+def upsample2(d: np.ndarray) -> np.ndarray:
+    """Bilinear x2 upsampling with pixel centres aligned (edges clamped), float32."""
+    d = np.asarray(d, dtype=np.float32)
+
+    def along(a: np.ndarray, axis: int) -> np.ndarray:
+        a = np.moveaxis(a, axis, 0)
+        prev = np.concatenate([a[:1], a[:-1]])
+        nxt = np.concatenate([a[1:], a[-1:]])
+        out = np.empty((2 * a.shape[0], *a.shape[1:]), np.float32)
+        out[0::2] = np.float32(0.75) * a + np.float32(0.25) * prev
+        out[1::2] = np.float32(0.75) * a + np.float32(0.25) * nxt
+        return np.moveaxis(out, 0, axis)
+
+    return along(along(d, 0), 1)
+
+
+# ----------------------------------------------------------------------------- depth
+
+
+def split_cells(img: np.ndarray, cell: int) -> np.ndarray:
+    """(h, w) with h, w multiples of ``cell`` -> (n_cells, cell * cell), cells row-major."""
+    h, w = img.shape
+    return img.reshape(h // cell, cell, w // cell, cell).swapaxes(1, 2).reshape(-1, cell * cell)
+
+
+def merge_cells(cells: np.ndarray, cell: int, shape: tuple[int, int]) -> np.ndarray:
+    """Inverse of `split_cells` for the padded shape ``shape``."""
+    h, w = shape
+    return cells.reshape(h // cell, w // cell, cell, cell).swapaxes(1, 2).reshape(h, w)
+
+
+class DepthEigenspace:
+    """A cell PCA of depth maps (mm along the rays minus the camera distance).
+
+    Device-style storage: float16 cell means, int8 components with a float32 scale each,
+    an int16 score table (training view ``i``'s scores are ``table[i] * step``). The depth
+    maps (``shape``: half the image) are edge-padded to whole cells by the fit and cropped
+    here.
+
+    Parameters
+    ----------
+    cell : int
+    shape : (int, int)
+        Depth map shape (before padding to whole cells).
+    mean : ndarray (n_cells, cell * cell) float16 or float32
+    components : ndarray (K, cell * cell) int8
+    scales : ndarray (K,) float32
+    counts : ndarray (n_cells,) int
+    table : ndarray (n_views, K) int16
+    step : float
+    offset : float
+        The camera distance subtracted before the fit.
+    """
+
+    def __init__(self, cell: int, shape: tuple[int, int], mean: np.ndarray,
+                 components: np.ndarray, scales: np.ndarray, counts: np.ndarray,
+                 table: np.ndarray, step: float, offset: float) -> None:
+        self.cell = int(cell)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.padded = (-(-self.shape[0] // self.cell) * self.cell,
+                       -(-self.shape[1] // self.cell) * self.cell)
+        self.mean = np.asarray(mean, dtype=np.float32)
+        self.components = components
+        self.scales = np.asarray(scales, dtype=np.float32)
+        self.counts = np.asarray(counts, dtype=np.int64)
+        self.table = table
+        self.step = float(step)
+        self.offset = float(offset)
+        nz = self.counts > 0
+        self._nz = nz
+        self._starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]])[nz].astype(np.int64)
+
+    @property
+    def n_components(self) -> int:
+        return int(self.counts.sum())
+
+    @classmethod
+    def from_image(cls, image: Any) -> DepthEigenspace:
+        """The depth eigenspace of an image with a ``synthesis`` record and depth sections.
+
+        Raises
+        ------
+        ImageFormatError
+            Missing or inconsistent sections.
+        """
+        record = check_synthesis(image.synthesis, image.image_shape)
+        if record is None:
+            raise ImageFormatError("the image has no depth (refit with eigencast fit --depth)")
+        missing = [s for s in DEPTH_SECTIONS if s not in image.sections]
+        if missing:
+            raise ImageFormatError(f"image: synthesis needs the sections {missing}")
+        s = image.sections
+        cell = record["depth_cell"]
+        shape = tuple(record["depth_shape"])
+        n_cells = (-(-shape[0] // cell)) * (-(-shape[1] // cell))
+        counts, scales, mean = s["depth_counts"], s["depth_scales"], s["depth_mean"]
+        comps, table = s["depth_components"], s["depth_scores"]
+        k = int(np.asarray(counts, dtype=np.int64).sum()) if counts.size else 0
+        n_views = (image.interpolation or {}).get("n_views")
+        if (counts.shape != (n_cells,) or counts.dtype != np.int32 or (counts < 0).any()
+                or mean.shape != (n_cells, cell * cell) or mean.dtype != np.float16
+                or comps.shape != (k, cell * cell) or comps.dtype != np.int8
+                or scales.shape != (k,) or scales.dtype != np.float32
+                or table.dtype != np.int16 or table.shape != (n_views, k)):
+            raise ImageFormatError(
+                "image: depth sections inconsistent (counts "
+                f"{_describe(counts)}, mean {_describe(mean)}, components {_describe(comps)}, "
+                f"scales {_describe(scales)}, scores {_describe(table)}; {n_cells} cells of "
+                f"{cell}x{cell}, {n_views} views)"
+            )
+        return cls(cell, shape, mean, comps, scales, counts, table, record["depth_step"],
+                   record["depth_offset_mm"])
+
+    def reconstruct(self, view: int) -> np.ndarray:
+        """Depth map (h, w) float32 in mm along the rays, of training view ``view``."""
+        y = self.table[view].astype(np.float32) * np.float32(self.step)
+        cells = self.mean.copy()
+        if self._starts.size:
+            w = self.components.astype(np.float32)
+            w *= (self.scales * y)[:, None]
+            cells[self._nz] += np.add.reduceat(w, self._starts, axis=0)
+        full = merge_cells(cells, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
+        return full + np.float32(self.offset)
+
+
+def _describe(a: np.ndarray) -> str:
+    return f"{a.dtype} {tuple(a.shape)}"
+
+
+# ----------------------------------------------------------------------------- the frame
+
+
+class ViewSynthesizer:
+    """Novel views of an image with depth: the neighbours warped by their depth, blended.
+
+    Parameters
+    ----------
+    image : EigenspaceImage
+        With a standalone score table (``fit --standalone``) and depth (``fit --depth``).
+    standalone : StandaloneScores
+        The image's table and interpolator.
+    reconstructor : Reconstructor
+        Reconstructs the neighbours' colours (its frame buffer is overwritten).
+    cache_views : int
+        Training views kept (colour points and depth) between frames.
+
+    Raises
+    ------
+    ImageFormatError
+        No synthesis record, unknown method, or malformed depth sections.
+    """
+
+    def __init__(self, image: Any, standalone: Any, reconstructor: Any,
+                 cache_views: int = CACHE_VIEWS) -> None:
+        record = check_synthesis(image.synthesis, image.image_shape)
+        if record is None:
+            raise ImageFormatError("the image has no depth (refit with eigencast fit --depth)")
+        self.depth = DepthEigenspace.from_image(image)
+        self.standalone = standalone
+        self.reconstructor = reconstructor
+        h, w = image.image_shape
+        self.warper = Warper(record["fov_deg"], record["distance_mm"], w, h,
+                             record["z_tolerance_mm"])
+        views = image.views or {}
+        try:
+            self.phi = np.asarray(views["phi_deg"], dtype=np.float64)
+            self.theta = np.asarray(views["theta_deg"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise ImageFormatError("image manifest: synthesis needs views.phi_deg/theta_deg"
+                                   ) from None
+        if self.phi.shape != (self.depth.table.shape[0],) or self.theta.shape != self.phi.shape:
+            raise ImageFormatError("image manifest: views and the depth score table disagree")
+        self.cache_views = max(4, int(cache_views))
+        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.misses = 0
+
+    def training_scores(self, view: int) -> np.ndarray:
+        """Training view ``view``'s colour scores as the device sends them to reconstruction:
+        the table's dequantized row rounded to the packet step."""
+        sa = self.standalone
+        y = sa.table[view].astype(np.float32) * sa._step32
+        return (np.rint(y / sa.step) * sa.step).astype(np.float32)
+
+    def view_cloud(self, view: int) -> tuple[np.ndarray, np.ndarray]:
+        """Training view ``view``'s object points (its camera frame) and colours (cached)."""
+        hit = self._cache.get(view)
+        if hit is not None:
+            self._cache.move_to_end(view)
+            return hit
+        self.misses += 1
+        colour = self.reconstructor.update(self.training_scores(view))
+        valid = colour.max(axis=2) > OBJECT_LEVEL
+        depth = upsample2(self.depth.reconstruct(view))
+        cloud = self.warper.unproject(colour, depth, valid)
+        self._cache[view] = cloud
+        while len(self._cache) > self.cache_views:
+            self._cache.popitem(last=False)
+        return cloud
+
+    def frame(self, phi_deg: float, theta_deg: float) -> np.ndarray:
+        """The synthesized view: uint8 (h, w, 3), a new array."""
+        idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
+        idx = np.asarray(idx).ravel().astype(np.int64)
+        wts = np.asarray(wts, dtype=np.float64).ravel()
+        used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
+        idx, wts = idx[used], wts[used]
+        clouds = [self.view_cloud(int(i)) for i in idx]
+        sources = [self.warper.pose(float(self.phi[i]), float(self.theta[i])) for i in idx]
+        return forward_warp(self.warper, clouds, sources, wts,
+                            self.warper.pose(phi_deg, theta_deg))

@@ -1,0 +1,190 @@
+"""Depth-aware view synthesis as a product (issue 15): render --depth, fit --depth, the
+image's synthesis record, the device's refusal of unknown methods, and the device showing
+exactly the host's warped frames. The warp itself on synthetic scenes: test_warp_views.py."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from provision_helpers import KEY, REPO, DeviceProcess
+from runtime_helpers import read_frames
+
+from device_runtime.image_receiver import image_problem, required_ram_bytes
+from device_runtime.reconstruct import Reconstructor
+from device_runtime.runtime import LoadedModel
+from device_runtime.standalone import StandaloneScores
+from device_runtime.synthesis import ViewSynthesizer
+from host.cli import main as eigencast
+from host.fit.model import HostModel
+from host.link.provisioning import provision
+from host.render.cinema import CinemaDB, depth_file
+from protocol.errors import ImageFormatError
+from protocol.image import read_image, read_manifest, write_image
+from protocol.keys import write_key
+
+VIEWS = "grid:24x6"
+
+
+@pytest.fixture(scope="module")
+def depth_db(tmp_path_factory):
+    db = tmp_path_factory.mktemp("depth") / "tooth.cdb"
+    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", VIEWS, "--size", "48",
+                      "--samples", "80", "--depth"]) == 0
+    return db
+
+
+@pytest.fixture(scope="module")
+def depth_model(depth_db):
+    key = depth_db.parent / "device.key"
+    write_key(key, KEY, force=True)
+    out = depth_db.parent / "tooth.ecs"
+    assert eigencast(["fit", str(depth_db), "-o", str(out), "--cell", "12", "--threshold",
+                      "0.99", "--depth", "--key", str(key)]) == 0
+    return out
+
+
+def test_render_depth_stores_half_resolution_depth_and_resumes(tmp_path, capsys):
+    db = tmp_path / "t.cdb"
+    args = ["render", "builtin:tooth", "-o", str(db), "--views", "grid:6x3", "--size", "32",
+            "--samples", "60", "--depth"]
+    assert eigencast(args) == 0
+    opened = CinemaDB.open(db)
+    assert opened.depth is not None and opened.depth_shape == (16, 16)
+    first = [opened.read_depth(i) for i in range(opened.n_views)]
+    assert all(np.isfinite(d).any() and np.isnan(d).any() for d in first)
+    # depths are distances from the camera: around the camera distance
+    finite = np.concatenate([d[np.isfinite(d)] for d in first])
+    assert abs(float(np.median(finite)) - opened.depth["offset_mm"]) < 0.5 * (
+        opened.depth["offset_mm"])
+    (db / depth_file(opened.files[2])).unlink()  # depth lost: the view is rendered again
+    (db / depth_file(opened.files[5])).write_bytes(b"garbage")  # corrupt: rendered again
+    (db / opened.files[7]).unlink()  # PNG lost
+    capsys.readouterr()
+    assert eigencast(args) == 0
+    err = capsys.readouterr().err
+    assert "15 valid images kept, 3 to render" in err
+    again = CinemaDB.open(db)
+    for i in range(again.n_views):
+        np.testing.assert_array_equal(again.read_depth(i), first[i])
+
+
+def test_render_depth_is_refused_in_one_line_where_it_cannot_work(tmp_path, capsys):
+    base = ["render", "builtin:tooth", "--views", "grid:4x3", "--samples", "40", "--depth"]
+    assert eigencast([*base, "-o", str(tmp_path / "a.cdb"), "--size", "33"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "even image size" in err and len(err.splitlines()) == 1
+    assert eigencast([*base, "-o", str(tmp_path / "b.cdb"), "--size", "32",
+                      "--scheduler", "local:1"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "--depth is in-process only" in err and len(err.splitlines()) == 1
+
+
+def test_fit_depth_without_depth_maps_is_a_one_line_error(tooth_db, tmp_path, capsys):
+    assert eigencast(["fit", str(tooth_db), "-o", str(tmp_path / "m.ecs"), "--depth"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "has no depth maps" in err and "render --depth" in err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "m.ecs").exists()
+
+
+def test_fit_depth_stores_the_depth_eigenspace_and_names_the_method(depth_model, depth_db):
+    image = read_image(depth_model, key=KEY)
+    assert image.synthesis["method"] == "warp-depth-1"
+    assert read_manifest(depth_model)["synthesis"]["method"] == "warp-depth-1"
+    assert {"depth_counts", "depth_scales", "depth_mean", "depth_components",
+            "depth_scores"} <= set(image.sections)
+    from device_runtime.synthesis import DepthEigenspace
+
+    depth = DepthEigenspace.from_image(image)
+    db = CinemaDB.open(depth_db)
+    errors, others = [], []
+    for i in (0, 40, 100):
+        truth = db.read_depth(i)
+        ok = np.isfinite(truth)
+        errors.append(np.abs(depth.reconstruct(i)[ok] - truth[ok]).mean())
+        others.append(np.abs(depth.reconstruct(i + 2)[ok] - truth[ok]).mean())
+    # a tooth of radius ~11 mm at 24x24 depth pixels: within a mm, and each view's own
+    # scores, not a neighbour's (30 degrees away) -- the table is in the views' order
+    assert max(errors) < 1.0 and max(errors) < 0.5 * min(others), (errors, others)
+
+
+def test_unknown_synthesis_method_is_refused_in_one_line(depth_model, tmp_path):
+    image = read_image(depth_model, key=KEY)
+    image.synthesis = {**image.synthesis, "method": "warp-depth-9"}
+    forged = tmp_path / "forged.ecs"
+    write_image(forged, image, key=KEY)
+    with pytest.raises(ImageFormatError, match=r"warp-depth-9.*unknown to this device"):
+        required_ram_bytes(read_manifest(forged))
+    with open(forged, "rb") as f:
+        problem = image_problem(f, key=KEY, ram_budget_bytes=1 << 30)
+    assert problem is not None and "unknown to this device" in problem
+    assert "\n" not in problem
+    with open(depth_model, "rb") as f:
+        assert image_problem(f, key=KEY, ram_budget_bytes=1 << 30) is None
+
+
+def test_an_image_without_depth_loads_and_shows_as_before(model_path):
+    manifest = read_manifest(model_path)
+    assert "synthesis" not in manifest  # nothing written: older devices see the same bytes
+    image = read_image(model_path, key=KEY)
+    assert image.synthesis is None
+    loaded = LoadedModel.build(image, slot="A", generation=1, test=False, want_standalone=True)
+    try:
+        assert loaded.synthesis is None and loaded.standalone is not None
+    finally:
+        loaded.close()
+
+
+def test_warping_a_training_view_to_its_own_camera_gives_its_reconstruction(depth_model,
+                                                                            depth_db):
+    image = read_image(depth_model, key=KEY)
+    synth = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    db = CinemaDB.open(depth_db)
+    for i in (7, 60, 130):
+        frame = synth.frame(float(db.phi_deg[i]), float(db.theta_deg[i]))
+        own = Reconstructor.from_image(image).update(synth.training_scores(i))
+        obj = own.max(axis=2) > 2
+        diff = np.abs(frame.astype(int) - own)
+        # the same pixels, up to the half-resolution depth's sub-pixel splatting
+        assert diff[obj].mean() < 2.0, diff[obj].mean()
+    misses = synth.misses
+    synth.frame(float(db.phi_deg[7]) + 1.0, float(db.theta_deg[7]) + 1.0)
+    synth.frame(float(db.phi_deg[7]) + 2.0, float(db.theta_deg[7]) + 1.0)
+    assert synth.misses - misses <= 4  # neighbours cached between frames of one drag
+
+
+def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
+    """eigencast-device --standalone with a depth image shows exactly evaluate's pca_warp
+    frames, which differ from the blended frames of the same image."""
+    from host.evaluate.warp import WarpFrames
+
+    flash = tmp_path / "flash"
+    key = depth_model.parent / "device.key"
+    device = DeviceProcess(flash, "--headless", key_file=key)
+    try:
+        provision(depth_model, device.url, key=KEY, show_progress=False, log=lambda _: None)
+    finally:
+        device.stop()
+    frames = tmp_path / "frames"
+    views = "12.5,3;100,-44;250,20;359,0"
+    run = subprocess.run([sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash",
+                          str(flash), "--key", str(key), "--headless", "--frames", str(frames),
+                          "--views", views], capture_output=True, text=True, timeout=120,
+                         cwd=REPO)
+    assert run.returncode == 0, run.stderr
+    rows = read_frames(frames)
+    assert len(rows) == 5
+    model = HostModel.load(depth_model)
+    warp = WarpFrames(model)
+    from PIL import Image
+
+    differs = 0
+    for row in rows:
+        got = np.asarray(Image.open(frames / row["file"]))
+        phi, theta = float(row["phi_deg"]), float(row["theta_deg"])
+        np.testing.assert_array_equal(got, warp.frame(phi, theta))
+        differs += int(np.abs(got.astype(int) - model.view(phi, theta)).max() > 8)
+    assert differs >= 3
