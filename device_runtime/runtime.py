@@ -256,6 +256,8 @@ class LoadedModel:
 
     def close(self) -> None:
         self.reconstructor.close()
+        if self.synthesis is not None:  # it has its own reconstructor (and its threads)
+            self.synthesis.reconstructor.close()
 
 
 @dataclass(frozen=True)

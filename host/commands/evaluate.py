@@ -203,9 +203,10 @@ def _text_summary(s: dict) -> str:
                      f"{mo['deadline_ms']:.0f} ms deadline on this machine; bytes/view = its "
                      "delta packet")
     if "pca_predict" in s:
-        lines.append("pca_predict: what serve --scores predict makes a predicting device show at "
-                     "rest (its own prediction + the host's correction); bytes/view = the "
-                     "correction packet")
+        lines.append("pca_predict: what serve --scores predict makes a predicting device show "
+                     "first at rest (its own prediction + the host's step-x2 correction); "
+                     "bytes/view = the correction packet. After 0.15 s at rest serve sharpens "
+                     "it to pca_render's quality (a second correction at the model's step)")
     if "webp_db" in s:
         db = s["webp_db"]
         lines.append(f"webp_db: training views as WebP q{db['quality']:.0f}, device storage "

@@ -393,8 +393,9 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         elif method == "pca_render":
             extra = "key packets of the ray-cast's own scores (no view interpolation)"
         elif method == "pca_predict":
-            extra = ("at rest: the device's own prediction plus the host's correction "
-                     "packet (version 2, step x2, RD kappa 0.15)")
+            extra = ("first frame at rest: the device's own prediction plus the host's "
+                     "correction packet (version 2, step x2, RD kappa 0.15); serve then "
+                     "sharpens a resting view to pca_render's quality")
         elif method == "pca_motion":
             extra = (f"stride {m.get('stride', math.nan):.0f} at a "
                      f"{m.get('deadline_ms', math.nan):.0f} ms deadline, "
