@@ -20,6 +20,7 @@ sent, or a key frame) and sends whichever packet is smaller.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import OrderedDict
 from typing import Any
@@ -261,7 +262,8 @@ class CorrectionEncoder(FrameEncoder):
         correction = encode_scores(rd_quantize(model, y - prediction, **rd), predicted=True,
                                    **common)
         base = None if key else self._full
-        if base is not None and not (np.ndim(base.step) == 0 and float(base.step) == s):
+        if base is not None and not (np.ndim(base.step) == 0
+                                     and math.isclose(float(base.step), s, rel_tol=1e-6)):
             base = None  # a fine frame after coarse ones (or back): steps differ, no delta
         full_y = rd_delta(model, y, None if base is None else self._full_y, **rd)
         full = encode_scores(full_y, base=base, **common)
