@@ -60,6 +60,7 @@ from __future__ import annotations
 import copy
 import math
 import threading
+from collections.abc import Callable
 
 import numba
 import numpy as np
@@ -639,30 +640,24 @@ class Renderer:
             Premultiplied RGB and alpha, before the background; row 0 is the top.
         """
         width, height = _check_size(width, height)
-        origins, directions = camera.rays(width, height)
         out = np.zeros((height, width, 4), dtype=np.float32)
+        self._run_kernel(_render_kernel, camera, width, height, out)
+        return out
+
+    def _run_kernel(self, kernel: Callable[..., None], camera: Camera, width: int, height: int,
+                    *outputs: np.ndarray) -> None:
+        """Run a whole-image kernel (colour, or colour and depth) on the renderer's threads."""
+        origins, directions = camera.rays(width, height)
         with _KERNEL_LOCK:
             previous = numba.get_num_threads()
             threads = self.workers or int(numba.config.NUMBA_NUM_THREADS)
             numba.set_num_threads(threads)
             try:
-                _render_kernel(
-                    self._u,
-                    self._block_empty,
-                    origins,
-                    directions,
-                    self._inv_spacing,
-                    self.step_mm,
-                    self._lut,
-                    self.empty_space_skipping,
-                    self.shading,
-                    self._params,
-                    4 * threads,
-                    out,
-                )
+                kernel(self._u, self._block_empty, origins, directions, self._inv_spacing,
+                       self.step_mm, self._lut, self.empty_space_skipping, self.shading,
+                       self._params, 4 * threads, *outputs)
             finally:
                 numba.set_num_threads(previous)
-        return out
 
     def render_with_depth(
         self, camera: Camera, width: int, height: int
@@ -694,31 +689,9 @@ class Renderer:
         from host.render.raycast_depth import _render_depth_kernel
 
         width, height = _check_size(width, height)
-        origins, directions = camera.rays(width, height)
         out = np.zeros((height, width, 4), dtype=np.float32)
         depth = np.full((height, width, 2), np.nan, dtype=np.float32)
-        with _KERNEL_LOCK:
-            previous = numba.get_num_threads()
-            threads = self.workers or int(numba.config.NUMBA_NUM_THREADS)
-            numba.set_num_threads(threads)
-            try:
-                _render_depth_kernel(
-                    self._u,
-                    self._block_empty,
-                    origins,
-                    directions,
-                    self._inv_spacing,
-                    self.step_mm,
-                    self._lut,
-                    self.empty_space_skipping,
-                    self.shading,
-                    self._params,
-                    4 * threads,
-                    out,
-                    depth,
-                )
-            finally:
-                numba.set_num_threads(previous)
+        self._run_kernel(_render_depth_kernel, camera, width, height, out, depth)
         return out, depth
 
     def render_pixels(
