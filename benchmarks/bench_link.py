@@ -22,6 +22,10 @@ ray-cast, cached projections). Modes:
 * ``interp``: interpolated scores (delta packets), what ``serve --scores interpolate`` sends;
 * ``project``: the projection of a fresh ray-cast of the view (``serve --scores render``);
 * ``rd``: the same, rate-distortion quantized as a delta against the previous frame;
+* ``extrap`` (issue 14's temporal prediction, not in the product): the packets of ``rd``,
+  but the device extrapolates every tick linearly in time from the last two frames it
+  received (``y2 + a (y2 - y1)``, ``a`` the ticks since frame 2's view over the ticks
+  between the two views, at most `EXTRAP_MAX`); a new frame every moving tick, no bytes;
 * ``pc`` (predict + correct, host-side model): the device interpolates every tick itself
   (no bytes); the host sends an RD-quantized correction from that prediction to the
   projection of the current view; the device shows prediction + correction while the view
@@ -97,6 +101,8 @@ from protocol.scores import EncodedScores, encode_scores  # noqa: E402
 #: message envelope (~12), delimiter (1), event counter and tag of a keyed device (~?; not
 #: counted): docs/protocol.md, "Frame overhead".
 FRAME_OVERHEAD = 27
+#: ``extrap``: the largest extrapolation factor (in multiples of the last two frames' gap).
+EXTRAP_MAX = 1.5
 CODECS = ("webp", "avif")
 
 
@@ -319,7 +325,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
             p = m.project(rgb)
             if mode == "project":
                 y, s = m.quantize(p), m.score_step
-            elif mode == "rd":
+            elif mode in ("rd", "extrap"):
                 w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
                 y, s = rd_delta(m, p, base_y, step=s_rd, kappa=kappa, weights=w), s_rd
             else:  # pc: a correction from the device's own prediction, coded alone
@@ -330,11 +336,31 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
                 return None, len(enc.packet), corr
         enc = case.packet(y, s, base=base, frame=frame_no)
         base, base_y = enc, y.astype(np.float64)
+        if mode == "extrap":  # the device keeps the scores and extrapolates them per tick
+            return None, len(enc.packet), y.astype(np.float64)
         return m.reconstruct(y), len(enc.packet), None
+
+    tick_of: dict[int, int] = {0: 0}  # extrap: frame ident -> the trace tick of its view
+    held: list[Sent] = []  # extrap: the last two frames received
+
+    def extrapolated(frames: list[Sent], tick: int) -> tuple[np.ndarray, float]:
+        """Scores extrapolated linearly in time from the last two frames' views (``extrap``):
+        y2 + a (y2 - y1), a = ticks since frame 2's view / ticks between the two views,
+        clamped to [0, EXTRAP_MAX] (no extrapolation at rest or from one frame)."""
+        y2 = frames[-1].image
+        if len(frames) < 2:
+            return m.reconstruct(y2), 0.0
+        t1, t2 = tick_of[frames[0].ident], tick_of[frames[1].ident]
+        a = 0.0 if t2 <= t1 else min(EXTRAP_MAX, max(0.0, (tick - t2) / (t2 - t1)))
+        if frames[0].view == frames[1].view:
+            a = 0.0
+        return m.reconstruct((y2 + a * (y2 - frames[0].image)).astype(np.float32)), a
 
     n = len(trace)
     # at t = 0 the device already shows view 0 (steady state before the trace), for free
     img0, _, extra0 = make(trace[0])
+    if mode == "extrap":
+        held = [Sent(trace[0], extra0, 0.0, 0)]
     if mode == "pc":
         pc_views = {trace[0]: extra0}
         img0 = None
@@ -363,6 +389,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
                 line_free = max(line_free, j * dt)
                 continue
             img, nbytes, extra = make(want)
+            line_free_start = line_free
             line_free += wire_bytes(nbytes) / rate
             sent_bytes += wire_bytes(nbytes)
             n_sent += 1
@@ -372,9 +399,14 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
                 queue.append(Sent(want, None, line_free, ident))
                 pc_views.setdefault(want, None)
                 queue[-1].image = extra  # the correction
+            elif mode == "extrap":  # remember the view's tick: the time its scores stand for
+                queue.append(Sent(want, extra, line_free, ident))
+                tick_of[ident] = min(n - 1, int(line_free_start / dt + 1e-9))
             else:
                 queue.append(Sent(want, img, line_free, ident))
         while queue and queue[0].arrives <= t:
+            if mode == "extrap":
+                held = [*held, queue[0]][-2:]
             shown = queue.pop(0)
             if mode == "pc":
                 pc_views[shown.view] = shown.image
@@ -386,6 +418,9 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
                 img, key = m.reconstruct(pred), ("pred", view)
             else:
                 img, key = m.reconstruct(pred + corr), ("corr", view)
+        elif mode == "extrap":
+            img, a = extrapolated(held, i)
+            key = (shown.ident, i) if a > 0 else shown.ident  # a new frame each moving tick
         else:
             img, key = shown.image, shown.ident
         if key != prev_ident and i > 0:
