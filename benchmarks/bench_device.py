@@ -721,7 +721,8 @@ def section_warp(path: Path, frames: int) -> dict:
     standalone = StandaloneScores(image)
     blend = Reconstructor.from_image(image, threads="auto")
     synth = ViewSynthesizer(image, standalone, Reconstructor.from_image(image, threads="auto"))
-    views = orbit_views(frames, theta=15.0, turns=frames * 3.0 / 360.0)
+    # a 3 degree/frame drag: 120 steps per turn, ``frames`` of them
+    views = orbit_views(120, theta=15.0, turns=frames / 120.0)
     t_blend, t_warp = [], []
     synth.frame(*views[0])  # the first view's neighbours: a cold start, timed apart below
     misses0 = synth.misses
