@@ -260,9 +260,13 @@ class Warper:
         finite = np.isfinite(t)
         if not finite.all():
             src, t = src[finite], t[finite]
-        points = self.rays_t[:, src]
+        # row by row: fancy indexing along axis 1 would give a (n, 3)-ordered array, and
+        # every pass of the per-frame projection over it would be strided
+        points = np.empty((3, src.size), np.float32)
+        for r in range(3):
+            np.take(self.rays_t[r], src, out=points[r])
         points *= t
-        rgb = np.take(colour.reshape(-1, 3), src, axis=0).T.astype(np.float32)
+        rgb = np.take(colour.reshape(-1, 3), src, axis=0).T.astype(np.float32, order="C")
         return points, rgb
 
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
