@@ -68,17 +68,11 @@ CACHE_VIEWS = 8
 #: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
 #: within this of the nearest one are blended, the rest are hidden.
 Z_TOLERANCE = 0.02
-#: Only splat corners with at least this bilinear weight write the z-buffer (each source pixel
-#: writes at least its nearest target pixel): a neighbour's far corner would otherwise hide
-#: a pixel on a steep surface, e.g. at the silhouette.
-ZBUF_SPLAT_MIN = 0.25
 #: Nearest-pixel splats are spread by a [1/8, 3/4, 1/8] x [1/8, 3/4, 1/8] filter over the
 #: covered pixels (the accumulators are filtered before the blend is normalised): in
-#: expectation over where a point lands, the spread of a bilinear splat.
+#: expectation over where a point lands, the spread of a bilinear splat. Coverage is the
+#: unfiltered one: a pixel is covered when a splat lands on it.
 SPLAT_TENT = True
-#: A pixel is covered when the bilinear splat weights landing on it (z-test passed) sum
-#: to at least this.
-COVERAGE_MIN = 0.5
 #: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
 #: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
 HOLE_PASSES = 2

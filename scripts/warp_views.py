@@ -75,9 +75,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from device_runtime.synthesis import (
-    COVERAGE_MIN,
     HOLE_NEIGHBOURS,
     HOLE_PASSES,
+    SPLAT_TENT,
     Z_TOLERANCE,
     DepthEigenspace,
     fill_holes,
@@ -532,7 +532,8 @@ def main(argv: list[str] | None = None) -> int:
             results.append(run_case(vol, size, pcas, threshold, views, images))
             Path(args.output).write_text(json.dumps({"partial": results}, default=float))
     out = {"views": f"random:{args.views}:{args.seed}", "z_tolerance": Z_TOLERANCE,
-           "coverage_min": COVERAGE_MIN, "hole_passes": HOLE_PASSES,
+           "splat": "nearest, tent filter" if SPLAT_TENT else "nearest",
+           "hole_passes": HOLE_PASSES,
            "hole_neighbours": HOLE_NEIGHBOURS, "depth": depth, "cases": results}
     Path(args.output).write_text(json.dumps(out, indent=1, default=float))
     print_tables(results, depth)
