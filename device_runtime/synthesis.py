@@ -281,10 +281,13 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     splatting: one splat per point, a quarter of bilinear splatting's). A z-buffer
     (``np.minimum.at``) keeps, per target pixel, the nearest splat's forward distance;
     splats within the z tolerance of it are blended with the view's interpolation weight,
-    the rest are hidden. A pixel no splat lands on is a hole (a pixel one view alone sees
-    is covered, however small that view's weight); `fill_holes` closes the cracks among
-    covered pixels. Splats land on a grid one pixel larger on every side (points beyond
-    it are clamped onto that border), so nothing needs masking.
+    the rest are hidden. The accumulated weights and weighted colours are filtered by
+    `SPLAT_TENT`'s [1/8, 3/4, 1/8] kernel before the blend is normalised (the spread a
+    bilinear splat has on average). A pixel no splat lands on is a hole (a pixel one view
+    alone sees is covered, however small that view's weight); `fill_holes` closes the
+    cracks among covered pixels. Splats land on a grid one pixel larger on every side
+    (points beyond it are clamped onto that border, which is then emptied), so nothing
+    needs masking.
 
     Parameters
     ----------

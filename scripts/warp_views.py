@@ -43,7 +43,7 @@ frame (``device_frame``: 4 colour reconstructions through the device code, 4 dep
 reconstructions, upsampling at 512, the warp), with today's frame (`HostModel.view`:
 interpolated scores, one reconstruction) timed in the same run.
 
-Every parameter of the warp (z tolerance, coverage threshold, hole filling) is fixed here
+Every parameter of the warp (z tolerance, splat filter, hole filling) is fixed here
 before looking at the held-out views; nothing is tuned on them.
 
 Cost: ray-casting the 1500 training depths at 256 (~3-5 min per volume on 2 cores, cached),
