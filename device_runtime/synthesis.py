@@ -53,6 +53,7 @@ __all__ = [
     "orbit_pose",
     "synthesis_memory_bytes",
     "upsample2",
+    "upsample2_at",
 ]
 
 #: The one synthesis method this device knows: forward warp by half-opacity depth.
@@ -67,13 +68,11 @@ CACHE_VIEWS = 8
 #: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
 #: within this of the nearest one are blended, the rest are hidden.
 Z_TOLERANCE = 0.02
-#: Only splat corners with at least this bilinear weight write the z-buffer (each source pixel
-#: writes at least its nearest target pixel): a neighbour's far corner would otherwise hide
-#: a pixel on a steep surface, e.g. at the silhouette.
-ZBUF_SPLAT_MIN = 0.25
-#: A pixel is covered when the bilinear splat weights landing on it (z-test passed) sum
-#: to at least this.
-COVERAGE_MIN = 0.5
+#: Nearest-pixel splats are spread by a [1/8, 3/4, 1/8] x [1/8, 3/4, 1/8] filter over the
+#: covered pixels (the accumulators are filtered before the blend is normalised): in
+#: expectation over where a point lands, the spread of a bilinear splat. Coverage is the
+#: unfiltered one: a pixel is covered when a splat lands on it.
+SPLAT_TENT = True
 #: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
 #: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
 HOLE_PASSES = 2
@@ -137,18 +136,23 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
 def synthesis_memory_bytes(manifest: dict) -> int:
     """RAM the synthesis needs beyond the sections: the view cache and the warp's scratch.
 
-    Per cached view: the colour (3 bytes per pixel), the object pixels' points and colours
-    (24 bytes per pixel at most) and the flat index (8); per frame, the splats of 4 views
-    (4 corners x ~40 bytes per source pixel, all pixels at most) and the accumulators.
+    Per cached view: the object pixels' points and colours (24 bytes per pixel at most);
+    the depth eigenspace's float32 components (4 bytes per int8 entry); per frame, the
+    splats of 4 views (one per object pixel, 36 bytes each, all pixels at most: the reused
+    `Warper.scratch`), a view's reconstruction and its indices, and the padded accumulators.
     """
     record = manifest.get("synthesis")
     if record is None:
         return 0
     h, w = (2 * v for v in record["depth_shape"])
     n = h * w
-    cache = CACHE_VIEWS * n * (3 + 24 + 8)
-    depth = 4 * n * 2  # one depth at full size and its half-size source
-    warp = 4 * n * 4 * 40 + (h + 2) * (w + 2) * 4 * 8
+    cache = CACHE_VIEWS * n * 24
+    depth = 4 * (h // 2) * (w // 2) + n * (8 + 8 + 4)  # half-size depth, indices, depths
+    for sec in manifest.get("sections") or []:
+        if isinstance(sec, dict) and sec.get("name") == "depth_components":
+            raw = sec.get("raw_size")
+            depth += 4 * raw if isinstance(raw, int) and raw > 0 else 0
+    warp = 4 * n * 36 + (h + 2) * (w + 2) * (4 + 8 + 8 + 4 + 12 + 4 + 1)
     # the neighbours' own reconstructor: frame buffers and its scratch
     colour = 2 * n * 3 + DEFAULT_SCRATCH_BYTES
     return int(cache + depth + warp + colour)
@@ -207,7 +211,21 @@ class Warper:
         d = np.stack([gx, gy, np.ones_like(gx)], axis=-1)
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         self.rays = np.ascontiguousarray(d.reshape(-1, 3).astype(np.float32))  # (h*w, 3)
+        self.rays_t = np.ascontiguousarray(self.rays.T)  # (3, h*w)
         self.tol_mm = float(z_tolerance_mm)
+        self._scratch: tuple[np.ndarray, ...] | None = None
+
+    def scratch(self, total: int) -> tuple[np.ndarray, ...]:
+        """Per-splat buffers for ``total`` splats, reused between frames (grown, never
+        shrunk: the page faults of fresh multi-megabyte arrays cost as much as a pass).
+
+        Returns index, row index (intp), z, weight (float32) and rgb (3, total) float32."""
+        if self._scratch is None or self._scratch[0].size < total:
+            cap = int(total * 1.25)
+            self._scratch = (np.empty(cap, np.intp), np.empty(cap, np.intp),
+                             np.empty(cap, np.float32), np.empty(cap, np.float32),
+                             np.empty((3, cap), np.float32))
+        return tuple(a[..., :total] for a in self._scratch)
 
     def pose(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
         """`orbit_pose` at this warper's distance."""
@@ -217,17 +235,32 @@ class Warper:
                   ) -> tuple[np.ndarray, np.ndarray]:
         """A source view's object pixels as points in its camera frame, and their colours.
 
+        Planar (3, n) arrays, so the per-frame projection (`forward_warp`) is one small
+        matrix product and contiguous passes.
+
         Returns
         -------
-        points : ndarray (n, 3) float32
+        points : ndarray (3, n) float32
             ``ray * depth`` of each valid pixel with a finite depth.
-        rgb : ndarray (n, 3) float32
+        rgb : ndarray (3, n) float32
         """
-        flat = (valid & np.isfinite(depth)).reshape(-1)
-        src = np.flatnonzero(flat)
-        t = depth.reshape(-1)[src].astype(np.float32)
-        points = self.rays[src] * t[:, None]
-        rgb = colour.reshape(-1, 3)[src].astype(np.float32)
+        src = np.flatnonzero(valid)
+        return self.unproject_at(colour, depth.reshape(-1)[src], src)
+
+    def unproject_at(self, colour: np.ndarray, t: np.ndarray, src: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """`unproject` of the pixels ``src`` (flat indices) given their depths ``t``."""
+        t = np.asarray(t, dtype=np.float32)
+        finite = np.isfinite(t)
+        if not finite.all():
+            src, t = src[finite], t[finite]
+        # row by row: fancy indexing along axis 1 would give a (n, 3)-ordered array, and
+        # every pass of the per-frame projection over it would be strided
+        points = np.empty((3, src.size), np.float32)
+        for r in range(3):
+            np.take(self.rays_t[r], src, out=points[r])
+        points *= t
+        rgb = np.take(colour.reshape(-1, 3), src, axis=0).T.astype(np.float32, order="C")
         return points, rgb
 
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
@@ -244,19 +277,22 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     """Forward-warp source views into the target camera, z-test, blend, fill holes.
 
     Each source point (a pixel unprojected with its depth, `Warper.unproject`) is projected
-    into the target camera and splats bilinearly onto the 4 pixels around where it lands.
-    A z-buffer (``np.minimum.at``) keeps, per target pixel, the nearest splat's forward
-    distance (of the splats with bilinear weight >= `ZBUF_SPLAT_MIN`); splats within the
-    z tolerance of it are blended with weight (splat weight x the view's interpolation
-    weight), the rest are hidden. Pixels whose passing splat weights (without the view
-    weights: a pixel one view alone sees counts) sum below `COVERAGE_MIN` are holes;
-    `fill_holes` closes the cracks among covered pixels. Splats land on a grid one pixel
-    larger on every side, so nothing needs masking.
+    into the target camera and splats onto the one pixel it lands in (nearest-pixel
+    splatting: one splat per point, a quarter of bilinear splatting's). A z-buffer
+    (``np.minimum.at``) keeps, per target pixel, the nearest splat's forward distance;
+    splats within the z tolerance of it are blended with the view's interpolation weight,
+    the rest are hidden. The accumulated weights and weighted colours are filtered by
+    `SPLAT_TENT`'s [1/8, 3/4, 1/8] kernel before the blend is normalised (the spread a
+    bilinear splat has on average). A pixel no splat lands on is a hole (a pixel one view
+    alone sees is covered, however small that view's weight); `fill_holes` closes the
+    cracks among covered pixels. Splats land on a grid one pixel larger on every side
+    (points beyond it are clamped onto that border, which is then emptied), so nothing
+    needs masking.
 
     Parameters
     ----------
     w : Warper
-    clouds : list of (points (n, 3) float32, rgb (n, 3) float32)
+    clouds : list of (points (3, n) float32, rgb (3, n) float32)
         Each source's object points in its camera frame and their colours.
     sources, target : (position (3,), rotation (3, 3)) from `Warper.pose`
     weights : ndarray (m,)
@@ -271,60 +307,93 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     n = (h + 2) * w2
     p_t, r_t = target
     f32 = np.float32
-    idx_parts, z_parts, ws_parts, wv_parts, col_parts = [], [], [], [], []
-    for (pts, rgb), (p_s, r_s), wv in zip(clouds, sources, weights):
-        if wv <= 0.0 or pts.shape[0] == 0:
-            continue
-        m = (r_t.T @ r_s).astype(f32)
-        b = (r_t.T @ (p_s - p_t)).astype(f32)
-        cam = pts @ m.T
-        cam += b
-        cx, cy, z = cam[:, 0], cam[:, 1], cam[:, 2]
-        scale = f32(1.0 / w.half) / np.maximum(z, f32(1e-3))
-        col = (cx * scale * f32(h / wd) + f32(1.0)) * f32(0.5 * wd) - f32(0.5)
-        row = (f32(1.0) - cy * scale) * f32(0.5 * h) - f32(0.5)
-        # beyond the padded grid (or behind the camera): no weight, parked on the border
-        out = (col < -1) | (col >= wd) | (row < -1) | (row >= h) | (z <= 1e-3)
-        col[out] = -1.0
-        row[out] = -1.0
-        c0 = np.floor(col)
-        r0 = np.floor(row)
-        fx = col - c0
-        fy = row - r0
-        gx = f32(1.0) - fx
-        gy = f32(1.0) - fy
-        inside = (~out).astype(f32)
-        base = (r0.astype(np.int64) + 1) * w2 + (c0.astype(np.int64) + 1)
-        idx_parts += [base, base + 1, base + w2, base + w2 + 1]
-        z_parts += [z] * 4
-        ws_parts += [gx * gy * inside, fx * gy * inside, gx * fy * inside, fx * fy * inside]
-        wv_parts.append(np.full(4 * pts.shape[0], wv, f32))
-        col_parts += [rgb] * 4
+    used = [(pts, rgb, src, float(wv)) for (pts, rgb), src, wv in zip(clouds, sources, weights)
+            if wv > 0.0 and pts.shape[1] > 0]
     frame = np.zeros((h, wd, 3), dtype=np.uint8)
-    if not idx_parts:
+    if not used:
         return frame
-    idx = np.concatenate(idx_parts)
-    z = np.concatenate(z_parts)
-    ws = np.concatenate(ws_parts)
-    rgb = np.concatenate(col_parts)
+    # target camera -> padded pixel coordinates: col + 1 = x / z * sx + ox, row + 1 = ...
+    sx = 0.5 * h / w.half
+    scale = np.diag([sx, -sx, 1.0])
+    ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
+    total = sum(u[0].shape[1] for u in used)
+    idx, row_i, z, wgt, rgb = w.scratch(total)
+    spans = []
+    o = 0
+    for pts, col, (p_s, r_s), wv in used:
+        k = pts.shape[1]
+        s = slice(o, o + k)
+        m = (scale @ (r_t.T @ r_s)).astype(f32)
+        b = (scale @ (r_t.T @ (p_s - p_t))).astype(f32)
+        # einsum, not matmul: (3, 3) @ (3, n) float32 through BLAS is ~50x slower here
+        cam = np.einsum("ij,jk->ik", m, pts)
+        cam += b[:, None]
+        zz = cam[2]
+        z[s] = zz
+        behind = zz <= f32(1e-3)
+        np.maximum(zz, f32(1e-3), out=zz)
+        inv = np.reciprocal(zz, out=zz)
+        cx, cy = cam[0], cam[1]
+        cx *= inv
+        cx += f32(ox)
+        cy *= inv
+        cy += f32(oy)
+        if behind.any():
+            cx[behind] = 0.0
+            cy[behind] = 0.0
+        np.clip(cx, 0, w2 - 1, out=cx)
+        np.clip(cy, 0, h + 1, out=cy)
+        ii = idx[s]
+        ri = row_i[s]
+        ii[...] = cx  # truncation of values >= 0: the pixel the point lands in
+        ri[...] = cy
+        ri *= w2
+        ii += ri
+        rgb[:, s] = col
+        spans.append((s, wv))
+        o += k
     zbuf = np.full(n, np.inf, dtype=f32)
-    near = ws >= ZBUF_SPLAT_MIN
-    np.minimum.at(zbuf, idx[near], z[near])
-    ws *= z <= zbuf[idx] + f32(w.tol_mm)
-    # coverage counts the splat weights alone: a pixel that one view alone sees is covered
-    # however small that view's interpolation weight
-    covered = np.bincount(idx, ws, minlength=n) >= COVERAGE_MIN
-    ws *= np.concatenate(wv_parts)
-    total = np.bincount(idx, ws, minlength=n)
-    acc = np.stack([np.bincount(idx, ws * rgb[:, k], minlength=n) for k in range(3)], axis=1)
-    covered &= total > 0
-    acc[covered] /= total[covered, None]
-    acc[~covered] = 0.0
-    inner = acc.reshape(h + 2, w2, 3)[1:-1, 1:-1].astype(f32)
-    inner = fill_holes(inner, covered.reshape(h + 2, w2)[1:-1, 1:-1])
-    np.clip(np.rint(inner), 0, 255, out=inner)
-    frame[...] = inner
+    np.minimum.at(zbuf, idx, z)
+    zmax = zbuf[idx]
+    zmax += f32(w.tol_mm)
+    passed = z <= zmax
+    for s, wv in spans:
+        np.multiply(passed[s], f32(wv), out=wgt[s])
+    # everything from here on the padded grid, its border (clamped strays) emptied
+    covered = np.isfinite(zbuf).reshape(h + 2, w2)
+    covered[[0, -1]] = False
+    covered[:, [0, -1]] = False
+    acc = np.empty((4, n), f32)  # the blend weight, then the weighted colours
+    acc[3] = np.bincount(idx, wgt, minlength=n)
+    for k in range(3):
+        np.multiply(rgb[k], wgt, out=rgb[k])
+        acc[k] = np.bincount(idx, rgb[k], minlength=n)
+    acc = acc.reshape(4, h + 2, w2)
+    acc[:, [0, -1]] = 0.0
+    acc[:, :, [0, -1]] = 0.0
+    if SPLAT_TENT:
+        acc = _tent(acc)
+    planes = acc[:3]
+    inv_t = np.zeros((h + 2, w2), f32)
+    np.divide(f32(1.0), acc[3], out=inv_t, where=covered)
+    planes *= inv_t
+    planes = _fill_holes_padded(planes, covered)
+    planes += f32(0.5)
+    np.clip(planes, 0, 255, out=planes)
+    frame[...] = planes[:, 1:-1, 1:-1].transpose(1, 2, 0)
     return frame
+
+
+def _tent(a: np.ndarray) -> np.ndarray:
+    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32."""
+    lo, mid = np.float32(0.125), np.float32(0.75)
+    t = a * mid
+    t[:, 1:] += lo * a[:, :-1]
+    t[:, :-1] += lo * a[:, 1:]
+    out = t * mid
+    out[:, :, 1:] += lo * t[:, :, :-1]
+    out[:, :, :-1] += lo * t[:, :, 1:]
+    return out
 
 
 def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -332,25 +401,50 @@ def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
     `HOLE_NEIGHBOURS` of the 8 are covered, `HOLE_PASSES` times (cracks close, the
     silhouette does not grow). ``frame`` (h, w, 3) float32 is filled in place and returned."""
     h, w = covered.shape
-    for _ in range(HOLE_PASSES):
-        if covered.all():
-            break
-        cp = np.pad(covered, 1).astype(np.float32)
-        fp = np.pad(frame * covered[..., None], ((1, 1), (1, 1), (0, 0)))
-        count = np.zeros((h, w), np.float32)
-        acc = np.zeros((h, w, 3), np.float32)
-        for dy in range(3):
-            for dx in range(3):
-                if dy == 1 and dx == 1:
-                    continue
-                count += cp[dy:dy + h, dx:dx + w]
-                acc += fp[dy:dy + h, dx:dx + w]
-        fill = ~covered & (count >= HOLE_NEIGHBOURS)
-        if not fill.any():
-            break
-        frame[fill] = acc[fill] / count[fill, None]
-        covered = covered | fill
+    cov = np.zeros((h + 2, w + 2), bool)
+    cov[1:-1, 1:-1] = covered
+    planes = np.zeros((frame.shape[2], h + 2, w + 2), np.float32)
+    planes[:, 1:-1, 1:-1] = np.moveaxis(frame, 2, 0)
+    planes *= cov
+    _fill_holes_padded(planes, cov)
+    filled = cov[1:-1, 1:-1] & ~covered
+    frame[filled] = np.moveaxis(planes[:, 1:-1, 1:-1], 0, 2)[filled]
     return frame
+
+
+def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """`fill_holes` on planar channels (c, h + 2, w + 2) float32 with an empty border and 0
+    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place."""
+    c, hp, wp = planes.shape
+    flat = planes.reshape(c, -1)
+    offsets = [dy * wp + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    for _ in range(HOLE_PASSES):
+        cf = covered.astype(np.float32)
+        count = np.zeros_like(cf)
+        count[1:-1, 1:-1] = _box8(cf, hp - 2, wp - 2)
+        fill = count >= HOLE_NEIGHBOURS
+        fill &= ~covered
+        at = np.flatnonzero(fill)
+        if at.size == 0:
+            break
+        # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
+        acc = flat[:, at + offsets[0]]
+        for off in offsets[1:]:
+            acc += flat[:, at + off]
+        acc *= np.float32(1.0) / count.reshape(-1)[at]
+        flat[:, at] = acc
+        covered |= fill
+    return planes
+
+
+def _box8(p: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Sum of the 8 neighbours of every pixel of the padded (h + 2, w + 2) ``p``."""
+    rows = p[:, :-2] + p[:, 1:-1]
+    rows += p[:, 2:]
+    out = rows[:-2] + rows[1:-1]
+    out += rows[2:]
+    out -= p[1:-1, 1:-1]
+    return out
 
 
 def upsample2(d: np.ndarray) -> np.ndarray:
@@ -367,6 +461,27 @@ def upsample2(d: np.ndarray) -> np.ndarray:
         return np.moveaxis(out, 0, axis)
 
     return along(along(d, 0), 1)
+
+
+def upsample2_at(d: np.ndarray, src: np.ndarray, width: int) -> np.ndarray:
+    """`upsample2` of ``d`` (h, w) at the flat indices ``src`` of the (2h, 2w) result only
+    (the same float32 operations in the same order: equal values), float32 (len(src),)."""
+    d = np.asarray(d, dtype=np.float32)
+    hh, hw = d.shape
+    y, x = np.divmod(src, width)
+    iy, ix = y >> 1, x >> 1
+    # even output rows/columns take the previous half-resolution one, odd the next (clamped)
+    ny = iy + ((y & 1) * 2 - 1)
+    np.clip(ny, 0, hh - 1, out=ny)
+    nx = ix + ((x & 1) * 2 - 1)
+    np.clip(nx, 0, hw - 1, out=nx)
+    a, b = np.float32(0.75), np.float32(0.25)
+    r0 = iy * hw
+    r1 = ny * hw
+    flat = d.reshape(-1)
+    near = a * flat[r0 + ix] + b * flat[r1 + ix]
+    far = a * flat[r0 + nx] + b * flat[r1 + nx]
+    return a * near + b * far
 
 
 # ----------------------------------------------------------------------------- depth
@@ -424,6 +539,7 @@ class DepthEigenspace:
         nz = self.counts > 0
         self._nz = nz
         self._starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]])[nz].astype(np.int64)
+        self._scaled: np.ndarray | None = None
 
     @property
     def n_components(self) -> int:
@@ -471,8 +587,9 @@ class DepthEigenspace:
         y = self.table[view].astype(np.float32) * np.float32(self.step)
         cells = self.mean.copy()
         if self._starts.size:
-            w = self.components.astype(np.float32)
-            w *= (self.scales * y)[:, None]
+            if self._scaled is None:  # the float32 components, once (~1 KB per component)
+                self._scaled = self.components.astype(np.float32)
+            w = self._scaled * (self.scales * y)[:, None]
             cells[self._nz] += np.add.reduceat(w, self._starts, axis=0)
         full = merge_cells(cells, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
         return full + np.float32(self.offset)
@@ -544,9 +661,13 @@ class ViewSynthesizer:
             return hit
         self.misses += 1
         colour = self.reconstructor.update(self.training_scores(view))
-        valid = colour.max(axis=2) > OBJECT_LEVEL
-        depth = upsample2(self.depth.reconstruct(view))
-        cloud = self.warper.unproject(colour, depth, valid)
+        # the largest channel, as two element-wise maxima (a reduce over the last axis of
+        # (h, w, 3) uint8 costs as much as the reconstruction)
+        valid = np.maximum(np.maximum(colour[..., 0], colour[..., 1]), colour[..., 2])
+        valid = valid > OBJECT_LEVEL
+        src = np.flatnonzero(valid)
+        depth = upsample2_at(self.depth.reconstruct(view), src, self.warper.width)
+        cloud = self.warper.unproject_at(colour, depth, src)
         self._cache[view] = cloud
         while len(self._cache) > self.cache_views:
             self._cache.popitem(last=False)

@@ -43,7 +43,7 @@ frame (``device_frame``: 4 colour reconstructions through the device code, 4 dep
 reconstructions, upsampling at 512, the warp), with today's frame (`HostModel.view`:
 interpolated scores, one reconstruction) timed in the same run.
 
-Every parameter of the warp (z tolerance, coverage threshold, hole filling) is fixed here
+Every parameter of the warp (z tolerance, splat filter, hole filling) is fixed here
 before looking at the held-out views; nothing is tuned on them.
 
 Cost: ray-casting the 1500 training depths at 256 (~3-5 min per volume on 2 cores, cached),
@@ -75,9 +75,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from device_runtime.synthesis import (
-    COVERAGE_MIN,
     HOLE_NEIGHBOURS,
     HOLE_PASSES,
+    SPLAT_TENT,
     Z_TOLERANCE,
     DepthEigenspace,
     fill_holes,
@@ -274,7 +274,7 @@ class Volume:
 # ----------------------------------------------------------------------------- the run
 
 
-def depth_pcas(vol: Volume, thresholds: list[float]
+def depth_pcas(vol: Volume, thresholds: list[float], variants: tuple[str, ...] = tuple(VARIANTS)
                ) -> tuple[dict[str, dict[float, DepthEigenspace]], dict]:
     """Fit the depth eigenspaces of each variant at each threshold; report components, bytes
     and the depth error on object pixels of training views."""
@@ -282,7 +282,7 @@ def depth_pcas(vol: Volume, thresholds: list[float]
     out, report = {}, {}
     n = depths.shape[0]
     check = np.unique(np.linspace(0, n - 1, DEPTH_CHECK_VIEWS).round().astype(int))
-    for variant in VARIANTS:
+    for variant in variants:
         t0 = time.perf_counter()
         filled = np.stack([fill_nearest(variant_depth(depths[i], variant)) for i in range(n)])
         pcas = fit_depth_pcas(filled, thresholds, vol.distance)
@@ -364,7 +364,7 @@ def run_case(vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace
         timing["blend"].append(time.perf_counter() - t0)
         frames["webp_db"] = webp.frame(phi, theta)
         frames["oracle"], _ = device.projection_frame(truth)
-        for variant in VARIANTS:
+        for variant in pcas:
             d = [variant_depth(x, variant) for x in true_d]
             frames[f"warp_true_{variant}"] = warper.warp(true_rgb, d, true_ok, sources, w,
                                                          target)
@@ -502,28 +502,38 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/work/cache/warp")
     ap.add_argument("--images", default="docs/images", help="'' for no pictures")
     ap.add_argument("-o", "--output", default="/work/cache/warp/results.json")
+    ap.add_argument("--limit", type=int, default=0,
+                    help="measure only the first N views of the set (quick comparisons)")
+    ap.add_argument("--variants", default="half,mean",
+                    help="depth variants measured (half: half-opacity, mean: weighted mean)")
     ap.add_argument("--depth-thresholds", default="0.99,0.999",
                     help="depth PCA thresholds measured besides the colour model's T")
     args = ap.parse_args(argv)
     extra = [float(t) for t in args.depth_thresholds.split(",") if t]
+    variants = tuple(v for v in args.variants.split(",") if v)
+    if "half" not in variants or any(v not in VARIANTS for v in variants):
+        raise SystemExit(f"warp_views: --variants must include half, of {', '.join(VARIANTS)}")
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     sizes = [int(s) for s in args.sizes.split(",") if s]
     if any(s not in (DEPTH_SIZE, 2 * DEPTH_SIZE) for s in sizes):
         raise SystemExit(f"warp_views: sizes must be {DEPTH_SIZE} or {2 * DEPTH_SIZE}")
     views = parse_view_set(f"random:{args.views}:{args.seed}").angles_deg()
+    if args.limit > 0:
+        views = views[:args.limit]
     images = Path(args.images) if args.images else None
     results, depth = [], {}
     for name in [v for v in args.volumes.split(",") if v]:
         vol = Volume(name, cache, sizes)
         threshold = next(iter(vol.models.values())).threshold or 0.98
         thresholds = sorted({threshold, *extra})
-        pcas, depth[name] = depth_pcas(vol, thresholds)
+        pcas, depth[name] = depth_pcas(vol, thresholds, variants)
         for size in sizes:
             results.append(run_case(vol, size, pcas, threshold, views, images))
             Path(args.output).write_text(json.dumps({"partial": results}, default=float))
     out = {"views": f"random:{args.views}:{args.seed}", "z_tolerance": Z_TOLERANCE,
-           "coverage_min": COVERAGE_MIN, "hole_passes": HOLE_PASSES,
+           "splat": "nearest, tent filter" if SPLAT_TENT else "nearest",
+           "hole_passes": HOLE_PASSES,
            "hole_neighbours": HOLE_NEIGHBOURS, "depth": depth, "cases": results}
     Path(args.output).write_text(json.dumps(out, indent=1, default=float))
     print_tables(results, depth)

@@ -147,13 +147,27 @@ def test_warping_a_training_view_to_its_own_camera_gives_its_reconstruction(dept
         frame = synth.frame(float(db.phi_deg[i]), float(db.theta_deg[i]))
         own = Reconstructor.from_image(image).update(synth.training_scores(i))
         obj = own.max(axis=2) > 2
-        diff = np.abs(frame.astype(int) - own)
-        # the same pixels, up to the half-resolution depth's sub-pixel splatting
-        assert diff[obj].mean() < 2.0, diff[obj].mean()
+        # every pixel lands on itself (whatever its depth: the same ray), so the frame is
+        # the reconstruction through the splat filter (SPLAT_TENT), computed here apart
+        diff = np.abs(frame.astype(float) - _tent_normalised(own.astype(float), obj))
+        assert diff[obj].mean() < 1.0, diff[obj].mean()
     misses = synth.misses
     synth.frame(float(db.phi_deg[7]) + 1.0, float(db.theta_deg[7]) + 1.0)
     synth.frame(float(db.phi_deg[7]) + 2.0, float(db.theta_deg[7]) + 1.0)
     assert synth.misses - misses <= 4  # neighbours cached between frames of one drag
+
+
+def _tent_normalised(img, covered):
+    """[1/8, 3/4, 1/8] in y and x over the covered pixels (zero outside), normalised."""
+    k = np.array([0.125, 0.75, 0.125])
+    h, w = covered.shape
+
+    def filt(a):
+        t = sum(k[i] * a[i:i + h] for i in range(3))
+        return sum(k[j] * t[:, j:j + w] for j in range(3))
+
+    num = filt(np.pad(img * covered[..., None], ((1, 1), (1, 1), (0, 0))))
+    return num / np.maximum(filt(np.pad(covered.astype(float), 1)), 1e-12)[..., None]
 
 
 def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):

@@ -88,7 +88,7 @@ def test_the_script_uses_the_product_warp(warp_views):
 def test_a_plane_of_known_depth_warps_to_its_analytic_image():
     """A plane through the orbit centre, textured by a smooth function of the world point,
     seen by two orbit cameras 12 degrees apart: every pixel's depth is known exactly, so the
-    warp of the source image must give the target's analytic image up to the bilinear
+    warp of the source image must give the target's analytic image up to the nearest-pixel
     splatting's resampling (mean error under 1.5 levels, 99th percentile under 6)."""
     from device_runtime.synthesis import Warper
 
@@ -120,7 +120,11 @@ def test_a_plane_of_known_depth_warps_to_its_analytic_image():
     err = np.abs(out[inner].astype(float) - dst[inner])
     assert err.mean() < 1.5 and np.percentile(err, 99) < 6, (err.mean(), err.max())
     unwarped = np.abs(src[inner].astype(float) - dst[inner]).mean()
-    assert unwarped > 10 * err.mean()
+    # Nearest-pixel splatting lands each sample up to half a pixel from where it projects
+    # (a quarter on average): on this texture (~7 levels per pixel) that is ~1.3 levels,
+    # against 2.7 for not warping (this smooth texture barely changes over 12 degrees).
+    # Bilinear splatting gave 0.2; the margin asked is therefore 1.8x, not 10x.
+    assert unwarped > 1.8 * err.mean()
 
 
 def test_warp_to_its_own_camera_is_the_identity(warp_views, scene):
@@ -131,7 +135,23 @@ def test_warp_to_its_own_camera_is_the_identity(warp_views, scene):
     out = warper.warp([rgb], [depth], [alpha > 0.5], [cam], np.array([1.0]), cam)
     inner = alpha > 0.5
     assert inner.sum() > 500
-    assert np.abs(out[inner].astype(int) - rgb[inner]).max() <= 1
+    # every pixel lands on itself; the splat filter (SPLAT_TENT: [1/8, 3/4, 1/8] in x and y,
+    # normalised over the covered pixels) is then the only change, computed here apart
+    expected = _tent_normalised(rgb.astype(float), inner)
+    assert np.abs(out[inner].astype(int) - np.rint(expected[inner])).max() <= 1
+
+
+def _tent_normalised(img, covered):
+    k = np.array([0.125, 0.75, 0.125])
+    num = np.pad(img * covered[..., None], ((1, 1), (1, 1), (0, 0)))
+    den = np.pad(covered.astype(float), 1)
+    h, w = covered.shape
+
+    def filt(a):
+        t = sum(k[i] * a[i:i + h] for i in range(3))
+        return sum(k[j] * t[:, j:j + w] for j in range(3))
+
+    return filt(num) / np.maximum(filt(den), 1e-12)[..., None]
 
 
 @pytest.mark.parametrize("target", [(30.0, 22.0), (42.0, 10.0)])
