@@ -185,6 +185,13 @@ class StandaloneScores:
         """Quantized scores (K,) float32 of a view, as the host would send them."""
         idx, w = self.interpolator.weights(phi_deg, theta_deg)
         rows = self.table[idx].astype(np.float32) * self._step32  # (m, K)
-        y = interpolate(rows, np.arange(rows.shape[0]), w)
+        return self._to_packet_step(interpolate(rows, np.arange(rows.shape[0]), w))
+
+    def training_scores(self, view: int) -> np.ndarray:
+        """Training view ``view``'s own scores (K,) float32: its dequantized table row,
+        rounded to the packet step as `scores` rounds (no interpolation)."""
+        return self._to_packet_step(self.table[view].astype(np.float32) * self._step32)
+
+    def _to_packet_step(self, y: np.ndarray) -> np.ndarray:
         step = self.step
         return (np.rint(y / step) * step).astype(np.float32)

@@ -646,13 +646,6 @@ class ViewSynthesizer:
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.misses = 0
 
-    def training_scores(self, view: int) -> np.ndarray:
-        """Training view ``view``'s colour scores as the device sends them to reconstruction:
-        the table's dequantized row rounded to the packet step."""
-        sa = self.standalone
-        y = sa.table[view].astype(np.float32) * sa._step32
-        return (np.rint(y / sa.step) * sa.step).astype(np.float32)
-
     def view_cloud(self, view: int) -> tuple[np.ndarray, np.ndarray]:
         """Training view ``view``'s object points (its camera frame) and colours (cached)."""
         hit = self._cache.get(view)
@@ -660,7 +653,7 @@ class ViewSynthesizer:
             self._cache.move_to_end(view)
             return hit
         self.misses += 1
-        colour = self.reconstructor.update(self.training_scores(view))
+        colour = self.reconstructor.update(self.standalone.training_scores(view))
         # the largest channel, as two element-wise maxima (a reduce over the last axis of
         # (h, w, 3) uint8 costs as much as the reconstruction)
         valid = np.maximum(np.maximum(colour[..., 0], colour[..., 1]), colour[..., 2])

@@ -145,7 +145,7 @@ def test_warping_a_training_view_to_its_own_camera_gives_its_reconstruction(dept
     db = CinemaDB.open(depth_db)
     for i in (7, 60, 130):
         frame = synth.frame(float(db.phi_deg[i]), float(db.theta_deg[i]))
-        own = Reconstructor.from_image(image).update(synth.training_scores(i))
+        own = Reconstructor.from_image(image).update(synth.standalone.training_scores(i))
         obj = own.max(axis=2) > 2
         # every pixel lands on itself (whatever its depth: the same ray), so the frame is
         # the reconstruction through the splat filter (SPLAT_TENT), computed here apart

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from device_runtime.synthesis import (
+    DEPTH_SECTIONS,
     SYNTHESIS_METHOD,
     Z_TOLERANCE,
     DepthEigenspace,
@@ -172,9 +173,7 @@ def add_depth(image: Any, db: Any, threshold: float) -> dict:
         "depth_offset_mm": offset,
         "depth_threshold": float(threshold),
     }
-    raw = sum(int(image.sections[s].nbytes) for s in ("depth_counts", "depth_scales",
-                                                       "depth_mean", "depth_components",
-                                                       "depth_scores"))
+    raw = sum(int(image.sections[s].nbytes) for s in DEPTH_SECTIONS)
     return {"components": eig.n_components,
             "components_per_cell": float(eig.counts.mean()) if eig.counts.size else 0.0,
             "raw_bytes": raw, "step": eig.step, "threshold": threshold}
