@@ -108,13 +108,7 @@ class DevicePath:
         prediction as the device does. None for a model without the standalone table.
         """
         from device_runtime.prediction import Predictor, can_predict, corrected, prediction_view
-        from host.fit.rate import (
-            DEFAULT_CORRECTION_KAPPA,
-            DEFAULT_CORRECTION_STEP_FACTOR,
-            rd_quantize,
-            ssim_cell_weights,
-        )
-        from protocol.scores import encode_scores
+        from host.fit.rate import encode_correction, ssim_cell_weights
 
         model = self.model
         if getattr(self, "_predictor", None) is None:
@@ -123,13 +117,9 @@ class DevicePath:
             self._predictor = Predictor(model.image)
         view = prediction_view(phi_deg, theta_deg)
         prediction = self._predictor(*view)
-        step = model.score_step * DEFAULT_CORRECTION_STEP_FACTOR
         weights = ssim_cell_weights(image, model.image.cell_shape, mask)
-        c = rd_quantize(model, model.project(image) - prediction, step=step,
-                        kappa=DEFAULT_CORRECTION_KAPPA, weights=weights)
         self._frame = (self._frame + 1) & 0xFFFFFFFF
-        packet = encode_scores(c, step=step, frame=self._frame, view=view,
-                               image_digest=self.digest, predicted=True,
-                               n_components=model.image.n_components).packet
+        packet = encode_correction(model, model.project(image), prediction, view,
+                                   frame=self._frame, weights=weights).packet
         d = self.decoder.decode(packet)
         return model.reconstruct(corrected(prediction, d.y)), len(packet)

@@ -38,6 +38,7 @@ __all__ = [
     "DEFAULT_CORRECTION_STEP_FACTOR",
     "DEFAULT_RD_KAPPA",
     "eg_bits",
+    "encode_correction",
     "rd_delta",
     "rd_lambda",
     "rd_quantize",
@@ -143,6 +144,36 @@ def rd_quantize(
         m = int(np.argmin(seg))
         out[lo:lo + m] = q[lo:lo + m]
     return (out * s).astype(np.float32)
+
+
+def encode_correction(
+    model: Any,
+    scores: np.ndarray,
+    prediction: np.ndarray,
+    view: tuple[float, float],
+    *,
+    frame: int,
+    step: float | None = None,
+    kappa: float = DEFAULT_CORRECTION_KAPPA,
+    weights: np.ndarray | None = None,
+    **encode: Any,
+) -> Any:
+    """The correction packet of ``serve --scores predict`` (and evaluate's ``pca_predict``):
+    ``scores - prediction`` RD-quantized (`rd_quantize`) and coded as a version-2 score
+    packet with the PREDICTED base kind for ``view`` (canonical: the prediction's view).
+
+    ``step`` defaults to `DEFAULT_CORRECTION_STEP_FACTOR` x the model's score step;
+    ``encode`` goes to `protocol.scores.encode_scores` (e.g. ``level``). Returns its
+    `~protocol.scores.EncodedScores`.
+    """
+    from protocol.scores import encode_scores
+
+    if step is None:
+        step = model.score_step * DEFAULT_CORRECTION_STEP_FACTOR
+    q = rd_quantize(model, np.asarray(scores) - prediction, step=step, kappa=kappa,
+                    weights=weights)
+    return encode_scores(q, step=step, frame=frame, view=view, image_digest=model.digest,
+                         predicted=True, n_components=model.image.n_components, **encode)
 
 
 def rd_delta(

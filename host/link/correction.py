@@ -32,8 +32,8 @@ from host.fit.model import HostModel
 from host.fit.rate import (
     DEFAULT_CORRECTION_KAPPA,
     DEFAULT_CORRECTION_STEP_FACTOR,
+    encode_correction,
     rd_delta,
-    rd_quantize,
     ssim_cell_weights,
 )
 from host.link.serving import SCORE_LEVEL, FrameEncoder
@@ -259,8 +259,8 @@ class CorrectionEncoder(FrameEncoder):
         prediction = self.predictor(*view)
         common = {"step": s, "frame": frame, "view": view, "image_digest": model.digest,
                   "level": self.level, "n_components": model.image.n_components}
-        correction = encode_scores(rd_quantize(model, y - prediction, **rd), predicted=True,
-                                   **common)
+        correction = encode_correction(model, y, prediction, view, frame=frame,
+                                       level=self.level, **rd)
         base = None if key else self._full
         if base is not None and not (np.ndim(base.step) == 0
                                      and math.isclose(float(base.step), s, rel_tol=1e-6)):
