@@ -58,6 +58,18 @@ def test_equal_quality_jpeg_reports_the_best_jpeg_when_none_reaches(head_view):
                                                      for q in range(1, 96)))
 
 
+def _every_frame_shown_or_coalesced(summary: dict) -> None:
+    """The device showed the image's mean frame and every served frame it kept up with.
+
+    A device that falls behind (a loaded CI machine) shows the newest frame and counts the
+    ones it skipped as coalesced; none may be lost otherwise, and the orbit's last is shown.
+    """
+    device = summary["device"]
+    assert device["decode_errors"] == 0
+    assert device["frames_presented"] + device["coalesced"] == summary["serve"]["frames"] + 1
+    assert device["frames_presented"] >= 2
+
+
 def test_headless_demo_runs_and_reuses_its_cache(tmp_path, capsys):
     settings = DemoSettings(volume="builtin:tooth", views="grid:8x3", size=36, samples=40,
                             cell=12, orbit="steps:6:15", every=1, jpeg_views=2)
@@ -66,7 +78,7 @@ def test_headless_demo_runs_and_reuses_its_cache(tmp_path, capsys):
     out = capsys.readouterr()
     assert first["provision"] == "installed"
     assert first["serve"]["frames"] == 6 and first["serve"]["key_frames"] == 1
-    assert first["device"]["frames_presented"] >= 6
+    _every_frame_shown_or_coalesced(first)
     assert {"ssim", "jpeg_bytes", "jpeg_quality"} <= set(first["jpeg"])
     assert "demo summary" in out.out and "equal-quality JPEG" in out.out
     # the orbit is served as a drag is: sparse ray-casts; the summary compares what streamed
@@ -78,7 +90,9 @@ def test_headless_demo_runs_and_reuses_its_cache(tmp_path, capsys):
     assert "tcp-listen://127.0.0.1:" in out.err  # the local link is shown to the user
     model = work / "tooth.ecs"
     fitted = model.stat().st_mtime_ns
-    assert len(read_frames(work / "frames")) >= 6
+    rows = read_frames(work / "frames")
+    assert len(rows) == first["device"]["frames_presented"] - 1 >= 1
+    assert float(rows[-1]["phi_deg"]) == pytest.approx(300.0)  # the orbit's last view is shown
 
     second = run_demo(work, settings=settings, headless=True)
     err = capsys.readouterr().err
@@ -86,7 +100,7 @@ def test_headless_demo_runs_and_reuses_its_cache(tmp_path, capsys):
     assert "fitted from this database with these settings; kept" in err
     assert model.stat().st_mtime_ns == fitted
     assert second["provision"] == "already-active"
-    assert second["device"]["frames_presented"] >= 6
+    _every_frame_shown_or_coalesced(second)
     # this run's frames only (the folder is cleared, frames.csv does not pile up)
     assert len(read_frames(work / "frames")) == second[
         "device"]["frames_presented"] - 1  # the image's first (mean) frame has no view
