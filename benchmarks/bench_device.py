@@ -43,7 +43,10 @@ w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a
    "auto") on the same views in the same run; the ratio, the median CPU time of both (all
    threads: less sensitive to the shared cores' load than wall time), the cache misses, and
    the synthesis' declared scratch (`synthesis_memory_bytes`) and depth sections. Target:
-   < 40 ms at 512.
+   < 40 ms at 512. With ``--rss-frames N`` also the peak RSS (``VmHWM``) of a real
+   ``eigencast-device --standalone`` process showing N orbit frames of the image (and of
+   ``--warp-baseline``, the model without depth), against (d)'s bound plus the depth
+   sections and the synthesis scratch.
 
 Models. Real ones where it matters: ``--volume`` (default the shared vismale_head if
 present, else ``builtin:head``) rendered from ``--views`` (default ``grid:36x7``) at each of
@@ -756,6 +759,76 @@ def section_warp(path: Path, frames: int) -> dict:
             "required_ram_bytes": required_ram_bytes(manifest)}
 
 
+def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
+    """(w, memory): peak RSS of a real ``eigencast-device --standalone`` process showing
+    ``frames`` frames of an orbit from ``path``, against the device bound of (d) plus what
+    the image adds: its extra sections as held in memory (the standalone score table, the
+    depth eigenspace) and the declared synthesis scratch; and against the bare runtime
+    process plus what the image declares it needs (`required_ram_bytes`)."""
+    from device_runtime.image_receiver import required_ram_bytes
+    from device_runtime.synthesis import DEPTH_SECTIONS, synthesis_memory_bytes
+    from host.link.provisioning import provision
+    from protocol.image import read_image, read_manifest
+
+    work.mkdir(parents=True, exist_ok=True)
+    flash = work / f"flash-rss-{path.stem}"
+    shutil.rmtree(flash, ignore_errors=True)
+    # an unkeyed device over loopback: the image need not be signed (memory, not trust)
+    device = DeviceProcess(flash, "--headless", "--insecure", "--ram-budget", "1024",
+                           "--flash-size", str(max(64, int(2 * path.stat().st_size / MB) + 8)))
+    try:
+        provision(path, device.url, insecure=True, **QUIET)
+    finally:
+        device.stop()
+    image = read_image(path, read_annex=False)
+    manifest = read_manifest(path)
+    eig = int(image.eigenimages.nbytes + image.mean.nbytes + image.scales.nbytes)
+    depth = sum(int(image.sections[s].nbytes) for s in DEPTH_SECTIONS if s in image.sections)
+    table = sum(int(a.nbytes) for name, a in image.sections.items()
+                if name not in DEPTH_SECTIONS)
+    scratch = synthesis_memory_bytes(manifest) if depth else 0
+    declared = required_ram_bytes(manifest)
+    stats_path = work / f"rss-warp-{path.stem}.json"
+    stats_path.unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash", str(flash),
+           "--headless", "--orbit", "turn:12:15", "--max-frames", str(frames), "--stats",
+           str(stats_path), "--ram-budget", "1024"]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    hwm = 0
+    while proc.poll() is None:
+        hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
+        time.sleep(0.05)
+    wall = time.perf_counter() - t0
+    err = proc.stderr.read() if proc.stderr else ""
+    if proc.returncode != 0:
+        raise RuntimeError(f"standalone device exited {proc.returncode}: {err.strip()[-300:]}")
+    stats = read_json(stats_path)
+    peak = max(hwm, int(stats.get("peak_rss_bytes") or 0))
+    bound = 1.2 * eig + 64 * 2**20 + table + depth + scratch
+    shutil.rmtree(flash, ignore_errors=True)
+    return {"image": path.name, "size": image.image_shape[0],
+            "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
+            "eigenspace_mb": eig / MB, "depth_sections_mb": depth / MB, "table_mb": table / MB,
+            "declared_mb": declared / MB, "ratio_peak_declared": peak / (bare + declared),
+            "synthesis_scratch_mb": scratch / MB, "peak_rss_mb": peak / MB,
+            "bound_mb": bound / MB, "ratio_peak_bound": peak / bound, "bare_rss_mb": bare / MB,
+            "reconstruct_ms": stats.get("reconstruct_ms")}
+
+
+def print_warp_rss(r: dict) -> None:
+    ok = "within" if r["ratio_peak_bound"] <= 1 else "OVER"
+    print(f"  {r['image']}: {r['frames']} standalone frames in {r['wall_s']:.0f} s; device peak "
+          f"RSS {r['peak_rss_mb']:.1f} MB, {r['ratio_peak_bound']:.2f}x the bound "
+          f"{r['bound_mb']:.1f} MB ({ok}: 1.2 x eigenspace {r['eigenspace_mb']:.1f} MB + 64 MiB"
+          f" + other sections {r['table_mb']:.1f} MB + depth sections "
+          f"{r['depth_sections_mb']:.1f} MB + synthesis scratch "
+          f"{r['synthesis_scratch_mb']:.1f} MB); {r['ratio_peak_declared']:.2f}x the bare "
+          f"runtime process {r['bare_rss_mb']:.1f} MB + the image's declared "
+          f"{r['declared_mb']:.1f} MB", flush=True)
+
+
 def print_warp(r: dict) -> None:
     print(f"  {r['size']:>5} px: blended {r['blend_ms']:.1f} ms, synthesized "
           f"{r['warp_ms']:.1f} ms (p90 {r['warp_p90_ms']:.1f}, cold {r['cold_ms']:.0f}) = "
@@ -789,6 +862,9 @@ def main() -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object at the end")
     parser.add_argument("--warp-image", type=Path, default=None,
                         help="section w: a standalone image fitted with --depth")
+    parser.add_argument("--warp-baseline", type=Path, default=None,
+                        help="section w with --rss-frames: the same model without depth, "
+                             "whose standalone process is measured beside it")
     args = parser.parse_args()
     if args.warp_image is not None and args.sections == "w":
         frames = args.frames or 40
@@ -796,8 +872,18 @@ def main() -> int:
               f"{frames} drag frames; load {os.getloadavg()[0]:.1f}", flush=True)
         row = section_warp(args.warp_image, frames)
         print_warp(row)
+        out: dict[str, Any] = {"warp": row}
+        if args.rss_frames:
+            bare = bare_rss_bytes()
+            print(f"(w) device peak RSS, standalone process, {args.rss_frames} orbit frames",
+                  flush=True)
+            rows = []
+            for path in [args.warp_image, *([args.warp_baseline] if args.warp_baseline else [])]:
+                rows.append(section_warp_rss(path, args.work, args.rss_frames, bare))
+                print_warp_rss(rows[-1])
+            out["warp_rss"] = rows
         if args.json:
-            print(json.dumps({"warp": row}))
+            print(json.dumps(out))
         return 0
     q = args.quick
     volume = args.volume or ("builtin:head" if q else default_volume())
