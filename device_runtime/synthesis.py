@@ -62,7 +62,7 @@ KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD})
 #: Image sections of the depth eigenspace (``fit --depth``), in this order.
 DEPTH_SECTIONS = ("depth_counts", "depth_scales", "depth_mean", "depth_components",
                   "depth_scores")
-#: Training views whose colour and depth stay cached (a view at 512: ~2.4 MB).
+#: Training views whose colour and depth stay cached (a view at 512: ~1.5 MB).
 CACHE_VIEWS = 8
 
 #: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
@@ -73,6 +73,8 @@ Z_TOLERANCE = 0.02
 #: expectation over where a point lands, the spread of a bilinear splat. Coverage is the
 #: unfiltered one: a pixel is covered when a splat lands on it.
 SPLAT_TENT = True
+#: The warp indexes its padded grid in float32, exact below 2**24 pixels (4094 x 4094).
+MAX_WARP_PIXELS = 1 << 24
 #: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
 #: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
 HOLE_PASSES = 2
@@ -130,13 +132,19 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
             f"image manifest: synthesis.depth_shape {record['depth_shape']} is not half the "
             f"image shape {list(image_shape)}"
         )
+    h, w = (2 * v for v in record["depth_shape"])
+    if (h + 2) * (w + 2) >= MAX_WARP_PIXELS:
+        raise ImageFormatError(
+            f"image manifest: synthesis of {w}x{h} frames is beyond this device's warp "
+            f"(frames up to {MAX_WARP_PIXELS} padded pixels)")
     return record
 
 
 def synthesis_memory_bytes(manifest: dict) -> int:
     """RAM the synthesis needs beyond the sections: the view cache and the warp's scratch.
 
-    Per cached view: the object pixels' points and colours (24 bytes per pixel at most);
+    Per cached view: the object pixels' points and uint8 colours (15 bytes per pixel at
+    most);
     the depth eigenspace's float32 components (4 bytes per int8 entry); per frame, the
     splats of 4 views (one per object pixel, 36 bytes each, all pixels at most: the reused
     `Warper.scratch`), a view's reconstruction and its indices, and the padded accumulators.
@@ -146,7 +154,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
         return 0
     h, w = (2 * v for v in record["depth_shape"])
     n = h * w
-    cache = CACHE_VIEWS * n * 24
+    cache = CACHE_VIEWS * n * 15
     depth = 4 * (h // 2) * (w // 2) + n * (8 + 8 + 4)  # half-size depth, indices, depths
     for sec in manifest.get("sections") or []:
         if isinstance(sec, dict) and sec.get("name") == "depth_components":
@@ -210,8 +218,8 @@ class Warper:
         gx, gy = np.meshgrid(xs * self.half, ys * self.half)
         d = np.stack([gx, gy, np.ones_like(gx)], axis=-1)
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        self.rays = np.ascontiguousarray(d.reshape(-1, 3).astype(np.float32))  # (h*w, 3)
-        self.rays_t = np.ascontiguousarray(self.rays.T)  # (3, h*w)
+        # planar (3, h*w): the only layout the unprojection reads
+        self.rays_t = np.ascontiguousarray(d.reshape(-1, 3).T.astype(np.float32))
         self.tol_mm = float(z_tolerance_mm)
         self._scratch: tuple[np.ndarray, ...] | None = None
 
@@ -219,12 +227,11 @@ class Warper:
         """Per-splat buffers for ``total`` splats, reused between frames (grown, never
         shrunk: the page faults of fresh multi-megabyte arrays cost as much as a pass).
 
-        Returns index, row index (intp), z, weight (float32) and rgb (3, total) float32."""
+        Returns index (intp), z, weight (float32) and rgb (3, total) float32."""
         if self._scratch is None or self._scratch[0].size < total:
             cap = int(total * 1.25)
-            self._scratch = (np.empty(cap, np.intp), np.empty(cap, np.intp),
-                             np.empty(cap, np.float32), np.empty(cap, np.float32),
-                             np.empty((3, cap), np.float32))
+            self._scratch = (np.empty(cap, np.intp), np.empty(cap, np.float32),
+                             np.empty(cap, np.float32), np.empty((3, cap), np.float32))
         return tuple(a[..., :total] for a in self._scratch)
 
     def pose(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -242,7 +249,9 @@ class Warper:
         -------
         points : ndarray (3, n) float32
             ``ray * depth`` of each valid pixel with a finite depth.
-        rgb : ndarray (3, n) float32
+        rgb : ndarray (3, n)
+            ``colour``'s dtype: uint8 for the device's reconstructions, a quarter of float32
+            in the view cache (the warp converts each splat's colour as it copies it).
         """
         src = np.flatnonzero(valid)
         return self.unproject_at(colour, depth.reshape(-1)[src], src)
@@ -260,7 +269,7 @@ class Warper:
         for r in range(3):
             np.take(self.rays_t[r], src, out=points[r])
         points *= t
-        rgb = np.take(colour.reshape(-1, 3), src, axis=0).T.astype(np.float32, order="C")
+        rgb = np.ascontiguousarray(np.take(colour.reshape(-1, 3), src, axis=0).T)
         return points, rgb
 
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
@@ -292,7 +301,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     Parameters
     ----------
     w : Warper
-    clouds : list of (points (3, n) float32, rgb (3, n) float32)
+    clouds : list of (points (3, n) float32, rgb (3, n) uint8 or float32)
         Each source's object points in its camera frame and their colours.
     sources, target : (position (3,), rotation (3, 3)) from `Warper.pose`
     weights : ndarray (m,)
@@ -317,7 +326,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     scale = np.diag([sx, -sx, 1.0])
     ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
     total = sum(u[0].shape[1] for u in used)
-    idx, row_i, z, wgt, rgb = w.scratch(total)
+    idx, z, wgt, rgb = w.scratch(total)
     spans = []
     o = 0
     for pts, col, (p_s, r_s), wv in used:
@@ -343,12 +352,13 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
             cy[behind] = 0.0
         np.clip(cx, 0, w2 - 1, out=cx)
         np.clip(cy, 0, h + 1, out=cy)
-        ii = idx[s]
-        ri = row_i[s]
-        ii[...] = cx  # truncation of values >= 0: the pixel the point lands in
-        ri[...] = cy
-        ri *= w2
-        ii += ri
+        # the pixel the point lands in: truncation of values >= 0, row * w2 + col in float32
+        # (exact: the grid has fewer than MAX_WARP_PIXELS, check_synthesis), one cast
+        np.trunc(cx, out=cx)
+        np.trunc(cy, out=cy)
+        cy *= f32(w2)
+        cx += cy
+        idx[s] = cx
         rgb[:, s] = col
         spans.append((s, wv))
         o += k

@@ -126,6 +126,17 @@ def test_unknown_synthesis_method_is_refused_in_one_line(depth_model, tmp_path):
         assert image_problem(f, key=KEY, ram_budget_bytes=1 << 30) is None
 
 
+def test_synthesis_beyond_the_warps_float32_indexing_is_refused_in_one_line(depth_model):
+    from device_runtime.synthesis import MAX_WARP_PIXELS, check_synthesis
+
+    record = dict(read_image(depth_model, key=KEY).synthesis)
+    assert check_synthesis(record) is record
+    side = int(MAX_WARP_PIXELS ** 0.5) // 2  # frames of 2 * side: the padded grid is over
+    with pytest.raises(ImageFormatError, match=r"beyond this device's warp"):
+        check_synthesis({**record, "depth_shape": [side, side]})
+    check_synthesis({**record, "depth_shape": [side - 2, side - 2]})  # just inside
+
+
 def test_an_image_without_depth_loads_and_shows_as_before(model_path):
     manifest = read_manifest(model_path)
     assert "synthesis" not in manifest  # nothing written: older devices see the same bytes
