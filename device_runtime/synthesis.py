@@ -395,14 +395,19 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
 
 
 def _tent(a: np.ndarray) -> np.ndarray:
-    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32."""
+    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32.
+
+    One plane at a time: the temporaries are a plane's, not the stack's (the same sums)."""
     lo, mid = np.float32(0.125), np.float32(0.75)
-    t = a * mid
-    t[:, 1:] += lo * a[:, :-1]
-    t[:, :-1] += lo * a[:, 1:]
-    out = t * mid
-    out[:, :, 1:] += lo * t[:, :, :-1]
-    out[:, :, :-1] += lo * t[:, :, 1:]
+    out = np.empty_like(a)
+    for k in range(a.shape[0]):
+        p, o = a[k], out[k]
+        t = p * mid
+        t[1:] += lo * p[:-1]
+        t[:-1] += lo * p[1:]
+        np.multiply(t, mid, out=o)
+        o[:, 1:] += lo * t[:, :-1]
+        o[:, :-1] += lo * t[:, 1:]
     return out
 
 
