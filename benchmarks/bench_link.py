@@ -52,7 +52,9 @@ each tick (as a drag in the window does); per tick the frame the device shows
 `SAMPLE_DELAY_S` after the tick's view was set (two display ticks; ``--sample-ticks``) is
 compared with a fresh
 ray-cast of the tick's view (object SSIM, FLIP); fps counts ticks showing a frame not shown
-at the previous tick; bytes are wire bytes per score packet received during the trace.
+at the previous tick; bytes are wire bytes per score packet received during the trace;
+"view to frame" is the median time from setting a view to the first frame of it on show
+(the device's own or the host's).
 Modes (``--real-modes``): ``predict`` (``serve --scores predict`` to a device that
 predicts: the simulated ``pc``), ``render`` (the simulated ``project``) and ``interpolate``
 (``interp``) to a device that does not, and ``predict-blend`` (the simulated ``pc-blend``:
@@ -679,10 +681,12 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
         packets0 = device.runtime_stats.packets
         dt = 1.0 / fps
         t0 = time.monotonic()
+        moves: list[tuple[float, tuple[float, float]]] = []  # (when, canonical view) set
         for i, view in enumerate(trace):
             target = t0 + i * dt
             time.sleep(max(0.0, target - time.monotonic()))
             if canonical_view(*view) != device.view:  # a resting hand sends no event
+                moves.append((time.monotonic(), canonical_view(*view)))
                 device.set_view(*view)
         time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
         t_end = time.monotonic()
@@ -711,7 +715,13 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
         flips.append(f_)
     seconds = len(trace) * dt
     rs = device.runtime_stats
-    return {"fps": new / seconds, "ssim_object": float(np.mean(ssims)),
+    # from each view change to the first frame of that view on show (own or host's)
+    waits = [next((t - when for t, _, i in shown if t >= when
+                   and (i.get("phi_deg"), i.get("theta_deg")) == v), math.inf)
+             for when, v in moves]
+    return {"fps": new / seconds,
+            "view_ms": 1e3 * float(np.median(waits)) if waits else float("nan"),
+            "ssim_object": float(np.mean(ssims)),
             "flip_object": float(np.mean(flips)),
             "bytes_per_frame": wire / packets if packets else float("nan"),
             "line_use": wire / (baud / 10.0) / seconds,
@@ -725,15 +735,16 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
 def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
     lines = [f"**{title}**", "",
              "| baud | mode | fps shown | SSIM obj | FLIP obj | bytes/frame | line use | "
-             "predicted / corrected / stale / warped |",
-             "|---|---|---|---|---|---|---|---|"]
+             "predicted / corrected / stale / warped | view to frame ms |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for baud, modes in res.items():
         for mode, r in modes.items():
             extra = (f"{r['predicted']} / {r['corrected']} / {r['stale']} / "
                      f"{r.get('warped', 0)}" if "predicted" in r else "")
+            wait = f"{r['view_ms']:.0f}" if "view_ms" in r else ""
             lines.append(f"| {baud} | {mode} | {r['fps']:.1f} | {r['ssim_object']:.4f} | "
                          f"{r['flip_object']:.4f} | {r['bytes_per_frame']:.0f} | "
-                         f"{100 * r['line_use']:.0f} % | {extra} |")
+                         f"{100 * r['line_use']:.0f} % | {extra} | {wait} |")
     return "\n".join(lines)
 
 
