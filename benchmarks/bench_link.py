@@ -29,8 +29,13 @@ ray-cast, cached projections). Modes:
 * ``pc`` (predict + correct, host-side model): the device interpolates every tick itself
   (no bytes); the host sends an RD-quantized correction from that prediction to the
   projection of the current view; the device shows prediction + correction while the view
-  is the corrected one. This needs a device change; here it is measured on the host with
-  the device's own interpolation and reconstruction code;
+  is the corrected one. Measured on the host with the device's own interpolation and
+  reconstruction code. Until the correction arrives the device shows its own frame of the
+  view: for an image with depth (``fit --depth``) the warp of the neighbouring training
+  views (`host.evaluate.warp.WarpFrames`, the device's `ViewSynthesizer`: what a served
+  device that predicts shows, issue 15), otherwise the score blend ``reconstruct(pred)``;
+* ``pc-blend``: ``pc`` with the score blend as the interim frame even where the image has
+  depth (the device before issue 15's served warp; the baseline of the warp);
 * ``webp`` / ``avif``: a stream of image files, each the highest quality that fits the
   bytes per frame ``rd`` used on this line (so equal frame rate and latency: SSIM compares
   at equal cost), decoded with Pillow.
@@ -44,16 +49,21 @@ second of trace (at most ``--fps``).
 `device_runtime.runtime.RuntimeDevice` (its own threads, its display loop at a window's
 60 Hz) over a paced ``mem://`` line at each baud. The trace's view is set on the device at
 each tick (as a drag in the window does); per tick the frame the device shows
-`SAMPLE_DELAY_S` after the tick's view was set (two display ticks) is compared with a fresh
+`SAMPLE_DELAY_S` after the tick's view was set (two display ticks; ``--sample-ticks``) is
+compared with a fresh
 ray-cast of the tick's view (object SSIM, FLIP); fps counts ticks showing a frame not shown
-at the previous tick; bytes are wire bytes per score packet received during the trace.
+at the previous tick; bytes are wire bytes per score packet received during the trace;
+"view to frame" is the median time from setting a view to the first frame of it on show
+(the device's own or the host's).
 Modes (``--real-modes``): ``predict`` (``serve --scores predict`` to a device that
 predicts: the simulated ``pc``), ``render`` (the simulated ``project``) and ``interpolate``
-(``interp``) to a device that does not. The models get the standalone table first
-(``--predict-cache``: a copy of each cached model with `host.fit.model.add_standalone_table`
-attached, made once). The key part then also measures the *correction at rest*: the
-correction packet of a view (prediction + RD correction at the link step) against the
-smallest equal-SSIM WebP/AVIF.
+(``interp``) to a device that does not, and ``predict-blend`` (the simulated ``pc-blend``:
+``predict`` to a device whose depth warp is switched off, so its interim frame is the score
+blend). The models get the standalone table first (``--predict-cache``: a copy of each
+cached model with `host.fit.model.add_standalone_table` attached, made once; a model that
+has the table, e.g. one fitted with ``--standalone --depth``, is used as it is). The key
+part then also measures the *correction at rest*: the correction packet of a view
+(prediction + RD correction at the link step) against the smallest equal-SSIM WebP/AVIF.
 
 ``cells``: cell sizes (``--cells``) at 128 and 256: ``eigencast fit DB --cell C`` into
 ``--work``, then the ``key`` measurement of each (plus the interpolated frame's SSIM).
@@ -64,6 +74,13 @@ Usage::
         [--volumes tooth,vismale_head] [--parts key,link,cells] [--bauds 115200,921600]
         [--traces orbit,drag] [--seconds 4] [--fps 10] [--key-views 8] [--write BENCHMARKS.md]
         [--quick]
+
+The served warp (issue 15; docs/rate-distortion.md section 9.8): depth images (``fit
+--standalone --depth``) linked as ``DIR/{vol}-256.ecs``, predict with the warp against the
+score blend, real and simulated::
+
+    .venv/bin/python benchmarks/bench_link.py --cache DIR --predict-cache WORK --sizes 256 \
+        --parts real --real-modes predict,predict-blend
 
 Missing models in ``--cache`` (``VOLUME-SIZE.ecs``) are skipped with one line.
 """
@@ -104,6 +121,9 @@ FRAME_OVERHEAD = 27
 #: ``extrap``: the largest extrapolation factor (in multiples of the last two frames' gap).
 EXTRAP_MAX = 1.5
 CODECS = ("webp", "avif")
+#: Predict + correct, the interim frame the depth warp where the image has depth, or the
+#: score blend always.
+PC_MODES = ("pc", "pc-blend")
 
 
 def wire_bytes(payload: int) -> int:
@@ -163,6 +183,22 @@ class Case:
     model: HostModel
     renderer: Any
     _renders: dict = field(default_factory=dict)
+    _warp: Any = None
+
+    def interim(self, view: tuple[float, float], pred: np.ndarray, *, warp: bool
+                ) -> np.ndarray:
+        """What a predicting device shows of ``view`` before the host's correction: the
+        depth warp (``warp`` and an image with depth: `WarpFrames`, the device's own code)
+        or the score blend ``reconstruct(pred)``."""
+        if warp and self.model.image.synthesis is not None:
+            if self._warp is None:
+                from host.evaluate.warp import WarpFrames
+
+                self._warp = WarpFrames(self.model)
+            from device_runtime.orbit import canonical_view
+
+            return self._warp.frame(*canonical_view(*view))  # the device's view
+        return self.model.reconstruct(pred)
 
     def render(self, view: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
         """(rgb uint8, object mask) of a fresh ray-cast (cached)."""
@@ -328,7 +364,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
             elif mode in ("rd", "extrap"):
                 w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
                 y, s = rd_delta(m, p, base_y, step=s_rd, kappa=kappa, weights=w), s_rd
-            else:  # pc: a correction from the device's own prediction, coded alone
+            else:  # pc, pc-blend: a correction from the device's prediction, coded alone
                 w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
                 pred = m.quantized_scores(*view)
                 corr = rd_quantize(m, p - pred, step=s_rd, kappa=kappa, weights=w)
@@ -361,7 +397,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
     img0, _, extra0 = make(trace[0])
     if mode == "extrap":
         held = [Sent(trace[0], extra0, 0.0, 0)]
-    if mode == "pc":
+    if mode in PC_MODES:
         pc_views = {trace[0]: extra0}
         img0 = None
     shown = Sent(trace[0], img0, 0.0, 0)
@@ -378,7 +414,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
         # the host fills the line up to time t with frames of the latest view
         while line_free <= t:
             want = trace[min(n - 1, int(line_free / dt + 1e-9))]
-            if want == last_view and (mode != "pc" or want in pc_views):
+            if want == last_view and (mode not in PC_MODES or want in pc_views):
                 # nothing new to send: idle until the next tick with a new view
                 j = int(line_free / dt + 1e-9) + 1
                 while j < n and trace[j] == last_view:
@@ -395,7 +431,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
             n_sent += 1
             ident += 1
             last_view = want
-            if mode == "pc":
+            if mode in PC_MODES:
                 queue.append(Sent(want, None, line_free, ident))
                 pc_views.setdefault(want, None)
                 queue[-1].image = extra  # the correction
@@ -408,14 +444,14 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
             if mode == "extrap":
                 held = [*held, queue[0]][-2:]
             shown = queue.pop(0)
-            if mode == "pc":
+            if mode in PC_MODES:
                 pc_views[shown.view] = shown.image
         rgb, mask = case.render(view)
-        if mode == "pc":
+        if mode in PC_MODES:
             corr = pc_views.get(view)
             pred = m.quantized_scores(*view)
             if corr is None:
-                img, key = m.reconstruct(pred), ("pred", view)
+                img, key = case.interim(view, pred, warp=mode == "pc"), ("pred", view)
             else:
                 img, key = m.reconstruct(pred + corr), ("corr", view)
         elif mode == "extrap":
@@ -474,13 +510,18 @@ def link_table(title: str, res: dict[int, dict[str, dict]]) -> str:
 
 
 #: Simulated mode each real mode is checked against.
-REAL_MODES = {"predict": "pc", "render": "project", "interpolate": "interp"}
+REAL_MODES = {"predict": "pc", "predict-blend": "pc-blend", "render": "project",
+              "interpolate": "interp"}
 
 
 def standalone_copy(path: Path, folder: Path) -> Path:
-    """``path``'s model with the standalone table attached, in ``folder`` (made once)."""
+    """``path``'s model with the standalone table attached, in ``folder`` (made once);
+    ``path`` itself when it has the table."""
     from host.fit.model import add_standalone_table, save_model
+    from protocol.image import read_manifest
 
+    if "table_step" in (read_manifest(path).get("score_quantization") or {}):
+        return path
     out = folder / path.name
     if out.exists():
         return out
@@ -519,10 +560,11 @@ class _Presenter:
 
 class _DeviceThreads:
     """A keyless (``--insecure``) `RuntimeDevice` on ``url``: its link and its headless
-    display loop on threads; ``shown`` records (monotonic time, frame, info) per present."""
+    display loop on threads; ``shown`` records (monotonic time, frame, info) per present.
+    ``warp=False`` drops the depth warp of each model it loads (``predict-blend``)."""
 
     def __init__(self, flash: Path, url: str, baud: int, *, predict: bool,
-                 view: tuple[float, float], record: bool = True) -> None:
+                 view: tuple[float, float], record: bool = True, warp: bool = True) -> None:
         import threading
 
         from device_runtime.device import DeviceConfig
@@ -537,6 +579,16 @@ class _DeviceThreads:
         self.device = RuntimeDevice(config,
                                     predict=predict, view=view, on_frame=on_frame,
                                     presenter=_Presenter(), log=lambda line: None)
+        if not warp:
+            swap = self.device._swap_model
+
+            def blend_only(model: Any) -> None:
+                if model.synthesis is not None:
+                    model.synthesis.reconstructor.close()
+                    model.synthesis = None
+                swap(model)
+
+            self.device._swap_model = blend_only
         self.stop_event = threading.Event()
         ready = threading.Event()
         self.threads = [
@@ -587,8 +639,10 @@ def provisioned_flash(model_path: Path, work: Path) -> Path:
 
 
 def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[float, float]],
-                 fps: float, baud: int, mode: str, work: Path) -> dict[str, float]:
-    """One real serve session over a paced mem:// line, driven by ``trace``."""
+                 fps: float, baud: int, mode: str, work: Path,
+                 sample_delay_s: float = SAMPLE_DELAY_S) -> dict[str, float]:
+    """One real serve session over a paced mem:// line, driven by ``trace``; each tick's
+    frame is the one on show ``sample_delay_s`` after the tick's view was set."""
     import shutil
     import threading
     import uuid
@@ -600,8 +654,9 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
     flash = work / f"flash-run-{uuid.uuid4().hex[:8]}"
     shutil.copytree(flash0, flash)
     name = f"bench-real-{uuid.uuid4().hex[:8]}"
-    dev = _DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=mode == "predict",
-                         view=trace[0])
+    serve_mode = "predict" if mode == "predict-blend" else mode
+    dev = _DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=serve_mode == "predict",
+                         view=trace[0], warp=mode != "predict-blend")
     device = dev.device
     stop = threading.Event()
     out: dict[str, Any] = {}
@@ -609,7 +664,7 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
 
     def host() -> None:
         out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
-                             scores=mode, stop=stop, log=lambda line: None, model=case.model,
+                             scores=serve_mode, stop=stop, log=lambda line: None, model=case.model,
                              true_views=views, stats_every_s=0)
 
     thread = threading.Thread(target=host, daemon=True)
@@ -626,10 +681,12 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
         packets0 = device.runtime_stats.packets
         dt = 1.0 / fps
         t0 = time.monotonic()
+        moves: list[tuple[float, tuple[float, float]]] = []  # (when, canonical view) set
         for i, view in enumerate(trace):
             target = t0 + i * dt
             time.sleep(max(0.0, target - time.monotonic()))
             if canonical_view(*view) != device.view:  # a resting hand sends no event
+                moves.append((time.monotonic(), canonical_view(*view)))
                 device.set_view(*view)
         time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
         t_end = time.monotonic()
@@ -645,7 +702,7 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
     ssims, flips, new = [], [], 0
     prev = None
     for i, view in enumerate(trace):
-        t_tick = min(t0 + i * dt + SAMPLE_DELAY_S, t_end)
+        t_tick = min(t0 + i * dt + sample_delay_s, t_end)
         k = max((j for j, (t, _, _) in enumerate(shown) if t <= t_tick), default=None)
         if k is None:
             continue
@@ -658,12 +715,18 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
         flips.append(f_)
     seconds = len(trace) * dt
     rs = device.runtime_stats
-    return {"fps": new / seconds, "ssim_object": float(np.mean(ssims)),
+    # from each view change to the first frame of that view on show (own or host's)
+    waits = [next((t - when for t, _, i in shown if t >= when
+                   and (i.get("phi_deg"), i.get("theta_deg")) == v), math.inf)
+             for when, v in moves]
+    return {"fps": new / seconds,
+            "view_ms": 1e3 * float(np.median(waits)) if waits else float("nan"),
+            "ssim_object": float(np.mean(ssims)),
             "flip_object": float(np.mean(flips)),
             "bytes_per_frame": wire / packets if packets else float("nan"),
             "line_use": wire / (baud / 10.0) / seconds,
             "predicted": rs.predicted_frames, "corrected": rs.corrected_frames,
-            "stale": rs.stale_dropped,
+            "stale": rs.stale_dropped, "warped": rs.synthesized_frames,
             "corrections": stats.correction_frames if stats else 0,
             "host_frames": stats.frames if stats else 0,
             "render_s": (stats.render_seconds / max(1, stats.rendered_views)) if stats else 0}
@@ -672,15 +735,16 @@ def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[f
 def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
     lines = [f"**{title}**", "",
              "| baud | mode | fps shown | SSIM obj | FLIP obj | bytes/frame | line use | "
-             "predicted / corrected / stale |",
-             "|---|---|---|---|---|---|---|---|"]
+             "predicted / corrected / stale / warped | view to frame ms |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for baud, modes in res.items():
         for mode, r in modes.items():
-            extra = (f"{r['predicted']} / {r['corrected']} / {r['stale']}"
-                     if "predicted" in r else "")
+            extra = (f"{r['predicted']} / {r['corrected']} / {r['stale']} / "
+                     f"{r.get('warped', 0)}" if "predicted" in r else "")
+            wait = f"{r['view_ms']:.0f}" if "view_ms" in r else ""
             lines.append(f"| {baud} | {mode} | {r['fps']:.1f} | {r['ssim_object']:.4f} | "
                          f"{r['flip_object']:.4f} | {r['bytes_per_frame']:.0f} | "
-                         f"{100 * r['line_use']:.0f} % | {extra} |")
+                         f"{100 * r['line_use']:.0f} % | {extra} | {wait} |")
     return "\n".join(lines)
 
 
@@ -758,6 +822,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="link part: step factor:kappa of the rd and pc modes")
     ap.add_argument("--real-modes", default="predict,render,interpolate",
                     help="real part: serve modes (each beside its simulated mode)")
+    ap.add_argument("--sample-ticks", type=float, default=SAMPLE_DELAY_S * 60.0,
+                    help="real part: a tick's frame is the one on show this many 60 Hz "
+                    "display ticks after its view was set")
     ap.add_argument("--predict-cache", type=Path, default=Path("/work/cache/predict"),
                     help="real part: where the models with the standalone table go")
     ap.add_argument("--cells", default="8,12,16,24")
@@ -815,6 +882,8 @@ def main(argv: list[str] | None = None) -> int:
                     record[f"link/{vol}-{size}/{trace}"] = {str(k): v for k, v in res.items()}
             if "real" in parts:
                 flash0 = provisioned_flash(path, args.predict_cache / "work")
+                # warm the ray-caster once, so the first session does not pay for it alone
+                case.renderer.render(*TRACES[args.traces.split(",")[0]](1.0, 1.0)[0])
                 for trace_name in args.traces.split(","):
                     t0 = time.perf_counter()
                     trace = TRACES[trace_name](args.seconds, args.fps)
@@ -823,17 +892,20 @@ def main(argv: list[str] | None = None) -> int:
                         res[baud] = {}
                         for mode in args.real_modes.split(","):
                             r = real_session(case, path, flash0, trace, args.fps, baud, mode,
-                                             args.predict_cache / "work")
+                                             args.predict_cache / "work",
+                                             sample_delay_s=args.sample_ticks / 60.0)
                             res[baud][f"real {mode}"] = r
                             if "link" not in parts:  # the simulated twin, for the check
                                 sim = simulate(case, trace, args.fps, baud, REAL_MODES[mode],
                                                rd=link_rd)
                                 res[baud][f"sim {REAL_MODES[mode]}"] = sim
                             print(f"  {trace_name} {baud} {mode}: {r}", flush=True)
+                    sampled = ("" if args.sample_ticks == SAMPLE_DELAY_S * 60.0 else
+                               f", sampled {args.sample_ticks:g} display ticks after the view")
                     table = real_table(
                         f"real session: {desc}, {trace_name} {args.seconds:g} s at "
                         f"{args.fps:g} ticks/s (serve + RuntimeDevice over a paced mem:// line; "
-                        f"host ray-casts on this CPU)", res)
+                        f"host ray-casts on this CPU{sampled})", res)
                     print(table + f"\n({time.perf_counter() - t0:.0f} s)\n", flush=True)
                     tables.append(table)
                     record[f"real/{vol}-{size}/{trace_name}"] = {str(k): v for k, v in res.items()}

@@ -35,7 +35,11 @@ correction (a version-2 packet relative to the prediction) for the view on show 
 makes it ``prediction + correction``, and one for a view the user has already left is
 dropped as stale (counted) while the device keeps predicting. A full (key/delta) frame
 for a view no longer on show is dropped the same way (its delta base is still kept).
-HELLO_REPLY tells the host whether this device predicts (``predicts``).
+HELLO_REPLY tells the host whether this device predicts (``predicts``). With an image
+fitted with ``--depth`` the prediction on show is the depth warp of the neighbouring
+training views (:mod:`device_runtime.synthesis`, as a standalone device shows), not the
+score blend; the corrections still add to the score prediction, so what a host frame
+shows is unchanged. Only the device's own frames warp (``_present(..., warp=True)``).
 
 Standalone (``standalone=True``): the image carries a quantized table of the training
 views' scores and the runtime interpolates scores locally, needing no host:
@@ -223,7 +227,8 @@ class LoadedModel:
     standalone: StandaloneScores | None = None
     confirmed: bool = False
     predictor: Predictor | None = None
-    #: Depth-aware view synthesis (standalone, image fitted with ``--depth``).
+    #: Depth-aware view synthesis (image fitted with ``--depth``): every standalone frame,
+    #: and a predicting device's own frames while the host's are on their way.
     synthesis: ViewSynthesizer | None = None
 
     @classmethod
@@ -231,7 +236,8 @@ class LoadedModel:
               max_packet_bytes: int | None = None, want_standalone: bool = False,
               want_predictor: bool = False) -> LoadedModel:
         """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data
-        and (``want_predictor``, when the image has a table) the predictor.
+        and (``want_predictor``, when the image has a table) the predictor; with either and
+        an image with depth, the view synthesis (sharing the predictor's table).
 
         The reconstructor runs on two threads when the machine has two CPUs and the
         eigenspace is large (``threads="auto"``); its frames are the same bit for bit.
@@ -247,9 +253,11 @@ class LoadedModel:
         predictor = (Predictor(image) if want_predictor and not want_standalone
                      and can_predict(image) else None)
         synthesis = None
-        if standalone is not None and image.synthesis is not None:
+        table = standalone if standalone is not None else (
+            predictor.standalone if predictor is not None else None)
+        if table is not None and image.synthesis is not None:
             # its own reconstructor: the neighbours' colours must not touch the display's
-            synthesis = ViewSynthesizer(image, standalone,
+            synthesis = ViewSynthesizer(image, table,
                                         Reconstructor.from_image(image, threads="auto"))
         return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
                    generation, test, standalone, predictor=predictor, synthesis=synthesis)
@@ -335,6 +343,7 @@ class RuntimeStats:
     corrected_frames: int = 0
     stale_dropped: int = 0
     corrections_without_table: int = 0
+    synthesized_frames: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     reconstruct_s: _Ema = field(default_factory=_Ema)
     present_s: _Ema = field(default_factory=_Ema)
@@ -387,6 +396,7 @@ class RuntimeStats:
             "corrected_frames": self.corrected_frames,  # prediction + correction shown
             "stale_dropped": self.stale_dropped,  # packets for a view no longer on show
             "corrections_without_table": self.corrections_without_table,
+            "synthesized_frames": self.synthesized_frames,  # warped by depth (issue 15)
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
             "decode_ms": ms(self.decode_s),
@@ -475,6 +485,7 @@ class RuntimeDevice(Device):
         self._redraw = False
         self._overlay_s = 0.0
         self._last_y: np.ndarray | None = None
+        self._shown_frame: np.ndarray | None = None  # what the presenter shows (redraws)
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
         super().__init__(config, log=log)
@@ -727,19 +738,26 @@ class RuntimeDevice(Device):
         return [
             (f"{fps:5.1f} fps" if fps > 0 else " idle    ") + f"   frame {stats.frames_presented}",
             f"{stats.bytes_per_frame():6.0f} B/frame  key {stats.key_frames} "
-            f"delta {stats.delta_frames}",
+            f"delta {stats.delta_frames}"
+            + (f"  warp {stats.synthesized_frames}" if stats.synthesized_frames else ""),
             f"link {rate / 1024:6.1f} KiB/s  ({mode})",
             f"view phi {phi:6.1f}  theta {theta:5.1f}",
         ]
 
-    def _present(self, model: LoadedModel, y: np.ndarray, info: dict) -> None:
+    def _present(self, model: LoadedModel, y: np.ndarray, info: dict, *,
+                 warp: bool = False) -> None:
+        """Show a frame: ``y`` reconstructed, or with ``warp`` (the device's own frame of
+        the view ``info`` names: standalone, or a prediction) and an image with depth, the
+        neighbours warped into the view (`ViewSynthesizer`). A host's frame never warps."""
         stats = self.runtime_stats
         t0 = time.perf_counter()
-        if model.synthesis is not None and "phi_deg" in info:
-            # standalone with depth: the neighbours warped into the view, shown from the
-            # reconstructor's frame buffer (which redraws present)
-            frame = model.reconstructor.frame
-            frame[...] = model.synthesis.frame(info["phi_deg"], info["theta_deg"])
+        if warp and model.synthesis is not None:
+            # a frame of its own, not the reconstructor's buffer: the reconstructor only
+            # recomputes the cells whose scores changed, so the next host frame needs its
+            # buffer to still hold the last reconstruction
+            frame = model.synthesis.frame(info["phi_deg"], info["theta_deg"])
+            info = {**info, "synthesized": True}
+            stats.synthesized_frames += 1
         else:
             frame = model.reconstructor.update(y)
         t1 = time.perf_counter()
@@ -758,6 +776,7 @@ class RuntimeDevice(Device):
             while self._request_times and next(iter(self._request_times)) <= seq:
                 self._request_times.popitem(last=False)
         self._shown_view = (info.get("phi_deg"), info.get("theta_deg"))
+        self._shown_frame = frame
         self._last_y = y
         self._confirm(model)
         if self.on_frame is not None:
@@ -777,7 +796,7 @@ class RuntimeDevice(Device):
         if model.standalone is not None:
             y = model.standalone.scores(*self.view)
             self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
-                                     "key": True, "frame": 0})
+                                     "key": True, "frame": 0}, warp=True)
         elif model.predictor is not None:  # its own prediction, while the host is asked
             self._present_prediction(model)
             self.limiter.offer(self.view)
@@ -828,7 +847,8 @@ class RuntimeDevice(Device):
                     if model.standalone is not None:
                         y = model.standalone.scores(*self.view)
                         self._present(model, y, {"phi_deg": self.view[0],
-                                                 "theta_deg": self.view[1], "key": True})
+                                                 "theta_deg": self.view[1], "key": True},
+                                      warp=True)
                     else:
                         if model.predictor is not None:
                             self._present_prediction(model)
@@ -859,24 +879,28 @@ class RuntimeDevice(Device):
                 elif self._redraw and self._model is not None and self._last_y is not None:
                     self._redraw = False
                     overlay = self.overlay_lines() if self.presenter.overlay else None
-                    self.presenter.present(self._model.reconstructor.frame, None,
-                                           overlay_lines=overlay)
+                    self.presenter.present(self._shown_frame, None, overlay_lines=overlay)
                 elif (not headless and self.presenter.overlay and self._model is not None
                       and now - self._overlay_s > 0.25):
                     # keep the overlay's numbers fresh a few times a second
                     self._overlay_s = now
-                    self.presenter.present(self._model.reconstructor.frame, None,
+                    self.presenter.present(self._shown_frame if self._last_y is not None
+                                           else self._model.reconstructor.frame, None,
                                            overlay_lines=self.overlay_lines())
         finally:
             self.stop_event.set()
 
     def _present_prediction(self, model: LoadedModel) -> None:
-        """Show the device's own prediction of the current view (no bytes, no latency)."""
+        """Show the device's own prediction of the current view (no bytes, no latency).
+
+        With depth (``fit --depth``) the picture is the warp of the neighbours, as a
+        standalone device shows; the scores kept (a correction adds to them) are still the
+        score prediction, the same on both sides (`device_runtime.prediction`)."""
         assert model.predictor is not None
         y = model.predictor(*self.view)
         self.runtime_stats.predicted_frames += 1
         self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
-                                 "key": False, "predicted": True})
+                                 "key": False, "predicted": True}, warp=True)
 
     def _shown_scores(self, item: ScoreItem) -> np.ndarray | None:
         """The scores to show for a decoded packet, or None when it is stale.

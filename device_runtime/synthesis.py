@@ -143,11 +143,14 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
 def synthesis_memory_bytes(manifest: dict) -> int:
     """RAM the synthesis needs beyond the sections: the view cache and the warp's scratch.
 
-    Per cached view: the object pixels' points and uint8 colours (15 bytes per pixel at
-    most);
-    the depth eigenspace's float32 components (4 bytes per int8 entry); per frame, the
-    splats of 4 views (one per object pixel, 36 bytes each, all pixels at most: the reused
-    `Warper.scratch`), a view's reconstruction and its indices, and the padded accumulators.
+    Counted whatever the device's mode: a standalone device warps every frame, a served
+    device that predicts warps its own frames while the host's are on their way (both
+    share the image's one standalone table, a section). Per cached view: the object
+    pixels' points and uint8 colours (15 bytes per pixel at most); the depth eigenspace's
+    float32 components (4 bytes per int8 entry); per frame, the splats of 4 views (one per
+    object pixel, 28 bytes each, all pixels at most: the reused `Warper.scratch`), a view's
+    reconstruction and its indices, the padded accumulators, and the warped frame on show
+    (its own array: the display's reconstructor keeps its buffer for the host's frames).
     """
     record = manifest.get("synthesis")
     if record is None:
@@ -160,7 +163,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
         if isinstance(sec, dict) and sec.get("name") == "depth_components":
             raw = sec.get("raw_size")
             depth += 4 * raw if isinstance(raw, int) and raw > 0 else 0
-    warp = 4 * n * 36 + (h + 2) * (w + 2) * (4 + 8 + 8 + 4 + 12 + 4 + 1)
+    warp = 4 * n * 28 + (h + 2) * (w + 2) * (4 + 8 + 8 + 4 + 12 + 4 + 1) + n * 3
     # the neighbours' own reconstructor: frame buffers and its scratch
     colour = 2 * n * 3 + DEFAULT_SCRATCH_BYTES
     return int(cache + depth + warp + colour)

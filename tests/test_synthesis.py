@@ -213,3 +213,155 @@ def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
         np.testing.assert_array_equal(got, warp.frame(phi, theta))
         differs += int(np.abs(got.astype(int) - model.view(phi, theta)).max() > 8)
     assert differs >= 3
+
+
+# --------------------------------------------------------------------------- served devices
+
+
+def _recorder():
+    shown: list = []
+    return shown, (lambda frame, info: shown.append((frame.copy(), dict(info or {}))))
+
+
+def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
+        depth_model, model_path, tmp_path):
+    """Served, predicting, an image with depth: the device's own frame of a new view is the
+    warp (evaluate's pca_warp, bit for bit); a host frame after it is exactly the host's
+    reconstruction (the warp must not leave pixels in the reconstructor's buffer, which
+    recomputes only the cells whose scores changed). Without depth, or with --no-predict,
+    nothing warps."""
+    from device_runtime.device import DeviceConfig
+    from device_runtime.prediction import corrected
+    from device_runtime.runtime import RuntimeDevice
+    from host.evaluate.warp import WarpFrames
+
+    image = read_image(depth_model, key=KEY)
+    warp = WarpFrames(HostModel.load(depth_model))
+    shown, on_frame = _recorder()
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY), predict=True,
+                           view=(37.0, 11.0), on_frame=on_frame, log=lambda _: None)
+    loaded = LoadedModel.build(image, slot="A", generation=1, test=False, want_predictor=True)
+    try:
+        assert loaded.synthesis is not None
+        assert loaded.synthesis.standalone is loaded.predictor.standalone  # one table
+        device._swap_model(loaded)  # the image's first frame: its own prediction
+        np.testing.assert_array_equal(shown[-1][0], warp.frame(37.0, 11.0))
+        assert shown[-1][1].get("predicted") and shown[-1][1].get("synthesized")
+        # a host frame for that view (a correction): the host's reconstruction, not warped
+        y = corrected(loaded.predictor(37.0, 11.0),
+                      np.linspace(-1, 1, image.n_coefficients).astype(np.float32))
+        want = Reconstructor.from_image(image).update(y).copy()
+        device._present(loaded, y, {"phi_deg": 37.0, "theta_deg": 11.0, "corrected": True})
+        np.testing.assert_array_equal(shown[-1][0], want)
+        assert not shown[-1][1].get("synthesized")
+        device.set_view(161.0, -23.0)  # the user moves: the warp of the new view at once
+        device._present_prediction(loaded)
+        np.testing.assert_array_equal(shown[-1][0], warp.frame(161.0, -23.0))
+        np.testing.assert_array_equal(device._shown_frame, shown[-1][0])  # what redraws show
+        assert np.abs(shown[-1][0].astype(int) - want).max() > 8
+        # the same host scores again (an orbit packet, sequence 0): the host's frame exactly
+        device._present(loaded, y, {"phi_deg": 37.0, "theta_deg": 11.0, "sequence": 0})
+        np.testing.assert_array_equal(shown[-1][0], want)
+        stats = device.runtime_stats.as_dict()
+        assert stats["synthesized_frames"] == 2 and stats["predicted_frames"] == 2
+        assert "warp 2" in device.overlay_lines()[1]
+    finally:
+        device.close()
+        loaded.close()
+    # --no-predict with depth, and a predicting device without depth: no synthesis
+    plain = LoadedModel.build(image, slot="A", generation=1, test=False)
+    no_depth = LoadedModel.build(read_image(model_path, key=KEY), slot="A", generation=1,
+                                 test=False, want_predictor=True)
+    try:
+        assert plain.synthesis is None and plain.predictor is None
+        assert no_depth.synthesis is None and no_depth.predictor is not None
+        shown, on_frame = _recorder()
+        device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash2", key=KEY),
+                               predict=True, view=(37.0, 11.0), on_frame=on_frame,
+                               log=lambda _: None)
+        try:
+            device._swap_model(no_depth)
+            want = Reconstructor.from_image(no_depth.image).update(
+                no_depth.predictor(37.0, 11.0))
+            np.testing.assert_array_equal(shown[-1][0], want)  # the score blend, as before
+            assert device.runtime_stats.synthesized_frames == 0
+        finally:
+            device.close()
+    finally:
+        plain.close()
+        no_depth.close()
+
+
+def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, tmp_path):
+    """A real ``serve --scores predict`` session over a paced 115200-baud mem:// line with
+    an image fitted with --depth: a new view shows the warp (pca_warp) before any packet for
+    it has arrived; the correction then shows prediction + correction of the score
+    prediction, exactly the host's frame."""
+    import threading
+
+    from provision_helpers import mem_name
+    from runtime_helpers import RuntimeThread, wait_until
+
+    from device_runtime.prediction import corrected
+    from host.evaluate.warp import WarpFrames
+    from host.link.correction import model_predictor
+    from host.link.serving import serve
+    from protocol.scores import ScoreDecoder, decode_header
+
+    name = mem_name("warpserve")
+    shown, on_frame = _recorder()
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=on_frame)
+    model = HostModel.load(depth_model)
+    packets: list[tuple[tuple[float, float], int]] = []  # (view, frames shown) on arrival
+    sent: list = []
+    stop = threading.Event()
+    result: dict = {}
+    target = (47.0, 23.0)
+    with device:
+        provision(depth_model, f"mem://{name}?end=a", key=KEY, show_progress=False,
+                  log=lambda _: None)
+        original = device.device.on_scores
+
+        def on_scores(msg):
+            header = decode_header(msg.packet)
+            packets.append(((header.phi_deg, header.theta_deg), len(shown)))
+            original(msg)
+
+        device.device.on_scores = on_scores
+
+        def host():
+            result["stats"] = serve(depth_model, f"mem://{name}?end=a", key=KEY,
+                                    scores="predict", stop=stop, log=lambda _: None,
+                                    on_frame=lambda enc, view: sent.append((enc, view)))
+
+        thread = threading.Thread(target=host, daemon=True)
+        thread.start()
+        try:
+            wait_until(lambda: device.device.runtime_stats.corrected_frames >= 1, 60,
+                       "the first correction")
+            device.device.set_view(*target)
+            wait_until(lambda: any(i.get("corrected") and (i["phi_deg"], i["theta_deg"])
+                                   == target for _, i in shown), 60, "the corrected target")
+        finally:
+            stop.set()
+            thread.join(20)
+    assert result["stats"].correction_frames >= 2
+    at = [k for k, (_, i) in enumerate(shown) if (i.get("phi_deg"), i.get("theta_deg"))
+          == target]
+    first = shown[at[0]]
+    assert first[1].get("predicted") and first[1].get("synthesized")
+    arrived = [n for v, n in packets if v == target]
+    assert arrived and at[0] < arrived[0]  # shown before the first packet for it arrived
+    np.testing.assert_array_equal(first[0], WarpFrames(model).frame(*target))
+    decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
+                           n_components=model.image.n_components)
+    decoded = [decoder.decode(e.packet) for e, v in sent if v == target]
+    hosts = [model.reconstruct(corrected(model_predictor(model)(*target), d.y))
+             for d in decoded if d.predicted]
+    fixed = [f for f, i in shown if i.get("corrected") and (i["phi_deg"], i["theta_deg"])
+             == target]
+    assert fixed and all(not i.get("synthesized") for _, i in shown if i.get("corrected"))
+    for frame in fixed:  # each corrected frame is exactly one of the host's frames
+        assert any(np.array_equal(frame, h) for h in hosts)
+    assert device.device.runtime_stats.synthesized_frames >= 2  # the first view's, target's
