@@ -36,10 +36,14 @@ makes it ``prediction + correction``, and one for a view the user has already le
 dropped as stale (counted) while the device keeps predicting. A full (key/delta) frame
 for a view no longer on show is dropped the same way (its delta base is still kept).
 HELLO_REPLY tells the host whether this device predicts (``predicts``). With an image
-fitted with ``--depth`` the prediction on show is the depth warp of the neighbouring
-training views (:mod:`device_runtime.synthesis`, as a standalone device shows), not the
-score blend; the corrections still add to the score prediction, so what a host frame
-shows is unchanged. Only the device's own frames warp (``_present(..., warp=True)``).
+fitted with ``--depth`` the prediction is shown in two steps: the score blend at once
+(a reconstruction: no added latency), the view request, and then, when no newer input
+and no host frame for the view came in the meantime, the depth warp of the neighbouring
+training views (:mod:`device_runtime.synthesis`, as a standalone device shows). The warp
+costs several blends (all 4 neighbours are new at every step of a fast drag), so showing
+it first made every frame of a drag late (docs/rate-distortion.md, 9.8). The corrections
+still add to the score prediction, so what a host frame shows is unchanged. Only the
+device's own frames warp (``_present(..., warp=True)``).
 
 Standalone (``standalone=True``): the image carries a quantized table of the training
 views' scores and the runtime interpolates scores locally, needing no host:
@@ -486,6 +490,7 @@ class RuntimeDevice(Device):
         self._overlay_s = 0.0
         self._last_y: np.ndarray | None = None
         self._shown_frame: np.ndarray | None = None  # what the presenter shows (redraws)
+        self._warp_due: tuple[float, float] | None = None  # served: the blend shown, warp next
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
         super().__init__(config, log=log)
@@ -800,6 +805,7 @@ class RuntimeDevice(Device):
         elif model.predictor is not None:  # its own prediction, while the host is asked
             self._present_prediction(model)
             self.limiter.offer(self.view)
+            self._warp_due = self.view if model.synthesis is not None else None
         else:  # the image's own first frame (the mean), while the host is asked for the view
             y = np.zeros(model.image.n_coefficients, dtype=np.float32)
             self._present(model, y, {"frame": 0})
@@ -853,6 +859,8 @@ class RuntimeDevice(Device):
                         if model.predictor is not None:
                             self._present_prediction(model)
                         self.limiter.offer(self.view)
+                        self._warp_due = (self.view if model.predictor is not None
+                                          and model.synthesis is not None else None)
                 if not self.standalone:
                     view = self.limiter.due(now)
                     if view is not None:
@@ -861,6 +869,8 @@ class RuntimeDevice(Device):
                         self._request_keyframe()
                 wait = tick if not self.limiter.pending else min(tick,
                                                                  self.limiter.min_interval_s)
+                if self._warp_due is not None:  # only a host frame already here comes first
+                    wait = 0.0
                 item = self._scores.take(wait if model is not None else tick)
                 if item is not None and item.model is self._model:
                     d = item.scores
@@ -873,9 +883,13 @@ class RuntimeDevice(Device):
                                 "packet_bytes": d.packet_bytes, "sequence": item.sequence,
                                 "decode_s": 0.0, "corrected": d.predicted,
                             })
+                            if (d.phi_deg, d.theta_deg) == self.view:
+                                self._warp_due = None  # the host's frame is the newer one
                     except Exception as exc:
                         # A frame that cannot be shown must not stop the device: skip it.
                         self._frame_failed(d.frame, exc)
+                elif self._warp_due is not None:
+                    self._show_due_warp(model)
                 elif self._redraw and self._model is not None and self._last_y is not None:
                     self._redraw = False
                     overlay = self.overlay_lines() if self.presenter.overlay else None
@@ -890,17 +904,26 @@ class RuntimeDevice(Device):
         finally:
             self.stop_event.set()
 
-    def _present_prediction(self, model: LoadedModel) -> None:
+    def _show_due_warp(self, model: LoadedModel | None) -> None:
+        """Replace the blend on show by the warp of its view, unless the view moved on (or
+        a host frame for it came) since the blend was shown."""
+        due, self._warp_due = self._warp_due, None
+        if due is not None and due == self.view and not self._view_dirty and model is not None:
+            self._present_prediction(model, warp=True)
+
+    def _present_prediction(self, model: LoadedModel, *, warp: bool = False) -> None:
         """Show the device's own prediction of the current view (no bytes, no latency).
 
-        With depth (``fit --depth``) the picture is the warp of the neighbours, as a
-        standalone device shows; the scores kept (a correction adds to them) are still the
-        score prediction, the same on both sides (`device_runtime.prediction`)."""
+        ``warp`` (an image with depth, once the blend is on show): the picture is the warp
+        of the neighbours, as a standalone device shows; the scores kept (a correction adds
+        to them) are still the score prediction, the same on both sides
+        (`device_runtime.prediction`)."""
         assert model.predictor is not None
         y = model.predictor(*self.view)
-        self.runtime_stats.predicted_frames += 1
+        if not warp:
+            self.runtime_stats.predicted_frames += 1
         self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
-                                 "key": False, "predicted": True}, warp=True)
+                                 "key": False, "predicted": True}, warp=warp)
 
     def _shown_scores(self, item: ScoreItem) -> np.ndarray | None:
         """The scores to show for a decoded packet, or None when it is stale.

@@ -226,7 +226,8 @@ def _recorder():
 def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
         depth_model, model_path, tmp_path):
     """Served, predicting, an image with depth: the device's own frame of a new view is the
-    warp (evaluate's pca_warp, bit for bit); a host frame after it is exactly the host's
+    score blend at once, then (no newer input, no host frame) the warp (evaluate's pca_warp,
+    bit for bit); a host frame after it is exactly the host's
     reconstruction (the warp must not leave pixels in the reconstructor's buffer, which
     recomputes only the cells whose scores changed). Without depth, or with --no-predict,
     nothing warps."""
@@ -244,9 +245,16 @@ def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
     try:
         assert loaded.synthesis is not None
         assert loaded.synthesis.standalone is loaded.predictor.standalone  # one table
-        device._swap_model(loaded)  # the image's first frame: its own prediction
+        blend = Reconstructor.from_image(image)
+        device._swap_model(loaded)  # the image's first frame: its own prediction, the blend
+        np.testing.assert_array_equal(shown[-1][0],
+                                      blend.update(loaded.predictor(37.0, 11.0)))
+        assert shown[-1][1].get("predicted") and not shown[-1][1].get("synthesized")
+        device._show_due_warp(loaded)  # the display loop's next turn: then the warp
         np.testing.assert_array_equal(shown[-1][0], warp.frame(37.0, 11.0))
         assert shown[-1][1].get("predicted") and shown[-1][1].get("synthesized")
+        device._show_due_warp(loaded)  # once only
+        assert len(shown) == 2
         # a host frame for that view (a correction): the host's reconstruction, not warped
         y = corrected(loaded.predictor(37.0, 11.0),
                       np.linspace(-1, 1, image.n_coefficients).astype(np.float32))
@@ -254,8 +262,13 @@ def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
         device._present(loaded, y, {"phi_deg": 37.0, "theta_deg": 11.0, "corrected": True})
         np.testing.assert_array_equal(shown[-1][0], want)
         assert not shown[-1][1].get("synthesized")
-        device.set_view(161.0, -23.0)  # the user moves: the warp of the new view at once
+        device.set_view(161.0, -23.0)  # the user moves: the blend, then the warp
+        device._view_dirty = False  # (what the display loop does before it predicts)
         device._present_prediction(loaded)
+        device._warp_due = device.view
+        np.testing.assert_array_equal(shown[-1][0],
+                                      blend.update(loaded.predictor(161.0, -23.0)))
+        device._show_due_warp(loaded)
         np.testing.assert_array_equal(shown[-1][0], warp.frame(161.0, -23.0))
         np.testing.assert_array_equal(device._shown_frame, shown[-1][0])  # what redraws show
         assert np.abs(shown[-1][0].astype(int) - want).max() > 8
@@ -264,6 +277,13 @@ def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
         np.testing.assert_array_equal(shown[-1][0], want)
         stats = device.runtime_stats.as_dict()
         assert stats["synthesized_frames"] == 2 and stats["predicted_frames"] == 2
+        # a warp whose view the user has left since its blend is not shown
+        device._present_prediction(loaded)
+        device._warp_due = device.view
+        device.set_view(200.0, 5.0)
+        before = len(shown)
+        device._show_due_warp(loaded)
+        assert len(shown) == before and device._warp_due is None
         assert "warp 2" in device.overlay_lines()[1]
     finally:
         device.close()
@@ -294,9 +314,9 @@ def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
 
 def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, tmp_path):
     """A real ``serve --scores predict`` session over a paced 115200-baud mem:// line with
-    an image fitted with --depth: a new view shows the warp (pca_warp) before any packet for
-    it has arrived; the correction then shows prediction + correction of the score
-    prediction, exactly the host's frame."""
+    an image fitted with --depth: a new view shows the score blend, then the warp
+    (pca_warp), before any packet for it has arrived; the correction then shows
+    prediction + correction of the score prediction, exactly the host's frame."""
     import threading
 
     from provision_helpers import mem_name
@@ -349,11 +369,16 @@ def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, t
     assert result["stats"].correction_frames >= 2
     at = [k for k, (_, i) in enumerate(shown) if (i.get("phi_deg"), i.get("theta_deg"))
           == target]
-    first = shown[at[0]]
-    assert first[1].get("predicted") and first[1].get("synthesized")
+    # the blend at once, then the warp: both before the first packet for the view arrived
+    # (the warp follows the view request in the same turn of the display loop, so no
+    # answer can be there yet)
+    (blend, blend_info), (warped, warped_info) = shown[at[0]], shown[at[1]]
+    assert blend_info.get("predicted") and not blend_info.get("synthesized")
+    np.testing.assert_array_equal(blend, model.reconstruct(model_predictor(model)(*target)))
+    assert warped_info.get("predicted") and warped_info.get("synthesized")
     arrived = [n for v, n in packets if v == target]
-    assert arrived and at[0] < arrived[0]  # shown before the first packet for it arrived
-    np.testing.assert_array_equal(first[0], WarpFrames(model).frame(*target))
+    assert arrived and at[1] < arrived[0]
+    np.testing.assert_array_equal(warped, WarpFrames(model).frame(*target))
     decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
                            n_components=model.image.n_components)
     decoded = [decoder.decode(e.packet) for e, v in sent if v == target]
