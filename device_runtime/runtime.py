@@ -37,11 +37,12 @@ dropped as stale (counted) while the device keeps predicting. A full (key/delta)
 for a view no longer on show is dropped the same way (its delta base is still kept).
 HELLO_REPLY tells the host whether this device predicts (``predicts``). With an image
 fitted with ``--depth`` the prediction is shown in two steps: the score blend at once
-(a reconstruction: no added latency), the view request, and then, when no newer input
-and no host frame for the view came in the meantime, the depth warp of the neighbouring
-training views (:mod:`device_runtime.synthesis`, as a standalone device shows). The warp
-costs several blends (all 4 neighbours are new at every step of a fast drag), so showing
-it first made every frame of a drag late (docs/rate-distortion.md, 9.8). The corrections
+(a reconstruction: no added latency), the view request, and then the depth warp of the
+neighbouring training views (:mod:`device_runtime.synthesis`, as a standalone device
+shows), made on a thread of its own (`WarpWorker`) and shown when it is ready, if the view
+is still the one on show and no host frame for it came first. The warp costs several
+blends (all 4 neighbours are new at every step of a fast drag): made on the display
+thread it made every frame of a drag late (docs/rate-distortion.md, 9.8). The corrections
 still add to the score prediction, so what a host frame shows is unchanged. Only the
 device's own frames warp (``_present(..., warp=True)``).
 
@@ -87,7 +88,7 @@ from device_runtime.standalone import (
     standalone_order,
     standalone_table,
 )
-from device_runtime.synthesis import ViewSynthesizer
+from device_runtime.synthesis import ViewSynthesizer, WarpWorker
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
@@ -128,6 +129,8 @@ KEYFRAME_RETRY_S = 0.1
 """Shortest time between two KEYFRAME_REQUESTs while a delta base is missing, seconds."""
 _TICK_S = 1.0 / 60.0
 _HEADLESS_TICK_S = 0.05
+_WARP_POLL_S = 0.004
+"""How often the display loop looks for a finished warp while one is due, seconds."""
 _LATENCY_SAMPLES = 512
 _RATE_WINDOW_S = 1.0
 
@@ -234,6 +237,8 @@ class LoadedModel:
     #: Depth-aware view synthesis (image fitted with ``--depth``): every standalone frame,
     #: and a predicting device's own frames while the host's are on their way.
     synthesis: ViewSynthesizer | None = None
+    #: A predicting device's warps, made off the display thread (`WarpWorker`).
+    warp_worker: WarpWorker | None = None
 
     @classmethod
     def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
@@ -263,10 +268,14 @@ class LoadedModel:
             # its own reconstructor: the neighbours' colours must not touch the display's
             synthesis = ViewSynthesizer(image, table,
                                         Reconstructor.from_image(image, threads="auto"))
+        worker = WarpWorker(synthesis) if synthesis is not None and standalone is None else None
         return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
-                   generation, test, standalone, predictor=predictor, synthesis=synthesis)
+                   generation, test, standalone, predictor=predictor, synthesis=synthesis,
+                   warp_worker=worker)
 
     def close(self) -> None:
+        if self.warp_worker is not None:  # before the reconstructor its warps use
+            self.warp_worker.close()
         self.reconstructor.close()
         if self.synthesis is not None:  # it has its own reconstructor (and its threads)
             self.synthesis.reconstructor.close()
@@ -750,17 +759,18 @@ class RuntimeDevice(Device):
         ]
 
     def _present(self, model: LoadedModel, y: np.ndarray, info: dict, *,
-                 warp: bool = False) -> None:
+                 warp: bool = False, warped: np.ndarray | None = None) -> None:
         """Show a frame: ``y`` reconstructed, or with ``warp`` (the device's own frame of
         the view ``info`` names: standalone, or a prediction) and an image with depth, the
         neighbours warped into the view (`ViewSynthesizer`). A host's frame never warps."""
         stats = self.runtime_stats
         t0 = time.perf_counter()
-        if warp and model.synthesis is not None:
+        if warped is not None or (warp and model.synthesis is not None):
             # a frame of its own, not the reconstructor's buffer: the reconstructor only
             # recomputes the cells whose scores changed, so the next host frame needs its
             # buffer to still hold the last reconstruction
-            frame = model.synthesis.frame(info["phi_deg"], info["theta_deg"])
+            frame = warped if warped is not None else model.synthesis.frame(
+                info["phi_deg"], info["theta_deg"])
             info = {**info, "synthesized": True}
             stats.synthesized_frames += 1
         else:
@@ -803,9 +813,7 @@ class RuntimeDevice(Device):
             self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
                                      "key": True, "frame": 0}, warp=True)
         elif model.predictor is not None:  # its own prediction, while the host is asked
-            self._present_prediction(model)
-            self.limiter.offer(self.view)
-            self._warp_due = self.view if model.synthesis is not None else None
+            self._predict_view(model)
         else:  # the image's own first frame (the mean), while the host is asked for the view
             y = np.zeros(model.image.n_coefficients, dtype=np.float32)
             self._present(model, y, {"frame": 0})
@@ -855,12 +863,10 @@ class RuntimeDevice(Device):
                         self._present(model, y, {"phi_deg": self.view[0],
                                                  "theta_deg": self.view[1], "key": True},
                                       warp=True)
+                    elif model.predictor is not None:
+                        self._predict_view(model)
                     else:
-                        if model.predictor is not None:
-                            self._present_prediction(model)
                         self.limiter.offer(self.view)
-                        self._warp_due = (self.view if model.predictor is not None
-                                          and model.synthesis is not None else None)
                 if not self.standalone:
                     view = self.limiter.due(now)
                     if view is not None:
@@ -869,8 +875,8 @@ class RuntimeDevice(Device):
                         self._request_keyframe()
                 wait = tick if not self.limiter.pending else min(tick,
                                                                  self.limiter.min_interval_s)
-                if self._warp_due is not None:  # only a host frame already here comes first
-                    wait = 0.0
+                if self._warp_due is not None:  # look for the warp often, input comes first
+                    wait = min(wait, _WARP_POLL_S)
                 item = self._scores.take(wait if model is not None else tick)
                 if item is not None and item.model is self._model:
                     d = item.scores
@@ -904,26 +910,46 @@ class RuntimeDevice(Device):
         finally:
             self.stop_event.set()
 
-    def _show_due_warp(self, model: LoadedModel | None) -> None:
-        """Replace the blend on show by the warp of its view, unless the view moved on (or
-        a host frame for it came) since the blend was shown."""
-        due, self._warp_due = self._warp_due, None
-        if due is not None and due == self.view and not self._view_dirty and model is not None:
-            self._present_prediction(model, warp=True)
+    def _predict_view(self, model: LoadedModel) -> None:
+        """A predicting device's new view: its score blend at once, the view request, and
+        (an image with depth) the warp asked of the worker, shown by `_show_due_warp`."""
+        self._present_prediction(model)
+        self.limiter.offer(self.view)
+        self._warp_due = None
+        if model.warp_worker is not None:
+            model.warp_worker.request(self.view)
+            self._warp_due = self.view
 
-    def _present_prediction(self, model: LoadedModel, *, warp: bool = False) -> None:
+    def _show_due_warp(self, model: LoadedModel | None, timeout_s: float = 0.0) -> None:
+        """Replace the blend on show by the warp of its view once the worker has made it,
+        unless the view moved on (or a host frame for it came) since the blend was shown."""
+        due = self._warp_due
+        if due is None or model is None or model.warp_worker is None:
+            self._warp_due = None
+            return
+        if due != self.view or self._view_dirty:
+            self._warp_due = None  # the user has moved on: a newer blend comes first
+            return
+        frame = model.warp_worker.take(due, timeout_s)
+        if frame is None:
+            return  # not made yet: look again on the next turn
+        self._warp_due = None
+        self._present_prediction(model, warped=frame)
+
+    def _present_prediction(self, model: LoadedModel, *,
+                            warped: np.ndarray | None = None) -> None:
         """Show the device's own prediction of the current view (no bytes, no latency).
 
-        ``warp`` (an image with depth, once the blend is on show): the picture is the warp
-        of the neighbours, as a standalone device shows; the scores kept (a correction adds
-        to them) are still the score prediction, the same on both sides
+        ``warped`` (an image with depth, once the blend is on show): the picture is this
+        warp of the neighbours (`WarpWorker`), as a standalone device shows; the scores kept
+        (a correction adds to them) are still the score prediction, the same on both sides
         (`device_runtime.prediction`)."""
         assert model.predictor is not None
         y = model.predictor(*self.view)
-        if not warp:
+        if warped is None:
             self.runtime_stats.predicted_frames += 1
         self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
-                                 "key": False, "predicted": True}, warp=warp)
+                                 "key": False, "predicted": True}, warped=warped)
 
     def _shown_scores(self, item: ScoreItem) -> np.ndarray | None:
         """The scores to show for a decoded packet, or None when it is stale.

@@ -31,6 +31,7 @@ Perspective databases only (``fit --depth`` refuses the others).
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from typing import Any
 
@@ -46,6 +47,7 @@ __all__ = [
     "SYNTHESIS_METHOD",
     "DepthEigenspace",
     "ViewSynthesizer",
+    "WarpWorker",
     "Warper",
     "check_synthesis",
     "fill_holes",
@@ -695,3 +697,83 @@ class ViewSynthesizer:
         sources = [self.warper.pose(float(self.phi[i]), float(self.theta[i])) for i in idx]
         return forward_warp(self.warper, clouds, sources, wts,
                             self.warper.pose(phi_deg, theta_deg))
+
+
+class WarpWorker:
+    """The warp of the latest requested view, made on a thread of its own.
+
+    A served device that predicts shows the score blend of a new view at once (a
+    reconstruction) and asks for the view's warp here; its display thread keeps taking input
+    and host frames while the warp is made (numpy releases the GIL in its array work, and a
+    warp costs several blends), and shows the warp only if its view is still the one on show
+    and no host frame for it came first. A request replaces one not started yet; a result
+    whose view was requested again meanwhile is dropped, so at most one warp is in flight.
+
+    Parameters
+    ----------
+    synthesis : ViewSynthesizer
+        Used by this worker's thread only (it has its own reconstructor and cache).
+
+    Attributes
+    ----------
+    made, dropped, errors : int
+        Warps made; made but superseded by a newer request before anyone took them;
+        failed (counted, never raised: the blend stays on show).
+    """
+
+    def __init__(self, synthesis: ViewSynthesizer) -> None:
+        self.synthesis = synthesis
+        self._cond = threading.Condition()
+        self._pending: tuple[float, float] | None = None
+        self._result: tuple[tuple[float, float], np.ndarray] | None = None
+        self._closed = False
+        self.made = self.dropped = self.errors = 0
+        self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
+        self._thread.start()
+
+    def request(self, view: tuple[float, float]) -> None:
+        """Warp ``view`` next (any thread); an older result not taken is forgotten."""
+        with self._cond:
+            self._pending = (float(view[0]), float(view[1]))
+            self._result = None
+            self._cond.notify_all()
+
+    def take(self, view: tuple[float, float], timeout_s: float = 0.0) -> np.ndarray | None:
+        """The warp of ``view`` if it is made (waiting up to ``timeout_s``), else None."""
+        want = (float(view[0]), float(view[1]))
+        with self._cond:
+            if timeout_s > 0:
+                self._cond.wait_for(lambda: self._closed or (
+                    self._result is not None and self._result[0] == want), timeout_s)
+            if self._result is None or self._result[0] != want:
+                return None
+            frame, self._result = self._result[1], None
+            return frame
+
+    def close(self) -> None:
+        """Stop the thread (a warp in flight finishes first)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(timeout=10.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending is not None or self._closed)
+                if self._closed:
+                    return
+                view, self._pending = self._pending, None
+            try:
+                frame = self.synthesis.frame(*view)
+            except Exception:  # the blend stays on show; a device must not stop on it
+                with self._cond:
+                    self.errors += 1
+                continue
+            with self._cond:
+                self.made += 1
+                if self._pending == view or self._pending is None:
+                    self._result = (view, frame)
+                    self._cond.notify_all()
+                else:
+                    self.dropped += 1
