@@ -74,8 +74,7 @@ from host.evaluate.masks import OBJECT_LEVEL, alpha_object_mask
 from host.fit.depth import (
     DEPTH_CELL,
     DEPTH_SCORE_MSE,
-    DEPTH_SCORE_NOISE_PX2,
-    depth_pixel_mm,
+    DEPTH_SCORE_NOISE_Z2,
     depth_sections,
     fill_nearest,
     fit_depth_eigenspaces,
@@ -311,9 +310,8 @@ def run_case(vol: Volume, size: int, views: np.ndarray, args: argparse.Namespace
     t_col = model0.threshold or 0.98
     d_ts = sorted({*args.depth_thresholds, t_col})
     lower = args.colour_thresholds_for(vol.name, t_col)[1:]
-    # fit --depth's default noise for this framing (DEPTH_SCORE_NOISE_PX2 depth pixels^2)
-    default_mse = round(DEPTH_SCORE_NOISE_PX2 * depth_pixel_mm(
-        vol.distance, st.fov_deg, size // 2) ** 2, 4)
+    # fit --depth's default noise for this framing (DEPTH_SCORE_NOISE_Z2 z-tolerances^2)
+    default_mse = round(DEPTH_SCORE_NOISE_Z2 * warper.tol_mm ** 2, 4)
     mses = sorted({*args.depth_mse, default_mse})
     all_t = sorted({*args.all_t_mse, default_mse})
     t0 = time.perf_counter()

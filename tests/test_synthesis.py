@@ -271,7 +271,7 @@ def test_depth_table_sections_that_disagree_are_refused_in_one_line(depth_model,
     assert "\n" not in str(exc.value)
     short = _with_depth_sections(image, fits[0.99], delta=True)
     short.sections["depth_scores_delta"] = short.sections["depth_scores_delta"][:, :, :-1]
-    with pytest.raises(ImageFormatError, match="depth_scores_delta.*expected uint8") as exc:
+    with pytest.raises(ImageFormatError, match=r"depth_scores_delta.*expected uint8") as exc:
         DepthEigenspace.from_image(short)
     assert "\n" not in str(exc.value)
 
@@ -302,21 +302,35 @@ def test_coarse_depth_table_adds_its_noise_and_drops_unused_components(depth_db)
         np.testing.assert_allclose(coarse.reconstruct(i), kept.reconstruct(i), atol=1e-3)
 
 
-def test_fit_depth_default_table_is_smaller_than_the_first_images(depth_model, depth_db):
-    """fit --depth's default (noise DEPTH_SCORE_NOISE_PX2 depth pixels^2, the smaller table
-    coding, unused components dropped) stores the depth in fewer bytes than the first depth
-    images (0.05 mm^2, plain int16 table), at the same threshold."""
+def test_fit_depth_default_rounds_to_a_fifth_of_the_z_tolerance_in_the_smaller_coding(
+        depth_model, depth_db):
+    """fit --depth's default table: rounding noise DEPTH_SCORE_NOISE_Z2 squared z-test
+    tolerances (the first images had 0.05 mm^2: a step 3x finer on the tooth), stored in
+    whichever coding (plain or delta) compresses smaller."""
     import zstandard
 
-    from host.fit.depth import depth_sections
-
-    def packed(sections):
-        cctx = zstandard.ZstdCompressor(level=3)
-        return sum(len(cctx.compress(np.ascontiguousarray(a).tobytes()))
-                   for a in sections.values())
+    from device_runtime.standalone import standalone_order
+    from device_runtime.synthesis import DepthEigenspace
+    from host.fit.depth import DEPTH_SCORE_NOISE_Z2, depth_sections, depth_table_step
 
     image = read_image(depth_model, key=KEY)
-    now = packed({k: v for k, v in image.sections.items() if k.startswith("depth_")})
-    _, _, fits = _depth_fit(depth_db, thresholds=(0.99,), score_mse=0.05)
-    first = packed(depth_sections(fits[0.99]))
-    assert now < 0.9 * first, (now, first)
+    noise = DEPTH_SCORE_NOISE_Z2 * image.synthesis["z_tolerance_mm"] ** 2
+    _, _, fits = _depth_fit(depth_db, thresholds=(0.99,), score_mse=0.001)
+    fine = fits[0.99]
+    assert image.synthesis["depth_step"] == pytest.approx(
+        depth_table_step(fine.counts, fine.cell, noise), rel=1e-6)
+    def packed(a):
+        return len(zstandard.ZstdCompressor(level=3).compress(np.ascontiguousarray(a).tobytes()))
+
+    # before the load: the device decodes the delta-coded table in place
+    stored = {k: packed(v) for k, v in image.sections.items() if k.startswith("depth_scores")}
+    depth = DepthEigenspace.from_image(image)
+    added = np.mean([np.mean((depth.reconstruct(i) - fine.reconstruct(i)) ** 2)
+                     for i in range(0, depth.table.shape[0], 5)])
+    assert 0.2 * noise < added < 1.5 * noise, (noise, added)
+
+    plain = packed(depth_sections(depth)["depth_scores"])
+    delta = packed(depth_sections(depth, standalone_order(image, depth.table.shape[0]))[
+        "depth_scores_delta"])
+    name = "depth_scores_delta" if delta < plain else "depth_scores"
+    assert list(stored) == [name] and stored[name] == min(plain, delta)

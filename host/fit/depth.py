@@ -30,8 +30,8 @@ from device_runtime.synthesis import (
 )
 from host.errors import FitError
 
-__all__ = ["DEPTH_CELL", "DEPTH_SCORE_MSE", "DEPTH_SCORE_NOISE_PX2", "add_depth",
-           "depth_pixel_mm", "depth_sections", "depth_table_step",
+__all__ = ["DEPTH_CELL", "DEPTH_SCORE_MSE", "DEPTH_SCORE_NOISE_Z2", "add_depth",
+           "depth_sections", "depth_table_step",
            "drop_unused", "fill_nearest", "fit_depth_eigenspaces", "quantize_depth_table"]
 
 #: Side of the depth cells (pixels of the half-resolution depth map).
@@ -39,18 +39,13 @@ DEPTH_CELL = 16
 #: Score quantization noise of `fit_depth_eigenspaces`' table, mm^2 per pixel (the research
 #: measurement's, and the first depth images').
 DEPTH_SCORE_MSE = 0.05
-#: ``fit --depth``'s depth table noise in squared depth-map pixels (the side of a depth pixel
-#: at the orbit centre, `depth_pixel_mm`): a depth error moves a warped point by a fraction
-#: of it, so the tolerable noise scales with the pixel. docs/rate-distortion.md 9.7: a
-#: quarter costs at most 0.003 object SSIM on the tooth and head at 256 and 512 and makes
-#: the depth sections 35-45 % smaller than 0.05 mm^2 with the plain table.
-DEPTH_SCORE_NOISE_PX2 = 0.25
-
-
-def depth_pixel_mm(distance_mm: float, fov_deg: float, depth_height: int) -> float:
-    """Side of a depth-map pixel at the orbit centre, mm (``depth_height`` rows span the
-    vertical field of view at ``distance_mm``)."""
-    return 2.0 * distance_mm * math.tan(math.radians(fov_deg) / 2.0) / depth_height
+#: ``fit --depth``'s depth table noise as a fraction of the squared z-test tolerance
+#: (``synthesis.z_tolerance_mm``, 2 % of the bounding-sphere diameter): the rounding noise's
+#: RMS is a fifth of the tolerance (0.44 mm^2 on the tooth, 1.8 mm^2 on the head, at any
+#: image size). docs/rate-distortion.md 9.7: it costs at most 0.003 object SSIM on both
+#: volumes at 256 and 512, where the depth sections lose 10-30 % of their bytes; the warp's
+#: sensitivity to depth noise scales with the volume, not with the pixel.
+DEPTH_SCORE_NOISE_Z2 = 0.04
 
 
 def fill_nearest(depth: np.ndarray) -> np.ndarray:
@@ -212,7 +207,7 @@ def add_depth(image: Any, db: Any, threshold: float, *, score_mse: float | None 
         Cumulative variance per depth cell.
     score_mse : float, optional
         Rounding noise of the depth score table, mm^2 per pixel (`depth_table_step`);
-        default `DEPTH_SCORE_NOISE_PX2` squared depth pixels (`depth_pixel_mm`).
+        default `DEPTH_SCORE_NOISE_Z2` times the squared z-test tolerance.
     delta : bool or None
         Store the table delta-coded (`DEPTH_DELTA_SECTION`, True), plain (``depth_scores``,
         False: what the first depth images hold), or the smaller once compressed (None).
@@ -242,8 +237,9 @@ def add_depth(image: Any, db: Any, threshold: float, *, score_mse: float | None 
                        "object by its colour)")
     h, w = db.depth_shape
     distance = float(camera["radius_mm"]) / math.sin(math.radians(camera["fov_deg"]) / 2)
+    z_tolerance = Z_TOLERANCE * 2.0 * float(camera["radius_mm"])
     if score_mse is None:
-        score_mse = DEPTH_SCORE_NOISE_PX2 * depth_pixel_mm(distance, camera["fov_deg"], h) ** 2
+        score_mse = DEPTH_SCORE_NOISE_Z2 * z_tolerance ** 2
     if not (math.isfinite(score_mse) and score_mse > 0):
         raise FitError(f"depth table noise {score_mse!r} must be > 0 mm^2")
     if (2 * h, 2 * w) != tuple(image.image_shape):
@@ -268,7 +264,7 @@ def add_depth(image: Any, db: Any, threshold: float, *, score_mse: float | None 
         "method": SYNTHESIS_METHOD,
         "fov_deg": float(camera["fov_deg"]),
         "distance_mm": distance,
-        "z_tolerance_mm": Z_TOLERANCE * 2.0 * float(camera["radius_mm"]),
+        "z_tolerance_mm": z_tolerance,
         "depth_shape": [int(h), int(w)],
         "depth_cell": int(eig.cell),
         "depth_step": float(eig.step),
