@@ -23,6 +23,8 @@ __all__ = [
     "STANDALONE_DELTA_SECTION",
     "STANDALONE_SECTION",
     "StandaloneScores",
+    "delta_decode",
+    "delta_encode",
     "standalone_order",
     "standalone_table",
 ]
@@ -131,7 +133,38 @@ def _decode_delta_table(image: EigenspaceImage, coded: np.ndarray) -> None:
             f"image section {STANDALONE_DELTA_SECTION!r}: expected uint8 of shape "
             f"(K={k}, 2, n_views={n_views}), got {coded.dtype} {coded.shape}"
         )
-    order = standalone_order(image, int(n_views))
+    table = delta_decode(coded, standalone_order(image, int(n_views)))
+    del image.sections[STANDALONE_DELTA_SECTION]
+    image.sections[STANDALONE_SECTION] = table
+
+
+def delta_encode(table: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """An int16 table (n_views, K) delta-coded for zstd: uint8 (K, 2, n_views).
+
+    Per column, the rows in ``order`` (`standalone_order`), each minus the previous one as
+    int16 (wrapping), zigzag-mapped to uint16 and split into a plane of low bytes and a
+    plane of high bytes. `delta_decode` undoes it. The standalone table
+    (:data:`STANDALONE_DELTA_SECTION`) and the depth table of ``fit --depth``
+    (``depth_scores_delta``) are stored this way.
+    """
+    if table.dtype != np.int16 or table.ndim != 2:
+        raise ValueError(f"delta_encode: expected an int16 (n_views, K) table, got "
+                         f"{table.dtype} {table.shape}")
+    diffs = np.ascontiguousarray(table[order].T)  # (K, n_views) in coding order
+    diffs[:, 1:] = diffs[:, 1:] - diffs[:, :-1]  # wraps in int16, like the decoder
+    wide = diffs.astype(np.int32)
+    z = ((wide << 1) ^ (wide >> 15)).astype(np.uint16)
+    return np.stack([(z & 0xFF).astype(np.uint8), (z >> 8).astype(np.uint8)], axis=1)
+
+
+def delta_decode(coded: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Undo `delta_encode`: the int16 table (n_views, K), a transposed view of ``coded``'s
+    memory (decoded in place, a block of columns at a time: no second table is allocated;
+    a read-only or non-contiguous ``coded`` is copied first).
+
+    ``coded`` is uint8 (K, 2, n_views) and ``order`` a permutation of the n_views rows (the
+    caller checks both against its image)."""
+    k, _, n_views = coded.shape
     if not coded.flags.writeable or not coded.flags.c_contiguous:
         coded = np.ascontiguousarray(coded).copy()
     table = coded.reshape(k, 2 * int(n_views)).view("<i2")  # (K, n_views), same memory
@@ -142,8 +175,7 @@ def _decode_delta_table(image: EigenspaceImage, coded: np.ndarray) -> None:
         np.cumsum(d, axis=1, dtype=np.int16, out=d)
         rows = table[start:start + _DELTA_BLOCK_ROWS]
         rows[:, order] = d
-    del image.sections[STANDALONE_DELTA_SECTION]
-    image.sections[STANDALONE_SECTION] = table.T
+    return table.T
 
 
 class StandaloneScores:

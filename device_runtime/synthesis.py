@@ -38,10 +38,12 @@ from typing import Any
 import numpy as np
 
 from device_runtime.reconstruct import DEFAULT_SCRATCH_BYTES
+from device_runtime.standalone import delta_decode, standalone_order
 from protocol.errors import ImageFormatError
 
 __all__ = [
     "CACHE_VIEWS",
+    "DEPTH_DELTA_SECTION",
     "DEPTH_SECTIONS",
     "KNOWN_SYNTHESIS",
     "SYNTHESIS_METHOD",
@@ -61,9 +63,17 @@ __all__ = [
 #: The one synthesis method this device knows: forward warp by half-opacity depth.
 SYNTHESIS_METHOD = "warp-depth-1"
 KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD})
-#: Image sections of the depth eigenspace (``fit --depth``), in this order.
+#: Image sections of the depth eigenspace (``fit --depth``), in this order. The score table
+#: is either the plain int16 ``depth_scores`` (the first images) or, smaller,
+#: :data:`DEPTH_DELTA_SECTION` in its place.
 DEPTH_SECTIONS = ("depth_counts", "depth_scales", "depth_mean", "depth_components",
                   "depth_scores")
+#: The depth score table delta-coded along the standalone order of the views, like the
+#: colour's (`device_runtime.standalone.delta_encode`): uint8 (K, 2, n_views). Decoded in
+#: place when the image is loaded (`DepthEigenspace.from_image`). A device that predates it
+#: finds no ``depth_scores`` and refuses the image in one line when it needs the synthesis
+#: (a standalone device); a served device ignores the depth sections either way.
+DEPTH_DELTA_SECTION = "depth_scores_delta"
 #: Training views whose colour and depth stay cached (a view at 512: ~1.5 MB).
 CACHE_VIEWS = 8
 
@@ -577,17 +587,32 @@ class DepthEigenspace:
         record = check_synthesis(image.synthesis, image.image_shape)
         if record is None:
             raise ImageFormatError("the image has no depth (refit with eigencast fit --depth)")
-        missing = [s for s in DEPTH_SECTIONS if s not in image.sections]
+        s = image.sections
+        delta = s.get(DEPTH_DELTA_SECTION)
+        if delta is not None and "depth_scores" in s:
+            raise ImageFormatError(f"image sections 'depth_scores' and {DEPTH_DELTA_SECTION!r} "
+                                   "are both present; an image holds one depth table")
+        need = DEPTH_SECTIONS[:-1] if delta is not None else DEPTH_SECTIONS
+        missing = [name for name in need if name not in s]
         if missing:
             raise ImageFormatError(f"image: synthesis needs the sections {missing}")
-        s = image.sections
         cell = record["depth_cell"]
         shape = tuple(record["depth_shape"])
         n_cells = (-(-shape[0] // cell)) * (-(-shape[1] // cell))
         counts, scales, mean = s["depth_counts"], s["depth_scales"], s["depth_mean"]
-        comps, table = s["depth_components"], s["depth_scores"]
+        comps = s["depth_components"]
         k = int(np.asarray(counts, dtype=np.int64).sum()) if counts.size else 0
         n_views = (image.interpolation or {}).get("n_views")
+        if delta is not None:
+            if (not isinstance(n_views, int) or delta.dtype != np.uint8
+                    or delta.shape != (k, 2, n_views)):
+                raise ImageFormatError(
+                    f"image section {DEPTH_DELTA_SECTION!r}: expected uint8 of shape (K={k}, 2, "
+                    f"n_views={n_views}), got {_describe(delta)}")
+            # decoded once, in place; the image then holds the plain table
+            s["depth_scores"] = delta_decode(delta, standalone_order(image, n_views))
+            del s[DEPTH_DELTA_SECTION]
+        table = s["depth_scores"]
         if (counts.shape != (n_cells,) or counts.dtype != np.int32 or (counts < 0).any()
                 or mean.shape != (n_cells, cell * cell) or mean.dtype != np.float16
                 or comps.shape != (k, cell * cell) or comps.dtype != np.int8

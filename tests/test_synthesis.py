@@ -94,8 +94,10 @@ def test_fit_depth_stores_the_depth_eigenspace_and_names_the_method(depth_model,
     image = read_image(depth_model, key=KEY)
     assert image.synthesis["method"] == "warp-depth-1"
     assert read_manifest(depth_model)["synthesis"]["method"] == "warp-depth-1"
-    assert {"depth_counts", "depth_scales", "depth_mean", "depth_components",
-            "depth_scores"} <= set(image.sections)
+    assert {"depth_counts", "depth_scales", "depth_mean", "depth_components"} <= set(
+        image.sections)
+    # one table: plain or delta-coded, whichever compresses smaller
+    assert len({"depth_scores", "depth_scores_delta"} & set(image.sections)) == 1
     from device_runtime.synthesis import DepthEigenspace
 
     depth = DepthEigenspace.from_image(image)
@@ -403,3 +405,133 @@ def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, t
     # every frame of the session is a blend, a warp or a host frame of its view
     assert all(i.get("predicted") or i.get("corrected") or i.get("sequence") is not None
                for _, i in shown)
+
+
+# ----------------------------------------------------------------------------- depth storage
+
+
+def _depth_fit(depth_db, thresholds=(0.99,), score_mse=0.05):
+    from host.fit.depth import fill_nearest, fit_depth_eigenspaces
+
+    db = CinemaDB.open(depth_db)
+    depths = np.stack([fill_nearest(db.read_depth(i)) for i in range(db.n_views)])
+    return db, depths, fit_depth_eigenspaces(depths, list(thresholds),
+                                             float(db.depth["offset_mm"]), score_mse=score_mse)
+
+
+def _with_depth_sections(image, eig, *, delta):
+    """A copy of ``image`` holding ``eig`` as fit --depth stores it (plain or delta table)."""
+    import dataclasses
+
+    from device_runtime.standalone import standalone_order
+    from host.fit.depth import depth_sections
+
+    sections = {k: v for k, v in image.sections.items() if not k.startswith("depth_")}
+    order = standalone_order(image, image.interpolation["n_views"]) if delta else None
+    sections.update(depth_sections(eig, order))
+    synthesis = {**image.synthesis, "depth_step": eig.step}
+    return dataclasses.replace(image, sections=sections, synthesis=synthesis)
+
+
+def test_delta_coded_depth_table_loads_as_the_plain_one(depth_model, depth_db, tmp_path):
+    """The delta-coded depth table (depth_scores_delta) written to an .ecs and read back
+    decodes to the fitted table; an image with the plain table (the first depth images)
+    still loads; both show the same warped frames."""
+    from device_runtime.synthesis import DepthEigenspace
+
+    image = read_image(depth_model, key=KEY)
+    _, _, fits = _depth_fit(depth_db)
+    eig = fits[0.99]
+    frames = []
+    for delta in (True, False):
+        path = tmp_path / f"d{int(delta)}.ecs"
+        write_image(path, _with_depth_sections(image, eig, delta=delta), key=KEY)
+        back = read_image(path, key=KEY)
+        name = "depth_scores_delta" if delta else "depth_scores"
+        assert name in back.sections and len(
+            {"depth_scores", "depth_scores_delta"} & set(back.sections)) == 1
+        if delta:
+            assert back.sections[name].dtype == np.uint8
+        loaded = DepthEigenspace.from_image(back)
+        np.testing.assert_array_equal(loaded.table, eig.table)
+        np.testing.assert_array_equal(loaded.reconstruct(5), eig.reconstruct(5))
+        synth = ViewSynthesizer(back, StandaloneScores(back), Reconstructor.from_image(back))
+        frames.append(synth.frame(33.0, 12.0))
+    np.testing.assert_array_equal(frames[0], frames[1])
+
+
+def test_depth_table_sections_that_disagree_are_refused_in_one_line(depth_model, depth_db):
+    from device_runtime.synthesis import DepthEigenspace
+
+    image = read_image(depth_model, key=KEY)
+    _, _, fits = _depth_fit(depth_db)
+    both = _with_depth_sections(image, fits[0.99], delta=True)
+    both.sections["depth_scores"] = fits[0.99].table
+    with pytest.raises(ImageFormatError, match="both present") as exc:
+        DepthEigenspace.from_image(both)
+    assert "\n" not in str(exc.value)
+    short = _with_depth_sections(image, fits[0.99], delta=True)
+    short.sections["depth_scores_delta"] = short.sections["depth_scores_delta"][:, :, :-1]
+    with pytest.raises(ImageFormatError, match=r"depth_scores_delta.*expected uint8") as exc:
+        DepthEigenspace.from_image(short)
+    assert "\n" not in str(exc.value)
+
+
+def test_coarse_depth_table_adds_its_noise_and_drops_unused_components(depth_db):
+    """quantize_depth_table's rounding adds about its noise (mm^2 per pixel) to the depth
+    maps, and the components whose score rounds to 0 in every view are gone without
+    changing any map."""
+    from host.fit.depth import drop_unused, quantize_depth_table
+
+    _, _, fits = _depth_fit(depth_db, thresholds=(0.999,), score_mse=0.001)
+    fine = fits[0.999]
+    for noise in (0.5, 4.0):
+        coarse = quantize_depth_table(fine, noise)
+        added = np.mean([np.mean((coarse.reconstruct(i) - fine.reconstruct(i)) ** 2)
+                         for i in range(0, fine.table.shape[0], 7)])
+        assert 0.2 * noise < added < 1.5 * noise, (noise, added)
+        assert (coarse.table != 0).any(axis=0).all()  # no all-zero column is kept
+    coarse = quantize_depth_table(fine, 4.0)
+    assert coarse.n_components < fine.n_components
+    from device_runtime.synthesis import DepthEigenspace
+
+    kept = DepthEigenspace(fine.cell, fine.shape, fine.mean, fine.components, fine.scales,
+                           fine.counts, np.rint(fine.table * fine.step / coarse.step).astype(
+                               np.int16), coarse.step, fine.offset)
+    assert drop_unused(kept).n_components == coarse.n_components
+    for i in (0, 50, 99):
+        np.testing.assert_allclose(coarse.reconstruct(i), kept.reconstruct(i), atol=1e-3)
+
+
+def test_fit_depth_default_rounds_to_a_fifth_of_the_z_tolerance_in_the_smaller_coding(
+        depth_model, depth_db):
+    """fit --depth's default table: rounding noise DEPTH_SCORE_NOISE_Z2 squared z-test
+    tolerances (the first images had 0.05 mm^2: a step 3x finer on the tooth), stored in
+    whichever coding (plain or delta) compresses smaller."""
+    import zstandard
+
+    from device_runtime.standalone import standalone_order
+    from device_runtime.synthesis import DepthEigenspace
+    from host.fit.depth import DEPTH_SCORE_NOISE_Z2, depth_sections, depth_table_step
+
+    image = read_image(depth_model, key=KEY)
+    noise = DEPTH_SCORE_NOISE_Z2 * image.synthesis["z_tolerance_mm"] ** 2
+    _, _, fits = _depth_fit(depth_db, thresholds=(0.99,), score_mse=0.001)
+    fine = fits[0.99]
+    assert image.synthesis["depth_step"] == pytest.approx(
+        depth_table_step(fine.counts, fine.cell, noise), rel=1e-6)
+    def packed(a):
+        return len(zstandard.ZstdCompressor(level=3).compress(np.ascontiguousarray(a).tobytes()))
+
+    # before the load: the device decodes the delta-coded table in place
+    stored = {k: packed(v) for k, v in image.sections.items() if k.startswith("depth_scores")}
+    depth = DepthEigenspace.from_image(image)
+    added = np.mean([np.mean((depth.reconstruct(i) - fine.reconstruct(i)) ** 2)
+                     for i in range(0, depth.table.shape[0], 5)])
+    assert 0.2 * noise < added < 1.5 * noise, (noise, added)
+
+    plain = packed(depth_sections(depth)["depth_scores"])
+    delta = packed(depth_sections(depth, standalone_order(image, depth.table.shape[0]))[
+        "depth_scores_delta"])
+    name = "depth_scores_delta" if delta < plain else "depth_scores"
+    assert list(stored) == [name] and stored[name] == min(plain, delta)

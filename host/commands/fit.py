@@ -186,7 +186,8 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
         print(_standalone_line(out, standalone))
     if depth is not None:
         print(f"depth: {depth['components']} components ({depth['components_per_cell']:.2f}/"
-              f"cell at T={depth['threshold']}), {depth['raw_bytes'] / 1e6:.2f} MB raw; "
+              f"cell at T={depth['threshold']}), table noise {depth['score_mse']:.3g} mm², "
+              f"{depth['raw_bytes'] / 1e6:.2f} MB raw ({depth['section']}); "
               f"synthesis {image.synthesis['method']}")
     device_bytes = image_device_bytes(out)
     int8 = image.provenance["int8"]

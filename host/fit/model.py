@@ -796,9 +796,10 @@ def add_standalone_table(
         ``dtype``, ``shape``, ``raw_bytes`` (uncompressed), ``step``, ``section`` and
         ``zero_columns``.
     """
-    from device_runtime.runtime import (
+    from device_runtime.standalone import (
         STANDALONE_DELTA_SECTION,
         STANDALONE_SECTION,
+        delta_encode,
         standalone_order,
     )
 
@@ -833,12 +834,7 @@ def add_standalone_table(
     plain = np.ascontiguousarray(table)
     coded = None
     if dtype == np.int16 and delta is not False:
-        order = standalone_order(image, scores.shape[0])
-        diffs = np.ascontiguousarray(table[order].T)  # (K, n_views) in coding order
-        diffs[:, 1:] = diffs[:, 1:] - diffs[:, :-1]  # wraps in int16, like the decoder
-        wide = diffs.astype(np.int32)
-        z = ((wide << 1) ^ (wide >> 15)).astype(np.uint16)
-        coded = np.stack([(z & 0xFF).astype(np.uint8), (z >> 8).astype(np.uint8)], axis=1)
+        coded = delta_encode(table, standalone_order(image, scores.shape[0]))
     if coded is not None and delta is None:
         import zstandard
 
