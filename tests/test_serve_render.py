@@ -108,7 +108,9 @@ def test_render_mode_streams_the_projection_of_every_orbit_view(tmp_path, model_
         wait_until(lambda: any(float(r["phi_deg"]) == 288.0 for r in read_frames(frames)), 10,
                    "the orbit's last view")
     rows = read_frames(frames)
-    assert len(rows) >= 2
+    # a device that falls behind (a loaded machine) shows the newest frame and counts the
+    # ones it skipped: every one of the 5 is shown or counted, none lost otherwise
+    assert len(rows) + device.device.stats_dict()["coalesced"] == 5
     for row in rows:
         view = (float(row["phi_deg"]), float(row["theta_deg"]))
         got = _frame(frames, row)
