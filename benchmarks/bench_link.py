@@ -583,6 +583,9 @@ class _DeviceThreads:
             swap = self.device._swap_model
 
             def blend_only(model: Any) -> None:
+                if model.warp_worker is not None:  # first: it uses the synthesis
+                    model.warp_worker.close()
+                    model.warp_worker = None
                 if model.synthesis is not None:
                     model.synthesis.reconstructor.close()
                     model.synthesis = None
