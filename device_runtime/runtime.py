@@ -81,6 +81,7 @@ from device_runtime.errors import DeviceError, FlashError
 from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
 from device_runtime.prediction import Predictor, can_predict, corrected
 from device_runtime.reconstruct import Reconstructor
+from device_runtime.slots import LatestSlot, RequestLimiter
 from device_runtime.standalone import (
     STANDALONE_DELTA_SECTION,
     STANDALONE_SECTION,
@@ -133,89 +134,6 @@ _WARP_POLL_S = 0.004
 """How often the display loop looks for a finished warp while one is due, seconds."""
 _LATENCY_SAMPLES = 512
 _RATE_WINDOW_S = 1.0
-
-
-# --------------------------------------------------------------------------- slots
-
-
-class LatestSlot:
-    """A one-item mailbox between threads: :meth:`put` replaces, :meth:`take` empties.
-
-    Attributes
-    ----------
-    replaced : int
-        Items overwritten before anyone took them (coalesced).
-    """
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._item: Any = None
-        self._full = False
-        self.replaced = 0
-
-    def put(self, item: Any) -> None:
-        """Store ``item``, replacing an untaken one."""
-        with self._cond:
-            if self._full:
-                self.replaced += 1
-            self._item = item
-            self._full = True
-            self._cond.notify_all()
-
-    def take(self, timeout_s: float = 0.0) -> Any:
-        """Return the item and empty the slot; None if nothing arrives within ``timeout_s``."""
-        with self._cond:
-            if not self._full and timeout_s > 0:
-                self._cond.wait_for(lambda: self._full, timeout_s)
-            if not self._full:
-                return None
-            item, self._item, self._full = self._item, None, False
-            return item
-
-    def wake(self) -> None:
-        """Wake a waiting :meth:`take` (it returns None)."""
-        with self._cond:
-            self._cond.notify_all()
-
-
-class RequestLimiter:
-    """At most one request per ``min_interval_s``; in between, the latest offer wins.
-
-    Parameters
-    ----------
-    rate_hz : float
-        Requests per second at most (> 0).
-    """
-
-    def __init__(self, rate_hz: float) -> None:
-        if not rate_hz > 0:
-            raise ValueError(f"RequestLimiter: rate_hz={rate_hz} must be > 0")
-        self.min_interval_s = 1.0 / rate_hz
-        self._lock = threading.Lock()
-        self._pending: Any = None
-        self._last_s = -math.inf
-        self.coalesced = 0
-
-    def offer(self, item: Any) -> None:
-        """Queue ``item`` (replacing one not sent yet); any thread."""
-        with self._lock:
-            if self._pending is not None:
-                self.coalesced += 1
-            self._pending = item
-
-    def due(self, now_s: float) -> Any:
-        """The item to send now (and forget), or None (nothing pending, or too soon)."""
-        with self._lock:
-            if self._pending is None or now_s - self._last_s < self.min_interval_s:
-                return None
-            item, self._pending = self._pending, None
-            self._last_s = now_s
-            return item
-
-    @property
-    def pending(self) -> bool:
-        """An offer waits to be sent."""
-        return self._pending is not None
 
 
 # --------------------------------------------------------------------------- model
