@@ -165,6 +165,19 @@ def eigenspace_bytes(image: Any) -> int:
     return int(image.eigenimages.nbytes + image.mean.nbytes + image.scales.nbytes)
 
 
+def rss_bound_bytes(eigenspace: int) -> float:
+    """Section (d)'s device memory bound: 1.2 x eigenspace + 64 MiB."""
+    return 1.2 * eigenspace + 64 * 2**20
+
+
+def depth_section_bytes(image: Any) -> int:
+    """Bytes of an image's depth eigenspace sections, whichever coding its table has."""
+    from device_runtime.synthesis import DEPTH_DELTA_SECTION, DEPTH_SECTIONS
+
+    names = (*DEPTH_SECTIONS, DEPTH_DELTA_SECTION)
+    return sum(int(a.nbytes) for name, a in image.sections.items() if name in names)
+
+
 def orbit_views(n: int, theta: float = 15.0, turns: float = 1.0) -> list[tuple[float, float]]:
     from device_runtime.orbit import parse_orbit
 
@@ -631,7 +644,7 @@ def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
     presented = int(stats.get("frames_presented", 0))
     peak = max(hwm, int(stats.get("peak_rss_bytes") or 0))  # both VmHWM (not ru_maxrss)
     eig = case.eigenspace_bytes
-    bound = 1.2 * eig + 64 * 2**20
+    bound = rss_bound_bytes(eig)
     warm = [rss for f, rss in samples if f >= 0.1 * presented] or [rss for _, rss in samples]
     first, last = (warm[0], warm[-1]) if warm else (0, 0)
     return {"size": case.size, "frames": presented, "device_rc": rc, "wall_s": wall,
@@ -719,7 +732,7 @@ def section_warp(path: Path, frames: int) -> dict:
     """(w): synthesized vs blended standalone frames over the same drag."""
     from device_runtime.image_receiver import required_ram_bytes
     from device_runtime.standalone import StandaloneScores
-    from device_runtime.synthesis import DEPTH_SECTIONS, ViewSynthesizer, synthesis_memory_bytes
+    from device_runtime.synthesis import ViewSynthesizer, synthesis_memory_bytes
     from protocol.image import read_image, read_manifest
 
     image = read_image(path, read_annex=False)
@@ -747,7 +760,7 @@ def section_warp(path: Path, frames: int) -> dict:
     cold.frame(*views[-1])
     cold_ms = (time.perf_counter() - t0) * 1e3
     manifest = read_manifest(path)
-    depth_bytes = sum(int(image.sections[s].nbytes) for s in DEPTH_SECTIONS)
+    depth_bytes = depth_section_bytes(image)
     return {"size": image.image_shape[0], "frames": len(views),
             "blend_ms": med_ms(t_blend), "warp_ms": med_ms(t_warp),
             "warp_p90_ms": float(np.percentile(t_warp, 90) * 1e3),
@@ -766,7 +779,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
     depth eigenspace) and the declared synthesis scratch; and against the bare runtime
     process plus what the image declares it needs (`required_ram_bytes`)."""
     from device_runtime.image_receiver import required_ram_bytes
-    from device_runtime.synthesis import DEPTH_SECTIONS, synthesis_memory_bytes
+    from device_runtime.synthesis import synthesis_memory_bytes
     from host.link.provisioning import provision
     from protocol.image import read_image, read_manifest
 
@@ -782,10 +795,9 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
         device.stop()
     image = read_image(path, read_annex=False)
     manifest = read_manifest(path)
-    eig = int(image.eigenimages.nbytes + image.mean.nbytes + image.scales.nbytes)
-    depth = sum(int(image.sections[s].nbytes) for s in DEPTH_SECTIONS if s in image.sections)
-    table = sum(int(a.nbytes) for name, a in image.sections.items()
-                if name not in DEPTH_SECTIONS)
+    eig = eigenspace_bytes(image)
+    depth = depth_section_bytes(image)
+    table = sum(int(a.nbytes) for a in image.sections.values()) - depth
     scratch = synthesis_memory_bytes(manifest) if depth else 0
     declared = required_ram_bytes(manifest)
     stats_path = work / f"rss-warp-{path.stem}.json"
@@ -806,7 +818,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
         raise RuntimeError(f"standalone device exited {proc.returncode}: {err.strip()[-300:]}")
     stats = read_json(stats_path)
     peak = max(hwm, int(stats.get("peak_rss_bytes") or 0))
-    bound = 1.2 * eig + 64 * 2**20 + table + depth + scratch
+    bound = rss_bound_bytes(eig) + table + depth + scratch
     shutil.rmtree(flash, ignore_errors=True)
     return {"image": path.name, "size": image.image_shape[0],
             "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
