@@ -182,21 +182,25 @@ class LoadedModel:
         synthesis = None
         table = standalone if standalone is not None else (
             predictor.standalone if predictor is not None else None)
+        reconstructor = Reconstructor.from_image(image, threads="auto")
         if table is not None and image.synthesis is not None:
-            # its own reconstructor: the neighbours' colours must not touch the display's
-            synthesis = ViewSynthesizer(image, table,
-                                        Reconstructor.from_image(image, threads="auto"))
+            # A standalone device shows warps only (each a new array), so the neighbours'
+            # colours may use the display's reconstructor: one set of buffers. A predicting
+            # device warps on its worker thread while the display shows the host's frames
+            # from the display's reconstructor: the worker needs one of its own.
+            synthesis = ViewSynthesizer(
+                image, table, reconstructor if standalone is not None
+                else Reconstructor.from_image(image, threads="auto"))
         worker = WarpWorker(synthesis) if synthesis is not None and standalone is None else None
-        return cls(image, Reconstructor.from_image(image, threads="auto"), decoder, slot,
-                   generation, test, standalone, predictor=predictor, synthesis=synthesis,
-                   warp_worker=worker)
+        return cls(image, reconstructor, decoder, slot, generation, test, standalone,
+                   predictor=predictor, synthesis=synthesis, warp_worker=worker)
 
     def close(self) -> None:
         if self.warp_worker is not None:  # before the reconstructor its warps use
             self.warp_worker.close()
         self.reconstructor.close()
-        if self.synthesis is not None:  # it has its own reconstructor (and its threads)
-            self.synthesis.reconstructor.close()
+        if self.synthesis is not None and self.synthesis.reconstructor is not self.reconstructor:
+            self.synthesis.reconstructor.close()  # a predicting device's worker's own
 
 
 @dataclass(frozen=True)

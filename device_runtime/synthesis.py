@@ -11,14 +11,18 @@ names the synthesis method in its manifest (``"synthesis": {"method": "warp-dept
 1. takes the interpolator's neighbours and weights (:class:`StandaloneScores`' interpolator);
 2. reconstructs each neighbour's colour (the int8 eigenspace, the device's `Reconstructor`)
    and depth (:class:`DepthEigenspace`, upsampled 2x by :func:`upsample2`), and unprojects
-   its object pixels once into points in that camera's frame; both are cached per training
-   view (:class:`ViewSynthesizer`, an LRU of :data:`CACHE_VIEWS` views: while a drag moves,
-   the neighbours change only every grid step);
+   its object pixels once into points in that camera's frame (int16, packed: 9 bytes per
+   object pixel with the colour); they are cached per training view (:class:`ViewSynthesizer`,
+   the :data:`CACHE_VIEWS` views of one frame: while a drag moves, the neighbours change
+   only every grid step);
 3. forward-warps every neighbour's points into the new camera with a z-test, blends them by
    the interpolation weights and fills the cracks (:func:`forward_warp`, :func:`fill_holes`).
 
-Everything is numpy, float32, with no per-pixel Python loop; scratch memory is bounded by
-the frame size (:func:`synthesis_memory_bytes`). The same code makes the host's frames
+Everything is numpy, float32, with no per-pixel Python loop. Memory is bounded by the frame
+size (:func:`synthesis_memory_bytes`) and kept to what a device's RAM bound allows
+(docs/rate-distortion.md 9.9): the warp works one view at a time on a grid it reuses, and a
+standalone device reconstructs the neighbours with the display's reconstructor. The same
+code makes the host's frames
 (``eigencast evaluate``'s ``pca_warp``) so host and device frames are identical, and
 ``scripts/warp_views.py`` (the go/no-go measurement) imports it.
 
@@ -74,8 +78,10 @@ DEPTH_SECTIONS = ("depth_counts", "depth_scales", "depth_mean", "depth_component
 #: finds no ``depth_scores`` and refuses the image in one line when it needs the synthesis
 #: (a standalone device); a served device ignores the depth sections either way.
 DEPTH_DELTA_SECTION = "depth_scores_delta"
-#: Training views whose colour and depth stay cached (a view at 512: ~1.5 MB).
-CACHE_VIEWS = 8
+#: Training views whose points and colours stay cached (a view at 512: ~1.5 MB): the
+#: neighbours of one frame. While a drag moves they change only every grid step; a cache
+#: of 8 made 0.58 instead of 0.60 reconstructions per frame of an orbit, for 6 MB more.
+CACHE_VIEWS = 4
 
 #: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
 #: within this of the nearest one are blended, the rest are hidden.
@@ -87,6 +93,11 @@ Z_TOLERANCE = 0.02
 SPLAT_TENT = True
 #: The warp indexes its padded grid in float32, exact below 2**24 pixels (4094 x 4094).
 MAX_WARP_PIXELS = 1 << 24
+#: Pixels per pass of the per-view work done on a cache miss (rays, depth upsampling):
+#: bounds its temporaries to a few hundred kilobytes whatever the frame size.
+CHUNK = 1 << 15
+#: Depth components per pass of `DepthEigenspace.reconstruct` (whole cells at a time).
+COMPONENT_CHUNK = 256
 #: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
 #: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
 HOLE_PASSES = 2
@@ -158,25 +169,26 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     Counted whatever the device's mode: a standalone device warps every frame, a served
     device that predicts warps its own frames while the host's are on their way (both
     share the image's one standalone table, a section). Per cached view: the object
-    pixels' points and uint8 colours (15 bytes per pixel at most); the depth eigenspace's
-    float32 components (4 bytes per int8 entry); per frame, the splats of 4 views (one per
-    object pixel, 28 bytes each, all pixels at most: the reused `Warper.scratch`), a view's
-    reconstruction and its indices, the padded accumulators, and the warped frame on show
-    (its own array: the display's reconstructor keeps its buffer for the host's frames).
+    pixels' packed points and uint8 colours (9 bytes per pixel at most); on a miss, a
+    view's indices, depths and masks and a pass of depth components (`COMPONENT_CHUNK`
+    whole cells); per frame, the splats' target pixels of 4 views (4 bytes each, all
+    pixels at most: the reused `Warper.splats`), one view's projection temporaries, the
+    padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
+    planes, and the warped frame on show (its own array). A predicting device's worker
+    also has its own reconstructor (frame buffers and scratch), counted here; a standalone
+    device shares the display's.
     """
     record = manifest.get("synthesis")
     if record is None:
         return 0
     h, w = (2 * v for v in record["depth_shape"])
     n = h * w
-    cache = CACHE_VIEWS * n * 15
-    depth = 4 * (h // 2) * (w // 2) + n * (8 + 8 + 4)  # half-size depth, indices, depths
-    for sec in manifest.get("sections") or []:
-        if isinstance(sec, dict) and sec.get("name") == "depth_components":
-            raw = sec.get("raw_size")
-            depth += 4 * raw if isinstance(raw, int) and raw > 0 else 0
-    warp = 4 * n * 28 + (h + 2) * (w + 2) * (4 + 8 + 8 + 4 + 12 + 4 + 1) + n * 3
-    # the neighbours' own reconstructor: frame buffers and its scratch
+    padded = (h + 2) * (w + 2)
+    cache = CACHE_VIEWS * n * 9
+    cell = int(record.get("depth_cell") or 1)
+    depth = 3 * 4 * (h // 2 + cell) * (w // 2 + cell) + n * (8 + 4 + 3)
+    depth += 4 * max(COMPONENT_CHUNK, cell * cell) * cell * cell
+    warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
     colour = 2 * n * 3 + DEFAULT_SCRATCH_BYTES
     return int(cache + depth + warp + colour)
 
@@ -208,8 +220,11 @@ def orbit_pose(phi_deg: float, theta_deg: float, distance: float
 class Warper:
     """Forward warping between the orbit cameras of one framing, at one image size.
 
-    Every orbit camera has the same intrinsics, so each pixel's unit ray in camera
-    coordinates (right, up, forward) is computed once here.
+    Every orbit camera has the same intrinsics: a pixel's unit ray in camera coordinates
+    (right, up, forward) follows from its row and column (`unproject_at`). The warper also
+    owns the warp's working set, allocated on the first frame and reused (`forward_warp`):
+    the padded grid's z-buffer, coverage and four accumulators, and the per-splat target
+    index and depth (grown, never shrunk). One warper serves one thread.
 
     Parameters
     ----------
@@ -228,26 +243,35 @@ class Warper:
         self.width, self.height = int(width), int(height)
         self.distance = float(distance_mm)
         self.half = math.tan(math.radians(fov_deg) / 2.0)
-        xs = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * (self.width / self.height)
-        ys = 1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0
-        gx, gy = np.meshgrid(xs * self.half, ys * self.half)
-        d = np.stack([gx, gy, np.ones_like(gx)], axis=-1)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        # planar (3, h*w): the only layout the unprojection reads
-        self.rays_t = np.ascontiguousarray(d.reshape(-1, 3).T.astype(np.float32))
+        # packed points (`unproject_at(packed=False)`): int16 steps from the orbit centre, which
+        # sits at (0, 0, distance) in every orbit camera, over twice the bounding sphere's
+        # radius (distance * sin(fov / 2)); a step is 6e-5 of the radius (1/100 of a pixel at
+        # 1080) and points beyond are clamped (outside the sphere: noise of the depth fit)
+        self.point_step = 2.0 * self.distance * math.sin(math.radians(fov_deg) / 2.0) / 32767
+        # the rays' tangents per column and per row (float64: a ray is normalised from them)
+        self._gx = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * (
+            self.width / self.height) * self.half
+        self._gy = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * self.half
         self.tol_mm = float(z_tolerance_mm)
-        self._scratch: tuple[np.ndarray, ...] | None = None
+        self._splats: np.ndarray | None = None
+        self._grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def scratch(self, total: int) -> tuple[np.ndarray, ...]:
-        """Per-splat buffers for ``total`` splats, reused between frames (grown, never
-        shrunk: the page faults of fresh multi-megabyte arrays cost as much as a pass).
+    def splats(self, total: int) -> np.ndarray:
+        """The target pixel of each of ``total`` splats (int32), reused between frames
+        (grown by a quarter when short, never shrunk)."""
+        if self._splats is None or self._splats.size < total:
+            self._splats = None  # the old one goes before the new one is made
+            self._splats = np.empty(int(total * 1.25), np.int32)
+        return self._splats[:total]
 
-        Returns index (intp), z, weight (float32) and rgb (3, total) float32."""
-        if self._scratch is None or self._scratch[0].size < total:
-            cap = int(total * 1.25)
-            self._scratch = (np.empty(cap, np.intp), np.empty(cap, np.float32),
-                             np.empty(cap, np.float32), np.empty((3, cap), np.float32))
-        return tuple(a[..., :total] for a in self._scratch)
+    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The padded grid's z-buffer (float32; then the blend weights), colour accumulators
+        (3, h + 2, w + 2) float32 and coverage (bool), made once, reused by every frame."""
+        if self._grid is None:
+            shape = (self.height + 2, self.width + 2)
+            self._grid = (np.empty(shape, np.float32), np.empty((3, *shape), np.float32),
+                          np.empty(shape, bool))
+        return self._grid
 
     def pose(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
         """`orbit_pose` at this warper's distance."""
@@ -266,24 +290,45 @@ class Warper:
             ``ray * depth`` of each valid pixel with a finite depth.
         rgb : ndarray (3, n)
             ``colour``'s dtype: uint8 for the device's reconstructions, a quarter of float32
-            in the view cache (the warp converts each splat's colour as it copies it).
+            in the view cache (the warp converts each splat's colour as it uses it).
         """
         src = np.flatnonzero(valid)
         return self.unproject_at(colour, depth.reshape(-1)[src], src)
 
-    def unproject_at(self, colour: np.ndarray, t: np.ndarray, src: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
-        """`unproject` of the pixels ``src`` (flat indices) given their depths ``t``."""
+    def unproject_at(self, colour: np.ndarray, t: np.ndarray, src: np.ndarray, *,
+                     packed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """`unproject` of the pixels ``src`` (flat indices) given their depths ``t``.
+
+        The rays are made for these pixels only, `CHUNK` at a time (a frame's worth of
+        rays would be 12 bytes per pixel held for good). With ``packed`` the points are
+        int16 (3, n) in `point_step`s from the orbit centre (half of float32's bytes: the
+        view cache's form, which `forward_warp` takes as well)."""
         t = np.asarray(t, dtype=np.float32)
         finite = np.isfinite(t)
         if not finite.all():
             src, t = src[finite], t[finite]
-        # row by row: fancy indexing along axis 1 would give a (n, 3)-ordered array, and
-        # every pass of the per-frame projection over it would be strided
-        points = np.empty((3, src.size), np.float32)
-        for r in range(3):
-            np.take(self.rays_t[r], src, out=points[r])
-        points *= t
+        points = np.empty((3, src.size), np.int16 if packed else np.float32)
+        for a in range(0, src.size, CHUNK):
+            b = min(a + CHUNK, src.size)
+            row, col = np.divmod(src[a:b], self.width)
+            gx, gy = self._gx[col], self._gy[row]
+            norm = gx * gx
+            norm += gy * gy
+            norm += 1.0
+            np.sqrt(norm, out=norm)
+            np.divide(gx, norm, out=gx)
+            np.divide(gy, norm, out=gy)
+            rays = (gx, gy, np.reciprocal(norm, out=norm))
+            for r in range(3):
+                p = rays[r].astype(np.float32)
+                p *= t[a:b]
+                if packed:
+                    if r == 2:
+                        p -= np.float32(self.distance)
+                    p *= np.float32(1.0 / self.point_step)
+                    np.rint(p, out=p)
+                    np.clip(p, -32767, 32767, out=p)
+                points[r, a:b] = p
         rgb = np.ascontiguousarray(np.take(colour.reshape(-1, 3), src, axis=0).T)
         return points, rgb
 
@@ -313,6 +358,11 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     (points beyond it are clamped onto that border, which is then emptied), so nothing
     needs masking.
 
+    Memory: two passes over the sources, one view at a time (the z-buffer, then the blend),
+    so a frame's temporaries are one view's; what persists is the warper's grid and the
+    splats' index and depth (8 bytes per splat, `Warper.splats`). Accumulation is float32
+    in place (``np.add.at``), never a float64 copy of the grid.
+
     Parameters
     ----------
     w : Warper
@@ -328,7 +378,6 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     """
     h, wd = w.height, w.width
     w2 = wd + 2
-    n = (h + 2) * w2
     p_t, r_t = target
     f32 = np.float32
     used = [(pts, rgb, src, float(wv)) for (pts, rgb), src, wv in zip(clouds, sources, weights)
@@ -340,24 +389,29 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     sx = 0.5 * h / w.half
     scale = np.diag([sx, -sx, 1.0])
     ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
-    total = sum(u[0].shape[1] for u in used)
-    idx, z, wgt, rgb = w.scratch(total)
+    idx = w.splats(sum(u[0].shape[1] for u in used))
+    zgrid, acc, covered = w.grid()
+    zbuf = zgrid.reshape(-1)
+    zbuf.fill(np.inf)
     spans = []
     o = 0
-    for pts, col, (p_s, r_s), wv in used:
+    for pts, col, (p_s, r_s), wv in used:  # pass 1: where each splat lands, the z-buffer
         k = pts.shape[1]
         s = slice(o, o + k)
-        m = (scale @ (r_t.T @ r_s)).astype(f32)
-        b = (scale @ (r_t.T @ (p_s - p_t))).astype(f32)
-        # einsum, not matmul: (3, 3) @ (3, n) float32 through BLAS is ~50x slower here
-        cam = np.einsum("ij,jk->ik", m, pts)
-        cam += b[:, None]
-        zz = cam[2]
-        z[s] = zz
-        behind = zz <= f32(1e-3)
-        np.maximum(zz, f32(1e-3), out=zz)
-        inv = np.reciprocal(zz, out=zz)
-        cx, cy = cam[0], cam[1]
+        m = scale @ (r_t.T @ r_s)
+        b = scale @ (r_t.T @ (p_s - p_t))
+        if pts.dtype == np.int16:  # packed (`Warper.unproject_at`): steps from the centre
+            b = b + m @ np.array([0.0, 0.0, w.distance])
+            m = m * w.point_step
+        m, b = m.astype(f32), b.astype(f32)
+        z = _forward(m, b, pts)
+        # einsum, not matmul: (2, 3) @ (3, n) float32 through BLAS is ~50x slower here
+        cxy = np.einsum("ij,jk->ik", m[:2], pts)
+        cxy += b[:2, None]
+        behind = z <= f32(1e-3)
+        inv = np.maximum(z, f32(1e-3))
+        np.reciprocal(inv, out=inv)
+        cx, cy = cxy[0], cxy[1]
         cx *= inv
         cx += f32(ox)
         cy *= inv
@@ -374,56 +428,76 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         cy *= f32(w2)
         cx += cy
         idx[s] = cx
-        rgb[:, s] = col
-        spans.append((s, wv))
+        del cxy, cx, cy, inv, behind
+        np.minimum.at(zbuf, idx[s], z)
+        del z
+        spans.append((s, pts, col, m, b, wv))
         o += k
-    zbuf = np.full(n, np.inf, dtype=f32)
-    np.minimum.at(zbuf, idx, z)
-    zmax = zbuf[idx]
-    zmax += f32(w.tol_mm)
-    passed = z <= zmax
-    for s, wv in spans:
-        np.multiply(passed[s], f32(wv), out=wgt[s])
-    # everything from here on the padded grid, its border (clamped strays) emptied
-    covered = np.isfinite(zbuf).reshape(h + 2, w2)
-    covered[[0, -1]] = False
-    covered[:, [0, -1]] = False
-    acc = np.empty((4, n), f32)  # the blend weight, then the weighted colours
-    acc[3] = np.bincount(idx, wgt, minlength=n)
-    for k in range(3):
-        np.multiply(rgb[k], wgt, out=rgb[k])
-        acc[k] = np.bincount(idx, rgb[k], minlength=n)
-    acc = acc.reshape(4, h + 2, w2)
-    acc[:, [0, -1]] = 0.0
-    acc[:, :, [0, -1]] = 0.0
+    # pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
+    # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
+    tol = f32(w.tol_mm)
+    for s, pts, _, m, b, _ in spans:
+        at = idx[s]
+        zmax = zbuf[at]
+        zmax += tol
+        at[_forward(m, b, pts) > zmax] = 0
+        del zmax
+    np.isfinite(zgrid, out=covered)
+    weight = zgrid  # the z-buffer is done with: it accumulates the blend weights now
+    weight.fill(0.0)
+    acc.fill(0.0)
+    flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
+    for s, _, col, _, _, wv in spans:  # pass 3: the blend
+        at = idx[s]
+        np.add.at(flat_w, at, f32(wv))
+        for c in range(3):
+            np.add.at(flat_acc[c], at, np.multiply(col[c], f32(wv), dtype=f32))
+    # everything from here on the padded grid, its border (clamped strays, hidden splats)
+    # emptied
+    for a_ in (covered, weight, *acc):
+        a_[[0, -1]] = 0
+        a_[:, [0, -1]] = 0
     if SPLAT_TENT:
-        acc = _tent(acc)
-    planes = acc[:3]
-    inv_t = np.zeros((h + 2, w2), f32)
-    np.divide(f32(1.0), acc[3], out=inv_t, where=covered)
-    planes *= inv_t
-    planes = _fill_holes_padded(planes, covered)
+        _tent(acc)
+        _tent(weight[None])
+    planes = acc
+    np.divide(f32(1.0), weight, out=weight, where=covered)
+    np.multiply(weight, covered, out=weight)  # 1 / weight where covered, else 0
+    planes *= weight
+    _fill_holes_padded(planes, covered)
     planes += f32(0.5)
     np.clip(planes, 0, 255, out=planes)
-    frame[...] = planes[:, 1:-1, 1:-1].transpose(1, 2, 0)
+    for c in range(3):
+        frame[..., c] = planes[c, 1:-1, 1:-1]
     return frame
 
 
-def _tent(a: np.ndarray) -> np.ndarray:
-    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32.
+def _forward(m: np.ndarray, b: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """The target camera's forward distance of points (``m @ pts + b``, row 2), float32:
+    the same operations in each pass, so equal values."""
+    z = np.einsum("j,jk->k", m[2], pts)
+    z += b[2]
+    return z
 
-    One plane at a time: the temporaries are a plane's, not the stack's (the same sums)."""
+
+def _tent(a: np.ndarray) -> np.ndarray:
+    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32, in
+    place, one plane at a time: the temporaries are two planes', not the stack's."""
     lo, mid = np.float32(0.125), np.float32(0.75)
-    out = np.empty_like(a)
+    side = np.empty(a.shape[1:], a.dtype)
     for k in range(a.shape[0]):
-        p, o = a[k], out[k]
+        p = a[k]
         t = p * mid
-        t[1:] += lo * p[:-1]
-        t[:-1] += lo * p[1:]
-        np.multiply(t, mid, out=o)
-        o[:, 1:] += lo * t[:, :-1]
-        o[:, :-1] += lo * t[:, 1:]
-    return out
+        np.multiply(p[:-1], lo, out=side[:-1])
+        t[1:] += side[:-1]
+        np.multiply(p[1:], lo, out=side[1:])
+        t[:-1] += side[1:]
+        np.multiply(t, mid, out=p)
+        np.multiply(t[:, :-1], lo, out=side[:, :-1])
+        p[:, 1:] += side[:, :-1]
+        np.multiply(t[:, 1:], lo, out=side[:, 1:])
+        p[:, :-1] += side[:, 1:]
+    return a
 
 
 def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -444,26 +518,28 @@ def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
 
 def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """`fill_holes` on planar channels (c, h + 2, w + 2) float32 with an empty border and 0
-    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place."""
+    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place.
+
+    The neighbour counts are uint8 (at most 8): a quarter of float32's temporaries."""
     c, hp, wp = planes.shape
     flat = planes.reshape(c, -1)
     offsets = [dy * wp + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    count = np.zeros((hp, wp), np.uint8)
     for _ in range(HOLE_PASSES):
-        cf = covered.astype(np.float32)
-        count = np.zeros_like(cf)
-        count[1:-1, 1:-1] = _box8(cf, hp - 2, wp - 2)
+        count[1:-1, 1:-1] = _box8(covered.view(np.uint8), hp - 2, wp - 2)
         fill = count >= HOLE_NEIGHBOURS
         fill &= ~covered
         at = np.flatnonzero(fill)
+        del fill
         if at.size == 0:
             break
         # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
         acc = flat[:, at + offsets[0]]
         for off in offsets[1:]:
             acc += flat[:, at + off]
-        acc *= np.float32(1.0) / count.reshape(-1)[at]
+        acc *= np.float32(1.0) / count.reshape(-1)[at].astype(np.float32)
         flat[:, at] = acc
-        covered |= fill
+        covered.reshape(-1)[at] = True
     return planes
 
 
@@ -495,23 +571,29 @@ def upsample2(d: np.ndarray) -> np.ndarray:
 
 def upsample2_at(d: np.ndarray, src: np.ndarray, width: int) -> np.ndarray:
     """`upsample2` of ``d`` (h, w) at the flat indices ``src`` of the (2h, 2w) result only
-    (the same float32 operations in the same order: equal values), float32 (len(src),)."""
+    (the same float32 operations in the same order: equal values), float32 (len(src),).
+
+    `CHUNK` indices at a time: the index temporaries stay small."""
     d = np.asarray(d, dtype=np.float32)
     hh, hw = d.shape
-    y, x = np.divmod(src, width)
-    iy, ix = y >> 1, x >> 1
-    # even output rows/columns take the previous half-resolution one, odd the next (clamped)
-    ny = iy + ((y & 1) * 2 - 1)
-    np.clip(ny, 0, hh - 1, out=ny)
-    nx = ix + ((x & 1) * 2 - 1)
-    np.clip(nx, 0, hw - 1, out=nx)
-    a, b = np.float32(0.75), np.float32(0.25)
-    r0 = iy * hw
-    r1 = ny * hw
     flat = d.reshape(-1)
-    near = a * flat[r0 + ix] + b * flat[r1 + ix]
-    far = a * flat[r0 + nx] + b * flat[r1 + nx]
-    return a * near + b * far
+    a, b = np.float32(0.75), np.float32(0.25)
+    out = np.empty(src.size, np.float32)
+    for lo in range(0, src.size, CHUNK):
+        y, x = np.divmod(src[lo:lo + CHUNK], width)
+        iy, ix = y >> 1, x >> 1
+        # even output rows/columns take the previous half-resolution one, odd the next
+        # (clamped)
+        ny = iy + ((y & 1) * 2 - 1)
+        np.clip(ny, 0, hh - 1, out=ny)
+        nx = ix + ((x & 1) * 2 - 1)
+        np.clip(nx, 0, hw - 1, out=nx)
+        r0 = iy * hw
+        r1 = ny * hw
+        near = a * flat[r0 + ix] + b * flat[r1 + ix]
+        far = a * flat[r0 + nx] + b * flat[r1 + nx]
+        out[lo:lo + CHUNK] = a * near + b * far
+    return out
 
 
 # ----------------------------------------------------------------------------- depth
@@ -566,10 +648,21 @@ class DepthEigenspace:
         self.table = table
         self.step = float(step)
         self.offset = float(offset)
-        nz = self.counts > 0
-        self._nz = nz
-        self._starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]])[nz].astype(np.int64)
-        self._scaled: np.ndarray | None = None
+        # the components in passes of whole cells, about COMPONENT_CHUNK at a time: (cells,
+        # first component, last component, each cell's first component within the pass)
+        ends = np.cumsum(self.counts)
+        self._passes: list[tuple[np.ndarray, int, int, np.ndarray]] = []
+        cells = np.flatnonzero(self.counts > 0)
+        i = 0
+        while i < cells.size:
+            first = int(ends[cells[i]] - self.counts[cells[i]])
+            j = i + 1
+            while j < cells.size and ends[cells[j]] - first <= COMPONENT_CHUNK:
+                j += 1
+            group = cells[i:j]
+            starts = (ends[group] - self.counts[group] - first).astype(np.int64)
+            self._passes.append((group, first, int(ends[group[-1]]), starts))
+            i = j
 
     @property
     def n_components(self) -> int:
@@ -628,14 +721,17 @@ class DepthEigenspace:
                    record["depth_offset_mm"])
 
     def reconstruct(self, view: int) -> np.ndarray:
-        """Depth map (h, w) float32 in mm along the rays, of training view ``view``."""
+        """Depth map (h, w) float32 in mm along the rays, of training view ``view``.
+
+        The int8 components are scaled to float32 a pass of whole cells at a time
+        (`COMPONENT_CHUNK`), never all at once."""
         y = self.table[view].astype(np.float32) * np.float32(self.step)
+        coef = self.scales * y
         cells = self.mean.copy()
-        if self._starts.size:
-            if self._scaled is None:  # the float32 components, once (~1 KB per component)
-                self._scaled = self.components.astype(np.float32)
-            w = self._scaled * (self.scales * y)[:, None]
-            cells[self._nz] += np.add.reduceat(w, self._starts, axis=0)
+        for group, a, b, starts in self._passes:
+            w = self.components[a:b].astype(np.float32)
+            w *= coef[a:b, None]
+            cells[group] += np.add.reduceat(w, starts, axis=0)
         full = merge_cells(cells, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
         return full + np.float32(self.offset)
 
@@ -705,7 +801,7 @@ class ViewSynthesizer:
         valid = valid > OBJECT_LEVEL
         src = np.flatnonzero(valid)
         depth = upsample2_at(self.depth.reconstruct(view), src, self.warper.width)
-        cloud = self.warper.unproject_at(colour, depth, src)
+        cloud = self.warper.unproject_at(colour, depth, src, packed=True)
         self._cache[view] = cloud
         while len(self._cache) > self.cache_views:
             self._cache.popitem(last=False)
@@ -718,10 +814,27 @@ class ViewSynthesizer:
         wts = np.asarray(wts, dtype=np.float64).ravel()
         used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
         idx, wts = idx[used], wts[used]
-        clouds = [self.view_cloud(int(i)) for i in idx]
+        views = [int(i) for i in idx]
+        self._make_room(views)
+        clouds = [self.view_cloud(i) for i in views]
         sources = [self.warper.pose(float(self.phi[i]), float(self.theta[i])) for i in idx]
         return forward_warp(self.warper, clouds, sources, wts,
                             self.warper.pose(phi_deg, theta_deg))
+
+    def _make_room(self, views: list[int]) -> None:
+        """Keep this frame's cached neighbours, and evict the views it does not need before
+        its misses are made (so no neighbour is evicted by another, and an evicted view's
+        memory is free before a new one takes it)."""
+        for v in views:
+            if v in self._cache:
+                self._cache.move_to_end(v)
+        missing = sum(v not in self._cache for v in views)
+        need = set(views)
+        while self._cache and len(self._cache) + missing > self.cache_views:
+            oldest = next(iter(self._cache))
+            if oldest in need:
+                break
+            del self._cache[oldest]
 
 
 class WarpWorker:

@@ -170,6 +170,63 @@ def test_warping_a_training_view_to_its_own_camera_gives_its_reconstruction(dept
     assert synth.misses - misses <= 4  # neighbours cached between frames of one drag
 
 
+def test_the_view_cache_keeps_a_frames_neighbours_and_evicts_only_others(depth_model):
+    """A cache of 4 views (`CACHE_VIEWS`) along a drag: a frame reconstructs exactly its
+    neighbours that are not cached, and never evicts one neighbour for another."""
+    from device_runtime.synthesis import CACHE_VIEWS
+
+    assert CACHE_VIEWS == 4
+    image = read_image(depth_model, key=KEY)
+    synth = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    seen = set()
+    rng = np.random.default_rng(3)
+    view = (7.0, -30.0)
+    for step in range(60):  # a drag that turns back and forth across grid lines
+        view = ((view[0] + rng.uniform(-12.0, 16.0)) % 360.0,
+                float(np.clip(view[1] + rng.uniform(-8.0, 9.0), -75.0, 75.0)))
+        idx, w = synth.standalone.interpolator.weights(*view)
+        need = {int(i) for i, x in zip(np.ravel(idx), np.ravel(w)) if x > 0}
+        cached = set(synth._cache)
+        misses = synth.misses
+        synth.frame(*view)
+        assert synth.misses - misses == len(need - cached), (step, need, cached)
+        assert need <= set(synth._cache) and len(synth._cache) <= CACHE_VIEWS
+        seen |= need
+    assert len(seen) > 2 * CACHE_VIEWS  # the drag crossed several grid cells
+
+
+def test_depth_reconstruction_in_passes_of_whole_cells_is_the_one_pass_result(depth_model,
+                                                                               monkeypatch):
+    from device_runtime import synthesis
+
+    image = read_image(depth_model, key=KEY)
+    whole = synthesis.DepthEigenspace.from_image(image)
+    monkeypatch.setattr(synthesis, "COMPONENT_CHUNK", 3)
+    passes = synthesis.DepthEigenspace.from_image(read_image(depth_model, key=KEY))
+    assert len(passes._passes) > 3 * len(whole._passes)
+    for view in (0, 33, 101):
+        np.testing.assert_array_equal(passes.reconstruct(view), whole.reconstruct(view))
+
+
+def test_a_standalone_device_warps_with_the_displays_reconstructor(depth_model):
+    """One set of colour buffers on a standalone device (it shows warps only); a predicting
+    device's warp worker, beside the display's host frames, has its own."""
+    alone = LoadedModel.build(read_image(depth_model, key=KEY), slot="A", generation=1,
+                              test=False, want_standalone=True)
+    try:
+        assert alone.synthesis.reconstructor is alone.reconstructor
+        assert alone.warp_worker is None
+    finally:
+        alone.close()
+    served = LoadedModel.build(read_image(depth_model, key=KEY), slot="A", generation=1,
+                               test=False, want_predictor=True)
+    try:
+        assert served.warp_worker is not None
+        assert served.synthesis.reconstructor is not served.reconstructor
+    finally:
+        served.close()
+
+
 def _tent_normalised(img, covered):
     """[1/8, 3/4, 1/8] in y and x over the covered pixels (zero outside), normalised."""
     k = np.array([0.125, 0.75, 0.125])

@@ -185,3 +185,85 @@ def test_fill_holes_closes_cracks_not_the_silhouette():
     out = fill_holes(frame.copy(), covered.copy())
     assert math.isclose(float(out[4, 4, 0]), 100.0)
     assert np.all(out[~np.pad(np.ones((5, 5), bool), 2)] == 0.0)  # the outside stays empty
+
+
+def _plane_scene(size, radius=10.0, fov=30.0):
+    """The analytic textured plane of the test above: image(phi, theta) -> rgb, depth, ok."""
+    center = np.array([1.0, -2.0, 3.0])
+    normal = np.array([1.0, 0.3, 0.2])
+    normal /= np.linalg.norm(normal)
+
+    def image(phi, theta):
+        cam = orbit_camera(View(phi, theta), center, radius, fov_deg=fov)
+        o, d = cam.rays(size, size)
+        t = ((center - o) @ normal) / (d @ normal)
+        x = o + t[..., None] * d - center
+        ok = np.linalg.norm(x, axis=-1) < 0.8 * radius
+        tex = np.stack([np.sin(x[..., 0] / 2.0), np.cos(x[..., 1] / 2.5),
+                        np.sin((x[..., 2] + x[..., 0]) / 3.0)], axis=-1)
+        rgb = np.where(ok[..., None], np.rint(128 + 100 * tex), 0).astype(np.uint8)
+        return rgb, np.where(ok, t, np.nan).astype(np.float32), ok
+
+    return image, radius / math.sin(math.radians(fov) / 2.0)
+
+
+def test_packed_points_are_the_float_points_to_half_a_step_and_warp_alike():
+    """The view cache's int16 points (`unproject_at(packed=True)`): within half a
+    `point_step` of the float32 points, and the same frame but for a few splats that
+    crossed a pixel edge."""
+    from device_runtime.synthesis import Warper, forward_warp
+
+    size = 96
+    image, distance = _plane_scene(size)
+    warper = Warper(30.0, distance, size, size, 0.4)
+    src, depth, ok = image(20.0, 5.0)
+    at = np.flatnonzero(ok)
+    pts, rgb = warper.unproject_at(src, depth.reshape(-1)[at], at)
+    q, qrgb = warper.unproject_at(src, depth.reshape(-1)[at], at, packed=True)
+    assert q.dtype == np.int16 and np.array_equal(rgb, qrgb)
+    back = q.astype(float) * warper.point_step
+    back[2] += distance
+    # half a step, and float32's rounding of the points themselves
+    assert np.abs(back - pts).max() <= 0.5 * warper.point_step + 1e-6 * distance
+    assert warper.point_step < 1e-4 * distance  # far below a pixel (~distance / size)
+    args = ([warper.pose(20.0, 5.0)], np.array([1.0]), warper.pose(32.0, 5.0))
+    a = forward_warp(warper, [(pts, rgb)], *args)
+    b = forward_warp(warper, [(q, qrgb)], *args)
+    assert (a != b).any(axis=2).mean() < 0.02
+    assert np.abs(a.astype(int) - b).mean() < 0.1
+
+
+def test_a_frames_memory_is_the_warpers_grid_and_one_views_temporaries():
+    """What a frame holds beyond its input: the warper's grid (z-buffer, 3 float32
+    accumulators, coverage: 17 bytes per padded pixel) and 4 bytes per splat, kept between
+    frames; while it runs, one view's projection temporaries and two filter planes (under
+    24 bytes per pixel), never a full-frame float64 copy or every view's splats at once."""
+    import tracemalloc
+
+    from device_runtime.synthesis import Warper, forward_warp
+
+    size = 192
+    image, distance = _plane_scene(size)
+    warper = Warper(30.0, distance, size, size, 0.4)
+    views = [(20.0, 5.0), (32.0, 5.0), (20.0, 17.0), (32.0, 17.0)]
+    clouds = []
+    for v in views:
+        rgb, depth, ok = image(*v)
+        clouds.append(warper.unproject(rgb, depth, ok))
+    splats = sum(c[0].shape[1] for c in clouds)
+    assert splats > 1.5 * size * size  # nearly half of every view is object
+    args = ([warper.pose(*v) for v in views], np.full(4, 0.25), warper.pose(26.0, 11.0))
+    padded = (size + 2) ** 2
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        forward_warp(warper, clouds, *args)  # the warper's buffers are made here
+        kept = tracemalloc.get_traced_memory()[0] - before
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        forward_warp(warper, clouds, *args)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert kept <= 17 * padded + 5 * splats + 65536, (kept, padded, splats)
+    assert peak <= 24 * size * size + 65536, (peak / size**2)
