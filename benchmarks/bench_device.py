@@ -45,8 +45,10 @@ w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a
    the synthesis' declared scratch (`synthesis_memory_bytes`) and depth sections. Target:
    < 40 ms at 512. With ``--rss-frames N`` also the peak RSS (``VmHWM``) of a real
    ``eigencast-device --standalone`` process showing N orbit frames of the image (and of
-   ``--warp-baseline``, the model without depth), against (d)'s bound plus the depth
-   sections and the synthesis scratch.
+   ``--warp-baseline``, the model without depth), against the issue's bound: (d)'s plus
+   the image's other sections (the standalone table) and its depth sections (the synthesis'
+   working set must fit inside it); and against the bare runtime process plus what the
+   image declares it needs (`required_ram_bytes`, with the synthesis scratch).
 
 Models. Real ones where it matters: ``--volume`` (default the shared vismale_head if
 present, else ``builtin:head``) rendered from ``--views`` (default ``grid:36x7``) at each of
@@ -818,7 +820,9 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
         raise RuntimeError(f"standalone device exited {proc.returncode}: {err.strip()[-300:]}")
     stats = read_json(stats_path)
     peak = max(hwm, int(stats.get("peak_rss_bytes") or 0))
-    bound = rss_bound_bytes(eig) + table + depth + scratch
+    # issue 15's criterion: (d)'s bound plus the sections the image adds (the synthesis'
+    # scratch is what must fit inside it; the image declares it, compared below)
+    bound = rss_bound_bytes(eig) + table + depth
     shutil.rmtree(flash, ignore_errors=True)
     return {"image": path.name, "size": image.image_shape[0],
             "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
@@ -835,10 +839,10 @@ def print_warp_rss(r: dict) -> None:
           f"RSS {r['peak_rss_mb']:.1f} MB, {r['ratio_peak_bound']:.2f}x the bound "
           f"{r['bound_mb']:.1f} MB ({ok}: 1.2 x eigenspace {r['eigenspace_mb']:.1f} MB + 64 MiB"
           f" + other sections {r['table_mb']:.1f} MB + depth sections "
-          f"{r['depth_sections_mb']:.1f} MB + synthesis scratch "
-          f"{r['synthesis_scratch_mb']:.1f} MB); {r['ratio_peak_declared']:.2f}x the bare "
+          f"{r['depth_sections_mb']:.1f} MB); {r['ratio_peak_declared']:.2f}x the bare "
           f"runtime process {r['bare_rss_mb']:.1f} MB + the image's declared "
-          f"{r['declared_mb']:.1f} MB", flush=True)
+          f"{r['declared_mb']:.1f} MB (synthesis scratch {r['synthesis_scratch_mb']:.1f} MB "
+          "of it)", flush=True)
 
 
 def print_warp(r: dict) -> None:
