@@ -48,7 +48,10 @@ w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a
    ``--warp-baseline``, the model without depth), against the issue's bound: (d)'s plus
    the image's other sections (the standalone table) and its depth sections (the synthesis'
    working set must fit inside it); and against the bare runtime process plus what the
-   image declares it needs (`required_ram_bytes`, with the synthesis scratch).
+   image declares it needs (`required_ram_bytes`, with the synthesis scratch). With
+   ``--served-rss`` also a served device that predicts: its own orbit's view requests
+   answered by ``serve --scores predict``, each new view shown as the blend and then, if no
+   host frame came first, as the warp worker's warp.
 
 Models. Real ones where it matters: ``--volume`` (default the shared vismale_head if
 present, else ``builtin:head``) rendered from ``--views`` (default ``grid:36x7``) at each of
@@ -774,12 +777,17 @@ def section_warp(path: Path, frames: int) -> dict:
             "required_ram_bytes": required_ram_bytes(manifest)}
 
 
-def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
+def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
+                     served: bool = False) -> dict:
     """(w, memory): peak RSS of a real ``eigencast-device --standalone`` process showing
     ``frames`` frames of an orbit from ``path``, against the device bound of (d) plus what
     the image adds: its extra sections as held in memory (the standalone score table, the
-    depth eigenspace) and the declared synthesis scratch; and against the bare runtime
-    process plus what the image declares it needs (`required_ram_bytes`)."""
+    depth eigenspace); and against the bare runtime process plus what the image declares it
+    needs (`required_ram_bytes`, with the synthesis scratch). With ``served`` the device is
+    served and predicts instead: its own ``--orbit`` drives view requests that ``serve
+    --scores predict`` answers, and each new view is shown as the blend, then as its warp
+    (made on the warp worker's thread, with its own reconstructor) unless the host's frame
+    came first."""
     from device_runtime.image_receiver import required_ram_bytes
     from device_runtime.synthesis import synthesis_memory_bytes
     from host.link.provisioning import provision
@@ -804,28 +812,55 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
     declared = required_ram_bytes(manifest)
     stats_path = work / f"rss-warp-{path.stem}.json"
     stats_path.unlink(missing_ok=True)
-    cmd = [sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash", str(flash),
-           "--headless", "--orbit", "turn:12:15", "--max-frames", str(frames), "--stats",
+    run = ["--headless", "--orbit", "turn:12:15", "--max-frames", str(frames), "--stats",
            str(stats_path), "--ram-budget", "1024"]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True)
     hwm = 0
-    while proc.poll() is None:
-        hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
-        time.sleep(0.05)
+    if served:
+        from host.link.serving import serve
+
+        device = DeviceProcess(flash, "--insecure", *run)
+        stop = threading.Event()
+        failed: list[BaseException] = []
+
+        def host() -> None:
+            try:
+                serve(path, device.url, insecure=True, scores="predict", reconnect=False,
+                      stop=stop, stats_every_s=0, log=lambda line: None)
+            except BaseException as exc:  # reported below
+                failed.append(exc)
+
+        thread = threading.Thread(target=host, daemon=True)
+        thread.start()
+        while device.proc.poll() is None:
+            hwm = max(hwm, proc_status(device.proc.pid).get("VmHWM", 0))
+            time.sleep(0.05)
+        stop.set()
+        thread.join(30)
+        rc = device.proc.returncode
+        err = "\n".join(device.lines[-3:] + [repr(e) for e in failed])
+    else:
+        cmd = [sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash",
+               str(flash), *run]
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True)
+        while proc.poll() is None:
+            hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
+            time.sleep(0.05)
+        rc = proc.returncode
+        err = proc.stderr.read() if proc.stderr else ""
     wall = time.perf_counter() - t0
-    err = proc.stderr.read() if proc.stderr else ""
-    if proc.returncode != 0:
-        raise RuntimeError(f"standalone device exited {proc.returncode}: {err.strip()[-300:]}")
+    if rc != 0:
+        raise RuntimeError(f"device exited {rc}: {err.strip()[-300:]}")
     stats = read_json(stats_path)
     peak = max(hwm, int(stats.get("peak_rss_bytes") or 0))
     # issue 15's criterion: (d)'s bound plus the sections the image adds (the synthesis'
     # scratch is what must fit inside it; the image declares it, compared below)
     bound = rss_bound_bytes(eig) + table + depth
     shutil.rmtree(flash, ignore_errors=True)
-    return {"image": path.name, "size": image.image_shape[0],
+    return {"image": path.name, "size": image.image_shape[0], "served": served,
             "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
+            "warped_frames": int(stats.get("synthesized_frames", 0)),
             "eigenspace_mb": eig / MB, "depth_sections_mb": depth / MB, "table_mb": table / MB,
             "declared_mb": declared / MB, "ratio_peak_declared": peak / (bare + declared),
             "synthesis_scratch_mb": scratch / MB, "peak_rss_mb": peak / MB,
@@ -835,7 +870,9 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int) -> dict:
 
 def print_warp_rss(r: dict) -> None:
     ok = "within" if r["ratio_peak_bound"] <= 1 else "OVER"
-    print(f"  {r['image']}: {r['frames']} standalone frames in {r['wall_s']:.0f} s; device peak "
+    kind = (f"served predicting ({r['warped_frames']} warps shown)" if r["served"]
+            else "standalone")
+    print(f"  {r['image']}: {r['frames']} {kind} frames in {r['wall_s']:.0f} s; device peak "
           f"RSS {r['peak_rss_mb']:.1f} MB, {r['ratio_peak_bound']:.2f}x the bound "
           f"{r['bound_mb']:.1f} MB ({ok}: 1.2 x eigenspace {r['eigenspace_mb']:.1f} MB + 64 MiB"
           f" + other sections {r['table_mb']:.1f} MB + depth sections "
@@ -878,6 +915,10 @@ def main() -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object at the end")
     parser.add_argument("--warp-image", type=Path, default=None,
                         help="section w: a standalone image fitted with --depth")
+    parser.add_argument("--served-rss", action="store_true",
+                        help="section w with --rss-frames: also a served device that predicts "
+                             "(its own orbit, serve --scores predict answering; needs the "
+                             "model's volume for the host's ray-casts)")
     parser.add_argument("--warp-baseline", type=Path, default=None,
                         help="section w with --rss-frames: the same model without depth, "
                              "whose standalone process is measured beside it")
@@ -891,12 +932,15 @@ def main() -> int:
         out: dict[str, Any] = {"warp": row}
         if args.rss_frames:
             bare = bare_rss_bytes()
-            print(f"(w) device peak RSS, standalone process, {args.rss_frames} orbit frames",
-                  flush=True)
             rows = []
-            for path in [args.warp_image, *([args.warp_baseline] if args.warp_baseline else [])]:
-                rows.append(section_warp_rss(path, args.work, args.rss_frames, bare))
-                print_warp_rss(rows[-1])
+            for served in (False, True) if args.served_rss else (False,):
+                print(f"(w) device peak RSS, {'served' if served else 'standalone'} process, "
+                      f"{args.rss_frames} orbit frames", flush=True)
+                for path in [args.warp_image, *([args.warp_baseline] if args.warp_baseline
+                                                else [])]:
+                    rows.append(section_warp_rss(path, args.work, args.rss_frames, bare,
+                                                 served=served))
+                    print_warp_rss(rows[-1])
             out["warp_rss"] = rows
         if args.json:
             print(json.dumps(out))

@@ -89,7 +89,7 @@ from device_runtime.standalone import (
     standalone_order,
     standalone_table,
 )
-from device_runtime.synthesis import ViewSynthesizer, WarpWorker
+from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
@@ -190,7 +190,8 @@ class LoadedModel:
             # from the display's reconstructor: the worker needs one of its own.
             synthesis = ViewSynthesizer(
                 image, table, reconstructor if standalone is not None
-                else Reconstructor.from_image(image, threads="auto"))
+                else Reconstructor.from_image(image, threads=1,
+                                              scratch_bytes=WORKER_SCRATCH_BYTES))
         worker = WarpWorker(synthesis) if synthesis is not None and standalone is None else None
         return cls(image, reconstructor, decoder, slot, generation, test, standalone,
                    predictor=predictor, synthesis=synthesis, warp_worker=worker)

@@ -41,7 +41,6 @@ from typing import Any
 
 import numpy as np
 
-from device_runtime.reconstruct import DEFAULT_SCRATCH_BYTES
 from device_runtime.standalone import delta_decode, standalone_order
 from protocol.errors import ImageFormatError
 
@@ -51,6 +50,7 @@ __all__ = [
     "DEPTH_SECTIONS",
     "KNOWN_SYNTHESIS",
     "SYNTHESIS_METHOD",
+    "WORKER_SCRATCH_BYTES",
     "DepthEigenspace",
     "ViewSynthesizer",
     "WarpWorker",
@@ -98,6 +98,10 @@ MAX_WARP_PIXELS = 1 << 24
 CHUNK = 1 << 15
 #: Depth components per pass of `DepthEigenspace.reconstruct` (whole cells at a time).
 COMPONENT_CHUNK = 256
+#: Scratch of a predicting device's warp worker's own reconstructor (one thread): a third
+#: of the display's, for 1.5x its time per neighbour (a cache miss, ~1.7 per drag frame),
+#: on a thread that shares the 2 cores with the display anyway.
+WORKER_SCRATCH_BYTES = 1 << 20
 #: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
 #: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
 HOLE_PASSES = 2
@@ -175,8 +179,8 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     pixels at most: the reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
     planes, and the warped frame on show (its own array). A predicting device's worker
-    also has its own reconstructor (frame buffers and scratch), counted here; a standalone
-    device shares the display's.
+    also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`), counted
+    here; a standalone device shares the display's.
     """
     record = manifest.get("synthesis")
     if record is None:
@@ -189,7 +193,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     depth = 3 * 4 * (h // 2 + cell) * (w // 2 + cell) + n * (8 + 4 + 3)
     depth += 4 * max(COMPONENT_CHUNK, cell * cell) * cell * cell
     warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
-    colour = 2 * n * 3 + DEFAULT_SCRATCH_BYTES
+    colour = 2 * n * 3 + WORKER_SCRATCH_BYTES
     return int(cache + depth + warp + colour)
 
 
@@ -258,10 +262,10 @@ class Warper:
 
     def splats(self, total: int) -> np.ndarray:
         """The target pixel of each of ``total`` splats (int32), reused between frames
-        (grown by a quarter when short, never shrunk)."""
+        (grown with a sixteenth to spare when short, never shrunk)."""
         if self._splats is None or self._splats.size < total:
             self._splats = None  # the old one goes before the new one is made
-            self._splats = np.empty(int(total * 1.25), np.int32)
+            self._splats = np.empty(int(total * 1.0625), np.int32)
         return self._splats[:total]
 
     def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -318,9 +322,11 @@ class Warper:
             np.sqrt(norm, out=norm)
             np.divide(gx, norm, out=gx)
             np.divide(gy, norm, out=gy)
+            del row, col
             rays = (gx, gy, np.reciprocal(norm, out=norm))
+            p = np.empty(b - a, np.float32)
             for r in range(3):
-                p = rays[r].astype(np.float32)
+                p[...] = rays[r]
                 p *= t[a:b]
                 if packed:
                     if r == 2:
@@ -329,7 +335,11 @@ class Warper:
                     np.rint(p, out=p)
                     np.clip(p, -32767, 32767, out=p)
                 points[r, a:b] = p
-        rgb = np.ascontiguousarray(np.take(colour.reshape(-1, 3), src, axis=0).T)
+            del gx, gy, norm, rays, p
+        rgb = np.empty((3, src.size), colour.dtype)
+        flat = colour.reshape(-1, 3)
+        for c in range(3):
+            rgb[c] = flat[src, c]
         return points, rgb
 
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
@@ -358,10 +368,11 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     (points beyond it are clamped onto that border, which is then emptied), so nothing
     needs masking.
 
-    Memory: two passes over the sources, one view at a time (the z-buffer, then the blend),
-    so a frame's temporaries are one view's; what persists is the warper's grid and the
-    splats' index and depth (8 bytes per splat, `Warper.splats`). Accumulation is float32
-    in place (``np.add.at``), never a float64 copy of the grid.
+    Memory: three passes over the sources, `CHUNK` points at a time (the z-buffer; the
+    z-test, which moves a hidden splat to the border pixel; the blend), so a frame's
+    temporaries are a chunk's; what persists is the warper's grid and each splat's target
+    pixel (4 bytes, `Warper.splats`). Accumulation is float32 in place (``np.add.at``),
+    never a float64 copy of the grid.
 
     Parameters
     ----------
@@ -393,17 +404,21 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     zgrid, acc, covered = w.grid()
     zbuf = zgrid.reshape(-1)
     zbuf.fill(np.inf)
-    spans = []
+    pieces = []  # (slice of idx, the points and colours there, the view's m, b and weight)
     o = 0
-    for pts, col, (p_s, r_s), wv in used:  # pass 1: where each splat lands, the z-buffer
-        k = pts.shape[1]
-        s = slice(o, o + k)
+    for pts, col, (p_s, r_s), wv in used:
         m = scale @ (r_t.T @ r_s)
         b = scale @ (r_t.T @ (p_s - p_t))
         if pts.dtype == np.int16:  # packed (`Warper.unproject_at`): steps from the centre
             b = b + m @ np.array([0.0, 0.0, w.distance])
             m = m * w.point_step
         m, b = m.astype(f32), b.astype(f32)
+        k = pts.shape[1]
+        for a in range(0, k, CHUNK):  # CHUNK points at a time: small temporaries
+            e = min(a + CHUNK, k)
+            pieces.append((slice(o + a, o + e), pts[:, a:e], col[:, a:e], m, b, f32(wv)))
+        o += k
+    for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
         z = _forward(m, b, pts)
         # einsum, not matmul: (2, 3) @ (3, n) float32 through BLAS is ~50x slower here
         cxy = np.einsum("ij,jk->ik", m[:2], pts)
@@ -431,12 +446,10 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         del cxy, cx, cy, inv, behind
         np.minimum.at(zbuf, idx[s], z)
         del z
-        spans.append((s, pts, col, m, b, wv))
-        o += k
     # pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
     # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
     tol = f32(w.tol_mm)
-    for s, pts, _, m, b, _ in spans:
+    for s, pts, _, m, b, _ in pieces:
         at = idx[s]
         zmax = zbuf[at]
         zmax += tol
@@ -447,11 +460,11 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     weight.fill(0.0)
     acc.fill(0.0)
     flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
-    for s, _, col, _, _, wv in spans:  # pass 3: the blend
+    for s, _, col, _, _, wv in pieces:  # pass 3: the blend
         at = idx[s]
-        np.add.at(flat_w, at, f32(wv))
+        np.add.at(flat_w, at, wv)
         for c in range(3):
-            np.add.at(flat_acc[c], at, np.multiply(col[c], f32(wv), dtype=f32))
+            np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
     # everything from here on the padded grid, its border (clamped strays, hidden splats)
     # emptied
     for a_ in (covered, weight, *acc):
@@ -482,21 +495,23 @@ def _forward(m: np.ndarray, b: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 def _tent(a: np.ndarray) -> np.ndarray:
     """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32, in
-    place, one plane at a time: the temporaries are two planes', not the stack's."""
-    lo, mid = np.float32(0.125), np.float32(0.75)
-    side = np.empty(a.shape[1:], a.dtype)
+    place, one plane at a time with one plane of scratch.
+
+    Each pass scales its input by 1/8 in place (exact: a power of two) and takes 6 of it for
+    the centre (one rounding, as 3/4 of the unscaled input), so the sums are those of
+    ``0.75 * p + 0.125 * p[-1] + 0.125 * p[+1]`` without a second temporary."""
+    lo, six = np.float32(0.125), np.float32(6.0)
+    t = np.empty(a.shape[1:], a.dtype)
     for k in range(a.shape[0]):
         p = a[k]
-        t = p * mid
-        np.multiply(p[:-1], lo, out=side[:-1])
-        t[1:] += side[:-1]
-        np.multiply(p[1:], lo, out=side[1:])
-        t[:-1] += side[1:]
-        np.multiply(t, mid, out=p)
-        np.multiply(t[:, :-1], lo, out=side[:, :-1])
-        p[:, 1:] += side[:, :-1]
-        np.multiply(t[:, 1:], lo, out=side[:, 1:])
-        p[:, :-1] += side[:, 1:]
+        p *= lo
+        np.multiply(p, six, out=t)
+        t[1:] += p[:-1]
+        t[:-1] += p[1:]
+        t *= lo
+        np.multiply(t, six, out=p)
+        p[:, 1:] += t[:, :-1]
+        p[:, :-1] += t[:, 1:]
     return a
 
 
@@ -590,9 +605,14 @@ def upsample2_at(d: np.ndarray, src: np.ndarray, width: int) -> np.ndarray:
         np.clip(nx, 0, hw - 1, out=nx)
         r0 = iy * hw
         r1 = ny * hw
+        del y, x, iy, ny
         near = a * flat[r0 + ix] + b * flat[r1 + ix]
         far = a * flat[r0 + nx] + b * flat[r1 + nx]
-        out[lo:lo + CHUNK] = a * near + b * far
+        del r0, r1, ix, nx
+        near *= a
+        far *= b
+        np.add(near, far, out=out[lo:lo + CHUNK])
+        del near, far
     return out
 
 
@@ -797,9 +817,10 @@ class ViewSynthesizer:
         colour = self.reconstructor.update(self.standalone.training_scores(view))
         # the largest channel, as two element-wise maxima (a reduce over the last axis of
         # (h, w, 3) uint8 costs as much as the reconstruction)
-        valid = np.maximum(np.maximum(colour[..., 0], colour[..., 1]), colour[..., 2])
-        valid = valid > OBJECT_LEVEL
-        src = np.flatnonzero(valid)
+        top = np.maximum(colour[..., 0], colour[..., 1])
+        np.maximum(top, colour[..., 2], out=top)
+        src = np.flatnonzero(top > OBJECT_LEVEL).astype(np.int32)
+        del top
         depth = upsample2_at(self.depth.reconstruct(view), src, self.warper.width)
         cloud = self.warper.unproject_at(colour, depth, src, packed=True)
         self._cache[view] = cloud
