@@ -819,6 +819,10 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     if served:
         from host.link.serving import serve
 
+        # one turn of the orbit (12 s), however many frames: a predicting device shows a
+        # blend on every tick whose view moved, hundreds a second until the host is there
+        run[run.index("--orbit") + 1] = "turn:12:15:1"
+        run[run.index("--max-frames") + 1] = str(max(frames, 100_000))
         device = DeviceProcess(flash, "--insecure", *run)
         stop = threading.Event()
         failed: list[BaseException] = []
@@ -839,6 +843,8 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
         thread.join(30)
         rc = device.proc.returncode
         err = "\n".join(device.lines[-3:] + [repr(e) for e in failed])
+        if failed:
+            print(f"    serve failed: {failed[0]!r}"[:300], flush=True)
     else:
         cmd = [sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash",
                str(flash), *run]
@@ -861,6 +867,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     return {"image": path.name, "size": image.image_shape[0], "served": served,
             "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
             "warped_frames": int(stats.get("synthesized_frames", 0)),
+            "host_frames": int(stats.get("packets", 0)),
             "eigenspace_mb": eig / MB, "depth_sections_mb": depth / MB, "table_mb": table / MB,
             "declared_mb": declared / MB, "ratio_peak_declared": peak / (bare + declared),
             "synthesis_scratch_mb": scratch / MB, "peak_rss_mb": peak / MB,
@@ -870,8 +877,8 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
 
 def print_warp_rss(r: dict) -> None:
     ok = "within" if r["ratio_peak_bound"] <= 1 else "OVER"
-    kind = (f"served predicting ({r['warped_frames']} warps shown)" if r["served"]
-            else "standalone")
+    kind = (f"served predicting ({r['warped_frames']} warps shown, {r['host_frames']} host "
+            "frames received)" if r["served"] else "standalone")
     print(f"  {r['image']}: {r['frames']} {kind} frames in {r['wall_s']:.0f} s; device peak "
           f"RSS {r['peak_rss_mb']:.1f} MB, {r['ratio_peak_bound']:.2f}x the bound "
           f"{r['bound_mb']:.1f} MB ({ok}: 1.2 x eigenspace {r['eigenspace_mb']:.1f} MB + 64 MiB"

@@ -423,6 +423,7 @@ class RuntimeDevice(Device):
         self._last_y: np.ndarray | None = None
         self._shown_frame: np.ndarray | None = None  # what the presenter shows (redraws)
         self._warp_due: tuple[float, float] | None = None  # served: the blend shown, warp next
+        self._blend_s = -1.0  # when a predicting device last showed a moved view's blend
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
         super().__init__(config, log=log)
@@ -779,17 +780,28 @@ class RuntimeDevice(Device):
                             break
                         self.set_view(*view)
                         waiting_for = view
+                # A predicting device shows at most one blend per display refresh (_TICK_S,
+                # headless too: its benchmarks stand for a window) while its view moves: with
+                # a warp due the loop turns every _WARP_POLL_S, and a blend on every turn (a
+                # drag's or a clock-driven orbit's view moves on each) took the cores from the
+                # warp worker and the link (at 512 headless: 70 blends a second)
+                blend_in = 0.0
                 if self._view_dirty and model is not None:
-                    self._view_dirty = False
-                    if model.standalone is not None:
-                        y = model.standalone.scores(*self.view)
-                        self._present(model, y, {"phi_deg": self.view[0],
-                                                 "theta_deg": self.view[1], "key": True},
-                                      warp=True)
-                    elif model.predictor is not None:
-                        self._predict_view(model)
+                    if (model.standalone is None and model.predictor is not None
+                            and now - self._blend_s < _TICK_S):
+                        blend_in = _TICK_S - (now - self._blend_s)
                     else:
-                        self.limiter.offer(self.view)
+                        self._view_dirty = False
+                        if model.standalone is not None:
+                            y = model.standalone.scores(*self.view)
+                            self._present(model, y, {"phi_deg": self.view[0],
+                                                     "theta_deg": self.view[1], "key": True},
+                                          warp=True)
+                        elif model.predictor is not None:
+                            self._blend_s = now
+                            self._predict_view(model)
+                        else:
+                            self.limiter.offer(self.view)
                 if not self.standalone:
                     view = self.limiter.due(now)
                     if view is not None:
@@ -800,6 +812,8 @@ class RuntimeDevice(Device):
                                                                  self.limiter.min_interval_s)
                 if self._warp_due is not None:  # look for the warp often, input comes first
                     wait = min(wait, _WARP_POLL_S)
+                if blend_in > 0.0:
+                    wait = min(wait, blend_in)
                 item = self._scores.take(wait if model is not None else tick)
                 if item is not None and item.model is self._model:
                     d = item.scores

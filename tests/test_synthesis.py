@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -376,6 +377,34 @@ def test_a_predicting_device_warps_its_own_frames_and_shows_host_frames_as_sent(
     finally:
         plain.close()
         no_depth.close()
+
+
+def test_a_predicting_device_shows_at_most_one_blend_per_display_refresh(depth_model,
+                                                                      tmp_path):
+    """A view that moves on every turn of the display loop (a clock-driven orbit, a fast
+    drag) gets one blend per display refresh (60 Hz), not one per turn: with a warp due the
+    loop turns every few milliseconds, and a blend on each took the cores from the warp and
+    the link."""
+    from device_runtime.device import DeviceConfig
+    from device_runtime.orbit import parse_orbit
+    from device_runtime.runtime import _TICK_S, RuntimeDevice
+
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY), predict=True,
+                           view=(0.0, 15.0), orbit=parse_orbit("turn:2:15:1"),
+                           log=lambda _: None)
+    loaded = LoadedModel.build(read_image(depth_model, key=KEY), slot="A", generation=1,
+                               test=False, want_predictor=True)
+    device._models.put(loaded)
+    t0 = time.monotonic()
+    try:
+        device.run_display()
+    finally:
+        loaded.close()
+    elapsed = time.monotonic() - t0
+    stats = device.runtime_stats.as_dict()
+    assert stats["predicted_frames"] >= 5  # the orbit moved and was shown
+    # the first frame, then one per refresh at most (a loaded machine shows fewer, not more)
+    assert stats["predicted_frames"] <= elapsed / _TICK_S + 2, (stats, elapsed)
 
 
 def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, tmp_path):
