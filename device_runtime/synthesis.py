@@ -80,7 +80,8 @@ DEPTH_SECTIONS = ("depth_counts", "depth_scales", "depth_mean", "depth_component
 DEPTH_DELTA_SECTION = "depth_scores_delta"
 #: Training views whose points and colours stay cached (a view at 512: ~1.5 MB): the
 #: neighbours of one frame. While a drag moves they change only every grid step; a cache
-#: of 8 made 0.58 instead of 0.60 reconstructions per frame of an orbit, for 6 MB more.
+#: of 8 made as many reconstructions (0.58 per frame of an orbit, 1.67 of a 3-degree
+#: drag at 512), for 6 MB more.
 CACHE_VIEWS = 4
 
 #: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
@@ -93,8 +94,9 @@ Z_TOLERANCE = 0.02
 SPLAT_TENT = True
 #: The warp indexes its padded grid in float32, exact below 2**24 pixels (4094 x 4094).
 MAX_WARP_PIXELS = 1 << 24
-#: Pixels per pass of the per-view work done on a cache miss (rays, depth upsampling):
-#: bounds its temporaries to a few hundred kilobytes whatever the frame size.
+#: Pixels or points per pass of the work on a view (a cache miss' rays and depth
+#: upsampling, the warp's passes): bounds the temporaries to a few hundred kilobytes
+#: whatever the frame size.
 CHUNK = 1 << 15
 #: Depth components per pass of `DepthEigenspace.reconstruct` (whole cells at a time).
 COMPONENT_CHUNK = 256
@@ -227,8 +229,9 @@ class Warper:
     Every orbit camera has the same intrinsics: a pixel's unit ray in camera coordinates
     (right, up, forward) follows from its row and column (`unproject_at`). The warper also
     owns the warp's working set, allocated on the first frame and reused (`forward_warp`):
-    the padded grid's z-buffer, coverage and four accumulators, and the per-splat target
-    index and depth (grown, never shrunk). One warper serves one thread.
+    the padded grid's z-buffer (then blend weights), coverage and three colour accumulators
+    (`grid`), and each splat's target pixel (`splats`, grown, never shrunk). One warper
+    serves one thread.
 
     Parameters
     ----------
@@ -247,7 +250,7 @@ class Warper:
         self.width, self.height = int(width), int(height)
         self.distance = float(distance_mm)
         self.half = math.tan(math.radians(fov_deg) / 2.0)
-        # packed points (`unproject_at(packed=False)`): int16 steps from the orbit centre, which
+        # packed points (`unproject_at(packed=True)`): int16 steps from the orbit centre, which
         # sits at (0, 0, distance) in every orbit camera, over twice the bounding sphere's
         # radius (distance * sin(fov / 2)); a step is 6e-5 of the radius (1/100 of a pixel at
         # 1080) and points beyond are clamped (outside the sphere: noise of the depth fit)
