@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,7 @@ __all__ = [
     "WORKER_SCRATCH_BYTES",
     "DepthEigenspace",
     "ViewSynthesizer",
+    "WarpCancelled",
     "WarpWorker",
     "Warper",
     "check_synthesis",
@@ -111,6 +113,10 @@ HOLE_NEIGHBOURS = 4
 #: A reconstructed pixel whose largest channel is above this (0..255) carries the object
 #: (`host.evaluate.masks.OBJECT_LEVEL`; the renderings have a black background).
 OBJECT_LEVEL = 2
+
+
+class WarpCancelled(Exception):
+    """A warp given up because its ``cancel`` callable said so (a newer view was asked)."""
 
 
 # ----------------------------------------------------------------------------- manifest
@@ -355,7 +361,8 @@ class Warper:
 
 def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
                  sources: list[tuple[np.ndarray, np.ndarray]], weights: np.ndarray,
-                 target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+                 target: tuple[np.ndarray, np.ndarray],
+                 cancel: Callable[[], bool] | None = None) -> np.ndarray:
     """Forward-warp source views into the target camera, z-test, blend, fill holes.
 
     Each source point (a pixel unprojected with its depth, `Warper.unproject`) is projected
@@ -385,10 +392,18 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     sources, target : (position (3,), rotation (3, 3)) from `Warper.pose`
     weights : ndarray (m,)
         Interpolation weights of the sources.
+    cancel : callable, optional
+        Asked before every chunk of the three passes and before the filter; True gives the
+        warp up.
 
     Returns
     -------
     ndarray (h, w, 3) uint8
+
+    Raises
+    ------
+    WarpCancelled
+        ``cancel`` returned True.
     """
     h, wd = w.height, w.width
     w2 = wd + 2
@@ -422,6 +437,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
             pieces.append((slice(o + a, o + e), pts[:, a:e], col[:, a:e], m, b, f32(wv)))
         o += k
     for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
+        if cancel is not None and cancel():
+            raise WarpCancelled
         z = _forward(m, b, pts)
         # einsum, not matmul: (2, 3) @ (3, n) float32 through BLAS is ~50x slower here
         cxy = np.einsum("ij,jk->ik", m[:2], pts)
@@ -453,6 +470,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
     tol = f32(w.tol_mm)
     for s, pts, _, m, b, _ in pieces:
+        if cancel is not None and cancel():
+            raise WarpCancelled
         at = idx[s]
         zmax = zbuf[at]
         zmax += tol
@@ -464,6 +483,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     acc.fill(0.0)
     flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
     for s, _, col, _, _, wv in pieces:  # pass 3: the blend
+        if cancel is not None and cancel():
+            raise WarpCancelled
         at = idx[s]
         np.add.at(flat_w, at, wv)
         for c in range(3):
@@ -473,6 +494,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     for a_ in (covered, weight, *acc):
         a_[[0, -1]] = 0
         a_[:, [0, -1]] = 0
+    if cancel is not None and cancel():
+        raise WarpCancelled
     if SPLAT_TENT:
         _tent(acc)
         _tent(weight[None])
@@ -831,8 +854,14 @@ class ViewSynthesizer:
             self._cache.popitem(last=False)
         return cloud
 
-    def frame(self, phi_deg: float, theta_deg: float) -> np.ndarray:
-        """The synthesized view: uint8 (h, w, 3), a new array."""
+    def frame(self, phi_deg: float, theta_deg: float,
+              cancel: Callable[[], bool] | None = None) -> np.ndarray:
+        """The synthesized view: uint8 (h, w, 3), a new array.
+
+        ``cancel`` (a warp worker's: a newer view was asked) is asked before each
+        neighbour missing from the cache is made (a neighbour made is kept: the next view
+        most likely needs it) and inside the warp (`forward_warp`); True raises
+        `WarpCancelled`."""
         idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
         idx = np.asarray(idx).ravel().astype(np.int64)
         wts = np.asarray(wts, dtype=np.float64).ravel()
@@ -840,10 +869,14 @@ class ViewSynthesizer:
         idx, wts = idx[used], wts[used]
         views = [int(i) for i in idx]
         self._make_room(views)
-        clouds = [self.view_cloud(i) for i in views]
+        clouds = []
+        for i in views:
+            if cancel is not None and i not in self._cache and cancel():
+                raise WarpCancelled
+            clouds.append(self.view_cloud(i))
         sources = [self.warper.pose(float(self.phi[i]), float(self.theta[i])) for i in idx]
         return forward_warp(self.warper, clouds, sources, wts,
-                            self.warper.pose(phi_deg, theta_deg))
+                            self.warper.pose(phi_deg, theta_deg), cancel=cancel)
 
     def _make_room(self, views: list[int]) -> None:
         """Keep this frame's cached neighbours, and evict the views it does not need before
@@ -868,8 +901,11 @@ class WarpWorker:
     reconstruction) and asks for the view's warp here; its display thread keeps taking input
     and host frames while the warp is made (numpy releases the GIL in its array work, and a
     warp costs several blends), and shows the warp only if its view is still the one on show
-    and no host frame for it came first. A request replaces one not started yet; a result
-    whose view was requested again meanwhile is dropped, so at most one warp is in flight.
+    and no host frame for it came first. A request replaces one not started yet, and gives
+    up the warp in flight at its next check (`ViewSynthesizer.frame`'s ``cancel``: a
+    neighbour already made stays cached), so while the view keeps moving faster than a warp
+    takes the worker does not spend a core on warps nobody will see; at most one warp is
+    in flight.
 
     Parameters
     ----------
@@ -878,9 +914,9 @@ class WarpWorker:
 
     Attributes
     ----------
-    made, dropped, errors : int
-        Warps made; made but superseded by a newer request before anyone took them;
-        failed (counted, never raised: the blend stays on show).
+    made, dropped, cancelled, errors : int
+        Warps made; made but superseded by a newer request before anyone took them; given
+        up for a newer request; failed (counted, never raised: the blend stays on show).
     """
 
     def __init__(self, synthesis: ViewSynthesizer) -> None:
@@ -888,8 +924,9 @@ class WarpWorker:
         self._cond = threading.Condition()
         self._pending: tuple[float, float] | None = None
         self._result: tuple[tuple[float, float], np.ndarray] | None = None
+        self._current: tuple[float, float] | None = None  # the view being warped
         self._closed = False
-        self.made = self.dropped = self.errors = 0
+        self.made = self.dropped = self.cancelled = self.errors = 0
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
         self._thread.start()
 
@@ -913,11 +950,18 @@ class WarpWorker:
             return frame
 
     def close(self) -> None:
-        """Stop the thread (a warp in flight finishes first)."""
+        """Stop the thread (a warp in flight is given up at its next check)."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
         self._thread.join(timeout=10.0)
+
+    def _superseded(self) -> bool:
+        """Another view was asked (or the worker is closing): the warp in flight is moot.
+        Read without the lock: attribute reads, and a stale answer only delays the give-up
+        to the next check."""
+        pending = self._pending
+        return self._closed or (pending is not None and pending != self._current)
 
     def _run(self) -> None:
         while True:
@@ -926,8 +970,13 @@ class WarpWorker:
                 if self._closed:
                     return
                 view, self._pending = self._pending, None
+                self._current = view
             try:
-                frame = self.synthesis.frame(*view)
+                frame = self.synthesis.frame(*view, cancel=self._superseded)
+            except WarpCancelled:
+                with self._cond:
+                    self.cancelled += 1
+                continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1

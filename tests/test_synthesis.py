@@ -407,6 +407,59 @@ def test_a_predicting_device_shows_at_most_one_blend_per_display_refresh(depth_m
     assert stats["predicted_frames"] <= elapsed / _TICK_S + 2, (stats, elapsed)
 
 
+def test_a_warp_superseded_by_a_newer_view_is_given_up(depth_model):
+    """The worker gives up the warp in flight when another view is asked (the display
+    would drop it anyway), makes the newer one, and keeps the neighbours it already made;
+    asking the same view again does not restart it."""
+    import threading
+
+    from device_runtime.synthesis import WarpCancelled, WarpWorker
+
+    first, second = (10.0, 5.0), (40.0, -20.0)
+    started = threading.Event()
+
+    class Slow:  # a warp of `first` that takes until it is cancelled (or 30 s)
+        def frame(self, phi, theta, cancel=None):
+            if (phi, theta) == first:
+                started.set()
+                end = time.monotonic() + 30.0
+                while time.monotonic() < end:
+                    if cancel():
+                        raise WarpCancelled
+                    time.sleep(0.001)  # the work being simulated, not a wait for a race
+                return np.zeros((2, 2, 3), np.uint8)
+            return np.full((2, 2, 3), 7, np.uint8)
+
+    worker = WarpWorker(Slow())
+    try:
+        worker.request(first)
+        assert started.wait(10)
+        worker.request(first)  # the same view: not a reason to start again
+        worker.request(second)
+        got = worker.take(second, timeout_s=10.0)
+        assert got is not None and got[0, 0, 0] == 7
+        assert worker.cancelled == 1 and worker.made == 1 and worker.errors == 0
+    finally:
+        worker.close()
+    # the real synthesizer: a cancel after the first miss keeps that neighbour cached
+    image = read_image(depth_model, key=KEY)
+    synth = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    calls = []
+
+    def cancel_on_second_ask():
+        calls.append(1)
+        return len(calls) >= 2
+
+    with pytest.raises(WarpCancelled):
+        synth.frame(123.0, 17.0, cancel=cancel_on_second_ask)
+    assert synth.misses == 1 and len(synth._cache) == 1
+    whole = synth.frame(123.0, 17.0)  # the rest made now, the same frame as uncancelled
+    fresh = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    np.testing.assert_array_equal(whole, fresh.frame(123.0, 17.0))
+    with pytest.raises(WarpCancelled):  # inside the warp: every neighbour is cached now
+        synth.frame(123.0, 17.0, cancel=lambda: True)
+
+
 def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, tmp_path):
     """A real ``serve --scores predict`` session over a paced 115200-baud mem:// line with
     an image fitted with --depth: a new view shows the score blend, then the warp
