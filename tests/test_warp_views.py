@@ -84,16 +84,11 @@ def test_the_script_uses_the_product_warp(warp_views):
     assert warp_views.fill_holes is synthesis.fill_holes
     assert issubclass(warp_views.Warper, synthesis.Warper)
 
-
-def test_a_plane_of_known_depth_warps_to_its_analytic_image():
-    """A plane through the orbit centre, textured by a smooth function of the world point,
-    seen by two orbit cameras 12 degrees apart: every pixel's depth is known exactly, so the
-    warp of the source image must give the target's analytic image up to the nearest-pixel
-    splatting's resampling (mean error under 1.5 levels, 99th percentile under 6)."""
-    from device_runtime.synthesis import Warper
-
-    size, radius, fov = 64, 10.0, 30.0
-    center = np.array([1.0, -2.0, 3.0])  # the device places it at the origin: must not matter
+def _plane_scene(size, radius=10.0, fov=30.0):
+    """A plane through an orbit centre off the origin (the device places it at the origin:
+    must not matter), textured by a smooth function of the world point, every pixel's depth
+    known exactly: ``image(phi, theta) -> rgb, depth, ok`` and the orbit distance."""
+    center = np.array([1.0, -2.0, 3.0])
     normal = np.array([1.0, 0.3, 0.2])
     normal /= np.linalg.norm(normal)
 
@@ -108,7 +103,19 @@ def test_a_plane_of_known_depth_warps_to_its_analytic_image():
         rgb = np.where(ok[..., None], np.rint(128 + 100 * tex), 0).astype(np.uint8)
         return rgb, np.where(ok, t, np.nan).astype(np.float32), ok
 
-    distance = radius / math.sin(math.radians(fov) / 2.0)
+    return image, radius / math.sin(math.radians(fov) / 2.0)
+
+
+
+def test_a_plane_of_known_depth_warps_to_its_analytic_image():
+    """A plane through the orbit centre, textured by a smooth function of the world point,
+    seen by two orbit cameras 12 degrees apart: every pixel's depth is known exactly, so the
+    warp of the source image must give the target's analytic image up to the nearest-pixel
+    splatting's resampling (mean error under 1.5 levels, 99th percentile under 6)."""
+    from device_runtime.synthesis import Warper
+
+    size, radius, fov = 64, 10.0, 30.0
+    image, distance = _plane_scene(size, radius, fov)
     warper = Warper(fov, distance, size, size, 0.02 * 2 * radius)
     src, depth, ok = image(20.0, 5.0)
     dst, _, dst_ok = image(32.0, 5.0)
@@ -185,26 +192,6 @@ def test_fill_holes_closes_cracks_not_the_silhouette():
     out = fill_holes(frame.copy(), covered.copy())
     assert math.isclose(float(out[4, 4, 0]), 100.0)
     assert np.all(out[~np.pad(np.ones((5, 5), bool), 2)] == 0.0)  # the outside stays empty
-
-
-def _plane_scene(size, radius=10.0, fov=30.0):
-    """The analytic textured plane of the test above: image(phi, theta) -> rgb, depth, ok."""
-    center = np.array([1.0, -2.0, 3.0])
-    normal = np.array([1.0, 0.3, 0.2])
-    normal /= np.linalg.norm(normal)
-
-    def image(phi, theta):
-        cam = orbit_camera(View(phi, theta), center, radius, fov_deg=fov)
-        o, d = cam.rays(size, size)
-        t = ((center - o) @ normal) / (d @ normal)
-        x = o + t[..., None] * d - center
-        ok = np.linalg.norm(x, axis=-1) < 0.8 * radius
-        tex = np.stack([np.sin(x[..., 0] / 2.0), np.cos(x[..., 1] / 2.5),
-                        np.sin((x[..., 2] + x[..., 0]) / 3.0)], axis=-1)
-        rgb = np.where(ok[..., None], np.rint(128 + 100 * tex), 0).astype(np.uint8)
-        return rgb, np.where(ok, t, np.nan).astype(np.float32), ok
-
-    return image, radius / math.sin(math.radians(fov) / 2.0)
 
 
 def test_packed_points_are_the_float_points_to_half_a_step_and_warp_alike():
