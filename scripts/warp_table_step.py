@@ -25,18 +25,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-import zstandard
-
 from host.fit.model import HostModel, add_standalone_table
-from protocol.image import DEFAULT_LEVEL, HEADER_SIZE, image_size, read_image, write_image
+from protocol.image import HEADER_SIZE, image_size, read_image, write_image
+from scripts.warp_storage import zsize
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def zsize(a: np.ndarray) -> int:
-    c = zstandard.ZstdCompressor(level=DEFAULT_LEVEL)
-    return len(c.compress(np.ascontiguousarray(a).tobytes()))
 
 
 def requantized(path: Path, factor: float, out: Path) -> dict:
