@@ -812,18 +812,17 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     declared = required_ram_bytes(manifest)
     stats_path = work / f"rss-warp-{path.stem}.json"
     stats_path.unlink(missing_ok=True)
-    run = ["--headless", "--orbit", "turn:12:15", "--max-frames", str(frames), "--stats",
+    # served: one turn of the orbit (12 s), however many frames: a predicting device shows a
+    # blend on every refresh whose view moved, until the host is there and after
+    orbit, cap = ("turn:12:15:1", max(frames, 100_000)) if served else ("turn:12:15", frames)
+    run = ["--headless", "--orbit", orbit, "--max-frames", str(cap), "--stats",
            str(stats_path), "--ram-budget", "1024"]
     t0 = time.perf_counter()
-    hwm = 0
     if served:
         from host.link.serving import serve
 
-        # one turn of the orbit (12 s), however many frames: a predicting device shows a
-        # blend on every tick whose view moved, hundreds a second until the host is there
-        run[run.index("--orbit") + 1] = "turn:12:15:1"
-        run[run.index("--max-frames") + 1] = str(max(frames, 100_000))
         device = DeviceProcess(flash, "--insecure", *run)
+        proc = device.proc
         stop = threading.Event()
         failed: list[BaseException] = []
 
@@ -836,25 +835,24 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
 
         thread = threading.Thread(target=host, daemon=True)
         thread.start()
-        while device.proc.poll() is None:
-            hwm = max(hwm, proc_status(device.proc.pid).get("VmHWM", 0))
-            time.sleep(0.05)
-        stop.set()
-        thread.join(30)
-        rc = device.proc.returncode
-        err = "\n".join(device.lines[-3:] + [repr(e) for e in failed])
-        if failed:
-            print(f"    serve failed: {failed[0]!r}"[:300], flush=True)
     else:
         cmd = [sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash",
                str(flash), *run]
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.PIPE, text=True)
-        while proc.poll() is None:
-            hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
-            time.sleep(0.05)
-        rc = proc.returncode
+    hwm = 0
+    while proc.poll() is None:
+        hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
+        time.sleep(0.05)
+    if served:
+        stop.set()
+        thread.join(30)
+        err = "\n".join(device.lines[-3:] + [repr(e) for e in failed])
+        if failed:
+            print(f"    serve failed: {failed[0]!r}"[:300], flush=True)
+    else:
         err = proc.stderr.read() if proc.stderr else ""
+    rc = proc.returncode
     wall = time.perf_counter() - t0
     if rc != 0:
         raise RuntimeError(f"device exited {rc}: {err.strip()[-300:]}")
