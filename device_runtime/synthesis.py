@@ -437,8 +437,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
             pieces.append((slice(o + a, o + e), pts[:, a:e], col[:, a:e], m, b, f32(wv)))
         o += k
     for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
-        if cancel is not None and cancel():
-            raise WarpCancelled
+        _give_up_if(cancel)
         z = _forward(m, b, pts)
         # einsum, not matmul: (2, 3) @ (3, n) float32 through BLAS is ~50x slower here
         cxy = np.einsum("ij,jk->ik", m[:2], pts)
@@ -470,8 +469,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
     tol = f32(w.tol_mm)
     for s, pts, _, m, b, _ in pieces:
-        if cancel is not None and cancel():
-            raise WarpCancelled
+        _give_up_if(cancel)
         at = idx[s]
         zmax = zbuf[at]
         zmax += tol
@@ -483,8 +481,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     acc.fill(0.0)
     flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
     for s, _, col, _, _, wv in pieces:  # pass 3: the blend
-        if cancel is not None and cancel():
-            raise WarpCancelled
+        _give_up_if(cancel)
         at = idx[s]
         np.add.at(flat_w, at, wv)
         for c in range(3):
@@ -494,8 +491,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     for a_ in (covered, weight, *acc):
         a_[[0, -1]] = 0
         a_[:, [0, -1]] = 0
-    if cancel is not None and cancel():
-        raise WarpCancelled
+    _give_up_if(cancel)
     if SPLAT_TENT:
         _tent(acc)
         _tent(weight[None])
@@ -509,6 +505,12 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     for c in range(3):
         frame[..., c] = planes[c, 1:-1, 1:-1]
     return frame
+
+
+def _give_up_if(cancel: Callable[[], bool] | None) -> None:
+    """Raise `WarpCancelled` if ``cancel`` (when given) says the warp is no longer wanted."""
+    if cancel is not None and cancel():
+        raise WarpCancelled
 
 
 def _forward(m: np.ndarray, b: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -871,8 +873,8 @@ class ViewSynthesizer:
         self._make_room(views)
         clouds = []
         for i in views:
-            if cancel is not None and i not in self._cache and cancel():
-                raise WarpCancelled
+            if i not in self._cache:
+                _give_up_if(cancel)
             clouds.append(self.view_cloud(i))
         sources = [self.warper.pose(float(self.phi[i]), float(self.theta[i])) for i in idx]
         return forward_warp(self.warper, clouds, sources, wts,
