@@ -220,6 +220,16 @@ def bare_rss_bytes() -> int:
     return int(run.stdout.strip() or 0)
 
 
+def proc_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a process so far (None once it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as handle:
+            fields = handle.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def proc_status(pid: int) -> dict[str, int]:
     """VmRSS and VmHWM of a process, bytes (empty once it is gone)."""
     out = {}
@@ -840,9 +850,10 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
                str(flash), *run]
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.PIPE, text=True)
-    hwm = 0
+    hwm, cpu = 0, 0.0
     while proc.poll() is None:
         hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
+        cpu = proc_cpu_s(proc.pid) or cpu  # the last reading before it exits
         time.sleep(0.05)
     if served:
         stop.set()
@@ -865,7 +876,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     return {"image": path.name, "size": image.image_shape[0], "served": served,
             "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
             "warped_frames": int(stats.get("synthesized_frames", 0)),
-            "host_frames": int(stats.get("packets", 0)),
+            "host_frames": int(stats.get("packets", 0)), "device_cpu_s": cpu,
             "eigenspace_mb": eig / MB, "depth_sections_mb": depth / MB, "table_mb": table / MB,
             "declared_mb": declared / MB, "ratio_peak_declared": peak / (bare + declared),
             "synthesis_scratch_mb": scratch / MB, "peak_rss_mb": peak / MB,
@@ -877,7 +888,8 @@ def print_warp_rss(r: dict) -> None:
     ok = "within" if r["ratio_peak_bound"] <= 1 else "OVER"
     kind = (f"served predicting ({r['warped_frames']} warps shown, {r['host_frames']} host "
             "frames received)" if r["served"] else "standalone")
-    print(f"  {r['image']}: {r['frames']} {kind} frames in {r['wall_s']:.0f} s; device peak "
+    print(f"  {r['image']}: {r['frames']} {kind} frames in {r['wall_s']:.0f} s (device CPU "
+          f"{r['device_cpu_s']:.1f} s); device peak "
           f"RSS {r['peak_rss_mb']:.1f} MB, {r['ratio_peak_bound']:.2f}x the bound "
           f"{r['bound_mb']:.1f} MB ({ok}: 1.2 x eigenspace {r['eigenspace_mb']:.1f} MB + 64 MiB"
           f" + other sections {r['table_mb']:.1f} MB + depth sections "
