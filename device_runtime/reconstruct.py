@@ -23,6 +23,11 @@ shown):
   the frame buffer and O(K) vectors.
 * With ``threads=2`` the jobs are split in two halves of equal row count, each with its own
   half of the scratch budget; numpy releases the GIL in the casts and in BLAS.
+* `Reconstructor.correct` runs the same jobs with a given frame in place of the mean:
+  ``clip(rint(synth_c + sum_j d_j * scales[j] * E[j]))`` for the cells whose ``d`` is not
+  all zero, the device's own synthesized frame corrected by the host (a version-3 score
+  packet, `protocol.scores`). It keeps that frame's cells (one frame of memory), so later
+  corrections of the same frame need not pass it again.
 """
 
 from __future__ import annotations
@@ -210,6 +215,9 @@ class Reconstructor:
         self.total_cells_recomputed = 0
         self._workers = self._plan(self.scratch_bytes // self.threads)
         self._pool = ThreadPoolExecutor(1) if self.threads == 2 else None
+        self._base: np.ndarray | None = None  # `correct`: the corrected frame's cells
+        self._zero_cells = np.flatnonzero(self.n_components == 0)
+        self._corrected = False  # the buffer holds a corrected frame (0-component cells too)
 
     # ------------------------------------------------------------------ construction
 
@@ -357,6 +365,11 @@ class Reconstructor:
             self.cells_recomputed = 0
             return self.frame
         self._last_y[...] = y
+        if self._corrected:  # cells without components show their mean again
+            self._corrected = False
+            z = self._zero_cells
+            self._cells_view[self._cell_y[z], :, self._cell_x[z]] = self.mean[z].reshape(
+                -1, self.cell_shape[0], self.cell_shape[1], 3)
         np.multiply(y, self.scales, out=self._w)
         if self._pool is not None and n_changed > 1:
             future = self._pool.submit(self._run, self._workers[1], changed)
@@ -368,6 +381,73 @@ class Reconstructor:
         self.total_cells_recomputed += done
         if self._needs_crop:
             height, width = self.image_shape
+            self.frame[...] = self._padded[:height, :width]
+        return self.frame
+
+    def correct(self, delta: np.ndarray, synth: np.ndarray | None = None) -> np.ndarray:
+        """The frame ``synth`` corrected by ``delta``: per cell ``c`` whose slice of
+        ``delta`` is not all zero, ``clip(rint(synth_c + sum_j delta_j * scales[j] *
+        E[j]))``; the other cells show ``synth`` unchanged.
+
+        Parameters
+        ----------
+        delta : ndarray of shape (n_coefficients,), float32
+            The correction's scores (a version-3 packet's ``q * step``).
+        synth : ndarray of shape (height, width, 3), uint8, optional
+            The frame to correct (the device's own synthesis of the view). Its cells are
+            kept, so the next correction of the same frame may pass None.
+
+        Returns
+        -------
+        ndarray of shape (height, width, 3), uint8
+            The frame buffer (as `update`; the next `update` recomputes every cell).
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, non-finite ``delta``, or None before any ``synth``.
+        """
+        d = np.asarray(delta, dtype=np.float32)
+        if d.shape != (self.n_coefficients,):
+            raise ValueError(f"Reconstructor.correct: delta must have shape "
+                             f"({self.n_coefficients},), got {d.shape}")
+        if not np.all(np.isfinite(d)):
+            raise ValueError("Reconstructor.correct: delta has NaN or infinite entries")
+        height, width = self.image_shape
+        ny, nx = self.grid_shape
+        cell_h, cell_w = self.cell_shape
+        if synth is not None:
+            s = np.asarray(synth)
+            if s.shape != (height, width, 3) or s.dtype != np.uint8:
+                raise ValueError(f"Reconstructor.correct: synth must be uint8 of shape "
+                                 f"{(height, width, 3)}, got {s.dtype} {s.shape}")
+            if self._base is None:
+                self._base = np.empty_like(self.mean)
+            self._padded[:height, :width] = s
+            self._base[...] = self._cells_view.transpose(0, 2, 1, 3, 4).reshape(
+                self.n_cells, self.cell_values)
+        elif self._base is None:
+            raise ValueError("Reconstructor.correct: no synthesized frame to correct yet")
+        else:
+            self._cells_view[...] = self._base.reshape(ny, nx, cell_h, cell_w, 3).transpose(
+                0, 2, 1, 3, 4)
+        self._last_y[...] = np.nan  # the buffer holds no reconstruction of any scores now
+        self._corrected = True
+        np.cumsum(d != 0, out=self._cum[1:])
+        changed = (self._cum[self.offsets[1:]] - self._cum[self.offsets[:-1]]) > 0
+        np.multiply(d, self.scales, out=self._w)
+        mean, self.mean = self.mean, self._base
+        try:
+            if self._pool is not None and np.count_nonzero(changed) > 1:
+                future = self._pool.submit(self._run, self._workers[1], changed)
+                done = self._run(self._workers[0], changed) + future.result()
+            else:
+                done = sum(self._run(worker, changed) for worker in self._workers)
+        finally:
+            self.mean = mean
+        self.cells_recomputed = done
+        self.total_cells_recomputed += done
+        if self._needs_crop:
             self.frame[...] = self._padded[:height, :width]
         return self.frame
 

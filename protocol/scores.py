@@ -4,12 +4,13 @@ A packet is a fixed 32-byte header followed by a payload (little-endian througho
 
     offset size field
     0      2    magic b"\\xecS"
-    2      1    version (1; 2 when PREDICTED is set, below)
+    2      1    version (1; 2 when PREDICTED is set, 3 when SYNTHESIZED is set, below)
     3      1    flags: bit 0 DELTA; bit 1 ZSTD (payload is one zstd frame, content size
                 recorded); bits 2-3 STEP_MODE (0 scalar, 1 per cell, 2 per component,
                 3 reserved); bits 4-5 CODING (0 zigzag LEB128 varints; 1 per-cell
                 end-of-block varints, below; 2-3 reserved); bit 6 PREDICTED (version 2
-                only; reserved, 0, in version 1); bit 7 reserved, 0
+                only; reserved, 0, in versions 1 and 3); bit 7 SYNTHESIZED (version 3
+                only; reserved, 0, in versions 1 and 2)
     4      4    frame number u32
     8      4    base frame number u32 (the frame a DELTA packet is relative to; 0 in a key)
     12     4    phi_deg float32
@@ -63,6 +64,18 @@ version-1 decoders; a version-1 decoder refuses a correction in one line ("unsup
 packet version 2"), and a version-2 decoder reads both. A host sends corrections only to a
 device whose HELLO_REPLY says it predicts (docs/protocol.md, "Predicted corrections").
 
+Corrections of the synthesized frame (version 3, issue 23): with SYNTHESIZED set the
+scores are a correction of the device's own *synthesized frame* of the header's view (its
+depth warp of the neighbouring training views, or the blend of its predicted scores for an
+image without depth; `device_runtime.prediction.OwnFrames`, the code the host runs too):
+the device shows, per cell, ``clip(rint(synth_c + sum_j q_j step_j scales_j E_j))``, the
+eigenimages added to the picture it made itself, so the correction fixes what the
+eigenspace can hold and keeps the detail the synthesis brings from outside it. Like a
+PREDICTED packet it has no delta base and is never kept as one; SYNTHESIZED together with
+DELTA or PREDICTED is refused, and its view must be canonical. Only packets with
+SYNTHESIZED carry version 3; decoders of versions 1 and 2 refuse them in one line, and a
+host sends them only to a device whose HELLO_REPLY lists version 3 and says it predicts.
+
 Decoded scores are finite and bounded: every step (header or array) must be finite, > 0 and
 at most ``max_abs_score``, and every decoded score ``|q * step|`` at most ``max_abs_score``
 (else ``LimitExceeded``), checked before the frame is kept as a delta base. A device passes
@@ -115,24 +128,25 @@ __all__ = [
 ]
 
 MAGIC = b"\xecS"
-#: The newest packet version: 2 adds the PREDICTED base kind (bit 6); packets without it
-#: are still written as version 1.
-VERSION = 2
+#: The newest packet version: 2 adds the PREDICTED base kind (bit 6), 3 the SYNTHESIZED
+#: one (bit 7); packets with neither are still written as version 1.
+VERSION = 3
 #: Versions a decoder of this module reads.
-VERSIONS = (1, 2)
+VERSIONS = (1, 2, 3)
 _HEADER = struct.Struct("<2sBBIIffI4sf")
 HEADER_SIZE = _HEADER.size  # 32
 
 FLAG_DELTA = 0x01
 FLAG_ZSTD = 0x02
 FLAG_PREDICTED = 0x40
+FLAG_SYNTHESIZED = 0x80
 _STEP_SHIFT = 2
 _STEP_MASK = 0x0C
 STEP_SCALAR, STEP_PER_CELL, STEP_PER_COMPONENT = 0, 1, 2
 _CODING_SHIFT = 4
 _CODING_MASK = 0x30
 CODING_VARINT, CODING_EOB = 0, 1
-_RESERVED_MASK = {1: 0xC0, 2: 0x80}  # per version
+_RESERVED_MASK = {1: 0xC0, 2: 0x80, 3: 0x40}  # per version
 _MAX_VARINT_BYTES = 5
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
 #: Largest |score| (and step) a decoder accepts unless told a bound (see the module docstring).
@@ -232,6 +246,8 @@ class DecodedScores:
     packet_bytes : int
     predicted : bool
         ``y`` is a correction to the decoder's own prediction of the view (version 2).
+    synthesized : bool
+        ``y`` is a correction of the decoder's own synthesized frame of the view (version 3).
     """
 
     frame: int
@@ -243,6 +259,7 @@ class DecodedScores:
     step: float | np.ndarray
     packet_bytes: int
     predicted: bool = False
+    synthesized: bool = False
 
     @property
     def is_key(self) -> bool:
@@ -273,6 +290,11 @@ class PacketHeader:
     def is_predicted(self) -> bool:
         """A correction to the receiver's own prediction of the view (version 2)."""
         return bool(self.flags & FLAG_PREDICTED)
+
+    @property
+    def is_synthesized(self) -> bool:
+        """A correction of the receiver's own synthesized frame of the view (version 3)."""
+        return bool(self.flags & FLAG_SYNTHESIZED)
 
     @property
     def step_mode(self) -> int:
@@ -381,6 +403,7 @@ def encode_scores(
     level: int = _DEFAULT_LEVEL,
     coding: int | None = None,
     predicted: bool = False,
+    synthesized: bool = False,
 ) -> EncodedScores:
     """Quantize a score vector and encode it as a key or delta packet.
 
@@ -412,6 +435,9 @@ def encode_scores(
         ``y`` is a correction to the device's own prediction of ``view`` (a version-2
         packet with PREDICTED; no ``base``). ``view`` must then be the canonical view the
         prediction was made at (`device_runtime.orbit.canonical_view`).
+    synthesized : bool
+        ``y`` is a correction of the device's own synthesized frame of ``view`` (a
+        version-3 packet with SYNTHESIZED; no ``base``, ``view`` canonical).
 
     Returns
     -------
@@ -448,10 +474,15 @@ def encode_scores(
     base_frame = 0
     coded = q.astype(np.int64)
     kept_step: float | np.ndarray = header_step if step_sent is None else step_sent
-    if predicted and base is not None:
-        raise ValueError("encode_scores: a predicted correction has no delta base")
+    if predicted and synthesized:
+        raise ValueError("encode_scores: a packet corrects the prediction or the synthesized "
+                         "frame, not both")
+    if (predicted or synthesized) and base is not None:
+        raise ValueError("encode_scores: a correction has no delta base")
     if predicted:
         flags |= FLAG_PREDICTED
+    if synthesized:
+        flags |= FLAG_SYNTHESIZED
     if base is not None:
         if base.q.shape != q.shape or not _same_step(base.step, kept_step):
             raise ValueError(
@@ -480,7 +511,7 @@ def encode_scores(
     payload = best[1]
     header = _HEADER.pack(
         MAGIC,
-        VERSION if predicted else 1,
+        3 if synthesized else 2 if predicted else 1,
         flags,
         frame,
         base_frame,
@@ -524,15 +555,15 @@ def decode_header(packet: bytes, *, versions: tuple[int, ...] = VERSIONS) -> Pac
             f"decode scores: unsupported packet version {version} (supported: {supported})"
         )
     if flags & _RESERVED_MASK[version]:
-        bits = "6-7" if version == 1 else "7"
+        bits = {1: "6-7", 2: "7", 3: "6"}[version]
         raise ScorePacketError(
             f"decode scores: unknown flags 0x{flags:02x} (reserved bits {bits} must be 0 in "
             f"version {version})"
         )
-    if flags & FLAG_PREDICTED and flags & FLAG_DELTA:
+    if flags & (FLAG_PREDICTED | FLAG_SYNTHESIZED) and flags & FLAG_DELTA:
         raise ScorePacketError(
-            "decode scores: a packet is relative to a frame (DELTA) or to the prediction "
-            "(PREDICTED), not both"
+            "decode scores: a packet is relative to a frame (DELTA), to the prediction "
+            "(PREDICTED) or to the synthesized frame (SYNTHESIZED), not two of them"
         )
     if (flags & _CODING_MASK) >> _CODING_SHIFT > CODING_EOB:
         raise ScorePacketError(
@@ -544,7 +575,8 @@ def decode_header(packet: bytes, *, versions: tuple[int, ...] = VERSIONS) -> Pac
         raise ScorePacketError(f"decode scores: unsupported step mode {header.step_mode}")
     if not (np.isfinite(phi) and np.isfinite(theta)):
         raise ScorePacketError(f"decode scores: view ({phi}, {theta}) is not finite")
-    if flags & FLAG_PREDICTED and not (0.0 <= phi < 360.0 and -90.0 <= theta <= 90.0):
+    if (flags & (FLAG_PREDICTED | FLAG_SYNTHESIZED)
+            and not (0.0 <= phi < 360.0 and -90.0 <= theta <= 90.0)):
         raise ScorePacketError(
             f"decode scores: a correction's view ({phi:.6g}, {theta:.6g}) is not canonical "
             "(phi in [0, 360), theta in [-90, 90])"
@@ -732,7 +764,8 @@ class ScoreDecoder:
                     f"decode scores: frame {header.frame} has a score of magnitude {peak:.3g}, "
                     f"over the bound {self.max_abs_score:.3g} for this image"
                 )
-        if not header.is_predicted:  # a correction means nothing without its prediction
+        if not (header.is_predicted or header.is_synthesized):  # a correction means nothing
+            # without the prediction or the frame it corrects
             self._bases.pop(header.frame, None)
             self._bases[header.frame] = (q, steps)
             while len(self._bases) > self.keep_bases:
@@ -747,6 +780,7 @@ class ScoreDecoder:
             step=steps,
             packet_bytes=len(packet),
             predicted=header.is_predicted,
+            synthesized=header.is_synthesized,
         )
 
     def _decode_eob(self, data: np.ndarray) -> np.ndarray:

@@ -18,6 +18,16 @@ dense as the frame's time budget allows:
   was measured too slow for this: a solve per cell per offset, 13-45 s to the projection
   from stride 16 at 256.)
 
+Corrections of the device's own frame (issue 23): given ``own`` (the device's synthesis,
+`device_runtime.prediction.OwnFrames`, the same code the device runs), a frame is not the
+view's scores but the *correction* of the frame ``S`` the device made itself: the sparse
+samples' residual ``x_S - S_S`` is recovered with prior zero
+(`SparseRecovery.recover_residual`), so no samples means no change, and the complete
+frame is ``project(x) - project(S)``, the correction that makes ``S`` the closest frame to
+the view the eigenspace can hold. The residual's prior (per-component variance, and λ, the
+residual's power outside the eigenspace) is `ResidualPrior`: it starts from measured ratios
+and learns from every resting view that reached the full ray-cast.
+
 The cost model is measured, not assumed: the seconds per frame at the two strides used
 last (ray-cast and recovery, exponential averages) give a fixed cost and a cost per ray,
 which predict the other strides. A slower host (or a larger model) therefore gets sparser
@@ -37,6 +47,10 @@ import numpy as np
 from host.errors import EigencastError
 from host.fit.recover import DEFAULT_LAMBDA, SamplePattern, SparseRecovery
 
+#: A pixel of a frame whose largest channel is above this (0..255) shows the object (the
+#: renderings have a black background; `device_runtime.synthesis.OBJECT_LEVEL`).
+_OBJECT_LEVEL = 2
+
 __all__ = [
     "BUDGET_SHARE",
     "DEFAULT_COARSE",
@@ -46,6 +60,7 @@ __all__ = [
     "PROBE_EVERY",
     "MotionFrame",
     "MotionScores",
+    "ResidualPrior",
     "angle_between",
 ]
 
@@ -80,6 +95,74 @@ def angle_between(a: tuple[float, float], b: tuple[float, float]) -> float:
     return math.degrees(math.acos(c))
 
 
+class ResidualPrior:
+    """The statistics of corrections of the device's own frame, learned as the host serves.
+
+    A correction recovered from sparse samples is a MAP estimate: it needs the variance of
+    each component of the correction (``Σ``) and the power of the residual outside the
+    eigenspace (``λ``, the noise the samples carry). Both depend on the volume, the transfer
+    function and how good the device's synthesis is, so they are learned from the full
+    corrections of resting views (`add`), starting from `VARIANCE_RATIO` times the
+    eigenvalues and `LAMBDA` as `PSEUDO_VIEWS` views' worth of evidence.
+
+    Measured (docs/rate-distortion.md, section 10): the correction's variance is 0.20 (tooth)
+    and 0.22 (head) of the eigenvalue per component (median), the residual outside the
+    eigenspace 21 and 138 squared levels per object value, and the best λ about twice that;
+    with these statistics (12 views) the sparse correction gains at every stride where the
+    views' own eigenvalues make strides 3-8 worse than no correction at all.
+    """
+
+    #: Prior variance of a correction's component, as a fraction of its eigenvalue.
+    VARIANCE_RATIO = 0.2
+    #: Prior λ (squared levels per value) before any view was seen.
+    LAMBDA = 100.0
+    #: λ is this times the measured residual power outside the eigenspace (object pixels).
+    LAMBDA_FACTOR = 2.0
+    #: Weight of the prior, in views.
+    PSEUDO_VIEWS = 4.0
+
+    def __init__(self, eigenvalues: np.ndarray) -> None:
+        ev = np.asarray(eigenvalues, dtype=np.float64)
+        self._prior = self.VARIANCE_RATIO * np.maximum(ev, 0.0)
+        self._sum_sq = np.zeros_like(ev)
+        self._sum_noise = 0.0
+        self.views = 0
+
+    @classmethod
+    def for_model(cls, model: Any) -> ResidualPrior:
+        """From the model's annexed eigenvalues (else its training scores' variance)."""
+        if model.eigenvalues is not None:
+            return cls(model.eigenvalues)
+        return cls(np.asarray(model.training_scores, dtype=np.float64).var(axis=0, ddof=1))
+
+    @property
+    def variance(self) -> np.ndarray:
+        """Per-component variance of a correction (K,) float64."""
+        n, n0 = self.views, self.PSEUDO_VIEWS
+        return (self._sum_sq + n0 * self._prior) / (n + n0)
+
+    @property
+    def lam(self) -> float:
+        """λ: the residual power outside the eigenspace, squared levels per value."""
+        n, n0 = self.views, self.PSEUDO_VIEWS
+        return float((self.LAMBDA_FACTOR * self._sum_noise + n0 * self.LAMBDA) / (n + n0))
+
+    def add(self, correction: np.ndarray, truth: np.ndarray, corrected: np.ndarray) -> None:
+        """One resting view's full correction (K,), its ray-cast and its corrected frame
+        (uint8 (h, w, 3) each): the correction's squares and the residual left on the
+        object's pixels count as one more view."""
+        d = np.asarray(correction, dtype=np.float64)
+        self._sum_sq += d * d
+        t = np.asarray(truth)
+        obj = t.max(axis=2) > _OBJECT_LEVEL
+        if np.any(obj):
+            e = t[obj].astype(np.float64) - np.asarray(corrected)[obj].astype(np.float64)
+            self._sum_noise += float(np.mean(e * e))
+        else:
+            self._sum_noise += self.LAMBDA / self.LAMBDA_FACTOR
+        self.views += 1
+
+
 @dataclass
 class MotionFrame:
     """One frame's scores and how they were made.
@@ -100,6 +183,9 @@ class MotionFrame:
         view's refinement).
     complete : bool
         The scores are `HostModel.project` of the full ray-cast.
+    weights : ndarray of shape (n_cells,), or None
+        Corrections: the SSIM cell weights of the best image of the view at hand (the
+        ray-cast when complete, else the device's own frame) for the quantizer.
     """
 
     scores: np.ndarray | None
@@ -108,6 +194,7 @@ class MotionFrame:
     seconds: float
     prior: str
     complete: bool
+    weights: np.ndarray | None = None
 
 
 class MotionScores:
@@ -132,6 +219,11 @@ class MotionScores:
         `DEFAULT_COARSE`). Resting views are always refined with the exact one.
     clock : callable
         Seconds (monotonic); tests pass a fake one.
+    own : device_runtime.prediction.OwnFrames, optional
+        The device's own frames: frames are then *corrections* of them (module docstring),
+        whose prior is ``prior``.
+    prior : ResidualPrior, optional
+        Default: `ResidualPrior.for_model` (with ``own`` only).
 
     Attributes
     ----------
@@ -146,7 +238,8 @@ class MotionScores:
     def __init__(self, model: Any, renderer: Any, *, budget_s: float = 1.0 / DEFAULT_MOTION_FPS,
                  lam: float = DEFAULT_LAMBDA, strides: tuple[int, ...] = DEFAULT_STRIDES,
                  prior_switch_deg: float = PRIOR_SWITCH_DEG, coarse: float = DEFAULT_COARSE,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
+                 clock: Callable[[], float] = time.perf_counter, own: Any = None,
+                 prior: ResidualPrior | None = None) -> None:
         h, w = (int(v) for v in model.image.image_shape)
         if tuple(renderer.image_shape) != (h, w):
             raise EigencastError(
@@ -167,7 +260,15 @@ class MotionScores:
         self.prior_switch_deg = float(prior_switch_deg)
         self.coarse = float(coarse)
         self.clock = clock
-        self.recovery = SparseRecovery(model, lam=lam, max_patterns=4 * len(strides))
+        self.own = own
+        self.prior = None
+        if own is not None:
+            self.prior = prior if prior is not None else ResidualPrior.for_model(model)
+            self.recovery = SparseRecovery(model, lam=self.prior.lam,
+                                           variance=self.prior.variance,
+                                           max_patterns=4 * len(strides))
+        else:
+            self.recovery = SparseRecovery(model, lam=lam, max_patterns=4 * len(strides))
         self._patterns = {s: SamplePattern.strided(w, h, s) for s in strides}
         self._times: dict[int, float] = {}  # seconds per frame at each stride, EMA
         self._recent: list[int] = []  # strides measured, the most recent last
@@ -179,6 +280,7 @@ class MotionScores:
         self._stride = 1
         self._complete = False
         self._skipped = 0
+        self._synth: np.ndarray | None = None  # corrections: the device's frame of the view
         self._image = np.zeros((h, w, 3), dtype=np.uint8)  # the view's ray-cast pixels
         self._known = np.zeros((h, w), dtype=bool)  # ... those cast exactly
         self.frames = self.refinements = self.pixels = 0
@@ -246,21 +348,50 @@ class MotionScores:
         rgba = caster.render_pixels(camera, settings.width, settings.height, rows, cols)
         return caster.composite(rgba)
 
+    @property
+    def corrects(self) -> bool:
+        """Frames are corrections of the device's own frames (``own`` was given)."""
+        return self.own is not None
+
+    def _weights(self, image: np.ndarray) -> np.ndarray:
+        from host.fit.rate import ssim_cell_weights
+
+        return ssim_cell_weights(image, self.model.image.cell_shape,
+                                 image.max(axis=2) > _OBJECT_LEVEL)
+
+    def _full(self) -> np.ndarray:
+        """The scores of the whole ray-cast, or (corrections) the full correction."""
+        y = self.model.project(self._image)
+        if self._synth is not None:
+            y = y - self.model.project(self._synth)
+        return y
+
+    def _recover(self, pattern: SamplePattern, rgb: np.ndarray, prior: np.ndarray
+                 ) -> np.ndarray:
+        if self._synth is None:
+            return self.recovery.recover(pattern, rgb, prior)
+        synth = self._synth[pattern.rows, pattern.cols].astype(np.float32)
+        return self.recovery.recover_residual(pattern, rgb.reshape(-1, 3) - synth)
+
     def frame(self, view: tuple[float, float]) -> MotionFrame:
-        """The scores of a new view (canonical ``(phi, theta)``), at the stride that fits."""
+        """The scores (or correction) of a new view (canonical ``(phi, theta)``), at the
+        stride that fits."""
         t0 = self.clock()
         stride = self.choose_stride()
         previous = self._view
-        if (previous is not None and self._scores is not None
+        h, w = self.shape
+        self._image = np.zeros((h, w, 3), dtype=np.uint8)
+        self._known = np.zeros((h, w), dtype=bool)
+        self._synth = None
+        if self.own is not None:
+            prior, prior_kind = np.zeros(self.model.image.n_coefficients, np.float32), "zero"
+        elif (previous is not None and self._scores is not None
                 and angle_between(previous, view) < self.prior_switch_deg):
             prior, prior_kind = self._scores, "previous"
         else:
             prior, prior_kind = self.model.scores(*view), "interpolated"
         if stride == 0:  # nothing fits: the prior alone, ray-cast when the view rests
             self._skipped += 1
-            h, w = self.shape
-            self._image = np.zeros((h, w, 3), dtype=np.uint8)
-            self._known = np.zeros((h, w), dtype=bool)
             self._view, self._scores, self._prior = view, prior, prior
             self._stride, self._complete = self.strides[-1] + 1, False
             self.frames += 1
@@ -270,19 +401,15 @@ class MotionScores:
             return MotionFrame(np.asarray(prior, dtype=np.float32), 0, 0, seconds, prior_kind,
                                False)
         self._skipped = 0
+        if self.own is not None:
+            self._synth = self.own.frame(*view)
         pattern = self._patterns[stride]
         if stride > 1:
             self.recovery.factor(pattern)  # cached after the first use of the stride
         exact = self._moving is self.renderer.renderer
         rgb = self._cast(view, pattern.rows, pattern.cols, exact=exact)
-        h, w = self.shape
-        self._image = np.zeros((h, w, 3), dtype=np.uint8)
-        self._known = np.zeros((h, w), dtype=bool)
         self._image[pattern.rows, pattern.cols] = rgb
-        if stride == 1:
-            y = self.model.project(self._image)
-        else:
-            y = self.recovery.recover(pattern, rgb, prior)
+        y = self._full() if stride == 1 else self._recover(pattern, rgb, prior)
         self._known[pattern.rows, pattern.cols] = exact
         seconds = self.clock() - t0
         self._measured(stride, seconds)
@@ -293,7 +420,13 @@ class MotionScores:
         self.pixels += pattern.n_pixels
         self.seconds += seconds
         self.stride_frames[stride] = self.stride_frames.get(stride, 0) + 1
-        return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, complete)
+        weights = None
+        if self._synth is not None:
+            weights = self._weights(self._image if complete else self._synth)
+            if complete:
+                self._learn()
+        return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, complete,
+                           weights)
 
     def converged(self, view: tuple[float, float]) -> bool:
         """``view`` is the last frame's and its scores are already the full projection
@@ -307,12 +440,14 @@ class MotionScores:
         Each step ray-casts (exactly) as many of the pixels still missing as fit the budget,
         towards the next denser stride of `strides` (then every pixel). A step that
         completes that stride's grid carries its recovered scores, the last one
-        `HostModel.project` of the whole ray-cast; a step in between carries
-        ``scores=None`` (nothing new to show yet).
+        `HostModel.project` of the whole ray-cast (corrections: the full correction); a
+        step in between carries ``scores=None`` (nothing new to show yet).
         """
         if view != self._view or self._complete:
             return None
         t0 = self.clock()
+        if self.own is not None and self._synth is None:  # a frame that cast nothing
+            self._synth = self.own.frame(*view)
         target = next((s for s in reversed(self.strides) if s < self._stride), 1)
         pattern = self._patterns.get(target) or SamplePattern.strided(
             self.shape[1], self.shape[0], 1)
@@ -330,17 +465,33 @@ class MotionScores:
         complete = False
         if self._known[pattern.rows, pattern.cols].all():
             if target == 1:
-                y = self.model.project(self._image)
+                y = self._full()
                 complete = True
             else:
-                y = self.recovery.recover(pattern, self._image[pattern.rows, pattern.cols],
-                                          self._prior)
+                y = self._recover(pattern, self._image[pattern.rows, pattern.cols],
+                                  self._prior)
             self._scores, self._stride, self._complete = y, target, complete
+        weights = None
+        if y is not None and self._synth is not None:
+            weights = self._weights(self._image if complete else self._synth)
+            if complete:
+                self._learn()
         seconds = self.clock() - t0
         self.refinements += 1
         self.pixels += int(rows.size)
         self.seconds += seconds
-        return MotionFrame(y, target, int(rows.size), seconds, "progressive", complete)
+        return MotionFrame(y, target, int(rows.size), seconds, "progressive", complete,
+                           weights)
+
+    def _learn(self) -> None:
+        """Corrections: a view reached its full ray-cast; learn the residual's statistics
+        from it and recompute the sparse strides' factors now (the view rests; moving
+        frames must not pay for it)."""
+        assert self.prior is not None and self._synth is not None and self._scores is not None
+        corrected = self.own.reconstructor.correct(self._scores, self._synth)
+        self.prior.add(self._scores, self._image, corrected)
+        self.recovery.set_prior(self.prior.variance, self.prior.lam)
+        self.prepare()
 
     def stats(self) -> dict[str, Any]:
         """JSON-able counters."""

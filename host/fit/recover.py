@@ -30,6 +30,15 @@ the issue): the information form ``(λ Σ⁻¹ + Σ_i B_Si B_Siᵀ) a = λ Σ⁻
 mean_Si)`` over the offsets seen so far, whose per-offset Gram matrices are cached, so after
 all ``stride**2`` offsets the frame is the full projection (up to λ).
 
+Residuals (issue 23): `SparseRecovery.recover_residual` recovers a *correction* of a frame
+the device already shows (its own synthesis ``S``) from the residual ``r_S = x_S - S_S`` at
+the sampled pixels, with prior zero: ``d_c = (B_S B_Sᵀ + λ Σ⁻¹)⁻¹ B_S r_S`` (no sample, no
+change). Σ and λ are then the statistics of the residual, not of the views: a
+`SparseRecovery` built with ``variance=`` (the residual scores' variance per component) and
+``lam=`` (the residual's power outside the eigenspace), which `host.fit.motion.ResidualPrior`
+learns from the full corrections of resting views; `set_prior` changes them (the cached
+factors are dropped).
+
 Pixels in the padding of the bottom/right cells do not exist in the view and are never
 sampled (`HostModel.project` fits them as zeros; on models whose image size is a multiple
 of the cell size the two agree).
@@ -221,6 +230,8 @@ class SparseRecovery:
         0 is plain least squares (underdetermined cells then use the pseudo-inverse).
     max_patterns : int
         Factors kept in the cache (least recently used dropped first).
+    variance : ndarray of shape (K,), optional
+        Σ's diagonal (default: the annexed eigenvalues, else the training scores' variance).
 
     Attributes
     ----------
@@ -228,7 +239,8 @@ class SparseRecovery:
         Σ's diagonal.
     """
 
-    def __init__(self, model: Any, *, lam: float = DEFAULT_LAMBDA, max_patterns: int = 64) -> None:
+    def __init__(self, model: Any, *, lam: float = DEFAULT_LAMBDA, max_patterns: int = 64,
+                 variance: Any = None) -> None:
         lam = float(lam)
         if not (np.isfinite(lam) and lam >= 0.0):
             raise ValueError(f"lam={lam} must be a finite number >= 0")
@@ -244,14 +256,32 @@ class SparseRecovery:
         self.n_coefficients = int(img.n_coefficients)
         counts = np.asarray(img.n_components, dtype=np.int64)
         self._offsets = np.concatenate([[0], np.cumsum(counts)])
-        if model.eigenvalues is not None:
+        if variance is not None:
+            var = np.asarray(variance, dtype=np.float64)
+        elif model.eigenvalues is not None:
             var = np.asarray(model.eigenvalues, dtype=np.float64)
         else:
             var = np.asarray(model.training_scores, dtype=np.float64).var(axis=0, ddof=1)
+        if var.shape != (self.n_coefficients,):
+            raise ValueError(f"variance of shape {var.shape}, the model has "
+                             f"K={self.n_coefficients}")
         self.variance = np.maximum(var, _MIN_VARIANCE)
         self._scales = np.asarray(img.scales, dtype=np.float64)
         self._factors: OrderedDict[tuple, _Factor] = OrderedDict()
         self._grams: OrderedDict[tuple, tuple[np.ndarray, list[_CellGram]]] = OrderedDict()
+
+    def set_prior(self, variance: Any, lam: float) -> None:
+        """Replace Σ's diagonal and λ; the cached factors are dropped (recomputed on use)."""
+        var = np.asarray(variance, dtype=np.float64)
+        lam = float(lam)
+        if var.shape != (self.n_coefficients,) or not np.all(np.isfinite(var)):
+            raise ValueError(f"set_prior: variance must be finite of shape "
+                             f"({self.n_coefficients},)")
+        if not (np.isfinite(lam) and lam >= 0.0):
+            raise ValueError(f"set_prior: lam={lam} must be a finite number >= 0")
+        self.variance = np.maximum(var, _MIN_VARIANCE)
+        self.lam = lam
+        self._factors.clear()
 
     # ------------------------------------------------------------------ patterns
     def _check_pattern(self, pattern: SamplePattern) -> None:
@@ -364,6 +394,23 @@ class SparseRecovery:
         for cf in fac.cells:
             out[cf.lo:cf.hi] = (cf.g @ a0[cf.lo:cf.hi] + cf.m @ xs[cf.start:cf.stop]
                                 - cf.mean_term)
+        if fac.zero is not None:
+            out[fac.zero] = 0.0
+        return out
+
+    def recover_residual(self, pattern: SamplePattern, residual: Any) -> np.ndarray:
+        """The correction (K,) float32 of a frame from its residual at ``pattern``'s pixels.
+
+        ``residual`` (n, 3) float: the true view minus the frame being corrected, at the
+        sampled pixels, in the pattern's order. The prior is zero: cells with no sample get
+        no correction, and no samples give none at all.
+        """
+        r = self._flat_samples(pattern, residual)
+        fac = self.factor(pattern)
+        rs = r[fac.order].astype(np.float32)
+        out = np.zeros(self.n_coefficients, dtype=np.float32)
+        for cf in fac.cells:
+            out[cf.lo:cf.hi] = cf.m @ rs[cf.start:cf.stop]
         if fac.zero is not None:
             out[fac.zero] = 0.0
         return out
