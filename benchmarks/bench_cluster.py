@@ -119,8 +119,8 @@ class _RenderJob:
             for i in indices:
                 self.writer.write_png(i, encode_png(renderer.render_rgb8(self.cameras[i], w, h)))
         else:
-            for i, png in render_pngs(self.cluster, self.args, self.scene, self.cameras,
-                                      indices, w, h):
+            for i, png, _depth in render_pngs(self.cluster, self.args, self.scene,
+                                              self.cameras, indices, w, h):
                 self.writer.write_png(i, png)
 
 
