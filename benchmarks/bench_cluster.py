@@ -201,7 +201,7 @@ def main() -> int:
                     where = (["--cache", str(work / f"cache{r}")] if c == "threads" else
                              ["--scheduler", clusters[c].address])
                     fit_s[c] += _timed(["fit", ref_db, "-o", str(work / f"{c}.ecs"),
-                                        "--cell", args.cell, *where]) / 2
+                                        "--cell", args.cell, "--no-standalone", *where]) / 2
                 loads.append(os.getloadavg()[0])
             out["loads"] = loads
             for c in CONFIGS:
