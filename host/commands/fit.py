@@ -39,9 +39,10 @@ DEFAULT_THRESHOLD = 0.98
 #: Threshold fitted (the search's upper bound) when --target is given without --threshold.
 TARGET_FIT_THRESHOLD = 0.999
 DEFAULT_HOLDOUT = "random:30:1"
-#: What the depth eigenspace costs, as ``fit --help`` says it (BENCHMARKS.md, "Depth by
-#: default").
-DEPTH_COST = "about 10 %% of the device image and 10 %% more fit time"
+#: What the depth eigenspace and the standalone table cost, as ``fit --help`` says it
+#: (BENCHMARKS.md, "Depth by default": the shared tooth and head, 1500 views at 128 and 256).
+TABLE_COST = "30-35 %% of the device image at 1500 views, no fit time"
+DEPTH_COST = "8-40 %% of the device image and 10-17 %% more fit time"
 #: Render settings that may differ between a training and a test database.
 _VIEW_KEYS = ("views", "eigencast")
 
@@ -75,18 +76,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     table = parser.add_mutually_exclusive_group()
     table.add_argument("--no-standalone", dest="standalone", action="store_false",
                        default=None,
-                       help="leave out the training views' scores (the standalone table, "
-                            "printed as a share of the eigenimages: often 5-20 %%; implies "
-                            "--no-depth): the device then cannot show a view by itself, "
-                            "neither with no host (eigencast-device --standalone) nor at once "
-                            "while the host's frame is on its way")
+                       help="leave out the training views' scores (the standalone table: "
+                            f"{TABLE_COST}; implies --no-depth): a device then cannot show a "
+                            "view by itself, neither with no host (eigencast-device "
+                            "--standalone) nor at once while the host's frame is on its way")
     table.add_argument("--standalone", dest="standalone", action="store_true",
                        help="store the standalone table (the default; kept for old scripts)")
     depth = parser.add_mutually_exclusive_group()
     depth.add_argument("--no-depth", dest="depth", action="store_false", default=None,
                        help="leave out the depth eigenspace of the database's depth maps "
-                            f"({DEPTH_COST}): the device then blends its neighbouring views "
-                            "(edges show twice) where it would warp them by their depth")
+                            f"(it costs {DEPTH_COST}): a device then blends its neighbouring "
+                            "views (edges show twice) where it would warp them by their depth")
     depth.add_argument("--depth", dest="depth", action="store_true",
                        help="require the depth eigenspace (the default stores it when the "
                             "database has depth maps and says so when it has none)")

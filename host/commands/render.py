@@ -35,7 +35,7 @@ HELP = "ray-cast a volume from many views into a Cinema database (DB.cdb)"
 
 CSV_EVERY_S = 5.0
 #: What depth costs, as ``render --help`` says it (BENCHMARKS.md, "Depth by default").
-DEPTH_COST = "about 10 %% more render time and 15 %% more disk"
+DEPTH_COST = "5-20 %% more render time and 20-35 %% more disk"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,9 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_render_arguments(parser)
     depth = parser.add_mutually_exclusive_group()
     depth.add_argument("--no-depth", dest="depth", action="store_false", default=None,
-                       help="do not store each view's depth (depth/*.npz, at half resolution: "
-                            f"{DEPTH_COST}); without it a device blends neighbouring views "
-                            "(edges show twice) where it would warp them by their depth")
+                       help="do not store each view's depth (depth/*.npz at half resolution; "
+                            f"storing it costs {DEPTH_COST}): a device then blends neighbouring "
+                            "views (edges show twice) where it would warp them by their depth")
     depth.add_argument("--depth", dest="depth", action="store_true",
                        help="store depth and refuse a setting it cannot work with (the default "
                             "stores it where it can: perspective, black background, even "

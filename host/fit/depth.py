@@ -225,7 +225,8 @@ def add_depth(image: Any, db: Any, threshold: float, *, score_mse: float | None 
         The database has no depth maps, or its framing does not allow the warp.
     """
     if db.depth is None:
-        raise FitError(f"{db.path}: has no depth maps; render it with eigencast render --depth")
+        raise FitError(f"{db.path}: has no depth maps; render it with eigencast render (without "
+                       "--no-depth)")
     problem = depth_problem(db.settings, db.image_shape)
     if problem is not None:
         raise FitError(f"{db.path}: its depth cannot be warped by: {problem}")

@@ -7,10 +7,13 @@ A database is a folder ``NAME.cdb/`` holding
   ``up_x..``) and ``FILE`` last (a path relative to the folder);
 * the PNG images (``images/view_00000.png`` ...);
 * ``eigencast.json`` -- the sidecar: volume, transfer function, camera and
-  renderer settings, image size and view set. Databases written by other tools
-  (ParaView, VisIt, a path tracer) have no sidecar and are still valid input.
+  renderer settings, image size and view set (its spec and, since it is recorded, its
+  count: a ``data.csv`` listing fewer views is an interrupted render, `expected_views`).
+  Databases written by other tools (ParaView, VisIt, a path tracer) have no sidecar and are
+  still valid input.
 
-With ``eigencast render --depth`` each view also has a depth map, ``depth/view_00000.npz``
+``eigencast render`` gives each view a depth map too (unless ``--no-depth``, or where the
+framing cannot carry one: `depth_problem`), ``depth/view_00000.npz``
 (the image's name with ``.npz``; `depth_file`): one float16 array ``depth`` of shape
 (H/2, W/2), the distance in mm along each pixel's ray where the accumulated opacity crosses
 one half (the opacity-weighted mean where it never does), averaged over each 2x2 block of
