@@ -174,6 +174,10 @@ def test_fit_stores_depth_and_the_standalone_table_by_default(small_db, tmp_path
     res = _run("fit", str(flat), "-o", str(tmp_path / "y.ecs"), "--depth", check=False)
     assert res.returncode == 1 and "has no depth maps" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "y.ecs").exists()
+    (flat / "eigencast.json").unlink()  # as another tool (ParaView) writes a database
+    res = _run("fit", str(flat), "-o", str(tmp_path / "z.ecs"), "--cell", "20")
+    note = [line for line in res.stderr.splitlines() if "blend" in line]
+    assert len(note) == 1 and "render the volume with eigencast render" in note[0]
 
 
 def test_fit_says_what_the_file_holds_beyond_the_device_image(small_db, tmp_path):

@@ -236,21 +236,24 @@ def _choose_depth(args: argparse.Namespace, db: CinemaDB) -> None:
     args.standalone = True if args.standalone is None else args.standalone
     if args.depth is False:
         return
-    if db.depth is None:
-        problem = "has no depth maps"
-        cure = ("render it again with eigencast render, which stores depth unless --no-depth"
-                if db.settings else "render the volume with eigencast render, which stores "
-                "depth")
+    framing = depth_problem(db.settings, db.image_shape) if db.settings else None
+    cure = "render it perspective, on black, at an even size"
+    if db.depth is None and db.settings is None:  # another tool's database
+        problem, cure = "has no depth maps", ("render the volume with eigencast render, which "
+                                              "stores depth")
+    elif db.depth is None:
+        problem = "has no depth maps" + (f", rendered with {framing}" if framing else "")
+        if not framing:
+            cure = "render it again with eigencast render, which stores depth unless --no-depth"
     else:
-        problem = depth_problem(db.settings, db.image_shape)
-        cure = "render it perspective, on black, at an even size"
+        problem = framing
     if problem is None:
         args.depth = True
         return
     if args.depth:
         raise EigencastError(f"{args.database}: --depth: {problem}; {cure}")
     args.depth = False
-    print(f"{args.database}: {problem}: a device will blend neighbouring views instead of "
+    print(f"{args.database}: {problem}; a device will blend neighbouring views instead of "
           f"warping them by depth ({cure})", file=sys.stderr)
 
 
