@@ -119,8 +119,8 @@ class _RenderJob:
             for i in indices:
                 self.writer.write_png(i, encode_png(renderer.render_rgb8(self.cameras[i], w, h)))
         else:
-            for i, png in render_pngs(self.cluster, self.args, self.scene, self.cameras,
-                                      indices, w, h):
+            for i, png, _depth in render_pngs(self.cluster, self.args, self.scene,
+                                              self.cameras, indices, w, h):
                 self.writer.write_png(i, png)
 
 
@@ -201,7 +201,7 @@ def main() -> int:
                     where = (["--cache", str(work / f"cache{r}")] if c == "threads" else
                              ["--scheduler", clusters[c].address])
                     fit_s[c] += _timed(["fit", ref_db, "-o", str(work / f"{c}.ecs"),
-                                        "--cell", args.cell, *where]) / 2
+                                        "--cell", args.cell, "--no-standalone", *where]) / 2
                 loads.append(os.getloadavg()[0])
             out["loads"] = loads
             for c in CONFIGS:

@@ -151,13 +151,15 @@ def ensure_model(work: Path, volume: str, size: int, views: str) -> Path:
         return out
     db = work / f"{stem}-{size}.cdb"
     t0 = time.perf_counter()
-    code = eigencast(["render", volume, "-o", str(db), "--views", views, "--size", str(size)])
+    # the blend path this benchmark measures (section w takes an image with depth itself)
+    code = eigencast(["render", volume, "-o", str(db), "--views", views, "--size", str(size),
+                      "--no-depth"])
     if code:
         raise SystemExit(f"rendering {volume} at {size} px failed (exit {code})")
     t1 = time.perf_counter()
     tmp = out.with_name(out.stem + ".tmp.ecs")
     code = eigencast(["fit", str(db), "-o", str(tmp), "--method", "adaptive", "--cell", "30",
-                      "--threshold", "0.98", "--key", str(key_path(work))])
+                      "--threshold", "0.98", "--key", str(key_path(work)), "--no-standalone"])
     if code:
         raise SystemExit(f"fitting {db} failed (exit {code})")
     tmp.replace(out)

@@ -775,8 +775,8 @@ def cells_part(cache: Path, work: Path, volumes: list[str], sizes: list[int],
                 if not out.exists():
                     t0 = time.perf_counter()
                     subprocess.run([str(exe), "fit", str(db), "-o", str(out), "--cell",
-                                    str(cell), "--threshold", str(threshold)], check=True,
-                                   stdout=subprocess.DEVNULL)
+                                    str(cell), "--threshold", str(threshold),
+                                    "--no-standalone"], check=True, stdout=subprocess.DEVNULL)
                     print(f"fit {out.name}: {time.perf_counter() - t0:.0f} s", flush=True)
                 case = open_case(out)
                 res = key_frames(case, n_views, rd)

@@ -137,8 +137,9 @@ def _builtin_model() -> Path:
     work = Path(tempfile.mkdtemp(prefix="bench-motion-"))
     db, model = work / "tooth.cdb", work / "tooth.ecs"
     for cmd in (["render", "builtin:tooth", "-o", str(db), "--views", "grid:36x9", "--size",
-                 "128", "--samples", "300"],
-                ["fit", str(db), "-o", str(model), "--cell", "16", "--threshold", "0.99"]):
+                 "128", "--samples", "300", "--no-depth"],
+                ["fit", str(db), "-o", str(model), "--cell", "16", "--threshold", "0.99",
+                 "--no-standalone"]):
         if eigencast(cmd) != 0:
             raise SystemExit(f"bench_motion: eigencast {cmd[0]} failed")
     return model

@@ -37,8 +37,10 @@ not, ``problem`` says why. At boot an active image that does not load is given
 up for the other slot (see :meth:`device_runtime.device.Device.fall_back`).
 
 Every user error (bad flag, bad URL, missing key file, corrupt flash folder)
-is one line on stderr and exit code 1. :func:`build_parser` is the parser the
-runtime issue extends (``--headless --frames DIR --standalone``).
+is one line on stderr and exit code 1; a command line argparse cannot parse (an unknown or
+malformed flag, a missing ``--flash``) gets the usage line (:data:`USAGE`) above it.
+:func:`build_parser` is the parser the runtime issue extends (``--headless --frames DIR
+--standalone``).
 """
 
 from __future__ import annotations
@@ -73,17 +75,43 @@ PROG = "eigencast-device"
 KEY_FILE_NAME = "device.key"
 """Name of the key ``--pair`` installs in the flash folder."""
 _MB = 1024 * 1024
+DEFAULT_KEEP_FRAMES = 1000
+"""PNGs ``--frames`` keeps by default: a served device makes 30-60 frames a second, so every
+frame of a long run fills a disk (23,340 PNGs, 549 MB in 10 minutes at 256 px)."""
 
 
 class _UsageError(Exception):
     """A bad flag combination or value (one line, exit 1)."""
 
 
+class _ParseError(_UsageError):
+    """A command line argparse cannot parse: the usage line, then the error (exit 1)."""
+
+
+USAGE = (f"{PROG} --flash DIR (--port URL | --listen HOST:PORT | --standalone | --status | "
+         "--pair KEYFILE | --unpair) [options]")
+"""The one usage line a bad command line gets (``--help`` lists the options)."""
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse that reports bad flags as one line and exit code 1 (not 2)."""
+    """argparse that reports bad flags as the usage line, one error line and exit code 1
+    (not argparse's whole usage page and 2)."""
 
     def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
+        raise _ParseError(" ".join(message.split()))
+
+
+def version_line() -> str:
+    """``eigencast-device VERSION (protocol N)``: the installed package's version."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from protocol.messages import PROTOCOL_VERSION
+
+    try:
+        installed = version("eigencast")
+    except PackageNotFoundError:
+        installed = "(not installed)"
+    return f"{PROG} {installed} (protocol {PROTOCOL_VERSION})"
 
 
 def _positive_mb(text: str) -> float:
@@ -107,9 +135,11 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``eigencast-device`` argument parser (later issues add their flags to it)."""
     parser = _Parser(
         prog=PROG,
+        usage=USAGE,
         description="The eigencast device: answers a host over a serial port or TCP, keeps "
         "eigenspace images in a flash folder.",
     )
+    parser.add_argument("--version", action="version", version=version_line())
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--port", metavar="URL",
                        help="serial port or pyserial URL to serve (e.g. /dev/ttyUSB0, mem://...)")
@@ -158,6 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="headless: write frames as PNG (frame-NNNNNN.png, frames.csv) here")
     show.add_argument("--every", metavar="N", type=int, default=1,
                       help="with --frames: write every N-th frame (default 1)")
+    show.add_argument("--keep-frames", metavar="N", type=int, default=DEFAULT_KEEP_FRAMES,
+                      help="with --frames: keep the last N PNGs, deleting older ones as new ones "
+                      f"come (default {DEFAULT_KEEP_FRAMES}, about {DEFAULT_KEEP_FRAMES // 40} s "
+                      "of a served drag; frames.csv lists them all; 0 keeps every frame)")
     show.add_argument("--standalone", action="store_true",
                       help="interpolate scores locally from the image's table (no host needed; "
                       "fit it with eigencast fit --standalone)")
@@ -301,25 +335,52 @@ def _config(args: argparse.Namespace) -> DeviceConfig:
     )
 
 
-def _presenter(args: argparse.Namespace) -> Any:
+def headless_plan(args: argparse.Namespace) -> str:
+    """One line: what a headless device will do (what drives its view, where frames go)."""
+    if args.orbit is not None or args.views is not None:
+        drive = "shows the " + ("--orbit" if args.orbit is not None else "--views")
+    elif args.standalone:
+        view = args.view or (30.0, 15.0)
+        drive = (f"shows the view {view[0]:g},{view[1]:g} once, then waits (--orbit SPEC or "
+                 "--views LIST drive it)")
+    else:
+        drive = "shows the views the host sends (serve --orbit drives them)"
+    if args.max_frames is not None:
+        drive += f", stopping after {args.max_frames} frame{'s' * (args.max_frames != 1)}"
+    if args.frames is None:
+        out = "writes no frames (--frames DIR writes them as PNGs)"
+    else:
+        which = "every frame" if args.every == 1 else f"one frame in {args.every}"
+        kept = ("keeping them all" if not args.keep_frames
+                else f"keeping the last {args.keep_frames} (--keep-frames)")
+        out = f"writes {which} to {args.frames} as PNG, {kept}"
+    return f"{drive}; {out}"
+
+
+def _presenter(args: argparse.Namespace) -> tuple[Any, str | None]:
+    """The window, or the headless presenter and the line that says what it will do (logged
+    once the device is ready to run)."""
     from device_runtime.display import HeadlessPresenter, Window, WindowUnavailable
 
     screenshots = args.screenshots or args.frames or Path(".")
     if args.headless or args.frames is not None:
-        return HeadlessPresenter(args.frames, every=args.every, screenshot_dir=screenshots)
+        return HeadlessPresenter(args.frames, every=args.every, keep=args.keep_frames or None,
+                                 screenshot_dir=screenshots), f"headless: {headless_plan(args)}"
     try:
         return Window((256, 256), title=f"eigencast - {args.device_id}",
-                      screenshot_dir=screenshots, zoom=args.zoom)
+                      screenshot_dir=screenshots, zoom=args.zoom), None
     except WindowUnavailable as exc:
         if args.display:
             raise _UsageError(f"--display: {exc}") from None
-        _log(f"no window ({exc}); running headless (--headless --frames DIR writes frames)")
-        return HeadlessPresenter(None, screenshot_dir=screenshots)
+        return (HeadlessPresenter(None, screenshot_dir=screenshots),
+                f"{exc}: running headless: {headless_plan(args)}")
 
 
 def _check_runtime_args(args: argparse.Namespace) -> None:
     if args.every < 1:
         raise _UsageError(f"--every {args.every} must be >= 1")
+    if args.keep_frames < 0:
+        raise _UsageError(f"--keep-frames {args.keep_frames} must be >= 0 (0 keeps every frame)")
     if args.frames is not None and args.display:
         raise _UsageError("--frames writes frames headless; it cannot be combined with --display")
     if args.max_frames is not None and args.max_frames < 1:
@@ -359,7 +420,7 @@ def _serve(args: argparse.Namespace) -> int:
     presenter = None
     device = None
     try:
-        presenter = _presenter(args)
+        presenter, plan = _presenter(args)
         device = RuntimeDevice(
             config,
             presenter=presenter,
@@ -385,6 +446,8 @@ def _serve(args: argparse.Namespace) -> int:
             f"--standalone: no image to show in {args.flash} (provision one made with "
             "eigencast fit --standalone, serving --port/--listen meanwhile)"
         )
+    if plan is not None:
+        _log(plan)
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
 
@@ -466,6 +529,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                               "--pair)")
         return _serve(args)
     except _UsageError as exc:
+        if isinstance(exc, _ParseError):
+            print(f"usage: {USAGE}", file=sys.stderr)
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
     except (DeviceError, FlashError, ProtocolError, ValueError, OSError) as exc:

@@ -13,9 +13,15 @@ and the ``overlay`` / ``zoom`` state) that :mod:`device_runtime.runtime` drives:
     toggles a small overlay (fps, bytes per frame, link rate, view), ``s`` saves a
     screenshot of the window, ``Esc`` or closing the window quits (:class:`Quit`).
 :class:`HeadlessPresenter`
-    Writes every ``every``-th presented frame as a PNG into a folder, plus one line per
-    written frame in ``frames.csv`` (which packet frame, view, key or delta) so the output
-    can be checked against ``eigencast view``. Without a folder it presents nothing.
+    Writes every ``every``-th presented frame as a PNG into a folder (keeping the last
+    ``keep``), plus one line per written frame in ``frames.csv`` so the output can be
+    checked against ``eigencast view``. Its columns (:data:`FRAMES_CSV_COLUMNS`): ``shown``
+    (the display's frame counter: the n-th frame presented, from 0), ``file``, ``host_frame``
+    (the score packet's frame number as the host counts it, from a random start; empty for
+    the device's own frames), ``phi_deg``, ``theta_deg``, ``key`` (1: a key frame or a
+    frame of the device's own), ``packet_bytes`` (0: the device's own frame) and
+    ``sequence`` (the view request the frame answers, 0: none). Without a folder it
+    presents nothing.
 
 PNGs are written by :func:`encode_png` (zlib + struct: no imaging library on the device),
 atomically (temporary file, then rename), so a reader never sees half a file.
@@ -23,9 +29,11 @@ atomically (temporary file, then rename), so a reader never sees half a file.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import struct
+import sys
 import tempfile
 import zlib
 from dataclasses import dataclass
@@ -36,6 +44,7 @@ import numpy as np
 
 __all__ = [
     "DRAG_DEG_PER_PIXEL",
+    "FRAMES_CSV_COLUMNS",
     "KEY_STEP_DEG",
     "ZOOM_FACTOR",
     "Action",
@@ -60,7 +69,10 @@ ZOOM_FACTOR = 1.25
 """Zoom change per ``+`` / ``-`` press."""
 ZOOM_RANGE = (0.125, 8.0)
 _FRAMES_CSV = "frames.csv"
-_CSV_HEADER = "index,file,frame,phi_deg,theta_deg,key,packet_bytes,sequence\n"
+FRAMES_CSV_COLUMNS = ("shown", "file", "host_frame", "phi_deg", "theta_deg", "key",
+                      "packet_bytes", "sequence")
+"""``frames.csv``'s header (see the module docstring for what each column holds)."""
+_CSV_HEADER = ",".join(FRAMES_CSV_COLUMNS) + "\n"
 
 
 class WindowUnavailable(RuntimeError):
@@ -185,6 +197,9 @@ class HeadlessPresenter:
         Where ``frame-NNNNNN.png`` and ``frames.csv`` go (created); None: write nothing.
     every : int
         Write one frame in ``every`` (>= 1); the first presented frame is always written.
+    keep : int or None
+        Keep only the last ``keep`` PNGs this presenter wrote (older ones are deleted as new
+        ones come; ``frames.csv`` keeps every row); None keeps them all.
     screenshot_dir : path-like, optional
         Where :meth:`screenshot` saves (default: ``folder`` or the current folder).
 
@@ -203,12 +218,17 @@ class HeadlessPresenter:
         folder: str | os.PathLike | None = None,
         *,
         every: int = 1,
+        keep: int | None = None,
         screenshot_dir: str | os.PathLike | None = None,
     ) -> None:
         if not isinstance(every, int) or every < 1:
             raise ValueError(f"HeadlessPresenter: every={every!r} must be an int >= 1")
+        if keep is not None and (not isinstance(keep, int) or keep < 1):
+            raise ValueError(f"HeadlessPresenter: keep={keep!r} must be None or an int >= 1")
         self.folder = None if folder is None else Path(folder)
         self.every = every
+        self.keep = keep
+        self._written: collections.deque[Path] = collections.deque()
         self.frames_written = 0
         self.overlay = False
         self.zoom = 1.0
@@ -252,16 +272,21 @@ class HeadlessPresenter:
         if self.folder is None or index % self.every:
             return False
         name = f"frame-{index:06d}.png"
-        write_png(self.folder / name, frame)
+        self._written.append(write_png(self.folder / name, frame))
+        if self.keep is not None and len(self._written) > self.keep:
+            with contextlib.suppress(OSError):
+                self._written.popleft().unlink()
         info = info or {}
 
         def num(field: str) -> str:
             value = info.get(field)
             return "" if value is None else repr(float(value))
 
+        packet_bytes = info.get("packet_bytes", 0) or 0
+        host_frame = info.get("frame", "") if packet_bytes else ""  # own frames: none
         self._csv.write(
-            f"{index},{name},{info.get('frame', '')},{num('phi_deg')},{num('theta_deg')},"
-            f"{int(bool(info.get('key', False)))},{info.get('packet_bytes', 0)},"
+            f"{index},{name},{host_frame},{num('phi_deg')},{num('theta_deg')},"
+            f"{int(bool(info.get('key', False)))},{packet_bytes},"
             f"{info.get('sequence', 0)}\n"
         )
         self._csv.flush()
@@ -283,6 +308,41 @@ class HeadlessPresenter:
 
 
 # --------------------------------------------------------------------------- window
+
+
+@contextlib.contextmanager
+def _c_stderr_captured() -> Any:
+    """Capture what C code (SDL) writes to file descriptor 2 meanwhile: yields a list that
+    gets the text, if any, once the block ends (Python's own stderr is flushed first)."""
+    said: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no fd 2 to redirect: let SDL print
+        yield said
+        return
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield said
+            finally:
+                os.dup2(saved, 2)
+                tmp.seek(0)
+                text = tmp.read().decode("utf-8", "replace")
+                if text.strip():
+                    said.append(text)
+    finally:
+        os.close(saved)
+
+
+def _no_screen() -> str:
+    """Why there is no screen, in the device's words."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                 or os.environ.get("WAYLAND_DISPLAY")):
+        return "no display (neither DISPLAY nor WAYLAND_DISPLAY is set)"
+    return "no display (SDL found no screen to open a window on)"
+
 
 
 class Window:
@@ -319,15 +379,23 @@ class Window:
         screenshot_dir: str | os.PathLike = ".",
         zoom: float | None = None,
     ) -> None:
+        os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")  # no banner on stdout
         try:
             import pygame
         except ImportError as exc:
             raise WindowUnavailable(f"pygame is not installed ({exc})") from None
         self._pg = pygame
         try:
-            pygame.display.init()
+            with _c_stderr_captured() as sdl_said:  # SDL's probes print to fd 2 themselves
+                pygame.display.init()
         except pygame.error as exc:
             raise WindowUnavailable(f"no display: {exc}") from None
+        if not os.environ.get("SDL_VIDEODRIVER") and pygame.display.get_driver() in (
+                "offscreen", "dummy"):  # SDL's last resort: a window no one would see
+            pygame.display.quit()
+            raise WindowUnavailable(_no_screen())
+        if sdl_said:  # a window opened: what SDL said on the way may matter
+            print(sdl_said[0], end="", file=sys.stderr, flush=True)
         height, width = (int(v) for v in image_shape)
         info = pygame.display.Info()
         self._screen_size = (info.current_w, info.current_h)

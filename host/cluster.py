@@ -4,7 +4,8 @@ Both heavy steps are embarrassingly parallel, so they map onto Dask distributed 
 (``pip install 'eigencast[cluster]'``; Dask is imported only when ``--scheduler`` is given):
 
 * **render**: the pending views are cut into batches (`views_per_task`); each task ray-casts
-  its batch on a worker and returns PNG bytes, which the client writes into the Cinema
+  its batch on a worker and returns PNG bytes (and each view's depth map, as the in-process
+  render makes it), which the client writes into the Cinema
   database exactly as the in-process render does (atomic writes, ``data.csv``, progress bar,
   resume). A worker builds its `host.render.raycast.Renderer` once per scene from the command's own
   options (`scene_recipe`): built-in volumes are regenerated there, file volumes are read
@@ -238,13 +239,24 @@ def _scene(recipe: argparse.Namespace, fingerprint: str) -> Any:
 
 
 def _render_batch(
-    recipe: argparse.Namespace, fingerprint: str, jobs: list, width: int, height: int
-) -> list[tuple[int, bytes]]:
-    """Worker task: ray-cast ``jobs`` [(index, camera)] and return [(index, PNG bytes)]."""
-    from host.render.cinema import encode_png
+    recipe: argparse.Namespace, fingerprint: str, jobs: list, width: int, height: int,
+    depth_offset: float | None = None,
+) -> list[tuple[int, bytes, bytes | None]]:
+    """Worker task: ray-cast ``jobs`` [(index, camera)] and return [(index, PNG bytes, depth
+    npz bytes or None)]; with ``depth_offset`` each view's depth map as the in-process render
+    makes it (`host.render.cinema.encode_depth`, one ray-cast for both)."""
+    from host.render.cinema import encode_depth, encode_png
 
     renderer = _scene(recipe, fingerprint)
-    return [(i, encode_png(renderer.render_rgb8(cam, width, height))) for i, cam in jobs]
+    out = []
+    for i, cam in jobs:
+        if depth_offset is None:
+            out.append((i, encode_png(renderer.render_rgb8(cam, width, height)), None))
+        else:
+            rgba, depth = renderer.render_with_depth(cam, width, height)
+            out.append((i, encode_png(renderer.composite(rgba)),
+                        encode_depth(depth, depth_offset)))
+    return out
 
 
 def views_per_task(n_views: int, threads: int) -> int:
@@ -261,8 +273,11 @@ def render_pngs(
     pending: Sequence[int],
     width: int,
     height: int,
-) -> Iterator[tuple[int, bytes]]:
-    """Ray-cast views ``pending`` on the cluster; yield ``(index, PNG bytes)`` as they finish.
+    *,
+    depth_offset: float | None = None,
+) -> Iterator[tuple[int, bytes, bytes | None]]:
+    """Ray-cast views ``pending`` on the cluster; yield ``(index, PNG bytes, depth npz bytes
+    or None)`` as they finish.
 
     Parameters
     ----------
@@ -276,6 +291,8 @@ def render_pngs(
     pending : sequence of int
         The rows to render.
     width, height : int
+    depth_offset : float or None
+        Also make each view's depth map with this offset (``render``'s default).
 
     Notes
     -----
@@ -291,7 +308,7 @@ def render_pngs(
     futures = [
         client.submit(_render_batch, recipe, fingerprint,
                       [(i, cameras[i]) for i in pending[s:s + per_task]], width, height,
-                      pure=False, key=f"render-views-{pending[s]}-{run}")
+                      depth_offset, pure=False, key=f"render-views-{pending[s]}-{run}")
         for s in range(0, len(pending), per_task)
     ]
     try:

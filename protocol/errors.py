@@ -44,6 +44,7 @@ __all__ = [
     "TransportClosed",
     "TransportError",
     "TransportTimeout",
+    "WrongKey",
 ]
 
 
@@ -141,6 +142,18 @@ class RemoteNotAuthenticated(RemoteError, AuthenticationError):
 
 class RemoteAuthFailed(RemoteError, AuthenticationError):
     """AUTH_FAILED: our proof or session tag did not verify (wrong key?)."""
+
+
+class WrongKey(RemoteAuthFailed):
+    """The device refused our AUTH proof: the host's key is not the device's.
+
+    Raised by the host's session in place of the device's AUTH_FAILED answer to
+    AUTH_CHALLENGE, with a message in plain words (the device's own is kept as ``detail``).
+    """
+
+    def __init__(self, message: str, *, detail: str = "") -> None:
+        ProtocolError.__init__(self, message)
+        self.code, self.name, self.detail = 5, "AUTH_FAILED", detail
 
 
 class RemoteReplayed(RemoteError, ReplayError):

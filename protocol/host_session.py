@@ -30,9 +30,12 @@ from protocol.errors import (
     AuthenticationError,
     MalformedMessage,
     ProtocolError,
+    RemoteAuthFailed,
     TransportError,
     TransportTimeout,
+    WrongKey,
 )
+from protocol.keys import key_fingerprint
 from protocol.link import DEFAULT_REQUEST_TIMEOUT_S, DEFAULT_RETRIES
 
 if TYPE_CHECKING:
@@ -159,11 +162,19 @@ class HostSession:
             device_nonce=hello.nonce,
             device_id=hello.device_id,
         )
-        reply = self.link.request(
-            m.AuthChallenge(host_proof=host_proof),
-            timeout_s=self.request_timeout_s,
-            retries=self.retries,
-        )
+        try:
+            reply = self.link.request(
+                m.AuthChallenge(host_proof=host_proof),
+                timeout_s=self.request_timeout_s,
+                retries=self.retries,
+            )
+        except RemoteAuthFailed as exc:  # the one way our proof fails: another key
+            raise WrongKey(
+                f"wrong key: the device '{hello.device_id}' does not accept key "
+                f"{key_fingerprint(self.key)}; pass the key it was paired with "
+                "(the device logs its fingerprint at start; eigencast-device --status shows it)",
+                detail=str(exc),
+            ) from None
         assert isinstance(reply, m.AuthResponse)
         expected = auth.auth_proof(
             self.key,

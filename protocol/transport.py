@@ -39,6 +39,7 @@ import io
 import logging
 import os
 import pkgutil
+import re
 import select
 import socket
 import threading
@@ -281,6 +282,9 @@ def _open_pyserial(
     try:
         port = serial.serial_for_url(url, **kwargs)
     except (SerialException, ValueError, OSError) as exc:
+        if not scheme and re.fullmatch(r"[\w.\-]+:\d{1,5}|\[[0-9A-Fa-f:]+\]:\d{1,5}", url):
+            raise TransportError(f"open {url}: no such serial port; did you mean "
+                                 f"socket://{url}?") from None  # HOST:PORT, no scheme
         raise TransportError(f"open {url}: {exc}") from None
     return SerialTransport(port, url=url, max_frame_bytes=max_frame_bytes, scheme=scheme)
 

@@ -122,7 +122,7 @@ class Study:
         if key not in self.results:
             log(f"render {db.name} (1500 views at {size}x{size})")
             r = run_measured(["render", str(volume), "-o", str(db), "--views", "grid:100x15",
-                              "--size", str(size), *self.cluster],
+                              "--size", str(size), "--no-depth", *self.cluster],
                              self.cache / "logs" / f"render-{name}-{size}.log")
             self.results[key] = {k: v for k, v in r.items() if k != "stdout"}
             self.save()
@@ -135,7 +135,8 @@ class Study:
         if rkey not in self.results or ("error" not in self.results[rkey]
                                         and not model.exists()):
             log(f"fit {key}: {' '.join(options)}")
-            r = run_measured(["fit", str(db), "-o", str(model), *options, *self.cluster],
+            r = run_measured(["fit", str(db), "-o", str(model), *options, "--no-standalone",
+                              *self.cluster],
                              self.cache / "logs" / f"fit-{key}.log", allow_fail=True)
             self.results[rkey] = {"options": options, **r}
             self.save()

@@ -31,13 +31,14 @@ def shared_path():
 
 @pytest.fixture(scope="session")
 def tooth_db(tmp_path_factory):
-    """A small Cinema database of the built-in tooth (grid:24x6 views, 40 px, 120 samples),
-    rendered once per session; shared by the evaluate and target tests."""
+    """A small Cinema database of the built-in tooth (grid:24x6 views, 40 px, 120 samples, no
+    depth: its models blend), rendered once per session; shared by the evaluate and target
+    tests."""
     from host.cli import main as eigencast
 
     db = tmp_path_factory.mktemp("tooth-db") / "tooth.cdb"
     assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
-                      "--size", "40", "--samples", "120"]) == 0
+                      "--size", "40", "--samples", "120", "--no-depth"]) == 0
     return db
 
 

@@ -32,7 +32,8 @@ TINY_VIEWS = "grid:16x5"
 
 
 def tiny_model(tmp_path_factory, *, name: str = "tiny") -> Path:
-    """A signed (``KEY``), standalone adaptive model of the tooth; built once per session."""
+    """A signed (``KEY``), standalone adaptive model of the tooth without depth (its device
+    frames are blends, `check_frames`); built once per session."""
     root = tmp_path_factory.getbasetemp() / f"runtime-{name}"
     model = root / "tooth.ecs"
     if model.exists():
@@ -44,7 +45,7 @@ def tiny_model(tmp_path_factory, *, name: str = "tiny") -> Path:
 
     write_key(key_file, KEY, force=True)
     assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", TINY_VIEWS,
-                      "--size", str(TINY_SIZE), "--samples", "80"]) == 0
+                      "--size", str(TINY_SIZE), "--samples", "80", "--no-depth"]) == 0
     tmp = root / "tooth.tmp.ecs"
     assert eigencast(["fit", str(db), "-o", str(tmp), "--cell", "12", "--threshold", "0.99",
                       "--standalone", "--key", str(key_file)]) == 0

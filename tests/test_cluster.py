@@ -22,7 +22,7 @@ import host.cluster
 import host.fit.model
 from host.cli import main
 from host.progress import Progress
-from host.render.cinema import CinemaWriter
+from host.render.cinema import CinemaDB, CinemaWriter
 
 CLI = [sys.executable, "-m", "host.cli"]
 VIEWS = "grid:30x6"  # 180 views: long enough to catch a client halfway
@@ -79,9 +79,12 @@ def _kill_one_worker_on_first_call(monkeypatch, scheduler, owner, name):
 
 
 def test_local_n_render_is_byte_identical_to_in_process(tmp_path, reference):
+    """Depth maps included (render stores them by default, on a cluster too)."""
     db = tmp_path / "local.cdb"
     assert main(["render", "builtin:tooth", "-o", str(db), "--views", VIEWS, *SMALL,
                  "--scheduler", "local:2"]) == 0
+    assert CinemaDB.open(reference).depth is not None
+    assert sum(name.startswith("depth/view_") for name in _snapshot(db)) == 180
     assert _snapshot(db) == _snapshot(reference)
 
 

@@ -9,16 +9,20 @@ import stat
 import pytest
 from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name
 
-from device_runtime.cli import KEY_FILE_NAME, build_parser, main
+from device_runtime.cli import KEY_FILE_NAME, USAGE, build_parser, main
 from host.link.provisioning import provision
 from protocol.keys import key_fingerprint, load_key, write_key
 
 
 def _one_error_line(capsys) -> str:
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0, err
-    assert err.startswith("eigencast-device: error: "), err
-    return err
+    """The error line; a command line argparse cannot parse has the usage line above it."""
+    lines = capsys.readouterr().err.strip().splitlines()
+    if len(lines) == 2:
+        assert lines[0] == f"usage: {USAGE}", lines
+        lines = lines[1:]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("eigencast-device: error: "), lines
+    return lines[0]
 
 
 @pytest.fixture

@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 from device_runtime.display import (
+    FRAMES_CSV_COLUMNS,
     HeadlessPresenter,
     Quit,
     Screenshot,
@@ -133,19 +134,41 @@ def test_headless_presenter_writes_every_nth_frame_and_a_log(tmp_path):
     presenter = HeadlessPresenter(tmp_path / "out", every=3)
     frames = [_frame(i) for i in range(7)]
     for i, frame in enumerate(frames):
-        presenter.present(frame, {"frame": 100 + i, "phi_deg": 1.5 * i, "theta_deg": -2.0,
-                                  "key": i == 0, "packet_bytes": 90 + i, "sequence": i})
+        own = i == 3  # the device's own frame (a prediction): no packet, no host frame
+        presenter.present(frame, {"frame": 0 if own else 100 + i, "phi_deg": 1.5 * i,
+                                  "theta_deg": -2.0, "key": i == 0,
+                                  "packet_bytes": 0 if own else 90 + i, "sequence": i})
     presenter.close()
     with open(tmp_path / "out" / "frames.csv") as handle:
         rows = list(csv.DictReader(handle))
+    assert tuple(rows[0]) == FRAMES_CSV_COLUMNS
     assert [r["file"] for r in rows] == ["frame-000000.png", "frame-000003.png",
                                          "frame-000006.png"]
-    assert rows[1]["frame"] == "103" and rows[1]["phi_deg"] == "4.5" and rows[0]["key"] == "1"
+    assert [r["shown"] for r in rows] == ["0", "3", "6"]  # the display's frame counter
+    assert [r["host_frame"] for r in rows] == ["100", "", "106"]
+    assert rows[1]["phi_deg"] == "4.5" and rows[0]["key"] == "1"
     for row in rows:
-        index = int(row["index"])
+        index = int(row["shown"])
         got = np.asarray(Image.open(tmp_path / "out" / row["file"]))
         np.testing.assert_array_equal(got, frames[index])
     shot = presenter.screenshot()
     np.testing.assert_array_equal(np.asarray(Image.open(shot)), frames[-1])
     with pytest.raises(ValueError, match="every"):
         HeadlessPresenter(tmp_path, every=0)
+
+
+def test_headless_presenter_keeps_the_last_frames(tmp_path):
+    """keep=N: only the newest N PNGs stay on disk; frames.csv still lists every one."""
+    presenter = HeadlessPresenter(tmp_path / "out", keep=3)
+    frames = [_frame(i) for i in range(8)]
+    for i, frame in enumerate(frames):
+        presenter.present(frame, {"phi_deg": float(i), "theta_deg": 0.0})
+    presenter.close()
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.png")) == [
+        "frame-000005.png", "frame-000006.png", "frame-000007.png"]
+    with open(tmp_path / "out" / "frames.csv") as handle:
+        assert len(list(csv.DictReader(handle))) == 8
+    np.testing.assert_array_equal(
+        np.asarray(Image.open(tmp_path / "out" / "frame-000007.png")), frames[7])
+    with pytest.raises(ValueError, match="keep"):
+        HeadlessPresenter(tmp_path, keep=0)

@@ -211,9 +211,9 @@ def test_device_restarted_mid_stream_boots_from_flash_and_resumes(tmp_path, mode
     log = "\n".join(second.lines)
     assert "boot: slot A: confirmed image" in log and "image begin" not in log
     rows = read_frames(frames2)
-    # the rebooted device first shows its own prediction of its view (no frame number: the
+    # the rebooted device first shows its own prediction of its view (no host frame: the
     # image has the standalone table, issue 14); the host's first packet is a key frame
-    served = [r for r in rows if r["frame"]]
+    served = [r for r in rows if r["host_frame"]]
     assert served and served[0]["key"] == "1"
     assert check_frames(model, frames2, rows) >= 3
 
@@ -236,6 +236,66 @@ def test_standalone_device_shows_views_with_no_host(tmp_path, model_path, model)
                           "--headless"], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert run.returncode == 1 and "no image" in run.stderr
     assert len(run.stderr.strip().splitlines()) <= 3 and "Traceback" not in run.stderr
+
+
+def test_a_wrong_key_is_said_in_plain_words_once(tmp_path, model_path):
+    """provision and serve with a key that is not the device's: one line that says "wrong
+    key" once (not the protocol's AUTH_FAILED / AUTH_CHALLENGE wording), exit 1."""
+    from protocol.keys import write_key
+
+    device_key = tmp_path / "device.key"
+    write_key(device_key)  # a fresh key: not the one the host holds
+    device = DeviceProcess(tmp_path / "flash", "--headless", key_file=device_key)
+    try:
+        for command in (["provision", str(model_path)],
+                        ["serve", str(model_path), "--orbit", "steps:2:5", "--fps", "0"]):
+            run = subprocess.run([*CLI, *command, "--port", device.url, "--key",
+                                  str(key_file(model_path))], capture_output=True, text=True,
+                                 timeout=60, cwd=REPO)
+            lines = run.stderr.strip().splitlines()
+            assert run.returncode == 1 and len(lines) == 1, run.stderr
+            assert lines[0].count("wrong key") == 1 and "AUTH_" not in lines[0], lines[0]
+            assert lines[0].startswith(f"eigencast {command[0]}: error: wrong key: ")
+    finally:
+        assert device.stop() == 0
+
+
+def test_a_headless_device_says_what_it_does_and_keeps_the_last_frames(tmp_path, model_path):
+    """--headless says in one line what drives the view and where frames go; --frames keeps
+    the last --keep-frames PNGs (frames.csv lists them all); with no display and no
+    --headless the device says so in its own words (not SDL's XDG_RUNTIME_DIR line) and runs
+    headless; no pygame banner on stdout."""
+    _provisioned_process(tmp_path, model_path, tmp_path / "unused").stop()
+    frames = tmp_path / "frames"
+    base = [*DEVICE, "--standalone", "--flash", str(tmp_path / "flash"), "--key",
+            str(key_file(model_path))]
+    run = subprocess.run([*base, "--headless", "--frames", str(frames), "--keep-frames", "2",
+                          "--views", "0,0;60,0;120,0;180,0;240,0;300,0"],
+                         capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert run.returncode == 0, run.stderr
+    plan = [line for line in run.stderr.splitlines() if "headless:" in line]
+    assert plan == [f"eigencast-device: headless: shows the --views; writes every frame to "
+                    f"{frames} as PNG, keeping the last 2 (--keep-frames)"]
+    rows = read_frames(frames)
+    assert len(rows) == 7  # the image's first frame (the initial view), then the 6 views
+    assert sorted(p.name for p in frames.glob("*.png")) == [rows[-2]["file"], rows[-1]["file"]]
+    assert [float(r["phi_deg"]) for r in rows[-2:]] == [240.0, 300.0]
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER", "XDG_RUNTIME_DIR",
+                        "PYGAME_HIDE_SUPPORT_PROMPT")}
+    run = subprocess.run([*base, "--views", "10,5"], capture_output=True, text=True,
+                         timeout=60, cwd=REPO, env=env)
+    assert run.returncode == 0, run.stderr
+    assert "XDG_RUNTIME_DIR" not in run.stderr and run.stdout == ""
+    said = [line for line in run.stderr.splitlines() if "no display" in line]
+    assert said == ["eigencast-device: no display (neither DISPLAY nor WAYLAND_DISPLAY is "
+                    "set): running headless: shows the --views; writes no frames (--frames "
+                    "DIR writes them as PNGs)"]
+    run = subprocess.run([*base, "--headless", "--max-frames", "1"], capture_output=True,
+                         text=True, timeout=60, cwd=REPO)
+    assert run.returncode == 0, run.stderr
+    assert ("headless: shows the view 30,15 once, then waits (--orbit SPEC or --views LIST "
+            "drive it), stopping after 1 frame; writes no frames") in run.stderr
 
 
 def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, model_path,

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import json
+import re
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from device_runtime.orbit import canonical_view
+from device_runtime.standalone import standalone_table
 from host.fit.model import HostModel, auto_score_step
 from host.render.cinema import CinemaDB
 from protocol.image import read_image
@@ -45,14 +51,18 @@ def test_fit_writes_a_model_whose_training_views_reconstruct(small_db, tmp_path)
 
 
 def test_view_cli_matches_host_model(small_db, tmp_path):
+    """Without depth, `view` is the blend of the quantized scores at the view as a device
+    takes it (float32, `canonical_view`); the depth case: test_synthesis.py."""
     out = tmp_path / "m.ecs"
     _run("fit", str(small_db), "-o", str(out), "--method", "cell", "--cell", "12",
-         "--components", "8", "--score-step", "2.5")
+         "--components", "8", "--score-step", "2.5", "--no-depth")
     png = tmp_path / "v.png"
-    _run("view", str(out), "--phi", "33.3", "--theta", "-17", "-o", str(png))
+    res = _run("view", str(out), "--phi", "33.3", "--theta", "-17", "-o", str(png))
+    assert "blend of the scores" in res.stdout
     model = HostModel.load(out)
     assert model.score_step == 2.5
-    np.testing.assert_array_equal(np.asarray(Image.open(png)), model.view(33.3, -17.0))
+    np.testing.assert_array_equal(np.asarray(Image.open(png)),
+                                  model.view(*canonical_view(33.3, -17.0)))
     image = read_image(out)
     # cell mode keeps K per cell, capped at the cell's rank (near-empty corners)
     assert image.n_components.max() == 8 and (image.n_components == 8).mean() > 0.5
@@ -82,3 +92,99 @@ def test_fit_and_view_errors_are_one_line(tmp_path):
     res = _run("view", str(bad), "--phi", "0", "--theta", "0", "-o", str(tmp_path / "v.png"),
                check=False)
     assert res.returncode == 1 and "Traceback" not in res.stderr
+
+
+def _interrupted_render(db, views: str) -> subprocess.CompletedProcess:
+    """Start the real render and Ctrl-C it once 10 views are written (the user's case)."""
+    proc = subprocess.Popen([*CLI, "render", "builtin:tooth", "-o", str(db), "--views", views,
+                             "--size", "40", "--samples", "150"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while sum(1 for _ in db.glob("images/view_*.png")) < 10:
+        assert proc.poll() is None, "render finished before it could be interrupted"
+        assert time.monotonic() < deadline, "render made no progress"
+        time.sleep(0.005)  # polling a condition, not waiting out a race
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def test_fit_refuses_an_interrupted_render_until_it_is_resumed(tmp_path):
+    """An interrupted render's data.csv lists only the views done: fit says how many are
+    missing and how to resume, in one line, and writes nothing; --incomplete fits them; the
+    advice (rerun the same render) works."""
+    db, out = tmp_path / "t.cdb", tmp_path / "t.ecs"
+    views = "grid:30x6"
+    stopped = _interrupted_render(db, views)
+    assert stopped.returncode == 130 and "rerun the same command" in stopped.stderr
+    kept = CinemaDB.open(db).n_views
+    assert 10 <= kept < 180
+    res = _run("fit", str(db), "-o", str(out), "--cell", "20", check=False)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 1 and len(lines) == 1, res.stderr
+    assert f"{180 - kept} of its 180 views are missing" in lines[0]
+    assert "rerun the same eigencast render command" in lines[0] and "--incomplete" in lines[0]
+    assert not out.exists()
+    res = _run("fit", str(db), "-o", str(out), "--cell", "20", "--incomplete")
+    assert f"fitting {kept} of the view set's 180 views" in res.stderr
+    assert f"{kept} views at 40x40" in res.stdout
+    # a database rendered before the sidecar recorded the count: its spec says it
+    sidecar = db / "eigencast.json"
+    record = json.loads(sidecar.read_text())
+    del record["views"]["count"]
+    sidecar.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
+    assert CinemaDB.open(db).expected_views == 180
+    res = _run("render", "builtin:tooth", "-o", str(db), "--views", views, "--size", "40",
+               "--samples", "150")
+    assert f"{kept} valid images kept, {180 - kept} to render" in res.stderr
+    res = _run("fit", str(db), "-o", str(out), "--cell", "20")
+    assert "180 views at 40x40" in res.stdout
+
+
+def test_fit_stores_depth_and_the_standalone_table_by_default(small_db, tmp_path):
+    """The best path is the default: render stores depth (small_db), fit the depth
+    eigenspace and the standalone table; --no-depth and --no-standalone opt out; a database
+    without depth still fits, with one line on what the device will do instead."""
+    assert CinemaDB.open(small_db).depth is not None
+    runs, images = {}, {}
+    for name, extra in (("default", []), ("nodepth", ["--no-depth"]),
+                        ("notable", ["--no-standalone"]), ("old", ["--depth", "--standalone"])):
+        out = tmp_path / f"{name}.ecs"
+        runs[name] = _run("fit", str(small_db), "-o", str(out), "--cell", "16", *extra)
+        images[name] = read_image(out)
+    assert images["default"].synthesis["method"] == "warp-depth-1"
+    assert "standalone table" in runs["default"].stdout and "depth:" in runs["default"].stdout
+    assert images["old"].synthesis == images["default"].synthesis  # old scripts still work
+    assert images["nodepth"].synthesis is None and standalone_table(images["nodepth"])
+    assert images["notable"].synthesis is None and standalone_table(images["notable"]) is None
+    assert all("blend" not in r.stderr for r in runs.values())
+    res = _run("fit", str(small_db), "-o", str(tmp_path / "x.ecs"), "--no-standalone",
+               "--depth", check=False)
+    assert res.returncode == 1 and "--depth needs the standalone table" in res.stderr
+    # a database without depth (here: rendered with --no-depth, as an old one is)
+    flat = tmp_path / "flat.cdb"
+    _run("render", "builtin:tooth", "-o", str(flat), "--views", "grid:8x3", "--size", "40",
+         "--samples", "60", "--no-depth")
+    res = _run("fit", str(flat), "-o", str(tmp_path / "flat.ecs"), "--cell", "20")
+    lines = res.stderr.strip().splitlines()
+    note = [line for line in lines if "blend" in line]
+    assert len(note) == 1 and "has no depth maps" in note[0] and "eigencast render" in note[0]
+    flat_image = read_image(tmp_path / "flat.ecs")
+    assert flat_image.synthesis is None and standalone_table(flat_image) is not None
+    res = _run("fit", str(flat), "-o", str(tmp_path / "y.ecs"), "--depth", check=False)
+    assert res.returncode == 1 and "has no depth maps" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "y.ecs").exists()
+    (flat / "eigencast.json").unlink()  # as another tool (ParaView) writes a database
+    res = _run("fit", str(flat), "-o", str(tmp_path / "z.ecs"), "--cell", "20")
+    note = [line for line in res.stderr.splitlines() if "blend" in line]
+    assert len(note) == 1 and "render the volume with eigencast render" in note[0]
+
+
+def test_fit_says_what_the_file_holds_beyond_the_device_image(small_db, tmp_path):
+    out = tmp_path / "m.ecs"
+    res = _run("fit", str(small_db), "-o", str(out), "--cell", "16")
+    found = re.search(r"device image ([\d.]+) MB \+ host annex ([\d.]+) MB", res.stdout)
+    assert found, res.stdout
+    device, annex = float(found.group(1)), float(found.group(2))
+    assert abs(device + annex - out.stat().st_size / 1e6) <= 0.011
+    assert annex > 0

@@ -401,11 +401,11 @@ def test_predict_needs_a_standalone_model(model):
 
 @pytest.fixture(scope="module")
 def plain_model(model_path, tmp_path_factory):
-    """The tiny tooth fitted without --standalone."""
+    """The tiny tooth fitted without the standalone table (--no-standalone)."""
     out = tmp_path_factory.mktemp("plain") / "plain.ecs"
     db = Path(model_path).parent / "tooth.cdb"
     assert eigencast(["fit", str(db), "-o", str(out), "--cell", "12", "--threshold",
-                      "0.99"]) == 0
+                      "0.99", "--no-standalone"]) == 0
     return out
 
 

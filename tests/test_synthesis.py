@@ -73,20 +73,47 @@ def test_render_depth_stores_half_resolution_depth_and_resumes(tmp_path, capsys)
 
 
 def test_render_depth_is_refused_in_one_line_where_it_cannot_work(tmp_path, capsys):
-    base = ["render", "builtin:tooth", "--views", "grid:4x3", "--samples", "40", "--depth"]
-    assert eigencast([*base, "-o", str(tmp_path / "a.cdb"), "--size", "33"]) != 0
-    err = capsys.readouterr().err.strip()
-    assert "even image size" in err and len(err.splitlines()) == 1
-    assert eigencast([*base, "-o", str(tmp_path / "b.cdb"), "--size", "32",
-                      "--scheduler", "local:1"]) != 0
-    err = capsys.readouterr().err.strip()
-    assert "--depth is in-process only" in err and len(err.splitlines()) == 1
+    """Asked for (--depth), depth the warp cannot use is refused; by default such a render
+    goes on without depth and says so in one line."""
+    base = ["render", "builtin:tooth", "--views", "grid:4x3", "--samples", "40"]
+    for name, setting, why in (("a", ["--size", "33"], "odd image size"),
+                               ("b", ["--size", "32", "--projection", "orthographic"],
+                                "orthographic projection"),
+                               ("c", ["--size", "32", "--background", "0,0,1"], "not black")):
+        assert eigencast([*base, "-o", str(tmp_path / f"{name}.cdb"), *setting, "--depth"]) != 0
+        err = capsys.readouterr().err.strip()
+        assert why in err and len(err.splitlines()) == 1
+        assert eigencast([*base, "-o", str(tmp_path / f"{name}.cdb"), *setting]) == 0
+        captured = capsys.readouterr()
+        note = [line for line in captured.err.splitlines() if "no depth maps" in line]
+        assert len(note) == 1 and why in note[0] and "blend" in note[0]
+        assert "no depth" in captured.out
+        assert CinemaDB.open(tmp_path / f"{name}.cdb").depth is None
+
+
+def test_resuming_a_database_begun_without_depth_keeps_it_so(tmp_path, capsys):
+    """A database begun without depth (before depth was the default, or --no-depth) resumes
+    without it instead of rendering every view again; --depth does add it."""
+    db = tmp_path / "old.cdb"
+    args = ["render", "builtin:tooth", "-o", str(db), "--views", "grid:4x3", "--size", "32",
+            "--samples", "40"]
+    assert eigencast([*args, "--no-depth"]) == 0
+    (db / "images" / "view_00003.png").unlink()
+    capsys.readouterr()
+    assert eigencast(args) == 0
+    captured = capsys.readouterr()
+    assert "rendered without depth so far" in captured.err
+    assert "(1 rendered, 11 reused), no depth" in captured.out
+    assert CinemaDB.open(db).depth is None
+    assert eigencast([*args, "--depth"]) == 0
+    assert "(12 rendered, 0 reused), with depth" in capsys.readouterr().out
+    assert CinemaDB.open(db).depth is not None
 
 
 def test_fit_depth_without_depth_maps_is_a_one_line_error(tooth_db, tmp_path, capsys):
     assert eigencast(["fit", str(tooth_db), "-o", str(tmp_path / "m.ecs"), "--depth"]) != 0
     err = capsys.readouterr().err.strip()
-    assert "has no depth maps" in err and "render --depth" in err
+    assert "has no depth maps" in err and "eigencast render" in err
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "m.ecs").exists()
 
@@ -254,7 +281,7 @@ def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
     finally:
         device.stop()
     frames = tmp_path / "frames"
-    views = "12.5,3;100,-44;250,20;359,0"
+    views = "12.5,3;100,-44;250,20;-1,0"
     run = subprocess.run([sys.executable, "-m", "device_runtime.cli", "--standalone", "--flash",
                           str(flash), "--key", str(key), "--headless", "--frames", str(frames),
                           "--views", views], capture_output=True, text=True, timeout=120,
@@ -273,6 +300,20 @@ def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
         np.testing.assert_array_equal(got, warp.frame(phi, theta))
         differs += int(np.abs(got.astype(int) - model.view(phi, theta)).max() > 8)
     assert differs >= 3
+    # `eigencast view` at the views as the user typed them is the device's frame, bit for bit
+    for k, pair in enumerate(views.split(";"), start=1):
+        phi, theta = pair.split(",")
+        png = tmp_path / f"view{k}.png"
+        run = subprocess.run([sys.executable, "-m", "host.cli", "view", str(depth_model),
+                              "--phi", phi, "--theta", theta, "-o", str(png)],
+                             capture_output=True, text=True, timeout=120, cwd=REPO)
+        assert run.returncode == 0 and "depth warp" in run.stdout, run.stderr
+        np.testing.assert_array_equal(np.asarray(Image.open(png)),
+                                      np.asarray(Image.open(frames / rows[k]["file"])))
+    assert eigencast(["view", str(depth_model), "--phi", "100", "--theta", "-44", "--blend",
+                      "-o", str(tmp_path / "blend.png")]) == 0
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "blend.png")),
+                                  model.view(100.0, -44.0))
 
 
 # --------------------------------------------------------------------------- served devices

@@ -39,6 +39,10 @@ DEFAULT_THRESHOLD = 0.98
 #: Threshold fitted (the search's upper bound) when --target is given without --threshold.
 TARGET_FIT_THRESHOLD = 0.999
 DEFAULT_HOLDOUT = "random:30:1"
+#: What the depth eigenspace and the standalone table cost, as ``fit --help`` says it
+#: (BENCHMARKS.md, "Depth by default": the shared tooth and head, 1500 views at 128 and 256).
+TABLE_COST = "30-35 %% of the device image at 1500 views, no fit time"
+DEPTH_COST = "8-40 %% of the device image and 10-17 %% more fit time"
 #: Render settings that may differ between a training and a test database.
 _VIEW_KEYS = ("views", "eigencast")
 
@@ -69,13 +73,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"the model's own residual MSE (default {DEFAULT_BIT_BUDGET}; "
                              "0: 8 bits for all)")
     parser.add_argument("--key", metavar="KEYFILE", help="sign the image with this device key")
-    parser.add_argument("--standalone", action="store_true",
-                        help="also store the training views' quantized scores in the image so a "
-                             "device interpolates by itself (eigencast-device --standalone)")
-    parser.add_argument("--depth", action="store_true",
-                        help="also store a depth eigenspace of the database's depth maps "
-                             "(render --depth) so a standalone device warps its neighbouring "
-                             "views instead of blending them; implies --standalone")
+    table = parser.add_mutually_exclusive_group()
+    table.add_argument("--no-standalone", dest="standalone", action="store_false",
+                       default=None,
+                       help="leave out the training views' scores (the standalone table: "
+                            f"{TABLE_COST}; implies --no-depth): a device then cannot show a "
+                            "view by itself, neither with no host (eigencast-device "
+                            "--standalone) nor at once while the host's frame is on its way")
+    table.add_argument("--standalone", dest="standalone", action="store_true",
+                       help="store the standalone table (the default; kept for old scripts)")
+    depth = parser.add_mutually_exclusive_group()
+    depth.add_argument("--no-depth", dest="depth", action="store_false", default=None,
+                       help="leave out the depth eigenspace of the database's depth maps "
+                            f"(it costs {DEPTH_COST}): a device then blends its neighbouring "
+                            "views (edges show twice) where it would warp them by their depth")
+    depth.add_argument("--depth", dest="depth", action="store_true",
+                       help="require the depth eigenspace (the default stores it when the "
+                            "database has depth maps and says so when it has none)")
     parser.add_argument("--depth-threshold", type=float, default=None, metavar="T",
                         help="cumulative variance each depth cell keeps (default: the "
                              "colour's --threshold)")
@@ -84,6 +98,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="how novel views' scores are interpolated between training views "
                              "(auto: the measured best for the view set; see "
                              "docs/rate-distortion.md)")
+    parser.add_argument("--incomplete", action="store_true",
+                        help="fit an interrupted render's views as they are (refused by "
+                             "default: its views cover part of the view set, and views outside "
+                             "it come out blurred)")
     parser.add_argument("--cache", metavar="DIR",
                         help="where to keep the memory-mapped image stack "
                              "(default DB.cdb/.eigencast-cache)")
@@ -140,16 +158,14 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
     db = CinemaDB.open(args.database)
+    _check_complete(db, args)
     depth_threshold = args.depth_threshold if args.depth_threshold is not None else threshold
+    _choose_depth(args, db)
     if args.depth_threshold is not None and not args.depth:
-        raise EigencastError("--depth-threshold is used only with --depth")
-    if args.depth:
-        if db.depth is None:
-            raise EigencastError(f"{args.database}: has no depth maps; render it with "
-                                 "eigencast render --depth")
-        if not 0.0 < depth_threshold <= 1.0:
-            raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
-        args.standalone = True  # the device needs the colour and the depth training scores
+        raise EigencastError("--depth-threshold is used only with depth (a database with "
+                             "depth maps, without --no-depth)")
+    if args.depth and not 0.0 < depth_threshold <= 1.0:
+        raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
     if args.interpolation in ("bilinear", "bicubic"):  # refuse before the (long) fit
         from device_runtime.interpolation import detect_grid
 
@@ -190,16 +206,73 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
               f"{depth['raw_bytes'] / 1e6:.2f} MB raw ({depth['section']}); "
               f"synthesis {image.synthesis['method']}")
     device_bytes = image_device_bytes(out)
+    annex_bytes = out.stat().st_size - device_bytes
     int8 = image.provenance["int8"]
     print(
         f"wrote {out}: {args.method}, {db.n_views} views at "
         f"{db.image_shape[1]}x{db.image_shape[0]}, {model.grid_shape_[0]}x"
         f"{model.grid_shape_[1]} cells, {model.n_components_.mean():.2f} components/cell "
         f"(K={int(model.n_components_.sum())}), device image {device_bytes / 1e6:.2f} MB"
-        f"{', signed' if key else ''}; score step {image.score_quantization['step']:.3g}; "
-        f"int8 loss {int8['train_loss_db']:.3f} dB"
+        f"{', signed' if key else ''} + host annex {annex_bytes / 1e6:.2f} MB (float training "
+        "scores and eigenvalues for serve and evaluate; never sent to the device); score "
+        f"step {image.score_quantization['step']:.3g}; int8 loss {int8['train_loss_db']:.3f} dB"
     )
     return 0
+
+
+def _choose_depth(args: argparse.Namespace, db: CinemaDB) -> None:
+    """Settle ``args.standalone`` and ``args.depth`` (None: the default) for ``db``.
+
+    By default the image carries the standalone table and, when ``db`` has depth maps its
+    framing allows, the depth eigenspace; without them one line says that the device will
+    blend instead of warp, and how to get depth. ``--depth`` refuses a database without.
+    """
+    from host.render.cinema import depth_problem
+
+    if args.standalone is False:
+        if args.depth:
+            raise EigencastError("--depth needs the standalone table: drop --no-standalone")
+        args.depth = False
+    args.standalone = True if args.standalone is None else args.standalone
+    if args.depth is False:
+        return
+    framing = depth_problem(db.settings, db.image_shape) if db.settings else None
+    cure = "render it perspective, on black, at an even size"
+    if db.depth is None and db.settings is None:  # another tool's database
+        problem, cure = "has no depth maps", ("render the volume with eigencast render, which "
+                                              "stores depth")
+    elif db.depth is None:
+        problem = "has no depth maps" + (f", rendered with {framing}" if framing else "")
+        if not framing:
+            cure = "render it again with eigencast render, which stores depth unless --no-depth"
+    else:
+        problem = framing
+    if problem is None:
+        args.depth = True
+        return
+    if args.depth:
+        raise EigencastError(f"{args.database}: --depth: {problem}; {cure}")
+    args.depth = False
+    print(f"{args.database}: {problem}; a device will blend neighbouring views instead of "
+          f"warping them by depth ({cure})", file=sys.stderr)
+
+
+def _check_complete(db: CinemaDB, args: argparse.Namespace) -> None:
+    """Refuse an interrupted render (fewer views in data.csv than its view set) unless
+    ``--incomplete``: a model of part of the view set blurs every view outside it."""
+    expected = db.expected_views
+    if expected is None or db.n_views >= expected:
+        return
+    missing = expected - db.n_views
+    if args.incomplete:
+        print(f"{db.path}: fitting {db.n_views} of the view set's {expected} views "
+              f"(--incomplete; {missing} not rendered)", file=sys.stderr)
+        return
+    raise EigencastError(
+        f"{db.path}: an interrupted render: {missing} of its {expected} views are missing "
+        f"(data.csv lists {db.n_views}); rerun the same eigencast render command to render "
+        "them, or pass --incomplete to fit the views it has"
+    )
 
 
 def _fit_to_target(args: argparse.Namespace, db: CinemaDB, target, options: dict):  # noqa: ANN001

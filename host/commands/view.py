@@ -1,4 +1,14 @@
-"""``eigencast view``: synthesise one novel view from an eigenspace image."""
+"""``eigencast view``: one novel view from an eigenspace image, as a device shows it.
+
+The frame is made by the device's own code on the image's own data, bit for bit what
+``eigencast-device --standalone`` shows at that view: for an image with depth (``fit`` stores
+it by default) the neighbouring training views warped by their depth
+(`host.evaluate.warp.WarpFrames`, `device_runtime.synthesis`); otherwise the blend of the
+interpolated, quantized scores (`HostModel.view`), which is also what a served device shows
+under ``serve --scores interpolate``. ``--blend`` asks for the blend of a depth image (what a
+predicting served device shows for an instant before its warp). A served device's other
+frames depend on the host's ray-casts of the volume: ``eigencast evaluate`` scores those.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +19,8 @@ from host.errors import EigencastError
 from host.fit.model import HostModel
 from host.render.cinema import atomic_write_bytes, encode_png
 
-HELP = "synthesise a novel view from MODEL.ecs (exactly what a device shows) to a PNG"
+HELP = ("synthesise a novel view from MODEL.ecs to a PNG: what a device with no host shows, "
+        "bit for bit (the depth warp for an image with depth, else the score blend)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,9 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="elevation, -90..90")
     parser.add_argument("-o", "--output", required=True, metavar="OUT.png")
     parser.add_argument("--key", metavar="KEYFILE", help="verify the image's tag with this key")
+    parser.add_argument("--blend", action="store_true",
+                        help="the blend of the interpolated scores even for an image with depth "
+                             "(what a device shows without the warp)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from device_runtime.orbit import canonical_view
     from protocol.keys import load_key
 
     if not -90.0 <= args.theta <= 90.0:
@@ -30,7 +45,16 @@ def run(args: argparse.Namespace) -> int:
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
     model = HostModel.load(args.model, key=load_key(args.key) if args.key else None)
-    atomic_write_bytes(out, encode_png(model.view(args.phi % 360.0, args.theta)))
+    phi, theta = canonical_view(args.phi, args.theta)  # the view as a device takes it
+    warp = model.image.synthesis is not None and not args.blend
+    if warp:
+        from host.evaluate.warp import WarpFrames
+
+        frame = WarpFrames(model).frame(phi, theta)
+    else:
+        frame = model.view(phi, theta)
+    atomic_write_bytes(out, encode_png(frame))
     h, w = model.image.image_shape
-    print(f"wrote {out} ({w}x{h}, phi={args.phi:g}, theta={args.theta:g})")
+    print(f"wrote {out} ({w}x{h}, phi={args.phi:g}, theta={args.theta:g}; "
+          f"{'depth warp of the neighbouring views' if warp else 'blend of the scores'})")
     return 0

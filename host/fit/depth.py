@@ -29,6 +29,7 @@ from device_runtime.synthesis import (
     split_cells,
 )
 from host.errors import FitError
+from host.render.cinema import depth_problem
 
 __all__ = ["DEPTH_CELL", "DEPTH_SCORE_MSE", "DEPTH_SCORE_NOISE_Z2", "add_depth",
            "depth_sections", "depth_table_step",
@@ -224,17 +225,12 @@ def add_depth(image: Any, db: Any, threshold: float, *, score_mse: float | None 
         The database has no depth maps, or its framing does not allow the warp.
     """
     if db.depth is None:
-        raise FitError(f"{db.path}: has no depth maps; render it with eigencast render --depth")
-    camera = (db.settings or {}).get("camera") or {}
-    if camera.get("projection", "perspective") != "perspective" or not isinstance(
-            camera.get("fov_deg"), (int, float)) or not isinstance(camera.get("radius_mm"),
-                                                                    (int, float)):
-        raise FitError(f"{db.path}: --depth needs a perspective eigencast database (its sidecar "
-                       "records the orbit framing)")
-    background = ((db.settings or {}).get("renderer") or {}).get("background", [0, 0, 0])
-    if any(float(b) != 0.0 for b in background):
-        raise FitError(f"{db.path}: --depth needs a black background (the device finds the "
-                       "object by its colour)")
+        raise FitError(f"{db.path}: has no depth maps; render it with eigencast render (without "
+                       "--no-depth)")
+    problem = depth_problem(db.settings, db.image_shape)
+    if problem is not None:
+        raise FitError(f"{db.path}: its depth cannot be warped by: {problem}")
+    camera = db.settings["camera"]
     h, w = db.depth_shape
     distance = float(camera["radius_mm"]) / math.sin(math.radians(camera["fov_deg"]) / 2)
     z_tolerance = Z_TOLERANCE * 2.0 * float(camera["radius_mm"])

@@ -7,10 +7,13 @@ A database is a folder ``NAME.cdb/`` holding
   ``up_x..``) and ``FILE`` last (a path relative to the folder);
 * the PNG images (``images/view_00000.png`` ...);
 * ``eigencast.json`` -- the sidecar: volume, transfer function, camera and
-  renderer settings, image size and view set. Databases written by other tools
-  (ParaView, VisIt, a path tracer) have no sidecar and are still valid input.
+  renderer settings, image size and view set (its spec and, since it is recorded, its
+  count: a ``data.csv`` listing fewer views is an interrupted render, `expected_views`).
+  Databases written by other tools (ParaView, VisIt, a path tracer) have no sidecar and are
+  still valid input.
 
-With ``eigencast render --depth`` each view also has a depth map, ``depth/view_00000.npz``
+``eigencast render`` gives each view a depth map too (unless ``--no-depth``, or where the
+framing cannot carry one: `depth_problem`), ``depth/view_00000.npz``
 (the image's name with ``.npz``; `depth_file`): one float16 array ``depth`` of shape
 (H/2, W/2), the distance in mm along each pixel's ray where the accumulated opacity crosses
 one half (the opacity-weighted mean where it never does), averaged over each 2x2 block of
@@ -52,6 +55,7 @@ __all__ = [
     "atomic_write_bytes",
     "decode_depth",
     "depth_file",
+    "depth_problem",
     "encode_depth",
     "format_float",
 ]
@@ -100,6 +104,29 @@ def encode_png(image: np.ndarray) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(image, mode="RGB").save(buf, format="PNG", compress_level=6)
     return buf.getvalue()
+
+
+def depth_problem(settings: dict | None, image_shape: tuple[int, int]) -> str | None:
+    """Why a database with these settings cannot carry the depth a device warps by, or None.
+
+    The warp (`device_runtime.synthesis`) needs a perspective orbit whose framing the sidecar
+    records (``camera.projection``, ``fov_deg``, ``radius_mm``), a black background (the
+    device finds the object by its colour) and an even image size (depth is stored at half
+    resolution). ``image_shape`` is (height, width).
+    """
+    camera = (settings or {}).get("camera") or {}
+    if camera.get("projection", "perspective") != "perspective":
+        return f"{camera.get('projection')} projection (the warp needs perspective)"
+    if not isinstance(camera.get("fov_deg"), (int, float)) or not isinstance(
+            camera.get("radius_mm"), (int, float)):
+        return "no recorded perspective framing (not rendered by eigencast render)"
+    background = ((settings or {}).get("renderer") or {}).get("background", [0, 0, 0])
+    if any(float(b) != 0.0 for b in background):
+        return "a background that is not black (the device finds the object by its colour)"
+    if image_shape[0] % 2 or image_shape[1] % 2:
+        return (f"an odd image size {image_shape[1]}x{image_shape[0]} (depth is stored at "
+                "half resolution)")
+    return None
 
 
 def depth_file(image_file: str) -> str:
@@ -265,6 +292,30 @@ class CinemaDB:
                 f"differs from the first image's {self.image_shape[1]}x{self.image_shape[0]}"
             )
         return image
+
+    @property
+    def expected_views(self) -> int | None:
+        """How many views the sidecar's view set has (None when unknown: no sidecar, or a
+        CSV view set rendered before the count was recorded whose file is gone).
+
+        More than `n_views` means an interrupted render: ``data.csv`` lists only the views
+        rendered so far (`CinemaWriter.write_csv`)."""
+        views = (self.settings or {}).get("views")
+        if not isinstance(views, dict):
+            return None
+        count = views.get("count")
+        if isinstance(count, int) and count > 0:
+            return count
+        spec = views.get("spec")
+        if not isinstance(spec, str):
+            return None
+        from host.errors import ViewSpecError
+        from host.render.camera import parse_view_set
+
+        try:
+            return len(parse_view_set(spec))
+        except ViewSpecError:
+            return None
 
     @property
     def depth_shape(self) -> tuple[int, int]:
@@ -448,7 +499,8 @@ def absolute_source(source: str | None) -> str | None:
 
 def _same_settings(old_text: str, settings: dict) -> bool:
     """The sidecar ``old_text`` records ``settings`` once both volume sources are made
-    absolute (a database rendered before sources were recorded absolute resumes)."""
+    absolute and the view count is left out where the old one lacks it (a database rendered
+    before sources were recorded absolute, or before the count was, resumes)."""
     try:
         old = json.loads(old_text)
     except ValueError:
@@ -456,6 +508,9 @@ def _same_settings(old_text: str, settings: dict) -> bool:
     if not isinstance(old, dict) or not isinstance(old.get("volume"), dict):
         return False
     new = json.loads(json.dumps(settings))
+    old_views, new_views = old.get("views"), new.get("views")
+    if isinstance(old_views, dict) and isinstance(new_views, dict) and "count" not in old_views:
+        new_views.pop("count", None)  # recorded since: the view spec says the same
     for record in (old, new):
         volume = record.get("volume")
         if isinstance(volume, dict) and isinstance(volume.get("source"), str):
