@@ -28,23 +28,21 @@ HELLO, provisioning and every other request) that also shows frames. Threads::
   (serial) the port with backoff, and the new session starts with a key frame.
 * Memory is flat: one frame buffer, one slot, bounded rings for statistics.
 
-Predict (``predict=True``, issue 14): when the active image carries the standalone table,
-the device shows its *own* prediction of a new view at once (no bytes, no latency;
-:mod:`device_runtime.prediction`) while the view request goes out as before; a
-correction (a version-2 packet relative to the prediction) for the view on show then
-makes it ``prediction + correction``, and one for a view the user has already left is
-dropped as stale (counted) while the device keeps predicting. A full (key/delta) frame
-for a view no longer on show is dropped the same way (its delta base is still kept).
-HELLO_REPLY tells the host whether this device predicts (``predicts``). With an image
-fitted with ``--depth`` the prediction is shown in two steps: the score blend at once
-(a reconstruction: no added latency), the view request, and then the depth warp of the
-neighbouring training views (:mod:`device_runtime.synthesis`, as a standalone device
-shows), made on a thread of its own (`WarpWorker`) and shown when it is ready, if the view
-is still the one on show and no host frame for it came first. The warp costs several
-blends (all 4 neighbours are new at every step of a fast drag): made on the display
-thread it made every frame of a drag late (docs/rate-distortion.md, 9.8). The corrections
-still add to the score prediction, so what a host frame shows is unchanged. Only the
-device's own frames warp (``_present(..., warp=True)``).
+Served (``predict=True``): when the active image carries the standalone table, the device
+shows its *own frame* of every new view at once (no bytes, no latency): the score blend of
+its predicted scores (:mod:`device_runtime.prediction`), then, for an image fitted with
+depth, the depth warp of its neighbouring training views (:mod:`device_runtime.synthesis`,
+made on a thread of its own, `WarpWorker`, and shown when ready if the view is still on
+show: made on the display thread it made every frame of a drag late, docs/rate-distortion.md
+9.8). The view request goes out as before, and the host answers with a *correction of that
+frame* (a version-3 packet, `protocol.scores`): the device shows its own frame plus the
+correction's eigenimages (`Reconstructor.correct`), at once when the frame is at hand, else
+as soon as the warp is made. A correction for a view the user has already left is dropped as
+stale (counted); a host-driven one (``serve --orbit``) moves the view. HELLO_REPLY lists the
+packet versions this device reads and says whether it predicts (``predicts``). Version-2
+corrections (of the predicted scores: an older host) and full key/delta frames are still
+shown as before; a full frame for a view no longer on show is dropped the same way (its
+delta base is still kept).
 
 Standalone (``standalone=True``): the image carries a quantized table of the training
 views' scores and the runtime interpolates scores locally, needing no host:
@@ -58,11 +56,10 @@ import collections
 import contextlib
 import dataclasses
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -89,6 +86,7 @@ from device_runtime.standalone import (
     standalone_order,
     standalone_table,
 )
+from device_runtime.stats import RuntimeStats, peak_rss_bytes
 from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
 from protocol import messages as m
 from protocol.errors import ProtocolError
@@ -132,8 +130,6 @@ _TICK_S = 1.0 / 60.0
 _HEADLESS_TICK_S = 0.05
 _WARP_POLL_S = 0.004
 """How often the display loop looks for a finished warp while one is due, seconds."""
-_LATENCY_SAMPLES = 512
-_RATE_WINDOW_S = 1.0
 
 
 # --------------------------------------------------------------------------- model
@@ -214,141 +210,6 @@ class ScoreItem:
     received_s: float
 
 
-# --------------------------------------------------------------------------- stats
-
-
-def peak_rss_bytes() -> int:
-    """Peak resident set size of this process, bytes (0 where unknown).
-
-    Linux's ``VmHWM`` where there is one: ``getrusage``'s ``ru_maxrss`` survives ``exec``, so
-    in a process started from a large parent (the demo's host) it reports the parent's size.
-    """
-    with contextlib.suppress(OSError, ValueError, IndexError), open("/proc/self/status",
-                                                                     "rb") as handle:
-        for line in handle:
-            if line.startswith(b"VmHWM:"):
-                return int(line.split()[1]) * 1024
-    try:
-        import resource
-
-        return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
-    except (ImportError, OSError):
-        return 0
-
-
-def current_rss_bytes() -> int:
-    """Resident set size of this process now, bytes (0 where unknown)."""
-    try:
-        with open("/proc/self/statm", "rb") as handle:
-            return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
-
-
-class _Ema:
-    __slots__ = ("alpha", "value")
-
-    def __init__(self, alpha: float = 0.1) -> None:
-        self.alpha = alpha
-        self.value: float | None = None
-
-    def add(self, x: float) -> None:
-        self.value = x if self.value is None else self.value + self.alpha * (x - self.value)
-
-
-@dataclass
-class RuntimeStats:
-    """Counters and recent timings of the runtime (bounded; read them any time)."""
-
-    frames_presented: int = 0
-    packets: int = 0
-    packet_bytes: int = 0
-    key_frames: int = 0
-    delta_frames: int = 0
-    missing_base: int = 0
-    keyframe_requests: int = 0
-    decode_errors: int = 0
-    wrong_image: int = 0
-    dropped_no_image: int = 0
-    view_requests: int = 0
-    coalesced: int = 0
-    sessions: int = 0
-    frame_failures: int = 0
-    correction_packets: int = 0
-    predicted_frames: int = 0
-    corrected_frames: int = 0
-    stale_dropped: int = 0
-    corrections_without_table: int = 0
-    synthesized_frames: int = 0
-    decode_s: _Ema = field(default_factory=_Ema)
-    reconstruct_s: _Ema = field(default_factory=_Ema)
-    present_s: _Ema = field(default_factory=_Ema)
-    latencies_s: collections.deque = field(
-        default_factory=lambda: collections.deque(maxlen=_LATENCY_SAMPLES))
-    stage_samples: collections.deque = field(
-        default_factory=lambda: collections.deque(maxlen=_LATENCY_SAMPLES))
-    _present_times: collections.deque = field(default_factory=lambda: collections.deque(
-        maxlen=256))
-    _bytes_ring: collections.deque = field(default_factory=lambda: collections.deque(maxlen=64))
-
-    def fps(self, now_s: float | None = None) -> float:
-        """Frames presented per second over the last second."""
-        now_s = time.monotonic() if now_s is None else now_s
-        recent = [t for t in self._present_times if now_s - t <= _RATE_WINDOW_S]
-        if len(recent) < 2:
-            return 0.0
-        return (len(recent) - 1) / max(recent[-1] - recent[0], 1e-9)
-
-    def bytes_per_frame(self) -> float:
-        """Mean score-packet size over the last 64 packets, bytes."""
-        return float(np.mean(self._bytes_ring)) if self._bytes_ring else 0.0
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-able summary (latency percentiles in milliseconds)."""
-        lat = sorted(self.latencies_s)
-
-        def pct(p: float) -> float | None:
-            return None if not lat else 1e3 * lat[min(len(lat) - 1, int(p * len(lat)))]
-
-        def ms(e: _Ema) -> float | None:
-            return None if e.value is None else 1e3 * e.value
-
-        return {
-            "frames_presented": self.frames_presented,
-            "packets": self.packets,
-            "packet_bytes": self.packet_bytes,
-            "key_frames": self.key_frames,
-            "delta_frames": self.delta_frames,
-            "missing_base": self.missing_base,
-            "keyframe_requests": self.keyframe_requests,
-            "decode_errors": self.decode_errors,
-            "wrong_image": self.wrong_image,
-            "view_requests": self.view_requests,
-            "coalesced": self.coalesced,  # frames decoded but never presented
-            "frame_failures": self.frame_failures,  # frames the display could not show
-            "sessions": self.sessions,
-            "correction_packets": self.correction_packets,  # decoded corrections
-            "predicted_frames": self.predicted_frames,  # own predictions shown (issue 14)
-            "corrected_frames": self.corrected_frames,  # prediction + correction shown
-            "stale_dropped": self.stale_dropped,  # packets for a view no longer on show
-            "corrections_without_table": self.corrections_without_table,
-            "synthesized_frames": self.synthesized_frames,  # warped by depth (issue 15)
-            "fps": self.fps(),
-            "bytes_per_frame": self.bytes_per_frame(),
-            "decode_ms": ms(self.decode_s),
-            "reconstruct_ms": ms(self.reconstruct_s),
-            "present_ms": ms(self.present_s),
-            "latency_ms_p50": pct(0.5),
-            "latency_ms_p90": pct(0.9),
-            "latency_ms_p99": pct(0.99),
-            "latency_ms_max": 1e3 * lat[-1] if lat else None,
-            "latency_ms_mean": 1e3 * float(np.mean(lat)) if lat else None,
-            "latency_samples": len(lat),
-            "rss_bytes": current_rss_bytes(),
-            "peak_rss_bytes": peak_rss_bytes(),
-        }
-
-
 # --------------------------------------------------------------------------- runtime
 
 
@@ -423,6 +284,12 @@ class RuntimeDevice(Device):
         self._last_y: np.ndarray | None = None
         self._shown_frame: np.ndarray | None = None  # what the presenter shows (redraws)
         self._warp_due: tuple[float, float] | None = None  # served: the blend shown, warp next
+        # served: a correction waiting for the warp of its view; the last warp made (the
+        # frame a correction of its view corrects); the view whose own frame the display
+        # reconstructor holds for `Reconstructor.correct`
+        self._correction_due: ScoreItem | None = None
+        self._own_warp: tuple[tuple[float, float], np.ndarray] | None = None
+        self._synth_view: tuple[float, float] | None = None
         self._blend_s = -1.0  # when a predicting device last showed a moved view's blend
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
@@ -563,7 +430,7 @@ class RuntimeDevice(Device):
         t0 = time.perf_counter()
         try:
             decoded = model.decoder.decode(msg.packet)
-            if decoded.predicted and model.predictor is None:
+            if (decoded.predicted or decoded.synthesized) and model.predictor is None:
                 stats.corrections_without_table += 1
                 self._log_limited("no-table", "a correction for a device that does not "
                                   "predict (no standalone table, or --no-predict) dropped")
@@ -588,7 +455,7 @@ class RuntimeDevice(Device):
         decode_s = time.perf_counter() - t0
         stats.decode_s.add(decode_s)
         self._need_key = False
-        if decoded.predicted:
+        if decoded.predicted or decoded.synthesized:
             stats.correction_packets += 1
         elif decoded.is_key:
             stats.key_frames += 1
@@ -683,13 +550,16 @@ class RuntimeDevice(Device):
         ]
 
     def _present(self, model: LoadedModel, y: np.ndarray, info: dict, *,
-                 warp: bool = False, warped: np.ndarray | None = None) -> None:
+                 warp: bool = False, warped: np.ndarray | None = None,
+                 frame: np.ndarray | None = None) -> None:
         """Show a frame: ``y`` reconstructed, or with ``warp`` (the device's own frame of
         the view ``info`` names: standalone, or a prediction) and an image with depth, the
         neighbours warped into the view (`ViewSynthesizer`). A host's frame never warps."""
         stats = self.runtime_stats
         t0 = time.perf_counter()
-        if warped is not None or (warp and model.synthesis is not None):
+        if frame is not None:  # made already (a corrected frame)
+            pass
+        elif warped is not None or (warp and model.synthesis is not None):
             # a frame of its own, not the reconstructor's buffer: the reconstructor only
             # recomputes the cells whose scores changed, so the next host frame needs its
             # buffer to still hold the last reconstruction
@@ -818,6 +688,9 @@ class RuntimeDevice(Device):
                 if item is not None and item.model is self._model:
                     d = item.scores
                     try:
+                        if d.synthesized:
+                            self._correct(item)
+                            continue
                         y = self._shown_scores(item)
                         if y is not None:
                             self._present(item.model, y, {
@@ -853,6 +726,7 @@ class RuntimeDevice(Device):
         self._present_prediction(model)
         self.limiter.offer(self.view)
         self._warp_due = None
+        self._correction_due = None
         if model.warp_worker is not None:
             model.warp_worker.request(self.view)
             self._warp_due = self.view
@@ -871,7 +745,61 @@ class RuntimeDevice(Device):
         if frame is None:
             return  # not made yet: look again on the next turn
         self._warp_due = None
+        self._own_warp = (due, frame)
+        item = self._correction_due
+        if item is not None and (item.scores.phi_deg, item.scores.theta_deg) == due:
+            self._correction_due = None
+            self._show_corrected(item, frame)  # the host's correction came first
+            return
         self._present_prediction(model, warped=frame)
+
+    def _correct(self, item: ScoreItem) -> None:
+        """A correction of the device's own frame of the packet's view (version 3): show
+        that frame corrected, at once when the frame is at hand (a blend, or the warp made
+        already), else once the warp worker has made it (`_show_due_warp`). A correction for
+        a view the user has left is dropped; a host-driven one (sequence 0: ``serve
+        --orbit``) moves the view."""
+        d, model = item.scores, item.model
+        view = (d.phi_deg, d.theta_deg)
+        stats = self.runtime_stats
+        if model.predictor is None:  # checked on decode; kept for safety
+            stats.corrections_without_table += 1
+            return
+        if item.sequence and view != self.view:
+            stats.stale_dropped += 1
+            return
+        if not item.sequence and view != self.view:
+            self.view = view  # the host drives the view
+        if model.warp_worker is None:  # the device's own frame is the blend
+            synth = (None if self._synth_view == view
+                     else model.reconstructor.update(model.predictor(*view)))
+            self._show_corrected(item, synth)
+        elif self._synth_view == view:
+            self._show_corrected(item, None)
+        elif self._own_warp is not None and self._own_warp[0] == view:
+            self._show_corrected(item, self._own_warp[1])
+        else:  # the warp of the view is not made yet: show it corrected once it is
+            self._correction_due = item
+            if self._warp_due != view:
+                model.warp_worker.request(view)
+                self._warp_due = view
+
+    def _show_corrected(self, item: ScoreItem, synth: np.ndarray | None) -> None:
+        """Present ``synth`` (None: the one the display reconstructor holds) corrected by
+        the packet's scores (`Reconstructor.correct`)."""
+        d, model = item.scores, item.model
+        view = (d.phi_deg, d.theta_deg)
+        t0 = time.perf_counter()
+        frame = model.reconstructor.correct(d.y, synth)
+        self.runtime_stats.correct_s.add(time.perf_counter() - t0)
+        self._synth_view = view
+        self.runtime_stats.corrected_frames += 1
+        if self._warp_due == view:
+            self._warp_due = None  # the corrected frame is the newer one
+        self._present(model, d.y, {
+            "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg, "key": False,
+            "packet_bytes": d.packet_bytes, "sequence": item.sequence, "decode_s": 0.0,
+            "corrected": True}, frame=frame)
 
     def _present_prediction(self, model: LoadedModel, *,
                             warped: np.ndarray | None = None) -> None:

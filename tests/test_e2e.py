@@ -51,10 +51,13 @@ def test_tcp_provision_and_orbit_frames_equal_eigencast_view(tmp_path, model_pat
         assert "installed" in run.stdout and "confirmed" in run.stderr
         run = subprocess.run([*CLI, "serve", str(model_path), "--port", device.url, "--key",
                               str(keyf), "--orbit", "steps:12:10", "--fps", "0",
-                              "--scores", "interpolate"],  # what `eigencast view` shows
+                              # no volume to ray-cast: the device shows its own frames,
+                              # which are what `eigencast view` shows
+                              "--volume", str(tmp_path / "gone.mhd")],
                              capture_output=True, text=True, timeout=60)
         assert run.returncode == 0, run.stderr
-        assert "12 frames (1 key, 11 delta)" in run.stdout
+        assert "cannot be ray-cast" in run.stderr
+        assert "12 frames (0 key, 0 delta, 12 corrections" in run.stdout
         wait_until(lambda: _has_view(frames, 330.0, 10.0), 20, "the orbit's last frame")
     finally:
         assert device.stop() == 0
@@ -87,7 +90,8 @@ def test_pty_pair_provision_and_stream(tmp_path, model_path, model):
         result = provision(model_path, pty.slave_path, key=KEY, show_progress=False,
                            log=_quiet, transport_factory=master)
         assert result.outcome == "installed" and result.confirmed
-        stats = serve(model_path, pty.slave_path, key=KEY, orbit=parse_orbit("steps:10:-20"),
+        stats = serve(model_path, pty.slave_path, key=KEY,
+                      scores="interpolate", orbit=parse_orbit("steps:10:-20"),
                       fps=0, log=_quiet, transport_factory=master)
         assert stats.frames == 10
         wait_until(lambda: _has_view(frames, 324.0, -20.0), 20, "the orbit's last frame")
@@ -167,7 +171,7 @@ def test_link_cut_mid_stream_recovers_with_a_key_frame(tmp_path, model_path, mod
 
     stats_box: dict = {}
     try:
-        stats = serve(model_path, f"socket://127.0.0.1:{proxy.port}", key=KEY,
+        stats = serve(model_path, f"socket://127.0.0.1:{proxy.port}", key=KEY, scores="interpolate",
                       orbit=parse_orbit("steps:40:30"), fps=40, log=_quiet, on_frame=on_frame)
         wait_until(lambda: _has_view(frames, 351.0, 30.0), 20, "the orbit's last frame")
     finally:
@@ -199,7 +203,7 @@ def test_device_restarted_mid_stream_boots_from_flash_and_resumes(tmp_path, mode
                                                 key_file=key_file(model_path))
 
     try:
-        stats = serve(model_path, f"socket://127.0.0.1:{port}", key=KEY,
+        stats = serve(model_path, f"socket://127.0.0.1:{port}", key=KEY, scores="interpolate",
                       orbit=parse_orbit("steps:36:-5"), fps=30, log=_quiet, on_frame=on_frame)
         wait_until(lambda: _has_view(frames2, 350.0, -5.0), 20, "the orbit's last frame")
     finally:

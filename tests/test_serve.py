@@ -62,7 +62,7 @@ def test_orbit_frames_are_identical_to_eigencast_view(tmp_path, model_path, mode
     name = mem_name("serve")
     device, frames = _provisioned_device(tmp_path, model_path, name)
     with device:
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
                       orbit=parse_orbit("steps:9:20"), fps=60, log=_quiet)
         assert stats.frames == 9 and stats.key_frames == 1 and stats.delta_frames == 8
         wait_until(lambda: any(float(r["phi_deg"]) == 320.0 for r in read_frames(frames)), 10,
@@ -86,6 +86,7 @@ def test_view_requests_are_answered_and_coalesced_on_a_slow_line(tmp_path, model
 
     def host():
         result["stats"] = serve(model_path, f"mem://{name}-x?end=a", baud=9600, key=KEY,
+                                scores="interpolate",
                                 stop=stop, log=_quiet)
 
     thread = threading.Thread(target=host, daemon=True)
@@ -114,7 +115,7 @@ def test_lossy_line_recovers_with_key_frames(tmp_path, model_path, model):
     lossy_a = f"mem://{name}-l?end=a&burst=0.0002&burst_bytes=64&seed=3"
     device = RuntimeThread(tmp_path / "flash", lossy_b, frames=frames, baud=921600)
     with device:
-        stats = serve(model_path, lossy_a, baud=921600, key=KEY,
+        stats = serve(model_path, lossy_a, baud=921600, key=KEY, scores="interpolate",
                       orbit=parse_orbit("steps:120:-10"), fps=0, log=_quiet, max_reconnects=20)
         wait_until(lambda: any(float(r["phi_deg"]) == 357.0 for r in read_frames(frames)), 20,
                    "the orbit's last view")
@@ -130,9 +131,11 @@ def test_serve_refuses_a_device_without_the_image_unless_provisioning(tmp_path, 
     frames = tmp_path / "frames"
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", frames=frames):
         with pytest.raises(ServeError, match=r"does not hold .*eigencast provision"):
-            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, orbit=parse_orbit(
+            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                  scores="interpolate", orbit=parse_orbit(
                 "steps:2"), log=_quiet)
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, provision_missing=True,
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                      scores="interpolate", provision_missing=True,
                       orbit=parse_orbit("steps:3:0"), log=_quiet)
         assert stats.provisioned and stats.frames == 3
         wait_until(lambda: len(read_frames(frames)) >= 1, 10, "a frame")
@@ -173,7 +176,7 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
 
         monkeypatch.setattr(FrameEncoder, "encode", padded)
         with pytest.raises(ServeError, match=r"max_frame_bytes=1024.*--max-frame"):
-            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
                   orbit=parse_orbit("steps:2"), log=_quiet)
     # a device that takes large frames gets them, although the host's serial line would
     # default to 4 KiB frames
@@ -184,7 +187,7 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
                             scores=None: (
             dataclasses.replace(real(self, view, key=key), packet=real(
                 self, view, key=key).packet + bytes(6000))))
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
                       orbit=parse_orbit("steps:2"), log=_quiet)
     assert stats.frames == 2 and stats.packet_bytes > 12000
 
@@ -208,11 +211,12 @@ def test_serve_with_a_key_refuses_a_device_that_says_it_holds_none(tmp_path, mod
         device.device.on(m.MessageType.SCORES,
                          lambda msg, frame: (seen.append(msg), on_scores(msg, frame))[1])
         with pytest.raises(AuthenticationError, match=r"holds no key.*--insecure"):
-            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
                   orbit=parse_orbit("steps:3:0"), log=_quiet)
         assert seen == [] and read_frames(frames) == []
         lines = []
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, insecure=True,
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                      scores="interpolate", insecure=True,
                       orbit=parse_orbit("steps:3:0"), log=lines.append)
         assert stats.frames == 3
         wait_until(lambda: len(seen) == 3, 10, "the three packets on the device")

@@ -239,7 +239,7 @@ def test_a_resting_view_on_a_device_converges_to_the_projection(tmp_path, model_
         device.stop()
     stats = result["stats"]
     assert stats.converged_frames >= 1 and stats.refined_frames >= 1, logs
-    assert any("motion scores" in line for line in logs)
+    assert any("ray-cast scores" in line for line in logs)
     rows = shown()
     assert len(rows) >= 2 and rows[-1]["key"] == "0"  # refinements are deltas
     first = np.asarray(Image.open(frames / rows[0]["file"]))

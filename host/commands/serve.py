@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import sys
 import threading
 from pathlib import Path
 
@@ -43,31 +42,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="0: delta frames, key frames only at a (re)connect or when the "
                         "device asks (default); 1: key frames only; N: a key frame at least "
                         "every N frames")
-    parser.add_argument("--scores", choices=("auto", "interpolate", "render", "refine", "motion",
-                                                 "predict"),
-                        default="auto",
-                        help="what the packets carry: interpolate = the training views' "
-                        "scores blended at the view (instant, shows the neighbouring views "
-                        "cross-faded); render = the scores of a fresh ray-cast of every view "
-                        "(the eigenspace's best frame; one ray-cast per packet); refine = "
-                        "interpolated at once, the ray-cast's scores when the view rests; "
-                        "motion = the scores of a sparse ray-cast of every view, as dense as "
-                        "--deadline allows, converging to the full ray-cast's while the view "
-                        "rests; predict = the device shows its own prediction of every view "
-                        "at once and the host sends only the correction to the ray-cast's "
-                        "scores (a model fitted --standalone and a device that predicts; "
-                        "another device gets motion); auto (default) = predict for a "
-                        "--standalone model, else motion, when the model's volume can be "
-                        "loaded, else interpolate")
     parser.add_argument("--deadline", metavar="MS", type=float, default=None,
-                        help="motion: milliseconds per frame the host may spend (default "
-                        "33; a lower --fps or a slower link lengthens it)")
+                        help="milliseconds per frame the host may spend ray-casting a moving "
+                        "view (default 33; a lower --fps or a slower link lengthens it): "
+                        "a faster host corrects moving views more, a slower one less, never "
+                        "later")
     parser.add_argument("--volume", metavar="PATH",
-                        help="the volume to ray-cast for render/refine/motion (default: the "
-                        "source recorded in the model; it must be the same volume)")
-    parser.add_argument("--refine-delay", metavar="S", type=float, default=None,
-                        help="refine: seconds a view must rest before it is ray-cast "
-                        "(default 0.15)")
+                        help="the volume to ray-cast (default: the source recorded in the "
+                        "model; it must be the same volume)")
     parser.add_argument("--provision", action="store_true",
                         help="install the image first when the device lacks it")
     parser.add_argument("--max-frames", metavar="N", type=int,
@@ -86,12 +68,7 @@ def run(args: argparse.Namespace) -> int:
     """Serve until interrupted, the orbit ends, or a --max-frames/--duration limit."""
     from device_runtime.runtime import parse_orbit
     from host.fit.model import HostModel
-    from host.link.serving import (
-        DEFAULT_DEADLINE_S,
-        DEFAULT_REFINE_DELAY_S,
-        open_true_view_scores,
-        serve,
-    )
+    from host.link.serving import DEFAULT_DEADLINE_S, serve
     from protocol.keys import load_key
 
     if args.baud <= 0:
@@ -110,8 +87,6 @@ def run(args: argparse.Namespace) -> int:
             orbit = parse_orbit(args.orbit)
         except ValueError as exc:
             raise EigencastError(f"--orbit: {exc}") from None
-    if args.refine_delay is not None and not args.refine_delay >= 0:
-        raise EigencastError(f"--refine-delay {args.refine_delay}: must be >= 0")
     if args.deadline is not None and not (args.deadline > 0 and args.deadline < 1e6):
         raise EigencastError(f"--deadline {args.deadline}: must be > 0 milliseconds")
     if not args.model.is_file():
@@ -120,22 +95,6 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or args.json
     say = (lambda line: None) if quiet else None
     model = HostModel.load(args.model, key=key)
-    mode, true_views = args.scores, None
-    if mode != "interpolate":
-        try:
-            true_views = open_true_view_scores(model, args.volume)
-        except EigencastError as exc:
-            if mode != "auto":
-                raise EigencastError(f"--scores {mode}: {exc}") from None
-            if not quiet:
-                print(f"eigencast serve: sending interpolated scores only ({exc})",
-                      file=sys.stderr, flush=True)
-            mode = "interpolate"
-        else:
-            if mode == "auto":
-                from host.link.correction import model_predictor
-
-                mode = "predict" if model_predictor(model) is not None else "motion"
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends serving cleanly
@@ -157,10 +116,7 @@ def run(args: argparse.Namespace) -> int:
         stop=stop,
         log=say,
         model=model,
-        scores=mode,
-        true_views=true_views,
-        refine_delay_s=(DEFAULT_REFINE_DELAY_S if args.refine_delay is None
-                        else args.refine_delay),
+        volume=args.volume,
         deadline_s=(DEFAULT_DEADLINE_S if args.deadline is None else args.deadline / 1000.0),
     )
     if args.json:

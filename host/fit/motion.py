@@ -25,8 +25,7 @@ samples' residual ``x_S - S_S`` is recovered with prior zero
 (`SparseRecovery.recover_residual`), so no samples means no change, and the complete
 frame is ``project(x) - project(S)``, the correction that makes ``S`` the closest frame to
 the view the eigenspace can hold. The residual's prior (per-component variance, and λ, the
-residual's power outside the eigenspace) is `ResidualPrior`: it starts from measured ratios
-and learns from every resting view that reached the full ray-cast.
+residual's power outside the eigenspace) is `ResidualPrior`, measured.
 
 The cost model is measured, not assumed: the seconds per frame at the two strides used
 last (ray-cast and recovery, exponential averages) give a fixed cost and a cost per ray,
@@ -96,71 +95,47 @@ def angle_between(a: tuple[float, float], b: tuple[float, float]) -> float:
 
 
 class ResidualPrior:
-    """The statistics of corrections of the device's own frame, learned as the host serves.
+    """The statistics of a correction of the device's own frame: the MAP prior of the sparse
+    recovery (`SparseRecovery.recover_residual`).
 
-    A correction recovered from sparse samples is a MAP estimate: it needs the variance of
-    each component of the correction (``Σ``) and the power of the residual outside the
-    eigenspace (``λ``, the noise the samples carry). Both depend on the volume, the transfer
-    function and how good the device's synthesis is, so they are learned from the full
-    corrections of resting views (`add`), starting from `VARIANCE_RATIO` times the
-    eigenvalues and `LAMBDA` as `PSEUDO_VIEWS` views' worth of evidence.
+    The device's synthesis (a warp or blend of its neighbouring training views) already
+    gets a cell's leading components nearly right; what it misses lives in the later ones.
+    So a correction's component of rank ``r`` in its cell (0 the leading one) has variance
+    ``eigenvalue * clip((r + 0.5) / RANK_SCALE, RATIO_FLOOR, 1)``, and the residual outside
+    the eigenspace (the noise the samples carry) variance `LAMBDA` per value.
 
-    Measured (docs/rate-distortion.md, section 10): the correction's variance is 0.20 (tooth)
-    and 0.22 (head) of the eigenvalue per component (median), the residual outside the
-    eigenspace 21 and 138 squared levels per object value, and the best λ about twice that;
-    with these statistics (12 views) the sparse correction gains at every stride where the
-    views' own eigenvalues make strides 3-8 worse than no correction at all.
+    Measured (docs/rate-distortion.md, section 10; 12 views each of the tooth and the head
+    at 256): the median of (correction component)**2 / eigenvalue is 0.001-0.002 at rank 0,
+    0.01 at ranks 2-3, 0.07-0.09 at 8-15, 0.16 at 16-31, 0.29-0.32 at 32-63 and 0.49-0.54
+    beyond, on both volumes; with this prior the sparse correction gains at every stride
+    (head +0.040 / +0.012 / +0.003 object SSIM over the warp at strides 2 / 4 / 8, tooth
+    +0.013 / +0.003 / +0.000), where the views' own eigenvalues as the prior make strides
+    3-8 worse than no correction, and it does as well as the variance learned from the 12
+    views themselves. The recovery depends only on ``LAMBDA / variance``.
     """
 
-    #: Prior variance of a correction's component, as a fraction of its eigenvalue.
-    VARIANCE_RATIO = 0.2
-    #: Prior λ (squared levels per value) before any view was seen.
+    #: A component of rank ``r`` varies ``(r + 0.5) / RANK_SCALE`` of its eigenvalue.
+    RANK_SCALE = 160.0
+    #: ... but at least this fraction.
+    RATIO_FLOOR = 0.002
+    #: The residual's power outside the eigenspace, squared levels per value.
     LAMBDA = 100.0
-    #: λ is this times the measured residual power outside the eigenspace (object pixels).
-    LAMBDA_FACTOR = 2.0
-    #: Weight of the prior, in views.
-    PSEUDO_VIEWS = 4.0
 
-    def __init__(self, eigenvalues: np.ndarray) -> None:
-        ev = np.asarray(eigenvalues, dtype=np.float64)
-        self._prior = self.VARIANCE_RATIO * np.maximum(ev, 0.0)
-        self._sum_sq = np.zeros_like(ev)
-        self._sum_noise = 0.0
-        self.views = 0
+    def __init__(self, eigenvalues: np.ndarray, n_components: np.ndarray) -> None:
+        ev = np.maximum(np.asarray(eigenvalues, dtype=np.float64), 0.0)
+        counts = np.asarray(n_components, dtype=np.int64)
+        rank = np.concatenate([np.arange(c) for c in counts]) if counts.size else np.zeros(0)
+        if rank.shape != ev.shape:
+            raise ValueError(f"ResidualPrior: {ev.size} eigenvalues for {rank.size} components")
+        self.variance = ev * np.clip((rank + 0.5) / self.RANK_SCALE, self.RATIO_FLOOR, 1.0)
+        self.lam = self.LAMBDA
 
     @classmethod
     def for_model(cls, model: Any) -> ResidualPrior:
         """From the model's annexed eigenvalues (else its training scores' variance)."""
-        if model.eigenvalues is not None:
-            return cls(model.eigenvalues)
-        return cls(np.asarray(model.training_scores, dtype=np.float64).var(axis=0, ddof=1))
-
-    @property
-    def variance(self) -> np.ndarray:
-        """Per-component variance of a correction (K,) float64."""
-        n, n0 = self.views, self.PSEUDO_VIEWS
-        return (self._sum_sq + n0 * self._prior) / (n + n0)
-
-    @property
-    def lam(self) -> float:
-        """λ: the residual power outside the eigenspace, squared levels per value."""
-        n, n0 = self.views, self.PSEUDO_VIEWS
-        return float((self.LAMBDA_FACTOR * self._sum_noise + n0 * self.LAMBDA) / (n + n0))
-
-    def add(self, correction: np.ndarray, truth: np.ndarray, corrected: np.ndarray) -> None:
-        """One resting view's full correction (K,), its ray-cast and its corrected frame
-        (uint8 (h, w, 3) each): the correction's squares and the residual left on the
-        object's pixels count as one more view."""
-        d = np.asarray(correction, dtype=np.float64)
-        self._sum_sq += d * d
-        t = np.asarray(truth)
-        obj = t.max(axis=2) > _OBJECT_LEVEL
-        if np.any(obj):
-            e = t[obj].astype(np.float64) - np.asarray(corrected)[obj].astype(np.float64)
-            self._sum_noise += float(np.mean(e * e))
-        else:
-            self._sum_noise += self.LAMBDA / self.LAMBDA_FACTOR
-        self.views += 1
+        ev = (model.eigenvalues if model.eigenvalues is not None else
+              np.asarray(model.training_scores, dtype=np.float64).var(axis=0, ddof=1))
+        return cls(ev, model.image.n_components)
 
 
 @dataclass
@@ -423,8 +398,6 @@ class MotionScores:
         weights = None
         if self._synth is not None:
             weights = self._weights(self._image if complete else self._synth)
-            if complete:
-                self._learn()
         return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, complete,
                            weights)
 
@@ -474,24 +447,12 @@ class MotionScores:
         weights = None
         if y is not None and self._synth is not None:
             weights = self._weights(self._image if complete else self._synth)
-            if complete:
-                self._learn()
         seconds = self.clock() - t0
         self.refinements += 1
         self.pixels += int(rows.size)
         self.seconds += seconds
         return MotionFrame(y, target, int(rows.size), seconds, "progressive", complete,
                            weights)
-
-    def _learn(self) -> None:
-        """Corrections: a view reached its full ray-cast; learn the residual's statistics
-        from it and recompute the sparse strides' factors now (the view rests; moving
-        frames must not pay for it)."""
-        assert self.prior is not None and self._synth is not None and self._scores is not None
-        corrected = self.own.reconstructor.correct(self._scores, self._synth)
-        self.prior.add(self._scores, self._image, corrected)
-        self.recovery.set_prior(self.prior.variance, self.prior.lam)
-        self.prepare()
 
     def stats(self) -> dict[str, Any]:
         """JSON-able counters."""

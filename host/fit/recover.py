@@ -35,9 +35,8 @@ the device already shows (its own synthesis ``S``) from the residual ``r_S = x_S
 the sampled pixels, with prior zero: ``d_c = (B_S B_Sᵀ + λ Σ⁻¹)⁻¹ B_S r_S`` (no sample, no
 change). Σ and λ are then the statistics of the residual, not of the views: a
 `SparseRecovery` built with ``variance=`` (the residual scores' variance per component) and
-``lam=`` (the residual's power outside the eigenspace), which `host.fit.motion.ResidualPrior`
-learns from the full corrections of resting views; `set_prior` changes them (the cached
-factors are dropped).
+``lam=`` (the residual's power outside the eigenspace), as `host.fit.motion.ResidualPrior`
+measured them.
 
 Pixels in the padding of the bottom/right cells do not exist in the view and are never
 sampled (`HostModel.project` fits them as zeros; on models whose image size is a multiple
@@ -269,19 +268,6 @@ class SparseRecovery:
         self._scales = np.asarray(img.scales, dtype=np.float64)
         self._factors: OrderedDict[tuple, _Factor] = OrderedDict()
         self._grams: OrderedDict[tuple, tuple[np.ndarray, list[_CellGram]]] = OrderedDict()
-
-    def set_prior(self, variance: Any, lam: float) -> None:
-        """Replace Σ's diagonal and λ; the cached factors are dropped (recomputed on use)."""
-        var = np.asarray(variance, dtype=np.float64)
-        lam = float(lam)
-        if var.shape != (self.n_coefficients,) or not np.all(np.isfinite(var)):
-            raise ValueError(f"set_prior: variance must be finite of shape "
-                             f"({self.n_coefficients},)")
-        if not (np.isfinite(lam) and lam >= 0.0):
-            raise ValueError(f"set_prior: lam={lam} must be a finite number >= 0")
-        self.variance = np.maximum(var, _MIN_VARIANCE)
-        self.lam = lam
-        self._factors.clear()
 
     # ------------------------------------------------------------------ patterns
     def _check_pattern(self, pattern: SamplePattern) -> None:

@@ -2,10 +2,11 @@
 
 Owns provisioning (``provisioning.py``: handshake, chunked image transfer with retransmission
 and resume, commit) and serving (``serving.py``: the session that answers view requests with
-score packets, optionally ray-casting or refining the shown view, or sending the frames of
-`host.fit.MotionScores` that fit a deadline; ``true_views.py``: the scores of ray-cast views
-it sends; ``errors.py``: `ServeError`). Both drive the shared protocol
-(`protocol.link`, `protocol.transport`, `protocol.scores`) from the host end.
+score packets: corrections of the device's own frames, ``correction.py``, or absolute
+scores, ``encoding.py``, from the sparse ray-casts of `host.fit.MotionScores` that fit a
+deadline; ``true_views.py``: the scores of ray-cast views; ``errors.py``: `ServeError`).
+Both drive the shared protocol (`protocol.link`, `protocol.transport`, `protocol.scores`)
+from the host end.
 
 Named ``link`` rather than ``serve``: it holds provisioning too and it is the host end of
 `protocol.link`. Its modules are ``provisioning.py``/``serving.py``, not ``provision.py``/
@@ -13,7 +14,7 @@ Named ``link`` rather than ``serve``: it holds provisioning too and it is the ho
 function on the package as soon as it is imported (``host.link.serve`` would be the module).
 
 May import: `host.fit` (the `HostModel` whose packets it sends), `host.render` (ray-cast
-views for ``--scores render|refine|motion``), `host.errors`, `protocol`, `device_runtime`; never
+views), `host.errors`, `protocol`, `device_runtime`; never
 evaluate. ``eigencast provision`` and ``serve`` start here (``host/commands/provision.py``,
 ``serve.py``).
 """
@@ -23,7 +24,6 @@ from host.lazy import attach
 __all__ = [
     "CHUNK_LATENCY_S",
     "DEFAULT_DEADLINE_S",
-    "DEFAULT_REFINE_DELAY_S",
     "SCORE_MODES",
     "FrameEncoder",
     "ImageInfo",

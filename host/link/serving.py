@@ -10,16 +10,19 @@ streams one SCORES packet per view:
   With an orbit (:func:`device_runtime.runtime.parse_orbit`: ``turn:SECONDS[:THETA[:TURNS]]``
   or ``steps:N[:THETA[:TURNS]]``) the host drives the view itself, for unattended demos
   and benchmarks.
-* **What is sent.** ``HostModel.quantized_scores`` at the canonical view (phi wrapped to
-  [0, 360), both angles rounded to float32: exactly what the packet header carries),
-  quantized at the model's score step, coded as a key or delta packet, zstd-compressed
-  (`protocol.scores.encode_scores`). The device's frame is therefore bit-identical to
-  ``eigencast view`` at the same view. Other ``scores`` modes send other scores through the
-  same encoder: a fresh ray-cast's projection (``render``, ``refine`` at rest) or the scores
-  recovered from a sparse ray-cast that fits the frame budget (``motion``,
-  `host.fit.MotionScores`; the budget is `_Pace`'s: the deadline, ``1/fps`` or the link's
-  measured time per packet, whichever is longest), or a correction to the device's own
-  prediction of the view (``predict``, `host.link.correction`).
+* **What is sent: one path.** A device that synthesizes its own frames (its image has the
+  standalone table; HELLO_REPLY lists score packet version 3 and says it predicts) shows
+  its own frame of every new view at once, and the host sends only the *correction* of
+  that frame (`host.link.correction`): each new view is ray-cast sparsely within the
+  frame's budget (`host.fit.MotionScores` with the device's own frames; the budget is
+  `_Pace`'s: the deadline, ``1/fps`` or the link's measured time per packet, whichever is
+  longest), and while it rests the next frames ray-cast the missing pixels until the
+  correction is the full one at the model's score step. A correction with nothing worth
+  sending is not sent. Any other device (an older one, one whose image has no table, one
+  started with ``--no-predict``) gets the scores such a ray-cast recovers, as key and delta
+  packets (one line says so), and a model whose volume cannot be ray-cast sends the
+  training views' scores interpolated at the view (``HostModel.quantized_scores``, at the
+  canonical view: bit-identical to ``eigencast view --blend``).
 * **Deltas.** Each delta is coded against the last packet *sent* in this session (the
   writer hands a packet to the transport before the next one is encoded, so none is
   replaced unsent). A device that misses a base (a packet lost on a noisy line) sends
@@ -45,7 +48,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import secrets
 import sys
 import threading
 import time
@@ -58,8 +60,9 @@ import numpy as np
 
 from device_runtime.orbit import Orbit, OrbitSpec, canonical_view
 from host.fit.model import HostModel
+from host.link.encoding import FrameEncoder
 from host.link.errors import ServeError
-from host.link.true_views import TrueViewScores, _Refiner, open_true_view_scores
+from host.link.true_views import open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
     RemoteError,
@@ -69,8 +72,7 @@ from protocol.errors import (
 )
 from protocol.host_session import HostSession
 from protocol.link import Link
-from protocol.scores import DEFAULT_LEVEL as SCORE_LEVEL
-from protocol.scores import EncodedScores, encode_scores, max_packet_size
+from protocol.scores import EncodedScores, max_packet_size
 from protocol.transport import open_transport
 
 __all__ = [
@@ -104,19 +106,20 @@ class ServeStats:
         Bytes the links wrote (all frames, framing included) and read.
     requests, coalesced, keyframe_requests : int
         VIEW_REQUESTs received, those superseded before they were answered, KEYFRAME_REQUESTs.
-    rendered_frames, refined_frames : int
-        Packets of ray-cast views (``scores="render"``), refinement packets (``"refine"``).
-    rendered_views, render_seconds : int, float
-        Views ray-cast and projected, and the time it took.
+    refined_frames : int
+        Packets that refined a resting view.
     motion_frames, motion_pixels, motion_seconds : int, int, float
-        ``scores="motion"``: packets of moving views (sparse ray-casts), rays cast for them
-        and their refinements, and the host time it took.
+        Frames of moving views made from a sparse ray-cast, rays cast for them and their
+        refinements, and the host time it took.
     converged_frames : int
-        ``"motion"``: refinements that reached the full projection of a resting view.
+        Refinements that reached the full ray-cast of a resting view.
     correction_frames, correction_bytes : int
-        ``"predict"``: corrections sent (not counted as key or delta frames) and their bytes.
+        Corrections of the device's own frames sent (not counted as key or delta frames)
+        and their bytes.
+    unchanged_frames : int
+        Views whose correction had nothing worth sending (the device keeps its own frame).
     stride_frames : dict
-        ``"motion"``: moving frames per stride (str keys).
+        Moving frames per stride (str keys; "0": none fitted the budget).
     sessions, reconnects : int
     stream_seconds : float
         Time spent streaming (sessions, not connecting).
@@ -142,16 +145,14 @@ class ServeStats:
     device_id: str = ""
     provisioned: bool = False
     last_view: tuple[float, float] | None = None
-    rendered_frames: int = 0
     refined_frames: int = 0
-    rendered_views: int = 0
-    render_seconds: float = 0.0
     motion_frames: int = 0
     motion_pixels: int = 0
     motion_seconds: float = 0.0
     converged_frames: int = 0
     correction_frames: int = 0
     correction_bytes: int = 0
+    unchanged_frames: int = 0
     stride_frames: dict = field(default_factory=dict)
     views: list = field(default_factory=list, repr=False)
 
@@ -186,92 +187,28 @@ class ServeStats:
         key = self.key_bytes / self.key_frames if self.key_frames else 0.0
         delta = self.delta_bytes / self.delta_frames if self.delta_frames else 0.0
         kinds = f"{self.key_frames} key, {self.delta_frames} delta"
-        if self.rendered_frames:
-            kinds += f", {self.rendered_frames} ray-cast"
         if self.motion_frames:
             kinds += f", {self.motion_frames} sparse"
         if self.refined_frames:
             kinds += f", {self.refined_frames} refined"
         if self.correction_frames:
             kinds += f", {self.correction_frames} corrections ({self.correction_bytes} B)"
+        if self.unchanged_frames:
+            kinds += f", {self.unchanged_frames} views left as the device made them"
         return (f"{self.frames} frames ({kinds}), "
                 f"{self.bytes_per_frame:.0f} B/frame (key {key:.0f} B, delta {delta:.0f} B), "
                 f"{self.fps:.1f} fps, link {self.link_bytes_per_s / 1024:.1f} KiB/s")
 
 
-# --------------------------------------------------------------------------- encoding
-
-
-class FrameEncoder:
-    """Score packets of one session: frame numbers, key/delta choice, the delta base.
-
-    Parameters
-    ----------
-    model : HostModel
-    keyframe_interval : int
-        0: deltas whenever possible (key frames only at the start and when asked);
-        1: key frames only; N: at least one key frame every N frames.
-    level : int
-        zstd level of the packet payload.
-    first_frame : int, optional
-        Frame number of the first packet (default: random in 1..2**31).
-    """
-
-    def __init__(self, model: HostModel, *, keyframe_interval: int = 0,
-                 level: int = SCORE_LEVEL, first_frame: int | None = None) -> None:
-        if keyframe_interval < 0:
-            raise ValueError(f"keyframe_interval={keyframe_interval} must be >= 0")
-        self.model = model
-        self.keyframe_interval = keyframe_interval
-        self.level = level
-        self.next_frame = first_frame if first_frame is not None else (
-            1 + secrets.randbelow(1 << 31))
-        self.base: EncodedScores | None = None
-        self.last_was_key = False
-        self._since_key = 0
-
-    def reset(self) -> None:
-        """Forget the base: the next packet is a key frame."""
-        self.base = None
-
-    def encode(self, view: tuple[float, float], *, key: bool = False,
-               scores: np.ndarray | None = None) -> EncodedScores:
-        """The packet for ``view`` (canonical), as a delta against the last one unless
-        ``key``, the interval or a wrap of the frame number asks for a key frame.
-
-        ``scores`` (float (K,)): send these (e.g. `HostModel.project` of a fresh ray-cast)
-        instead of the model's interpolated scores at ``view``; quantized the same way."""
-        frame = self.next_frame
-        if frame > 0xFFFFFFFF:
-            frame = 1
-            self.base = None
-        self.next_frame = frame + 1
-        interval = self.keyframe_interval
-        if interval == 1 or (interval > 1 and self._since_key + 1 >= interval):
-            key = True
-        model = self.model
-        y = model.quantized_scores(*view) if scores is None else model.quantize(scores)
-        base = None if key else self.base
-        encoded = encode_scores(
-            y, step=model.score_step, frame=frame, view=view, image_digest=model.digest,
-            base=base, level=self.level, n_components=model.image.n_components,
-        )
-        self.last_was_key = base is None
-        self._since_key = 0 if base is None else self._since_key + 1
-        self.base = encoded
-        return encoded
-
-
 # --------------------------------------------------------------------------- score modes
 
-#: What ``serve`` streams: interpolated training scores, the scores of a fresh ray-cast of
-#: every view, interpolated scores at once and the ray-cast's when the view rests, or the
-#: scores of a sparse ray-cast that fits each frame's deadline (`host.fit.motion`).
-SCORE_MODES = ("interpolate", "render", "refine", "motion", "predict")
-#: ``motion``: the frame deadline when ``fps`` sets none (a frame rate of 30), seconds.
+#: What ``serve`` streams (module docstring): ``auto`` is the one served path (corrections
+#: of the device's own frames where the device takes them, else the sparse ray-cast's
+#: scores, else interpolated ones); ``motion`` and ``interpolate`` force the absolute
+#: scores of the fallbacks (for measurements: what an older device gets).
+SCORE_MODES = ("auto", "motion", "interpolate")
+#: The frame deadline when ``fps`` sets none (a frame rate of 30), seconds.
 DEFAULT_DEADLINE_S = 1.0 / 30.0
-#: ``refine``: how long a view must rest (no newer request) before it is ray-cast, seconds.
-DEFAULT_REFINE_DELAY_S = 0.15
 
 
 # --------------------------------------------------------------------------- events
@@ -286,7 +223,6 @@ class _DeviceEvents:
         self.sequence = 0
         self.fresh = False
         self.keyframe = False
-        self.poked = False
         self.stats = stats
         self.say = say
 
@@ -309,15 +245,8 @@ class _DeviceEvents:
 
     def wait(self, timeout_s: float) -> None:
         with self._cond:
-            if not (self.fresh or self.keyframe or self.poked):
+            if not (self.fresh or self.keyframe):
                 self._cond.wait(timeout_s)
-            self.poked = False
-
-    def poke(self) -> None:
-        """Wake `wait` (a refined view is ready)."""
-        with self._cond:
-            self.poked = True
-            self._cond.notify_all()
 
     def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
         """(view, sequence, fresh, keyframe wanted) and clear the flags."""
@@ -354,11 +283,11 @@ def serve(
     model: HostModel | None = None,
     on_frame: Callable[[EncodedScores, tuple[float, float]], None] | None = None,
     host_id: str = "eigencast serve",
-    scores: str = "interpolate",
-    true_views: TrueViewScores | None = None,
-    refine_delay_s: float = DEFAULT_REFINE_DELAY_S,
-    motion: Any | None = None,
+    scores: str = "auto",
+    renderer: Any | None = None,
+    volume: str | None = None,
     deadline_s: float = DEFAULT_DEADLINE_S,
+    motion: Any | None = None,
 ) -> ServeStats:
     """Serve score packets for ``model_path`` to the device at ``url``.
 
@@ -401,29 +330,22 @@ def serve(
         Already loaded from ``model_path``.
     on_frame : callable, optional
         ``on_frame(encoded, view)`` after each packet is queued.
-    scores : {"interpolate", "render", "refine", "motion"}
-        What the packets carry. ``"interpolate"``: the training views' scores interpolated
-        at the view (instant; the frame shows the blend of neighbouring views).
-        ``"render"``: the scores of a fresh ray-cast of every view (`TrueViewScores`: the
-        eigenspace's best frame of the true view; one ray-cast per packet, requests that
-        arrive meanwhile are coalesced). ``"refine"``: interpolated at once, then, once the
-        view has rested ``refine_delay_s`` with no newer request, the ray-cast's scores as
-        one more (delta) packet. Orbits are host-driven and never rest: ``refine`` sends
-        their views interpolated. ``"motion"``: the scores of a sparse ray-cast as dense as
-        the frame's budget allows (`host.fit.motion.MotionScores`) for every new view, orbits
-        included, then, while the view rests, denser frames until the full projection.
-        ``"predict"``: corrections to the device's own prediction (`host.link.correction`;
-        needs a ``--standalone`` model; a device that cannot predict gets ``motion``).
-    true_views : TrueViewScores, optional
-        The ray-caster for ``render``/``refine`` (default: `open_true_view_scores` with the
-        model's recorded volume).
-    refine_delay_s : float
-        ``refine``: how long a view must rest before it is ray-cast.
-    motion : host.fit.motion.MotionScores, optional
-        The source for ``motion`` (default: built on ``true_views``' renderer).
+    scores : {"auto", "motion", "interpolate"}
+        ``"auto"``: the one served path (module docstring). ``"motion"``: the scores of a
+        sparse ray-cast of every view to any device, as an older device gets them;
+        ``"interpolate"``: the training views' scores interpolated at the view (no ray-cast).
+    renderer : host.render.settings.ViewRenderer, optional
+        The ray-caster (default: the model's recorded render settings and volume, or
+        ``volume``; when that cannot be loaded, ``"auto"`` says so in one line and sends
+        what needs no ray-cast).
+    volume : str, optional
+        The volume to ray-cast instead of the one the model records (a moved file).
     deadline_s : float
-        ``motion``: the frame budget, seconds; ``fps`` and the link's measured time per
-        packet lengthen it when they are slower.
+        The frame budget, seconds; ``fps`` and the link's measured time per packet lengthen
+        it when they are slower.
+    motion : host.fit.motion.MotionScores, optional
+        The sparse source of absolute scores (for devices that do not correct their own
+        frames; default: built on ``renderer``).
 
     Returns
     -------
@@ -444,53 +366,52 @@ def serve(
         raise ValueError(f"fps={fps} must be >= 0")
     if scores not in SCORE_MODES:
         raise ValueError(f"scores={scores!r}: expected one of {', '.join(SCORE_MODES)}")
-    if refine_delay_s < 0:
-        raise ValueError(f"refine_delay_s={refine_delay_s} must be >= 0")
     if not deadline_s > 0:
         raise ValueError(f"deadline_s={deadline_s} must be > 0")
     # the whole file is validated once, by HostModel.load (here or by the caller)
     info = inspect_image(model_path, key=key, whole_file=False)
     model = model or HostModel.load(model_path, key=key)
-    true_views, motion = _score_sources(model, scores, true_views, motion)
-    encoder = FrameEncoder(model, keyframe_interval=keyframe_interval)
-    if scores == "predict":
-        from host.link.correction import predict_encoder
+    say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
+    if renderer is None and scores != "interpolate":
+        renderer = _open_renderer(model, volume, scores, say)
+    from host.link.correction import CorrectionEncoder
 
-        true_views, encoder = predict_encoder(model, true_views, keyframe_interval)
+    encoder = CorrectionEncoder(model, keyframe_interval=keyframe_interval)
     pace = _Pace(deadline_s, fps)
-    if motion is not None:
-        motion.budget_s = pace.budget_s
     settings = _Settings(
         model_path=model_path, url=url, key=key, insecure=insecure, baud=baud, orbit=orbit,
         fps=fps, provision_missing=provision_missing, max_frames=max_frames,
         duration_s=duration_s, reconnect=reconnect, max_reconnects=max_reconnects,
         transport_factory=transport_factory, stats_every_s=stats_every_s,
-        request_timeout_s=request_timeout_s, host_id=host_id, refine_delay_s=refine_delay_s,
+        request_timeout_s=request_timeout_s, host_id=host_id,
     )
     run = _Serving(
         settings, info.digest,
         factory=transport_factory or _device_opener(url, baud, request_timeout_s, model),
-        say=log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True)),
+        say=say,
         stop=stop or threading.Event(),
         encoder=encoder,
-        pace=pace, on_frame=on_frame, scores=scores, true_views=true_views, motion=motion,
+        pace=pace, on_frame=on_frame, scores=scores, renderer=renderer,
         orbit=orbit.start() if orbit is not None else None,
+        sources={} if motion is None else {"motion": motion},
     )
     return run.run()
 
 
-def _score_sources(
-    model: HostModel, scores: str, true_views: TrueViewScores | None, motion: Any | None
-) -> tuple[TrueViewScores | None, Any | None]:
-    """The ray-caster (``render``, ``refine``, ``motion``) and the sparse source (``motion``)
-    that ``scores`` needs, built on the model's recorded render settings unless given."""
-    if scores != "interpolate" and true_views is None and (scores != "motion" or motion is None):
-        true_views = open_true_view_scores(model)
-    if scores == "motion" and motion is None:
-        from host.fit.motion import MotionScores
+def _open_renderer(model: HostModel, volume: str | None, scores: str,
+                   say: Callable[[str], None]) -> Any | None:
+    """The model's ray-caster; with ``scores="auto"`` None (one line says why) when its
+    volume cannot be loaded, else that error."""
+    from host.errors import EigencastError
 
-        motion = MotionScores(model, true_views.renderer)
-    return true_views, motion
+    try:
+        return open_true_view_scores(model, volume).renderer
+    except EigencastError as exc:
+        if scores != "auto":
+            raise
+        say(f"the views cannot be ray-cast ({_short(exc)}): devices that synthesize their "
+            "own frames show them uncorrected, others get interpolated scores")
+        return None
 
 
 def _device_opener(
@@ -528,7 +449,6 @@ class _Settings:
     stats_every_s: float
     request_timeout_s: float
     host_id: str
-    refine_delay_s: float
 
 
 @dataclass
@@ -556,27 +476,30 @@ class _Connection:
 @dataclass
 class _Frame:
     """The next packet: its view, the request sequence it answers, its scores (None: the
-    model's interpolated ones), whether a key frame was asked for, whether it refines the
-    view on show."""
+    model's interpolated ones; a correction in a correcting session), whether a key frame
+    was asked for, whether it refines the view on show, whether it is a resting view's
+    complete correction (``fine``: the model's own step) and the SSIM cell weights of its
+    quantizer."""
 
     view: tuple[float, float]
     sequence: int
     scores: np.ndarray | None = None
     key: bool = False
     refined: bool = False
-    fine: bool = False  # ``predict``: at the model's own step (`sharpen_at_rest`)
+    fine: bool = False
+    weights: np.ndarray | None = None
 
 
 @dataclass
 class _Shown:
-    """The view the device was last sent: its request sequence, the ray-cast scores it was
-    sent with (None: interpolated) and when it was requested (monotonic seconds)."""
+    """The view the device was last sent: its request sequence and the scores it was sent
+    with (None: interpolated)."""
 
     view: tuple[float, float] | None = None
     sequence: int = 0
     scores: np.ndarray | None = None
-    requested_at: float = 0.0
     fine: bool = False
+    requested_at: float = 0.0
 
 
 @dataclass
@@ -589,8 +512,10 @@ class _Serving:
     waits for the pacing (:meth:`_may_send`), chooses the next frame (:meth:`_choose`: a new
     request, the orbit, the linger, or the resting view's refinement), gives it its scores
     (:meth:`_score`) and sends it (:meth:`_send`). The encoder, the running orbit, the
-    refiner, the view on show and the statistics carry over sessions; ``scores`` falls back
-    to ``"interpolate"`` for good when ray-casting fails.
+    frame sources, the view on show and the statistics carry over sessions. Each session
+    picks what it sends from the device's HELLO_REPLY (:meth:`_begin`: ``kind`` is
+    ``"correct"``, ``"motion"`` or ``"interpolate"``); ray-casting that fails falls back to
+    ``"interpolate"`` for good.
     """
 
     settings: _Settings
@@ -602,13 +527,14 @@ class _Serving:
     pace: _Pace
     on_frame: Callable[[EncodedScores, tuple[float, float]], None] | None
     scores: str
-    true_views: TrueViewScores | None
-    motion: Any | None
+    renderer: Any | None
     orbit: Orbit | None
     stats: ServeStats = field(default_factory=ServeStats)
     last_stats: float = field(default_factory=time.monotonic)
     current: _Shown = field(default_factory=_Shown)
-    refiner: _Refiner | None = None
+    kind: str = "interpolate"
+    motion: Any | None = None
+    sources: dict = field(default_factory=dict)
     link: Link | None = None
     attempt: int = 0
     failures: int = 0
@@ -636,8 +562,7 @@ class _Serving:
                         with contextlib.suppress(Exception):
                             self.link.close(flush_timeout_s=0.5)
         finally:
-            if self.refiner is not None:
-                self.refiner.close()
+            self.sources.clear()
         return self._finish()
 
     def _done(self) -> bool:
@@ -709,24 +634,65 @@ class _Serving:
         return False
 
     def _begin(self, conn: _Connection, hello: m.HelloReply) -> None:
-        """Count the session, say what is served, start with a key frame (and a refiner)."""
+        """Count the session, pick what it sends (:meth:`_pick`), say so, start with a key
+        frame."""
         stats, orbit = self.stats, self.settings.orbit
         stats.sessions += 1
         if stats.sessions > 1:
             stats.reconnects += 1
         self.failures = 0
+        what = self._pick(hello)
         self.say(f"serving {Path(self.settings.model_path).name} to device '{hello.device_id}' "
                  f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
-                 f"{hello.display_width}x{hello.display_height} display; {self.scores} scores)")
+                 f"{hello.display_width}x{hello.display_height} display; {what})")
         self.encoder.reset()
-        if hasattr(self.encoder, "predictor"):  # --scores predict: can this device?
-            from host.link.correction import begin_predict
-            begin_predict(self, hello)
-        if self.scores == "refine" and self.refiner is None and self.true_views is not None:
-            self.refiner = _Refiner(self.true_views, conn.events.poke)
-        elif self.refiner is not None:  # one refiner for all sessions: wake this one's
-            self.refiner.notify = conn.events.poke
         conn.clock = time.monotonic()
+
+    def _pick(self, hello: m.HelloReply) -> str:
+        """This session's ``kind`` and frame source from the device's HELLO_REPLY: corrections
+        of its own frames when it takes them (and the model has the table), else the sparse
+        ray-cast's scores, else interpolated scores; returns the phrase the log says."""
+        from host.link.correction import can_correct, cannot_correct
+
+        model = self.encoder.model
+        why = cannot_correct(hello) if can_correct(model) else (
+            "cannot synthesize views of this model (fitted --no-standalone)")
+        correct = self.scores == "auto" and why is None
+        if correct:
+            self.kind = "correct"
+        elif self.renderer is not None and self.scores != "interpolate":
+            self.kind = "motion"
+        else:
+            self.kind = "interpolate"
+        self.encoder.enabled = correct
+        self.motion = self._source(self.kind) if self.renderer is not None else None
+        if self.motion is not None:
+            self.motion.budget_s = self.pace.budget_s
+        if correct:
+            return ("corrections of the device's own frames" if self.motion is not None
+                    else "the device's own frames, uncorrected")
+        if self.scores == "auto" and why is not None:
+            self.say(f"device '{hello.device_id}' {why}: sending "
+                     f"{'ray-cast' if self.kind == 'motion' else 'interpolated'} scores "
+                     "instead of corrections of its own frames")
+        return f"{'ray-cast' if self.kind == 'motion' else 'interpolated'} scores"
+
+    def _source(self, kind: str) -> Any | None:
+        """The sparse ray-cast frame source of ``kind`` (made once, kept across sessions)."""
+        if kind not in ("correct", "motion"):
+            return None
+        source = self.sources.get(kind)
+        if source is None:
+            from host.fit.motion import MotionScores
+
+            own = None
+            if kind == "correct":
+                from device_runtime.prediction import OwnFrames
+
+                own = OwnFrames(self.encoder.model.image)
+            source = MotionScores(self.encoder.model, self.renderer, own=own)
+            self.sources[kind] = source
+        return source
 
     def _stream(self, conn: _Connection) -> None:
         """One packet per turn until done (or an orbit's linger is over)."""
@@ -770,18 +736,18 @@ class _Serving:
         return True
 
     def _check_sources(self) -> None:
-        """The sparse source's budget follows the pace; a failed refiner is dropped."""
+        """The sparse source's budget follows the pace."""
         if self.motion is not None:
             self.motion.budget_s = self.pace.budget_s
-        if self.refiner is not None and self.refiner.error is not None:
-            self._fall_back(self.refiner.error)
-            self.refiner.close()
-            self.refiner = None
 
     def _fall_back(self, error: BaseException) -> None:
-        """Ray-casting failed: say so and send interpolated scores from now on."""
-        self.say(f"ray-casting failed ({_short(error)}); sending interpolated scores only")
-        self.scores = "interpolate"
+        """Ray-casting failed: say so and send what needs no ray-cast from now on."""
+        self.say(f"ray-casting failed ({_short(error)}); "
+                 + ("the device shows its own frames uncorrected" if self.kind == "correct"
+                    else "sending interpolated scores only"))
+        self.renderer = None
+        self.motion = None
+        self.sources.clear()
 
     def _choose(self, conn: _Connection, request: tuple[Any, int, bool, bool],
                 now: float) -> _Frame | None:
@@ -822,17 +788,9 @@ class _Serving:
         return _Frame(shown.view, shown.sequence, shown.scores, key=True)
 
     def _resting(self, conn: _Connection, want_key: bool, now: float) -> _Frame | None:
-        """No new request: the view on show refined (denser sparse frame, or its ray-cast),
-        or repeated as a key frame; else wait (starting its ray-cast once it rested)."""
-        if self.scores == "predict":
-            from host.link.correction import sharpen_at_rest
-            if (due := sharpen_at_rest(self, conn, now)) is not False:
-                shown = self.current
-                return _Frame(shown.view, shown.sequence, shown.scores, want_key, refined=True,
-                              fine=True) if due else None
-        shown, refiner = self.current, self.refiner
-        unrefined = refiner is not None and shown.view is not None and shown.scores is None
-        ready = refiner.take(shown.view) if unrefined else None
+        """No new request: the view on show refined (a denser sparse frame, up to its full
+        ray-cast), or repeated as a key frame; else wait."""
+        shown = self.current
         step = None
         if self.motion is not None and shown.view is not None and not want_key:
             step = self._sparse(self.motion.refine, shown.view)
@@ -840,59 +798,56 @@ class _Serving:
             if step.scores is None:  # more pixels, nothing new to show yet
                 return None
             self.stats.converged_frames += int(step.complete)
-            return _Frame(shown.view, shown.sequence, step.scores, want_key, refined=True)
-        if ready is not None:  # the resting view, ray-cast: send its own scores
-            return _Frame(shown.view, shown.sequence, ready, want_key, refined=True)
+            return _Frame(shown.view, shown.sequence, step.scores, want_key, refined=True,
+                          fine=step.complete, weights=step.weights)
         if want_key and shown.view is not None:
-            return _Frame(shown.view, shown.sequence, shown.scores, key=True)
-        wait = _WAIT_S
-        if unrefined and not refiner.wanted(shown.view):
-            rest = shown.requested_at + self.settings.refine_delay_s - now
-            if rest <= 0:
-                refiner.submit(shown.view)
-            else:
-                wait = min(wait, rest)
-        conn.events.wait(wait)
+            return _Frame(shown.view, shown.sequence, shown.scores, key=True, fine=shown.fine)
+        conn.events.wait(_WAIT_S)
         return None
 
     def _sparse(self, call: Callable[[tuple[float, float]], Any],
                 view: tuple[float, float]) -> Any | None:
         """``call(view)`` of the sparse source, its rays and time counted; None when it
-        failed (then serving falls back to interpolation)."""
+        made nothing (a resting view already complete) or failed (then serving falls back
+        to what needs no ray-cast)."""
         try:
             step = call(view)
         except Exception as exc:
             self._fall_back(exc)
-            self.motion = None
+            return None
+        if step is None:
             return None
         self.stats.motion_pixels += step.pixels
         self.stats.motion_seconds += step.seconds
         return step
 
     def _score(self, frame: _Frame) -> None:
-        """Scores for a frame that carries none: a ray-cast (``render``) or a sparse
-        ray-cast (``motion``); interpolated otherwise (left None)."""
-        if frame.scores is not None:
+        """Scores for a frame that carries none: a sparse ray-cast's (its correction in a
+        correcting session); interpolated otherwise (left None)."""
+        if frame.scores is not None or self.motion is None:
             return
         stats = self.stats
-        if self.scores in ("render", "predict"):
-            frame.scores = self.true_views(frame.view)
-            stats.rendered_frames += 1
-        elif self.motion is not None:
-            step = self._sparse(self.motion.frame, frame.view)
-            if step is not None:
-                frame.scores = step.scores
-                stats.motion_frames += 1
-                stride = str(step.stride)
-                stats.stride_frames[stride] = stats.stride_frames.get(stride, 0) + 1
+        step = self._sparse(self.motion.frame, frame.view)
+        if step is not None:
+            frame.scores, frame.weights, frame.fine = step.scores, step.weights, step.complete
+            stats.motion_frames += 1
+            stride = str(step.stride)
+            stats.stride_frames[stride] = stats.stride_frames.get(stride, 0) + 1
 
     def _send(self, conn: _Connection, frame: _Frame, now: float) -> None:
-        """Encode the frame (key or delta), hand it to the link, count it."""
+        """Encode the frame (key, delta or correction), hand it to the link, count it. A
+        correction with nothing worth sending is not sent (the device keeps its own frame),
+        except for a host-driven view, which the device must be told (an empty one)."""
         shown = self.current
         shown.view, shown.sequence, shown.scores = frame.view, frame.sequence, frame.scores
         shown.fine = frame.fine
-        fine = {"fine": True} if frame.fine else {}
-        encoded = self.encoder.encode(frame.view, key=frame.key, scores=frame.scores, **fine)
+        encoded = self.encoder.encode(frame.view, key=frame.key, scores=frame.scores,
+                                      fine=frame.fine, weights=frame.weights,
+                                      always=self.orbit is not None)
+        fps = self.settings.fps
+        if encoded is None:
+            self.stats.unchanged_frames += 1
+            return
         sent = conn.sent
         sent.clear()
         queued = time.monotonic()
@@ -905,13 +860,12 @@ class _Serving:
             conn.session.send_scores(m.Scores(sequence=frame.sequence, packet=encoded.packet),
                                      after_sent=left)
         except ValueError as exc:  # the packet does not fit the device's frames
-            kind = "key" if self.encoder.last_was_key else "delta"
+            kind = self.encoder.last_kind
             raise ServeError(
                 f"{' '.join(str(exc).split())}: a {kind} score packet of this model "
                 f"({len(encoded.packet)} bytes) does not fit the device's frames; "
                 "start eigencast-device with a larger --max-frame (e.g. --max-frame "
                 "65536)") from None
-        fps = self.settings.fps
         conn.next_due = now + (1.0 / fps if fps > 0 else 0.0)
         self._count(encoded, frame)
         if self.on_frame is not None:
@@ -921,7 +875,7 @@ class _Serving:
         stats, size = self.stats, len(encoded.packet)
         stats.frames += 1
         stats.packet_bytes += size
-        if getattr(self.encoder, "last_kind", "") == "correction":
+        if self.encoder.last_kind == "correction":
             stats.correction_frames += 1
             stats.correction_bytes += size
         elif self.encoder.last_was_key:
@@ -959,10 +913,7 @@ class _Serving:
         return True
 
     def _finish(self) -> ServeStats:
-        """The ray-caster's counts, the closing line."""
-        if self.true_views is not None:
-            self.stats.rendered_views = self.true_views.renders
-            self.stats.render_seconds = self.true_views.render_seconds
+        """The closing line."""
         self.say(f"done: {self.stats.line()}")
         return self.stats
 

@@ -1,0 +1,170 @@
+"""The scores of fresh ray-casts (``HostModel.project``, `TrueViewScores`) and what ``serve``
+does when it cannot ray-cast.
+
+Interpolated scores blend neighbouring training views (docs/rate-distortion.md); a host that
+holds the volume can instead ray-cast the view asked for and find the scores that best
+reproduce it on the device's own eigenimages (evaluate's ``pca_render``, and what every
+served frame converges to once its view rests).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from provision_helpers import KEY, mem_name
+from runtime_helpers import RuntimeThread, serve_cli, wait_until
+
+from device_runtime.orbit import parse_orbit
+from host.fit.model import HostModel
+from host.link.provisioning import provision
+from host.link.serving import serve
+from host.link.true_views import TrueViewScores, open_true_view_scores
+from host.render.cinema import CinemaDB
+from host.render.settings import RenderSettings, ViewRenderer
+
+
+@pytest.fixture(scope="module")
+def true_views(model):
+    return open_true_view_scores(model)
+
+
+def _quiet(line: str) -> None:
+    pass
+
+
+def _mse(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+
+
+def _projected(model: HostModel, true_views: TrueViewScores, view) -> np.ndarray:
+    return model.reconstruct(model.quantize(true_views(view)))
+
+
+def test_projection_fits_a_training_view_at_least_as_well_as_its_own_scores(model, model_path):
+    db = CinemaDB.open(Path(model_path).parent / "tooth.cdb")
+    for i in (0, 7, 33):
+        truth = db.read_image(i)
+        own = model.reconstruct(model.training_scores[i])
+        fitted = model.reconstruct(model.project(truth))
+        # least squares on the int8 basis is optimal per cell; rounding to uint8 is the slack
+        assert _mse(fitted, truth) <= _mse(own, truth) + 0.3
+
+
+def test_projection_of_a_novel_view_beats_interpolation(model, true_views):
+    gains = []
+    for view in [(11.0, 13.0), (200.0, -40.0), (97.5, 51.0)]:
+        truth, _alpha = true_views.renderer.render(*view)
+        interpolated = _mse(model.view(*view), truth)
+        projected = _mse(_projected(model, true_views, view), truth)
+        gains.append(interpolated / projected)
+    assert min(gains) > 1.5, gains  # the blend of views 72 x 36 degrees apart is far off
+
+
+def test_projection_refuses_an_image_of_another_size(model):
+    with pytest.raises(ValueError, match="model's is"):
+        model.project(np.zeros((8, 8, 3), np.uint8))
+
+
+def test_true_view_scores_cache_repeated_views(true_views):
+    before = true_views.renders
+    a = true_views((5.0, 5.0))
+    b = true_views((5.0, 5.0))
+    assert a is b and true_views.renders == before + 1
+
+
+def test_true_view_scores_refuse_a_renderer_of_another_size(model):
+    settings = RenderSettings.from_record(model.render_settings, what="test")
+    renderer = ViewRenderer.open(dataclasses.replace(settings, width=20, height=20))
+    with pytest.raises(Exception, match="20x20 images"):
+        TrueViewScores(model, renderer)
+
+
+def _provisioned_device(tmp_path, model_path, name, **kwargs):
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", **kwargs)
+    result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+                       log=_quiet)
+    assert result.confirmed is True
+    return device
+
+
+class _BrokenRenderer:
+    """A ray-caster that fails: the model's real one, whose pixels raise."""
+
+    def __init__(self, real) -> None:
+        self.real = real
+        self.settings = real.settings
+        self.image_shape = real.image_shape
+        self.renderer = self
+
+    def coarser(self, factor):
+        return self
+
+    def render_pixels(self, *args, **kwargs):
+        raise RuntimeError("the GPU fell off")
+
+
+@pytest.mark.parametrize("predict", [True, False])
+def test_serving_goes_on_when_ray_casting_fails(tmp_path, model_path, model, true_views,
+                                               predict):
+    """A frame source that raises ends in one line; a device that synthesizes its own frames
+    keeps showing them, another one gets interpolated scores."""
+    name = mem_name(f"broken-{predict}")
+    device = _provisioned_device(tmp_path, model_path, name, predict=predict)
+    stop = threading.Event()
+    logs: list[str] = []
+    result: dict = {}
+
+    def host() -> None:
+        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
+                                stop=stop, log=logs.append,
+                                renderer=_BrokenRenderer(true_views.renderer))
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    try:
+        wait_until(lambda: any("ray-casting failed" in line for line in logs), 20,
+                   "the fallback notice")
+        device.device.set_view(50.0, 10.0)
+        if not predict:  # still served, interpolated
+            wait_until(lambda: device.device._shown_view == (50.0, 10.0), 20, "the next view")
+        else:  # its own frame of the view, uncorrected
+            wait_until(lambda: device.device._shown_view == (50.0, 10.0), 20, "its own frame")
+    finally:
+        stop.set()
+        thread.join(10)
+        device.stop()
+    stats = result["stats"]
+    assert stats.correction_frames == 0 and stats.motion_frames == 0
+    failed = [line for line in logs if "ray-casting failed" in line]
+    assert len(failed) == 1 and "the GPU fell off" in failed[0]
+    if not predict:
+        assert stats.key_frames + stats.delta_frames >= 1
+
+
+def test_serve_rejects_an_unknown_score_mode(model_path):
+    with pytest.raises(ValueError, match="scores='magic'"):
+        serve(model_path, "mem://nowhere", scores="magic", log=_quiet)
+
+
+def test_serve_without_the_volume_says_so_once_and_interpolates(tmp_path, model_path, model):
+    name = mem_name("novolume")
+    device = _provisioned_device(tmp_path, model_path, name, predict=False)
+    logs: list[str] = []
+    with device:
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, fps=0,
+                      orbit=parse_orbit("steps:2:10"), log=logs.append,
+                      volume=str(tmp_path / "missing.mhd"))
+    notice = [line for line in logs if "cannot be ray-cast" in line]
+    assert len(notice) == 1 and "missing.mhd" in notice[0]
+    assert stats.frames == 2 and stats.motion_frames == 0
+
+
+def test_cli_score_modes_and_refine_delay_are_gone(model_path):
+    for option in (["--scores", "render"], ["--refine-delay", "1"]):
+        run = serve_cli(str(model_path), "--port", "mem://nobody", *option)
+        assert run.returncode != 0 and option[0] in run.stderr
+        assert "Traceback" not in run.stderr
