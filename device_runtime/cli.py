@@ -503,8 +503,9 @@ def _serve(args: argparse.Namespace) -> int:
     if failure:
         raise failure[0]
     stats = device.runtime_stats
-    _log(f"presented {stats.frames_presented} frames ({stats.key_frames} key, "
-         f"{stats.delta_frames} delta packets decoded)")
+    _log(f"presented {stats.frames_presented} frames; decoded {stats.key_frames} key, "
+         f"{stats.delta_frames} delta and {stats.correction_packets} correction packets"
+         + (f" ({stats.stale_dropped} for views already left)" if stats.stale_dropped else ""))
     _log("stopped")
     return 0
 

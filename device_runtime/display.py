@@ -19,9 +19,11 @@ and the ``overlay`` / ``zoom`` state) that :mod:`device_runtime.runtime` drives:
     (the display's frame counter: the n-th frame presented, from 0), ``file``, ``host_frame``
     (the score packet's frame number as the host counts it, from a random start; empty for
     the device's own frames), ``phi_deg``, ``theta_deg``, ``key`` (1: a key frame or a
-    frame of the device's own), ``packet_bytes`` (0: the device's own frame) and
-    ``sequence`` (the view request the frame answers, 0: none). Without a folder it
-    presents nothing.
+    frame of the device's own), ``packet_bytes`` (0: the device's own frame),
+    ``sequence`` (the view request the frame answers, 0: none) and ``kind`` (``own``: the
+    device's own frame of the view, a warp or a blend; ``corrected``: that frame corrected
+    by the host; ``key`` / ``delta``: a host frame of absolute scores; ``mean``: the
+    image's first frame). Without a folder it presents nothing.
 
 PNGs are written by :func:`encode_png` (zlib + struct: no imaging library on the device),
 atomically (temporary file, then rename), so a reader never sees half a file.
@@ -70,9 +72,21 @@ ZOOM_FACTOR = 1.25
 ZOOM_RANGE = (0.125, 8.0)
 _FRAMES_CSV = "frames.csv"
 FRAMES_CSV_COLUMNS = ("shown", "file", "host_frame", "phi_deg", "theta_deg", "key",
-                      "packet_bytes", "sequence")
+                      "packet_bytes", "sequence", "kind")
 """``frames.csv``'s header (see the module docstring for what each column holds)."""
 _CSV_HEADER = ",".join(FRAMES_CSV_COLUMNS) + "\n"
+
+
+def frame_kind(info: dict) -> str:
+    """What a presented frame is (``frames.csv``'s ``kind``) from its info."""
+    if info.get("corrected"):
+        return "corrected"
+    if info.get("predicted") or info.get("synthesized") or (
+            info.get("phi_deg") is not None and not info.get("packet_bytes")):
+        return "own"
+    if info.get("phi_deg") is None:
+        return "mean"
+    return "key" if info.get("key") else "delta"
 
 
 class WindowUnavailable(RuntimeError):
@@ -287,7 +301,7 @@ class HeadlessPresenter:
         self._csv.write(
             f"{index},{name},{host_frame},{num('phi_deg')},{num('theta_deg')},"
             f"{int(bool(info.get('key', False)))},{packet_bytes},"
-            f"{info.get('sequence', 0)}\n"
+            f"{info.get('sequence', 0)},{frame_kind(info)}\n"
         )
         self._csv.flush()
         self.frames_written += 1

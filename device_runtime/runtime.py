@@ -290,6 +290,7 @@ class RuntimeDevice(Device):
         self._correction_due: ScoreItem | None = None
         self._own_warp: tuple[tuple[float, float], np.ndarray] | None = None
         self._synth_view: tuple[float, float] | None = None
+        self._superseded = 0  # corrections replaced by newer ones while waiting for a warp
         self._blend_s = -1.0  # when a predicting device last showed a moved view's blend
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
@@ -726,7 +727,9 @@ class RuntimeDevice(Device):
         self._present_prediction(model)
         self.limiter.offer(self.view)
         self._warp_due = None
-        self._correction_due = None
+        if self._correction_due is not None:  # its view was left before its warp was made
+            self.runtime_stats.stale_dropped += 1
+            self._correction_due = None
         if model.warp_worker is not None:
             model.warp_worker.request(self.view)
             self._warp_due = self.view
@@ -779,6 +782,8 @@ class RuntimeDevice(Device):
         elif self._own_warp is not None and self._own_warp[0] == view:
             self._show_corrected(item, self._own_warp[1])
         else:  # the warp of the view is not made yet: show it corrected once it is
+            if self._correction_due is not None:  # a newer one replaces it, never shown
+                self._superseded += 1
             self._correction_due = item
             if self._warp_due != view:
                 model.warp_worker.request(view)
@@ -847,7 +852,7 @@ class RuntimeDevice(Device):
 
     def stats_dict(self) -> dict[str, Any]:
         """Runtime statistics (:meth:`RuntimeStats.as_dict`) plus the current view and image."""
-        self.runtime_stats.coalesced = self._scores.replaced
+        self.runtime_stats.coalesced = self._scores.replaced + self._superseded
         out = self.runtime_stats.as_dict()
         model = self._model
         out["view"] = list(self.view)

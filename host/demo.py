@@ -4,30 +4,33 @@ One command on a fresh clone (``make demo``), every step cached in a work folder
 (``./demo-out`` by default) so a second run starts showing frames in seconds:
 
 1. **render** the volume (default the built-in head) from ``grid:72x9`` at 192 px with
-   300 samples per ray into ``WORK/NAME.cdb`` (an interrupted or finished render resumes or
-   skips: the Cinema writer keeps valid images);
-2. **fit** an adaptive eigenspace (cells of 16 px, T = 0.98) signed with ``WORK/device.key``
-   into ``WORK/NAME.ecs``, skipped when ``WORK/NAME.fit-stamp`` shows it was fitted from
-   this database (index and image sizes), key and settings;
+   300 samples per ray, with each view's depth, into ``WORK/NAME.cdb`` (an interrupted or
+   finished render resumes or skips: the Cinema writer keeps valid images);
+2. **fit** an adaptive eigenspace (cells of 16 px, T = 0.98) with the depth eigenspace and
+   the standalone table (``fit``'s defaults: the device can make its own frame of any view),
+   signed with ``WORK/device.key``, into ``WORK/NAME.ecs``, skipped when
+   ``WORK/NAME.fit-stamp`` shows it was fitted from this database (index and image sizes),
+   key and settings;
 3. start **eigencast-device** as a separate process listening on TCP loopback
    (``tcp-listen://127.0.0.1:PORT``, printed) with its flash in ``WORK/flash``: a window
    when a display exists, headless otherwise;
 4. **provision** it with a progress bar (skipped when it already holds the image);
-5. **serve**: with a window, the device's drags and key presses drive the view until the
-   window is closed; headless, the host drives an orbit (``steps:120:15``, at most 60 frames
-   per second, the rate of a display), the device writes
-   every 10th frame to ``WORK/frames`` and a short summary follows: frames, the device's
-   frame rate, bytes per frame, the object SSIM of the streamed frames (the device's own
-   saved frames against the ray-cast of their views) beside the smallest WebP and AVIF of
-   the same views with equal object SSIM, the equal-quality JPEG (whole-image SSIM) and the
-   link rate. The orbit is served with ``--scores motion`` (sparse ray-casts within the
-   frame deadline), as a drag is.
+5. **serve** the one served path: the device shows its own frame of every view (the depth
+   warp of its neighbouring training views) and the host sends the correction of that frame
+   from a ray-cast of the view (sparse within the frame deadline while the view moves, the
+   whole view once it rests). With a window, the device's drags and key presses drive the
+   view until the window is closed; headless, the host drives an orbit (``steps:120:15``,
+   at most 60 frames per second, the rate of a display), the device writes every 10th frame
+   to ``WORK/frames`` and a summary follows (with progress while it is computed): frames,
+   the device's frame rate, bytes per frame, and the object SSIM of the device's own frames,
+   of the streamed (corrected) frames it saved and of the same views at rest (the complete
+   correction), each beside the smallest JPEG, WebP and AVIF of those views with the same
+   object SSIM, and the link rate.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import re
@@ -49,7 +52,6 @@ __all__ = [
     "DemoSettings",
     "display_available",
     "equal_object_quality",
-    "equal_quality_jpeg",
     "run_demo",
 ]
 
@@ -68,7 +70,7 @@ class DemoSettings:
     threshold: float = 0.98
     orbit: str = "steps:120:15"
     every: int = 10
-    jpeg_views: int = 4
+    compare_views: int = 4
 
 
 def display_available() -> bool:
@@ -86,62 +88,17 @@ def display_available() -> bool:
     return run.returncode == 0 and "ok" in run.stdout
 
 
-def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, float]:
-    """The smallest JPEG of ``reference`` whose SSIM against it reaches ``test``'s.
-
-    Every Pillow quality 1..95 is tried: at low qualities JPEG's SSIM is far from monotone in
-    the quality (on the dark, noisy background of a ray-cast, quality 10 can beat quality 15
-    by 0.1), so a bisection would miss the smallest file.
-
-    Parameters
-    ----------
-    reference : ndarray of shape (height, width, 3), uint8
-        The ray-cast.
-    test : ndarray of shape (height, width, 3), uint8
-        The device's reconstruction.
-
-    Returns
-    -------
-    dict
-        ``ssim`` of ``test`` vs ``reference``; ``jpeg_quality`` (PIL 1..95), ``jpeg_bytes``
-        and ``jpeg_ssim`` of the smallest JPEG with SSIM >= that (the best quality if none
-        reaches it).
-    """
-    from PIL import Image
-    from skimage.metrics import structural_similarity
-
-    def ssim(a: np.ndarray, b: np.ndarray) -> float:
-        return float(structural_similarity(a, b, data_range=255, channel_axis=-1))
-
-    target = ssim(reference, test)
-    best: tuple[int, int, float] | None = None  # (bytes, quality, ssim)
-    top: tuple[int, int, float] | None = None  # the highest SSIM seen
-    for quality in range(1, 96):
-        buf = io.BytesIO()
-        Image.fromarray(reference).save(buf, format="JPEG", quality=quality)
-        size = len(buf.getvalue())
-        if best is not None and size >= best[0]:
-            continue  # cannot be smaller than the best so far
-        decoded = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
-        value = ssim(reference, decoded)
-        if top is None or value > top[2]:
-            top = (size, quality, value)
-        if value >= target:
-            best = (size, quality, value)
-    chosen = best or top
-    assert chosen is not None
-    return {"ssim": target, "jpeg_quality": chosen[1], "jpeg_bytes": chosen[0],
-            "jpeg_ssim": chosen[2]}
-
-
 def equal_object_quality(reference: np.ndarray, frame: np.ndarray, mask: np.ndarray,
-                         codecs: tuple[str, ...] = ("webp", "avif")) -> dict[str, float]:
+                         codecs: tuple[str, ...] = ("jpeg", "webp", "avif")
+                         ) -> dict[str, float]:
     """The smallest file of each codec whose object SSIM against ``reference`` reaches
     ``frame``'s.
 
     Object SSIM is `host.evaluate.structural_similarity` over ``mask`` (the object's
     pixels). Every quality 1..100 is tried (skipping those that cannot be smaller than the
-    best so far), as in `equal_quality_jpeg`.
+    best so far): at low qualities a codec's SSIM is far from monotone in the quality (on
+    the dark, noisy background of a ray-cast JPEG quality 10 can beat quality 15 by 0.1), so
+    a bisection would miss the smallest file.
 
     Returns
     -------
@@ -232,7 +189,8 @@ def _fit_stamp(db: Path, key_path: Path, settings: DemoSettings) -> str:
             stat = path.stat()
             digest.update(f"{path.relative_to(db)}:{stat.st_size}\n".encode())
     digest.update(hashlib.sha256(key_path.read_bytes()).digest())
-    digest.update(f"adaptive cell={settings.cell} threshold={settings.threshold!r}".encode())
+    digest.update(f"adaptive cell={settings.cell} threshold={settings.threshold!r} "
+                  "depth standalone".encode())
     return digest.hexdigest()
 
 
@@ -260,12 +218,12 @@ def run_demo(
     -------
     dict
         ``model``, ``device_url``, ``provision`` outcome, serving statistics and, headless,
-        the device's statistics and the equal-quality JPEG comparison.
+        the device's statistics and the quality comparison (``quality``).
     """
     from host.cli import main as eigencast
     from host.fit.model import HostModel
     from host.link.provisioning import provision
-    from host.link.serving import open_true_view_scores, serve
+    from host.link.serving import serve
     from protocol.keys import load_key, write_key
 
     work = Path(work)
@@ -279,8 +237,8 @@ def run_demo(
     if headless is None:
         headless = not display_available()
 
-    _step(1, f"render {settings.volume} from {settings.views} at {settings.size} px into {db} "
-             "(resumes; skipped when complete)")
+    _step(1, f"render {settings.volume} from {settings.views} at {settings.size} px, with "
+             f"depth, into {db} (resumes; skipped when complete)")
     code = eigencast(["render", settings.volume, "-o", str(db), "--views", settings.views,
                       "--size", str(settings.size), "--samples", str(settings.samples)])
     if code != 0:
@@ -297,7 +255,7 @@ def run_demo(
     else:
         stamp_path.unlink(missing_ok=True)
         _step(2, f"fit an adaptive eigenspace (cells {settings.cell} px, T={settings.threshold})"
-                 f" into {model_path}")
+                 f", its depth and the training views' scores into {model_path}")
         code = eigencast(["fit", str(db), "-o", str(model_path), "--method", "adaptive",
                           "--cell", str(settings.cell), "--threshold", str(settings.threshold),
                           "--key", str(key_path)])
@@ -332,17 +290,18 @@ def run_demo(
             from device_runtime.runtime import parse_orbit
 
             orbit = parse_orbit(settings.orbit)
-            _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s at most, each frame a "
-                     "sparse ray-cast within the frame deadline); the device writes every "
+            _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s at most): the device "
+                     "warps its own frame of each view, the host corrects it from a sparse "
+                     "ray-cast within the frame deadline; the device writes every "
                      f"{settings.every}th frame to {frames}")
             stats = serve(model_path, device.url, key=key, orbit=orbit, fps=60, model=model,
-                          stats_every_s=0, log=lambda line: None, scores="motion",
-                          true_views=open_true_view_scores(model))
+                          stats_every_s=0, log=lambda line: None)
             time.sleep(1.2)  # the device's statistics file is refreshed every second
         else:
             _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
-                     "s screenshot, Esc quits; each frame is a sparse ray-cast, and a view "
-                     "you stop on sharpens to the full one")
+                     "s screenshot, Esc quits; the device shows its own frame of each view at "
+                     "once, the host corrects it, and a view you stop on sharpens to the "
+                     "ray-cast's best")
             stop = threading.Event()
 
             def watch() -> None:
@@ -351,105 +310,109 @@ def run_demo(
 
             threading.Thread(target=watch, daemon=True).start()
             stats = serve(model_path, device.url, key=key, model=model, stop=stop,
-                          stats_every_s=10.0, max_reconnects=3, scores="motion",
-                          true_views=open_true_view_scores(model))
+                          stats_every_s=10.0, max_reconnects=3)
         summary["serve"] = stats.as_dict()
     finally:
         device.stop()
     if stats_path.exists():
         summary["device"] = json.loads(stats_path.read_text())
     if headless:
-        summary["jpeg"] = _jpeg_comparison(settings, model, summary)
-        streamed = _streamed_comparison(settings, model, frames)
-        if streamed:
-            summary["streamed"] = streamed
+        summary["quality"] = _quality(settings, model, frames)
         _print_summary(summary, frames)
     return summary
 
 
-def _jpeg_comparison(settings: DemoSettings, model: Any, summary: dict) -> dict[str, float]:
-    """Ray-cast a few orbit views; compare the delta packets with equal-SSIM JPEGs."""
-    from device_runtime.runtime import parse_orbit
-    from host.render.settings import RenderSettings, ViewRenderer
-
-    orbit = parse_orbit(settings.orbit).start(now_s=0.0)
-    views = [orbit.next_view(0.0) for _ in range(parse_orbit(settings.orbit).total_steps or 1)]
-    pick = views[:: max(1, len(views) // settings.jpeg_views)][: settings.jpeg_views]
-    record = model.render_settings
-    renderer = ViewRenderer.open(RenderSettings.from_record(record, what="demo model"), None,
-                                 None, what="demo model")
-    rows = []
-    for phi, theta in pick:
-        truth = renderer.render_rgb8(phi, theta)
-        rows.append(equal_quality_jpeg(truth, model.view(phi, theta)))
-    return {key: float(np.mean([r[key] for r in rows])) for key in rows[0]}
+#: What the demo's summary compares, in the order it prints them.
+_KINDS = ("own", "streamed", "rest")
 
 
-def _streamed_comparison(settings: DemoSettings, model: Any, frames: Path) -> dict[str, float]:
-    """Object SSIM of a few frames the device saved, and the equal-object-SSIM WebP/AVIF."""
+def _quality(settings: DemoSettings, model: Any, frames: Path) -> dict[str, Any]:
+    """Object SSIM of a few orbit views as the device's own frame, as streamed (the frame it
+    saved) and at rest (the complete correction), each with the smallest JPEG, WebP and AVIF
+    of the view that reach it; averaged over the views (progress on stderr)."""
     import csv
 
     from PIL import Image
 
+    from device_runtime.prediction import OwnFrames
+    from host.fit.motion import MotionScores
+    from host.link.correction import CorrectionEncoder
+    from host.progress import progress
     from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
+    from protocol.scores import ScoreDecoder
 
     index = frames / "frames.csv"
     if not index.exists():
         return {}
     with open(index, newline="") as handle:
-        rows = [r for r in csv.DictReader(handle) if r.get("phi_deg")]
+        rows = [r for r in csv.DictReader(handle) if r.get("kind") == "corrected"]
     if not rows:
         return {}
-    pick = rows[:: max(1, len(rows) // settings.jpeg_views)][: settings.jpeg_views]
+    pick = rows[:: max(1, len(rows) // settings.compare_views)][: settings.compare_views]
     renderer = ViewRenderer.open(RenderSettings.from_record(model.render_settings,
                                                             what="demo model"),
                                  what="demo model")
-    out = []
-    for row in pick:
-        phi, theta = float(row["phi_deg"]), float(row["theta_deg"])
-        truth, alpha = renderer.render(phi, theta)
-        with Image.open(frames / row["file"]) as im:
-            shown = np.asarray(im.convert("RGB"))
-        result = equal_object_quality(truth, shown, alpha >= OBJECT_ALPHA_MIN)
-        result["interpolated_object_ssim"] = equal_object_quality(
-            truth, model.view(phi, theta), alpha >= OBJECT_ALPHA_MIN, codecs=())["object_ssim"]
-        out.append(result)
-    return {key: float(np.mean([r[key] for r in out])) for key in out[0]}
+    own = OwnFrames(model.image)
+    complete = MotionScores(model, renderer, own=own, strides=(1,), coarse=1.0,
+                            budget_s=3600.0)
+    encoder = CorrectionEncoder(model)
+    decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
+                           n_components=model.image.n_components)
+    per_view: list[dict[str, Any]] = []
+    with progress("comparing with JPEG, WebP and AVIF", len(pick) * len(_KINDS),
+                  unit=" frames") as bar:
+        for row in pick:
+            view = (float(row["phi_deg"]), float(row["theta_deg"]))
+            truth, alpha = renderer.render(*view)
+            mask = alpha >= OBJECT_ALPHA_MIN
+            synth = own.frame(*view)
+            with Image.open(frames / row["file"]) as im:
+                streamed = np.asarray(im.convert("RGB"))
+            step = complete.frame(view)
+            packet = encoder.encode(view, scores=step.scores, fine=True, weights=step.weights)
+            rest = synth if packet is None else own.corrected(
+                synth, decoder.decode(packet.packet).y)
+            out: dict[str, Any] = {"rest_bytes": 0 if packet is None else len(packet.packet),
+                                   "streamed_bytes": int(row["packet_bytes"] or 0)}
+            for kind, frame in zip(_KINDS, (synth, streamed, rest)):
+                for k, v in equal_object_quality(truth, frame, mask).items():
+                    out[f"{kind}_{k}"] = v
+                bar.advance()
+            per_view.append(out)
+    return {k: float(np.mean([v[k] for v in per_view])) for k in per_view[0]} | {
+        "views": len(per_view)}
 
 
 def _print_summary(summary: dict, frames: Path) -> None:
     serve_stats = summary["serve"]
     device = summary.get("device") or {}
-    jpeg = summary.get("jpeg") or {}
-    delta = serve_stats.get("mean_delta_bytes") or serve_stats["bytes_per_frame"]
+    quality = summary.get("quality") or {}
+    strides = ", ".join(f"{n} at stride {s}" if s != "0" else f"{n} with no time for a ray"
+                        for s, n in sorted(serve_stats.get("stride_frames", {}).items(),
+                                           key=lambda kv: int(kv[0])))
     lines = [
         "",
         "demo summary",
-        f"  frames sent      {serve_stats['frames']} ({serve_stats['key_frames']} key, "
-        f"{serve_stats['delta_frames']} delta); device presented "
-        f"{device.get('frames_presented', '?')}",
-        f"  device           reconstruct {device.get('reconstruct_ms') or 0:.2f} ms/frame "
-        f"(~{1e3 / max(device.get('reconstruct_ms') or 1e9, 1e-9):.0f} fps possible), "
-        f"host sent {serve_stats['fps']:.0f} frames/s",
-        f"  bytes per frame  {serve_stats['bytes_per_frame']:.0f} (key "
-        f"{serve_stats.get('mean_key_bytes', 0):.0f}, delta {delta:.0f})",
+        f"  frames sent      {serve_stats['frames']} corrections of the device's own frames "
+        f"({strides or 'no ray-cast'}); device presented "
+        f"{device.get('frames_presented', '?')} at {device.get('fps', 0) or 0:.0f} fps",
+        f"  bytes per frame  {serve_stats['bytes_per_frame']:.0f}; link "
+        f"{serve_stats['link_bytes_per_s'] / 1024:.1f} KiB/s while streaming",
     ]
-    if jpeg:
-        lines.append(
-            f"  equal-quality JPEG  {jpeg['jpeg_bytes']:.0f} bytes (quality "
-            f"{jpeg['jpeg_quality']:.0f}, SSIM {jpeg['jpeg_ssim']:.3f} vs the reconstruction's "
-            f"{jpeg['ssim']:.3f} against the ray-cast): delta frames are "
-            f"{delta / max(jpeg['jpeg_bytes'], 1):.2f}x its size")
-    streamed = summary.get("streamed") or {}
-    if streamed:
-        lines.append(
-            f"  streamed frames  object SSIM {streamed['object_ssim']:.3f} (interpolated scores "
-            f"alone: {streamed['interpolated_object_ssim']:.3f}); the same views at equal object "
-            f"SSIM: WebP {streamed['webp_bytes']:.0f} bytes (q{streamed['webp_quality']:.0f}), "
-            f"AVIF {streamed['avif_bytes']:.0f} bytes (q{streamed['avif_quality']:.0f}); "
-            f"delta frames {delta:.0f} bytes")
-    lines += [
-        f"  link rate        {serve_stats['link_bytes_per_s'] / 1024:.1f} KiB/s while streaming",
-        f"  frames           {frames}",
-    ]
+    if quality:
+        lines.append(f"  object SSIM of {quality['views']} views, and the smallest JPEG / WebP / "
+                     "AVIF of each view with the same object SSIM:")
+        names = {"own": "the device's own frame (0 B)", "streamed": "streamed (moving)",
+                 "rest": "at rest"}
+        for kind in _KINDS:
+            size = "" if kind == "own" else f" at {quality[f'{kind}_bytes']:.0f} B"
+            lines.append(
+                f"    {names[kind]:<29} {quality[f'{kind}_object_ssim']:.3f}{size}; JPEG "
+                f"{quality[f'{kind}_jpeg_bytes']:.0f} B, WebP {quality[f'{kind}_webp_bytes']:.0f}"
+                f" B, AVIF {quality[f'{kind}_avif_bytes']:.0f} B")
+        lines.append("  what it depends on: at rest and the own frame, only the model; "
+                     "streamed, the host's speed (the frame deadline picks how many pixels "
+                     "are ray-cast, so a busy machine streams less and shows its own frame "
+                     "more) and the link")
+    lines.append(f"  frames           {frames}")
     print("\n".join(lines))

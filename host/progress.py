@@ -1,7 +1,9 @@
 """Progress reporting for long host work.
 
 On a terminal: a rich progress bar with rate and ETA on stderr. Elsewhere
-(CI logs, pipes): one plain line about every 10 % so logs stay short.
+(CI logs, pipes): one plain line about every 10 %, and at least every
+`PLAIN_EVERY_S` seconds while the work advances, so logs stay short and a long
+step still shows it is alive.
 """
 
 from __future__ import annotations
@@ -11,7 +13,10 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["Progress", "progress"]
+__all__ = ["PLAIN_EVERY_S", "Progress", "progress"]
+
+#: Off a terminal, the longest wait between two progress lines while work advances, seconds.
+PLAIN_EVERY_S = 5.0
 
 
 class Progress:
@@ -25,6 +30,7 @@ class Progress:
         self.completed = 0.0
         self._start = time.perf_counter()
         self._next_report = 0.1
+        self._last_line = self._start
         self._rich = None
         self._task = None
 
@@ -39,10 +45,12 @@ class Progress:
             self._rich.update(self._task, completed=self.completed)
             return
         frac = self.completed / self.total if self.total else 1.0
-        if frac >= self._next_report or frac >= 1.0:
+        now = time.perf_counter()
+        if frac >= self._next_report or frac >= 1.0 or now - self._last_line >= PLAIN_EVERY_S:
             while self._next_report <= frac:
                 self._next_report += 0.1
-            elapsed = time.perf_counter() - self._start
+            self._last_line = now
+            elapsed = now - self._start
             eta = elapsed / frac - elapsed if frac > 0 else float("nan")
             print(
                 f"{self.description}: {self.completed:.0f}/{self.total:.0f}{self.unit} "

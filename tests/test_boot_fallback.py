@@ -153,7 +153,7 @@ def test_the_issue_scenario_pair_unsigned_commit_boot_falls_back_and_status_tell
         from device_runtime.orbit import parse_orbit
 
         stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      orbit=parse_orbit("steps:3:10"), log=_quiet)
+                      scores="interpolate", orbit=parse_orbit("steps:3:10"), log=_quiet)
         assert stats.frames == 3
         wait_until(lambda: len(read_frames(frames)) >= 1, 10, "a frame of slot A")
     assert check_frames(model, frames) >= 1  # the signed image's frames, nothing else

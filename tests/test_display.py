@@ -137,7 +137,8 @@ def test_headless_presenter_writes_every_nth_frame_and_a_log(tmp_path):
         own = i == 3  # the device's own frame (a prediction): no packet, no host frame
         presenter.present(frame, {"frame": 0 if own else 100 + i, "phi_deg": 1.5 * i,
                                   "theta_deg": -2.0, "key": i == 0,
-                                  "packet_bytes": 0 if own else 90 + i, "sequence": i})
+                                  "packet_bytes": 0 if own else 90 + i, "sequence": i,
+                                  "corrected": i == 6, "predicted": own})
     presenter.close()
     with open(tmp_path / "out" / "frames.csv") as handle:
         rows = list(csv.DictReader(handle))
@@ -147,6 +148,7 @@ def test_headless_presenter_writes_every_nth_frame_and_a_log(tmp_path):
     assert [r["shown"] for r in rows] == ["0", "3", "6"]  # the display's frame counter
     assert [r["host_frame"] for r in rows] == ["100", "", "106"]
     assert rows[1]["phi_deg"] == "4.5" and rows[0]["key"] == "1"
+    assert [r["kind"] for r in rows] == ["key", "own", "corrected"]
     for row in rows:
         index = int(row["shown"])
         got = np.asarray(Image.open(tmp_path / "out" / row["file"]))

@@ -61,6 +61,8 @@ def test_tcp_provision_and_orbit_frames_equal_eigencast_view(tmp_path, model_pat
         wait_until(lambda: _has_view(frames, 330.0, 10.0), 20, "the orbit's last frame")
     finally:
         assert device.stop() == 0
+    assert any("decoded 0 key, 0 delta and 12 correction packets" in line
+               for line in device.lines), device.lines[-3:]
     assert check_frames(model, frames) >= 2
     # and literally against the `eigencast view` command for one of them
     row = read_frames(frames)[-1]

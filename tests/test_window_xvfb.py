@@ -24,7 +24,7 @@ from runtime_helpers import key_file, tiny_model, wait_until
 
 from host.fit.model import HostModel
 from host.link.provisioning import provision
-from host.link.serving import open_true_view_scores, serve
+from host.link.serving import serve
 
 pytestmark = pytest.mark.skipif(
     shutil.which("Xvfb") is None or shutil.which("xdotool") is None,
@@ -159,36 +159,46 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
             proc.wait(timeout=10)
 
 
-def test_window_drag_then_rest_shows_the_ray_cast_views_own_frame(tmp_path, tmp_path_factory,
-                                                                  xvfb, monkeypatch):
-    """serve --scores refine against a real window: after a drag, the view that rests is
-    ray-cast and the window ends up showing the frame of the ray-cast's own scores."""
+def test_window_drag_then_rest_shows_the_hosts_correction_of_its_own_frame(
+        tmp_path, tmp_path_factory, xvfb, monkeypatch):
+    """serve against a real window: after a drag, the view that rests gets its complete
+    correction, and the window ends up showing the device's own frame of that view corrected
+    exactly as the host computed it."""
+    from device_runtime.prediction import OwnFrames
+    from protocol.scores import ScoreDecoder
+
     display, screen = xvfb
     model_path = tiny_model(tmp_path_factory)
     model = HostModel.load(model_path)
-    true_views = open_true_view_scores(model)
+    own = OwnFrames(model.image)
+    decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
+                           n_components=model.image.n_components)
     for name, value in (("DISPLAY", display), ("SDL_VIDEODRIVER", "x11"),
                         ("SDL_VIDEO_WINDOW_POS", "0,0")):
         monkeypatch.setenv(name, value)
     device = DeviceProcess(tmp_path / "flash", "--display", key_file=key_file(model_path))
     stop = threading.Event()
-    sent: list[tuple[float, float]] = []
+    sent: list = []
     result: dict = {}
 
     def host() -> None:
         result["stats"] = serve(model_path, device.url, key=KEY, model=model, stop=stop,
                                 log=lambda line: None, provision_missing=True,
-                                scores="refine", true_views=true_views, refine_delay_s=0.05,
-                                on_frame=lambda encoded, view: sent.append(view))
+                                on_frame=lambda encoded, view: sent.append((encoded, view)))
 
     thread = threading.Thread(target=host, daemon=True)
     thread.start()
     h, w = model.image.image_shape
 
-    def shows_refined() -> bool:
+    def complete() -> bool:
+        """The last packet is the complete correction (the model's own step), and the
+        window shows it on the device's own frame."""
         if not sent:
             return False
-        want = model.reconstruct(model.quantize(true_views(sent[-1])))
+        encoded, view = sent[-1]
+        if abs(float(encoded.step) - model.score_step) > 1e-6 * model.score_step:
+            return False
+        want = own.corrected(own.frame(*view), decoder.decode(encoded.packet).y)
         return np.array_equal(read_xwd(screen)[:h, :w], want)
 
     try:
@@ -198,20 +208,20 @@ def test_window_drag_then_rest_shows_the_ray_cast_views_own_frame(tmp_path, tmp_
             wid = _find_window(display, "eigencast")
             time.sleep(0.1)
         assert wid, "no window appeared:\n" + "\n".join(device.lines[-5:])
-        wait_until(shows_refined, 60, "the first view, refined, on the X framebuffer")
-        first = sent[-1]
+        wait_until(complete, 60, "the first view, corrected, on the X framebuffer")
+        first = sent[-1][1]
         # the window is made again at the image's size once the image is loaded
         wid = _find_window(display, "eigencast")
         _xdotool(display, "windowfocus", "--sync", wid)
         _drag_right(display, wid)
-        wait_until(lambda: sent and sent[-1] != first and shows_refined(), 60,
-                   "the dragged-to view, refined, on the X framebuffer")
-        view = sent[-1]
+        wait_until(lambda: sent and sent[-1][1] != first and complete(), 60,
+                   "the dragged-to view, corrected, on the X framebuffer")
+        view = sent[-1][1]
         assert view[1] == first[1] and view[0] < first[0]  # dragged right: phi decreased
-        # the refined frame is not the interpolated one the drag showed
-        assert not np.array_equal(read_xwd(screen)[:h, :w], model.view(*view))
+        # the corrected frame is not the device's own one
+        assert not np.array_equal(read_xwd(screen)[:h, :w], own.frame(*view))
     finally:
         stop.set()
         thread.join(20)
         device.stop()
-    assert result["stats"].refined_frames >= 2
+    assert result["stats"].correction_frames >= 2
