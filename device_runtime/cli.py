@@ -193,12 +193,14 @@ def build_parser() -> argparse.ArgumentParser:
                       f"come (default {DEFAULT_KEEP_FRAMES}, about {DEFAULT_KEEP_FRAMES // 40} s "
                       "of a served drag; frames.csv lists them all; 0 keeps every frame)")
     show.add_argument("--standalone", action="store_true",
-                      help="interpolate scores locally from the image's table (no host needed; "
-                      "fit it with eigencast fit --standalone)")
+                      help="no host: show every view from the image alone (its depth warp "
+                      "of the neighbouring training views, or their blend; every image fit "
+                      "makes can, unless fitted --no-standalone)")
     show.add_argument("--no-predict", action="store_true",
-                      help="with a host: do not show this device's own prediction of a new "
-                      "view (default: when the image has the standalone table, show it at "
-                      "once and accept the host's corrections to it)")
+                      help="with a host: do not make this device's own frame of a new view; "
+                      "show only the host's full frames (default: when the image has the "
+                      "standalone table, show its own frame at once and the host's "
+                      "corrections of it)")
     drive = show.add_mutually_exclusive_group()
     drive.add_argument("--orbit", metavar="SPEC", type=_orbit,
                        help="drive the view: turn:SECONDS[:THETA[:TURNS]] (a full turn every "
