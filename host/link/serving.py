@@ -62,6 +62,7 @@ from host.link.errors import ServeError
 from host.link.true_views import TrueViewScores, _Refiner, open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
+    ProtocolError,
     RemoteError,
     TransportClosed,
     TransportError,
@@ -738,11 +739,31 @@ class _Serving:
             self._check_sources()
             if conn.linger_until is not None and now >= conn.linger_until:
                 break
-            frame = self._choose(conn, request, now)
+            frame = self._framed(conn, request, now)
             if frame is None:
                 continue
-            self._score(frame)
             self._send(conn, frame, now)
+
+    def _framed(self, conn: _Connection, request: tuple[Any, int, bool, bool],
+                now: float) -> _Frame | None:
+        """`_choose` and `_score`; any exception of a frame source (a bug, whatever view
+        the device asked for) ends serving in one line (ServeError) after a BYE, never a
+        traceback. Link failures go on to the reconnect."""
+        try:
+            frame = self._choose(conn, request, now)
+            if frame is not None:
+                self._score(frame)
+            return frame
+        except (ProtocolError, ServeError):
+            raise
+        except Exception as exc:
+            view = self.current.view if request[0] is None else request[0]
+            where = f" at view ({view[0]:g}, {view[1]:g})" if view is not None else ""
+            with contextlib.suppress(Exception):
+                conn.session.bye("the host's frame source failed")
+                conn.link.close(flush_timeout_s=0.5)
+            raise ServeError(f"the {self.scores} frame source failed{where}: "
+                             f"{type(exc).__name__}: {_short(exc)}; serving stopped") from None
 
     def _tick(self, conn: _Connection) -> float:
         """Add the time and wire bytes since the last turn; the statistics line when due."""
@@ -858,12 +879,15 @@ class _Serving:
     def _sparse(self, call: Callable[[tuple[float, float]], Any],
                 view: tuple[float, float]) -> Any | None:
         """``call(view)`` of the sparse source, its rays and time counted; None when it
-        failed (then serving falls back to interpolation)."""
+        failed (then serving falls back to interpolation) or had nothing to do (``refine`` of
+        a view already fully ray-cast, or no longer the last frame's)."""
         try:
             step = call(view)
         except Exception as exc:
             self._fall_back(exc)
             self.motion = None
+            return None
+        if step is None:
             return None
         self.stats.motion_pixels += step.pixels
         self.stats.motion_seconds += step.seconds
