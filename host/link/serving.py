@@ -30,8 +30,9 @@ streams one SCORES packet per view:
   previous has left, so on a slow serial line views are coalesced instead of queued), and
   at most ``fps`` packets per second (0: as fast as the link carries them).
 * **Link loss.** The host reconnects with exponential backoff (50 ms doubling to 2 s) and
-  carries on with a key frame; it logs frames sent, bytes per frame, the achieved frame
-  rate and the link rate every few seconds.
+  carries on with a key frame (a first connection that fails is an error instead: nothing
+  to reconnect to; ``duration_s`` counts the time spent reconnecting); it logs frames sent,
+  bytes per frame, the achieved frame rate and the link rate every few seconds.
 
 The steps are the methods of ``_Serving``: a session is ``_open``, ``_handshake``,
 ``_holds_image`` (or provision and connect again), ``_begin``, ``_stream``, ``_end``, in
@@ -343,6 +344,7 @@ def serve(
     fps: float = 60.0,
     keyframe_interval: int = 0,
     provision_missing: bool = False,
+    force: bool = False,
     max_frames: int | None = None,
     duration_s: float | None = None,
     reconnect: bool = True,
@@ -384,10 +386,15 @@ def serve(
         See :class:`FrameEncoder` (1: key frames only).
     provision_missing : bool
         Install the image first when the device's active image is another one.
+    force : bool
+        With ``provision_missing``: install it even when it is an older generation than
+        the device's active image (a rollback; see `host.link.provisioning.provision`).
     max_frames, duration_s : optional
-        Stop after this many packets / seconds of streaming.
+        Stop after this many packets / this many seconds after the first session began
+        (time spent reconnecting counts).
     reconnect : bool
-        Reconnect after a lost link (with backoff); False: return.
+        Reconnect after a lost link (with backoff); False: return. A first connection
+        that fails raises (reconnecting is for a link that was up).
     max_reconnects : int, optional
         Give up after this many failed connection attempts in a row (default: never).
     stop : threading.Event, optional
@@ -437,7 +444,7 @@ def serve(
     RemoteError, AuthenticationError
         The device refused the session.
     TransportError
-        The device cannot be reached (``reconnect`` off, or ``max_reconnects`` exceeded).
+        The device cannot be reached or does not answer at the first connection.
     """
     from host.link.provisioning import inspect_image
 
@@ -463,7 +470,7 @@ def serve(
         motion.budget_s = pace.budget_s
     settings = _Settings(
         model_path=model_path, url=url, key=key, insecure=insecure, baud=baud, orbit=orbit,
-        fps=fps, provision_missing=provision_missing, max_frames=max_frames,
+        fps=fps, provision_missing=provision_missing, force=force, max_frames=max_frames,
         duration_s=duration_s, reconnect=reconnect, max_reconnects=max_reconnects,
         transport_factory=transport_factory, stats_every_s=stats_every_s,
         request_timeout_s=request_timeout_s, host_id=host_id, refine_delay_s=refine_delay_s,
@@ -521,6 +528,7 @@ class _Settings:
     orbit: OrbitSpec | None
     fps: float
     provision_missing: bool
+    force: bool
     max_frames: int | None
     duration_s: float | None
     reconnect: bool
@@ -614,6 +622,9 @@ class _Serving:
     attempt: int = 0
     failures: int = 0
     warned_insecure: bool = False
+    deadline: float | None = None
+    """``duration_s`` after the first session began (monotonic): reconnecting counts."""
+    streaming: bool = False
 
     def run(self) -> ServeStats:
         """Serve sessions until done; reconnect after a lost link (or give up)."""
@@ -626,17 +637,19 @@ class _Serving:
                 except (TransportClosed, TransportTimeout, TransportError) as exc:
                     if isinstance(exc, RemoteError):
                         raise
+                    self.streaming = False
                     if self.link is not None:
                         with contextlib.suppress(Exception):
                             self.link.close(flush_timeout_s=0.0)
                         self.link = None
-                    if not self._back_off(exc):
+                    if self._done() or not self._back_off(exc):
                         break
                 finally:
                     if self.link is not None:
                         with contextlib.suppress(Exception):
                             self.link.close(flush_timeout_s=0.5)
         finally:
+            self.deadline = None  # ends the watchdog
             if self.refiner is not None:
                 self.refiner.close()
         return self._finish()
@@ -647,7 +660,21 @@ class _Serving:
         settings, stats = self.settings, self.stats
         if settings.max_frames is not None and stats.frames >= settings.max_frames:
             return True
-        return settings.duration_s is not None and stats.stream_seconds >= settings.duration_s
+        return self.deadline is not None and time.monotonic() >= self.deadline
+
+    def _watch_deadline(self) -> None:
+        """``duration_s`` while reconnecting: at the deadline, cut a connection attempt that
+        hangs (a device that accepts and never answers); a stream ends by itself."""
+        while self.deadline is not None and not self.stop.is_set():
+            left = self.deadline - time.monotonic()
+            if left > 0:
+                self.stop.wait(min(left, 0.5))
+                continue
+            link = self.link
+            if link is not None and not self.streaming:
+                with contextlib.suppress(Exception):
+                    link.close(flush_timeout_s=0.0)
+            return
 
     def _attempt(self) -> bool:
         """One session, start to BYE. False: the image was provisioned first (connect again)."""
@@ -704,7 +731,7 @@ class _Serving:
         self.link = None
         self.say(f"device '{hello.device_id}' lacks the image: provisioning it")
         provision(model_path, url, baud=settings.baud, key=settings.key,
-                  insecure=settings.insecure, log=self.say,
+                  insecure=settings.insecure, force=settings.force, log=self.say,
                   transport_factory=settings.transport_factory)
         self.stats.provisioned = True
         return False
@@ -716,6 +743,11 @@ class _Serving:
         if stats.sessions > 1:
             stats.reconnects += 1
         self.failures = 0
+        if self.deadline is None and self.settings.duration_s is not None:
+            self.deadline = time.monotonic() + self.settings.duration_s
+            threading.Thread(target=self._watch_deadline, daemon=True,
+                             name="serve-deadline").start()
+        self.streaming = True
         self.say(f"serving {Path(self.settings.model_path).name} to device '{hello.device_id}' "
                  f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
                  f"{hello.display_width}x{hello.display_height} display; {self.scores} scores)")
@@ -965,19 +997,25 @@ class _Serving:
         conn.session.bye("done")
         conn.link.close(flush_timeout_s=1.0)
         self.link = None
+        self.streaming = False
 
     def _back_off(self, exc: BaseException) -> bool:
-        """After a lost link: wait (exponential backoff) and reconnect (True), or stop
-        (False; ``exc`` again when no session ever started)."""
+        """After a lost link: wait (exponential backoff, never past the ``duration_s``
+        deadline) and reconnect (True), or stop (False).
+
+        Raises ``exc`` again when no session ever started: reconnecting is for a link that
+        was up (a device that is not there, or does not answer, is one line for the user)."""
         self.failures += 1
         settings = self.settings
+        if self.stats.sessions == 0 and not self.stats.provisioned:
+            raise exc
         if not settings.reconnect or (settings.max_reconnects is not None
                                       and self.failures > settings.max_reconnects):
-            if self.stats.sessions == 0:
-                raise exc
             self.say(f"link lost ({_short(exc)}); not reconnecting")
             return False
         delay = min(_BACKOFF_S[0] * 2 ** (self.failures - 1), _BACKOFF_S[1])
+        if self.deadline is not None:
+            delay = min(delay, max(0.0, self.deadline - time.monotonic()))
         self.say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
         self.stop.wait(delay)  # reconnect backoff (a protocol timer)
         return True
