@@ -17,15 +17,18 @@ clients by count and time, and keep state behind authentication):
 * **Bounded by time.** An active peer that has not authenticated ``auth_timeout_s`` after
   it became active is dropped; a waiting one ``auth_timeout_s`` after it was accepted. A
   waiting connection replaces the active peer that has been active longest, once that one
-  had ``GRACE_S`` (a real host needs two round trips); peers of the address with the most
-  active peers go first.
+  had ``GRACE_S`` (a real host needs two round trips), unless its input waits for the
+  lobby's budget while its own lasts; peers of the address with the most active peers go
+  first, then those served most.
 * **Bounded in work.** What the lobby does for a peer is measured in CPU time (this
   thread's: reading, decoding, answering): each active peer may use ``PEER_CPU`` (a burst,
   then seconds per second), all of them together ``LOBBY_CPU``, so a flood of PINGs,
   requests or zero bytes costs the device's display at most that share of a core. A peer
   over its budget is not read (TCP pushes back) and its frames already read wait; peers
   are served in turn. Frames are at most ``MAX_FRAME_BYTES``; replies the peer does not
-  read end its connection.
+  read end its connection. Peers with work are served a quantum (``QUANTUM_S``) at a time,
+  the least served first (start-time fair queuing), so a host's two frames wait for at
+  most one quantum of each other peer, however much those send.
 * **Leaving.** An AUTH_CHALLENGE whose proof verifies (:meth:`Device.proves_key`) ends the
   lobby's turn: the connection is handed to the transport (``TcpListenTransport.adopt``),
   with its session and the frames from the AUTH_CHALLENGE on, and the device serves it as
@@ -78,6 +81,8 @@ LOBBY_CPU = (0.1, 0.06)
 (0.06: 6 % of a core)."""
 READ_BYTES = 16384
 """Bytes read from a peer at a time."""
+QUANTUM_S = 0.002
+"""CPU time a peer is served at a time before the next peer's turn, seconds."""
 MAX_FRAME_BYTES = 1024
 """Largest frame read in the lobby (HELLO and AUTH_CHALLENGE are about 100 bytes)."""
 _ACCEPT_PER_TURN = 256
@@ -88,9 +93,9 @@ _TICK_S = 0.05
 class LobbyStats:
     """Counters of the lobby (all sessions). ``expired``: dropped at their deadline;
     ``replaced``: active peers dropped for a waiting connection; ``shed``: waiting
-    connections closed because ``WAITING`` were held; ``throttled``: times a peer was left
-    unread, or its frames for a later turn, because its budget or the lobby's was spent;
-    ``cpu_s``: CPU time spent on peers."""
+    connections closed because ``WAITING`` were held; ``throttled``: times a peer's frames
+    were left for later because its budget or the lobby's was spent; ``frames``,
+    ``bytes_read``, ``cpu_s``: what peers sent that was read, and the CPU time it took."""
 
     accepted: int = 0
     admitted: int = 0
@@ -99,6 +104,7 @@ class LobbyStats:
     shed: int = 0
     throttled: int = 0
     frames: int = 0
+    bytes_read: int = 0
     cpu_s: float = 0.0
 
 
@@ -124,12 +130,12 @@ class _Bucket:
         self.at = now
         return self.level
 
-    def until_positive(self) -> float:
-        """Seconds until the level is above zero (after a refill)."""
-        return max(0.0, -self.level / self.rate) + 1e-3
+    def until(self, level: float) -> float:
+        """Seconds until the bucket holds more than ``level`` (after a refill)."""
+        return max(0.0, (level - self.level) / self.rate) + 1e-3
 
 
-@dataclass
+@dataclass(eq=False)
 class _Peer:
     sock: socket.socket
     source: str
@@ -138,6 +144,7 @@ class _Peer:
     session: Any = None
     decoder: FrameDecoder = field(default_factory=lambda: FrameDecoder(MAX_FRAME_BYTES))
     cpu: _Bucket | None = None
+    used: float = 0.0  # CPU seconds spent on it
     pending: collections.deque = field(default_factory=collections.deque)
     out: bytearray = field(default_factory=bytearray)
 
@@ -176,7 +183,9 @@ class Lobby:
         self._n_waiting = 0
         self._paused_at: float | None = None
         self._cpu = _Bucket(*LOBBY_CPU, time.monotonic())
-        self._next = 0  # where the next turn starts serving peers (round robin)
+        self._accept_after = 0.0  # accepting failed (out of descriptors...): not before this
+        self._vtime = 0.0  # fair queuing: the CPU time served to the peer served last
+        self._starved = False
 
     # ------------------------------------------------------------------ public
     @property
@@ -211,51 +220,67 @@ class Lobby:
         self._accept(now)
         self._expire(now)
         self._fill(now)
-        lobby_ok = self._cpu.refill(now) > 0
-        readers, busy, wake = [], False, _TICK_S
+        # a starved lobby waits for a quantum of budget (it does not spin on crumbs)
+        lobby_ok = self._cpu.refill(now) >= (QUANTUM_S if self._starved else 0.0)
+        self._starved = not lobby_ok
+        readers, busy = [], False
+        wake = _TICK_S if lobby_ok else self._cpu.until(QUANTUM_S)
         for peer in self._active:
-            if peer.cpu.refill(now) <= 0 or not lobby_ok:
-                self.stats.throttled += 1
-                wake = min(wake, peer.cpu.until_positive(), self._cpu.until_positive())
+            if peer.cpu.refill(now) <= 0:
+                wake = min(wake, peer.cpu.until(0.0))
+            elif not lobby_ok:
+                continue
             elif peer.pending:
                 busy = True  # frames read earlier wait for it: no need to wait for input
             else:
                 readers.append(peer)
         writers = [p.sock for p in self._active if p.out]
+        listen = [self.transport.listener] if now >= self._accept_after else []
         try:
             ready, writable, _ = select.select(
-                [self.transport.listener, *(p.sock for p in readers)], writers, [],
-                0.0 if busy else wake)
+                [*listen, *(p.sock for p in readers)], writers, [], 0.0 if busy else wake)
         except (OSError, ValueError):  # a socket closed under us: the next turn sorts it out
+            time.sleep(_TICK_S)
             return None
         ready_set = set(ready)
         for sock in writable:
             peer = next((p for p in self._active if p.sock is sock), None)
             if peer is not None:
                 self._flush(peer)
-        order = self._active[self._next:] + self._active[:self._next]
-        self._next = (self._next + 1) % max(1, len(self._active))
-        for peer in order:
-            if peer not in self._active or self._cpu.level <= 0 or peer.cpu.level <= 0:
+        if not lobby_ok:
+            return None
+        # start-time fair queuing: a peer with work starts no earlier than the virtual time,
+        # the least served goes first (ties: the longest active), each for a quantum
+        backlog = [p for p in self._active
+                   if p.cpu.level > 0 and (p.pending or p.sock in ready_set)]
+        for peer in backlog:
+            peer.used = max(peer.used, self._vtime)
+        backlog.sort(key=lambda p: (p.used, p.active_since))
+        for peer in backlog:
+            if self._cpu.level <= 0:
+                break
+            if peer not in self._active:
                 continue
-            if peer.pending or peer.sock in ready_set:
-                admitted = self._serve_peer(peer)
-                if admitted is not None:
-                    return admitted
+            self._vtime = max(self._vtime, peer.used)
+            admitted = self._serve_peer(peer)
+            if admitted is not None:
+                return admitted
         return None
 
     def _accept(self, now: float) -> None:
+        if now < self._accept_after:
+            return
         listener = self.transport.listener
         for _ in range(_ACCEPT_PER_TURN):
             try:
                 sock, address = listener.accept()
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError as exc:
-                if exc.errno in (errno.ECONNABORTED, errno.EMFILE, errno.ENFILE,
-                                 errno.ENOBUFS, errno.ENOMEM):
-                    return
-                raise
+            except OSError as exc:  # a connection gone before it was accepted, or no room
+                if exc.errno != errno.ECONNABORTED:
+                    self._accept_after = now + _TICK_S
+                    self.log("accept", f"accepting a connection failed: {exc}")
+                return
             sock.setblocking(False)
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -298,17 +323,38 @@ class Lobby:
             self._active.append(peer)
 
     def _replace_one(self, now: float) -> bool:
-        """Drop one active peer past its grace for a waiting connection (False: none is)."""
+        """Drop one active peer past its grace for a waiting connection (False: none is).
+
+        A peer whose input waits for the lobby's budget while its own budget lasts is owed an
+        answer and kept (a host's AUTH_CHALLENGE behind a busy lobby); of the others, those
+        of the address with the most places go first, then those served most."""
         due = [p for p in self._active if now - p.active_since >= self.grace_s]
         if not due:
             return False
+        owed = self._owed([p for p in due if p.cpu.level > 0])
+        due = [p for p in due if p not in owed]
+        if not due:
+            return False
         per_source = collections.Counter(p.source for p in self._active)
-        victim = max(due, key=lambda p: (per_source[p.source], now - p.active_since))
+        victim = max(due, key=lambda p: (per_source[p.source], p.used, now - p.active_since))
         self.device.stats.preempted += 1
         self.stats.replaced += 1
         self.log("replaced", "an unauthenticated connection was replaced by a waiting one")
         self._drop_active(victim)
         return True
+
+    @staticmethod
+    def _owed(peers: list[_Peer]) -> set[_Peer]:
+        """Those of ``peers`` with frames or bytes the lobby has not read yet."""
+        owed = {p for p in peers if p.pending}
+        rest = [p.sock for p in peers if not p.pending]
+        if rest:
+            try:
+                readable, _, _ = select.select(rest, [], [], 0.0)
+            except (OSError, ValueError):
+                readable = []
+            owed |= {p for p in peers if p.sock in readable}
+        return owed
 
     # ------------------------------------------------------------------ one peer
     def _serve_peer(self, peer: _Peer) -> Admitted | None:
@@ -326,11 +372,14 @@ class Lobby:
                 if not data:
                     self._drop_active(peer)
                     return None
+                self.stats.bytes_read += len(data)
                 peer.pending.extend(peer.decoder.feed(data))
             while peer.pending:
                 spent = time.thread_time() - start
                 if peer.cpu.level - spent <= 0 or self._cpu.level - spent <= 0:
                     self.stats.throttled += 1  # the rest waits for the next budget
+                    break
+                if spent >= QUANTUM_S:  # the others' turn; the rest waits for the next
                     break
                 self.stats.frames += 1
                 admitted = self._frame(peer, peer.pending.popleft())
@@ -344,6 +393,7 @@ class Lobby:
         finally:
             spent = time.thread_time() - start
             peer.cpu.level -= spent
+            peer.used += spent
             self._cpu.level -= spent
             self.stats.cpu_s += spent
 
