@@ -36,7 +36,8 @@ Three more sections (issue 21; ``--sections fuzz,lockout,flood,rest``, all by de
   the attack's connections, the device's log lines during the attack.
 * ``flood``: a keyed device process on one core drives its own orbit (``--standalone
   --orbit``); its frame rate idle, then while an unauthenticated peer (another core) floods
-  PINGs, VIEW_REQUESTs or zero bytes, as a ratio of idle in the same run (>= 0.8 asked).
+  PINGs, VIEW_REQUESTs or zero bytes (and while 32 peers flood PINGs), as a ratio of idle
+  in the same run (>= 0.8 asked).
   The device shows ``--flood-model`` (default: the tooth rendered at 256 px from 144 views
   with depth and fitted ``--depth --key``, built in the run, about 2 minutes; ``--quick``:
   the tiny model), so its frames cost what a real device's do.
@@ -401,7 +402,9 @@ def report_lockout(results: list[dict[str, Any]], args: argparse.Namespace) -> N
 
 # --------------------------------------------------------------------------- flood
 
-FLOODS = ("ping", "view", "zeros")
+FLOODS = (("ping", 1), ("view", 1), ("zeros", 1), ("ping", 32))
+"""(what, peers): one unauthenticated peer flooding each kind, and 32 flooding PINGs (every
+place in the lobby)."""
 
 
 def _presented(stats_file: Path) -> tuple[float, int]:
@@ -466,9 +469,9 @@ def _flood_runs(work: Path, model_path: Path, args: argparse.Namespace,
                            "model": model_path.name}
     try:
         time.sleep(2.0)  # the orbit is running
-        for flood in ("idle", *FLOODS, "idle"):
+        for flood, n in (("idle", 0), *FLOODS, ("idle", 0)):
             peers = None if flood == "idle" else keyless_peers.spawn(
-                url, flood, 1, cpu=1 if pinned else None)
+                url, flood, n, cpu=1 if pinned else None)
             try:
                 time.sleep(1.0)
                 t0, f0 = _presented(stats_file)
@@ -476,7 +479,8 @@ def _flood_runs(work: Path, model_path: Path, args: argparse.Namespace,
                 t1, f1 = _presented(stats_file)
             finally:
                 counts = keyless_peers.finish(peers) if peers is not None else {}
-            out["runs"].append({"flood": flood, "fps": (f1 - f0) / (t1 - t0),
+            out["runs"].append({"flood": flood if n <= 1 else f"{flood} x{n}",
+                                "fps": (f1 - f0) / (t1 - t0),
                                 "peer_bytes": counts.get("bytes", 0),
                                 "peer_reconnects": counts.get("connections", 0)})
     finally:

@@ -197,6 +197,53 @@ def test_serve_cli_at_a_resting_device_has_no_traceback(provisioned_flash, tmp_p
         assert device.stop() == 0
 
 
+def test_one_view_request_from_a_keyless_fake_device(model_path, model):
+    """A fake keyless device (raw frames on a serial line) answers HELLO, asks for one view
+    and falls silent: ``motion`` refines that view to the end and serving goes on."""
+    from attack_helpers import RawPeer
+    from provision_helpers import mem_name
+
+    from host.link.provisioning import inspect_image
+    from protocol import messages as m
+    from protocol.transport import open_transport
+
+    name = mem_name("fake")
+    fake = RawPeer(open_transport(f"mem://{name}?end=b&pace=0", timeout_s=5))
+    result: dict = {}
+
+    def host() -> None:
+        try:
+            result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", model=model,
+                                    scores="motion", duration_s=REST_S, reconnect=False,
+                                    log=_quiet)
+        except BaseException as exc:  # reported below
+            result["error"] = exc
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    try:
+        hello = fake.wait_for(lambda rid, msg: isinstance(msg, m.Hello), 20)
+        assert hello is not None, "no HELLO from serve"
+        rid = next(r for r, msg in fake.received if msg is hello)
+        digest = inspect_image(model_path).digest
+        fake.send(m.HelloReply(
+            min_version=m.PROTOCOL_VERSION, max_version=m.PROTOCOL_VERSION,
+            device_id="fake", nonce=bytes(16), max_frame_bytes=65536,
+            ram_budget_bytes=1 << 28, slot_size_bytes=1 << 26, display_width=0,
+            display_height=0, rx_window_frames=32, rx_buffer_bytes=4096,
+            slots=(m.SlotInfo(slot=0, state=m.SlotState.CONFIRMED, active=True, generation=1,
+                              size_bytes=1, digest=digest),),
+            has_key=False, image_format_versions=(1,), software="fake",
+        ).encode(request_id=rid))
+        fake.send(m.ViewRequest(phi_deg=30.0, theta_deg=-90.0, sequence=1).encode())
+        thread.join(60)
+    finally:
+        fake.close()
+    assert "error" not in result, result.get("error")
+    stats = result["stats"]
+    assert stats.frames >= 2 and stats.converged_frames == 1, stats
+
+
 def test_sparse_step_none_means_nothing_left_to_refine(model):
     """``MotionScores.refine`` returns None once the view is fully ray-cast."""
     from host.fit.motion import MotionScores
