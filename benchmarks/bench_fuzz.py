@@ -605,7 +605,9 @@ def report(results: list[dict[str, Any]], args: argparse.Namespace) -> None:
                if "peak_rss" in r else "(in the test process)")
         print(f"| {r['transport']} | {r['inputs']:,} | {r['inputs_per_s']:,.0f} | "
               f"{r['restarts']} | {r['sessions_ended_by_device']} | {rss} |")
-    print("\nA PING was lost (a window's frames dropped by a full receive queue) in "
+    print("\nA PING had to be sent again (no PONG within 0.25 s: a window's frames dropped by a "
+          "full receive queue, or on TCP held back by the lobby's CPU budget for peers that "
+          "have not authenticated) in "
           + ", ".join(f"{r['barriers_with_lost_ping']} of {r['inputs'] // 40} windows "
                       f"({r['transport'].split()[0]})" for r in results) + ".")
     print("\nScore packets that reached the decoder (tagged ones of the auth role, and the real "

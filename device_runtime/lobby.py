@@ -16,19 +16,19 @@ clients by count and time, and keep state behind authentication):
   one address cannot hold the key holder's place from another.
 * **Bounded by time.** An active peer that has not authenticated ``auth_timeout_s`` after
   it became active is dropped; a waiting one ``auth_timeout_s`` after it was accepted. A
-  waiting connection replaces the active peer that has been active longest, once that one
-  had ``GRACE_S`` (a real host needs two round trips), unless its input waits for the
-  lobby's budget while its own lasts; peers of the address with the most active peers go
-  first, then those served most.
+  waiting connection replaces an active peer that has had its place ``GRACE_S`` (a real
+  host needs one round trip after its place: its HELLO is already waiting), unless that
+  peer's input waits for the lobby's budget while its own lasts; peers of the address with
+  the most active peers go first, then those served most, then the longest active.
 * **Bounded in work.** What the lobby does for a peer is measured in CPU time (this
   thread's: reading, decoding, answering): each active peer may use ``PEER_CPU`` (a burst,
   then seconds per second), all of them together ``LOBBY_CPU``, so a flood of PINGs,
   requests or zero bytes costs the device's display at most that share of a core. A peer
-  over its budget is not read (TCP pushes back) and its frames already read wait; peers
-  are served in turn. Frames are at most ``MAX_FRAME_BYTES``; replies the peer does not
-  read end its connection. Peers with work are served a quantum (``QUANTUM_S``) at a time,
-  the least served first (start-time fair queuing), so a host's two frames wait for at
-  most one quantum of each other peer, however much those send.
+  over its budget is not read (TCP pushes back) and its frames already read wait. Peers
+  with work are served a quantum (``QUANTUM_S``) at a time, the least served first
+  (start-time fair queuing), so a host's two frames wait for at most one quantum of each
+  other peer, however much those send. Frames are at most ``MAX_FRAME_BYTES``; replies
+  the peer does not read end its connection.
 * **Leaving.** An AUTH_CHALLENGE whose proof verifies (:meth:`Device.proves_key`) ends the
   lobby's turn: the connection is handed to the transport (``TcpListenTransport.adopt``),
   with its session and the frames from the AUTH_CHALLENGE on, and the device serves it as

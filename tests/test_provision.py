@@ -789,6 +789,27 @@ def test_a_host_gets_in_beside_an_unauthenticated_connection(tmp_path, model):
         _check_device_holds(tmp_path / "flash", image)
 
 
+def test_the_lobby_is_paused_while_a_host_is_served(tmp_path):
+    """Connections in the lobby wait, their clocks stopped, while a host is served: a peer
+    given 2 s to authenticate is still there after a 2.5 s session, and dropped after."""
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=2.0) as dev:
+        peer = _open_session(_tcp(dev), auth=False)
+        try:
+            version = m.PROTOCOL_VERSION
+            peer.link.request(m.Hello(min_version=version, max_version=version,
+                                      nonce=bytes(16)))
+            host = _open_session(_tcp(dev))
+            threading.Event().wait(2.5)  # the session outlasts the peer's deadline
+            host.ping(timeout_s=1.0)
+            host.link.close()
+            peer.link.request(m.Ping(sent_us=1), timeout_s=0.5, retries=0)  # still served
+            _wait(lambda: peer.link.closed, "the peer dropped at its deadline")
+            assert dev.device.stats.auth_timeouts == 1
+        finally:
+            peer.link.close()
+
+
 def test_a_reconnecting_peer_does_not_displace_a_host_between_hello_and_auth(tmp_path):
     with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
                       auth_timeout_s=600) as dev:
