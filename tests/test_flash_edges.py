@@ -106,8 +106,8 @@ def test_an_active_slot_that_is_not_a_file_falls_back(two_slots, kind):
     assert _status(two_slots)["active_slot"] == "A"
 
 
-@pytest.mark.parametrize("kind", ["directory", "fifo"])
-@pytest.mark.parametrize("name", ["slot_a.img", "journal_a.jnl", "state_1.rec"])
+@pytest.mark.parametrize(("name", "kind"), [("slot_a.img", "fifo"), ("journal_a.jnl", "fifo"),
+                                          ("state_1.rec", "directory")])
 def test_other_store_files_that_are_not_files_never_hang(two_slots, name, kind):
     """The inactive slot, a journal, a state-record copy: a directory or a FIFO in their
     place is a slot that does not verify, an absent journal, an invalid copy."""

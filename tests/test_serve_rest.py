@@ -91,7 +91,7 @@ def test_every_score_mode_serves_resting_device_processes(provisioned_flash, tmp
     for case in RESTING:
         for mode, got in stats[case].items():
             assert got.sessions == 1 and got.frames >= 1, (case, mode, got, lines[case])
-            assert got.stream_seconds >= REST_S, (case, mode, got)
+            assert got.stream_seconds >= REST_S / 2, (case, mode, got)  # ended by --duration
         # the path that crashed: the resting view refined until it is the full projection,
         # and serving went on after that
         assert stats[case]["motion"].converged_frames >= 1, (case, stats[case]["motion"])
@@ -136,7 +136,7 @@ def test_every_score_mode_serves_a_view_dragged_then_released(tmp_path, model_pa
             assert "error" not in box, (mode, box.get("error"), lines[-5:])
             got = box["stats"]
             assert device.device.runtime_stats.view_requests > start, mode
-            assert got.frames >= 1 and got.stream_seconds >= REST_S, (mode, got)
+            assert got.frames >= 1 and got.stream_seconds >= REST_S / 2, (mode, got)
     finally:
         device.stop()
     assert not device.errors, device.errors
@@ -251,6 +251,8 @@ def test_sparse_step_none_means_nothing_left_to_refine(model):
     source = MotionScores(model, open_true_view_scores(model).renderer)
     view = (30.0, 10.0)
     source.frame(view)
-    steps = [source.refine(view) for _ in range(64)]
-    assert steps[-1] is None and any(s is not None and s.complete for s in steps)
-    assert np.isfinite(next(s for s in steps if s is not None and s.complete).scores).all()
+    steps = []
+    while len(steps) < 10_000 and (not steps or steps[-1] is not None):
+        steps.append(source.refine(view))  # as many steps as the budget needs
+    assert steps[-1] is None and steps[-2] is not None and steps[-2].complete
+    assert np.isfinite(steps[-2].scores).all()

@@ -39,7 +39,8 @@ The steps are the methods of ``_Serving``: a session is ``_open``, ``_handshake`
 that order in ``_Serving._attempt``, with ``_back_off`` between sessions; each turn of
 ``_stream`` is ``_tick``, ``_may_send``, ``_choose`` (``_orbit_view``, ``_linger``,
 ``_resting`` or the newest request), ``_score`` and ``_send``. :func:`serve` only checks
-its options, loads the model, picks the score sources and runs them.
+its options, loads the model, picks the score sources and runs them. The device's events,
+one session's connection and the port opener are `host.link.serve_link`.
 """
 
 from __future__ import annotations
@@ -57,9 +58,12 @@ from typing import Any
 
 import numpy as np
 
-from device_runtime.orbit import Orbit, OrbitSpec, canonical_view
+from device_runtime.orbit import Orbit, OrbitSpec
 from host.fit.model import HostModel
 from host.link.errors import ServeError
+from host.link.serve_link import Connection as _Connection
+from host.link.serve_link import DeviceEvents as _DeviceEvents
+from host.link.serve_link import device_opener as _device_opener
 from host.link.true_views import TrueViewScores, _Refiner, open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
@@ -72,8 +76,7 @@ from protocol.errors import (
 from protocol.host_session import HostSession
 from protocol.link import Link
 from protocol.scores import DEFAULT_LEVEL as SCORE_LEVEL
-from protocol.scores import EncodedScores, encode_scores, max_packet_size
-from protocol.transport import open_transport
+from protocol.scores import EncodedScores, encode_scores
 
 __all__ = [
     "FrameEncoder",
@@ -276,60 +279,6 @@ DEFAULT_DEADLINE_S = 1.0 / 30.0
 DEFAULT_REFINE_DELAY_S = 0.15
 
 
-# --------------------------------------------------------------------------- events
-
-
-class _DeviceEvents:
-    """The host link's handler: newest VIEW_REQUEST, KEYFRAME_REQUESTs, NOTICEs."""
-
-    def __init__(self, stats: ServeStats, say: Callable[[str], None]) -> None:
-        self._cond = threading.Condition()
-        self.view: tuple[float, float] | None = None
-        self.sequence = 0
-        self.fresh = False
-        self.keyframe = False
-        self.poked = False
-        self.stats = stats
-        self.say = say
-
-    def __call__(self, msg: m.Message, frame: Any) -> None:
-        with self._cond:
-            if isinstance(msg, m.ViewRequest):
-                self.stats.requests += 1
-                if self.fresh:
-                    self.stats.coalesced += 1
-                self.view = canonical_view(msg.phi_deg, msg.theta_deg)
-                self.sequence = msg.sequence
-                self.fresh = True
-            elif isinstance(msg, m.KeyframeRequest):
-                self.stats.keyframe_requests += 1
-                self.keyframe = True
-            elif isinstance(msg, m.Notice):
-                self.say(f"device: {msg.text}")
-            self._cond.notify_all()
-        return None
-
-    def wait(self, timeout_s: float) -> None:
-        with self._cond:
-            if not (self.fresh or self.keyframe or self.poked):
-                self._cond.wait(timeout_s)
-            self.poked = False
-
-    def poke(self) -> None:
-        """Wake `wait` (a refined view is ready)."""
-        with self._cond:
-            self.poked = True
-            self._cond.notify_all()
-
-    def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
-        """(view, sequence, fresh, keyframe wanted) and clear the flags."""
-        with self._cond:
-            out = (self.view, self.sequence, self.fresh, self.keyframe)
-            self.fresh = False
-            self.keyframe = False
-            return out
-
-
 # --------------------------------------------------------------------------- serve
 
 
@@ -501,18 +450,6 @@ def _score_sources(
     return true_views, motion
 
 
-def _device_opener(
-    url: str, baud: int, request_timeout_s: float, model: HostModel
-) -> Callable[[int], Any]:
-    """``factory(attempt)`` opening ``url``, its frames as large as the model's largest packet."""
-    # this end sends frames as large as the model's largest score packet; the device's own
-    # limit (HELLO's max_frame_bytes, eigencast-device --max-frame) is the one that binds
-    k, n_cells = model.image.n_coefficients, model.image.n_cells
-    frame_limit = max(16384, max_packet_size(k, max(k, n_cells), n_cells=n_cells) + 256)
-    return lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s),
-                                          max_frame_bytes=frame_limit)
-
-
 # --------------------------------------------------------------------------- the steps
 
 
@@ -538,28 +475,6 @@ class _Settings:
     request_timeout_s: float
     host_id: str
     refine_delay_s: float
-
-
-@dataclass
-class _Connection:
-    """One session's way to the device (the link engine, the host session on it, the
-    device's events) and its stream's state: ``sent`` is set while no packet is in flight,
-    ``clock`` and the link's byte counts are what the statistics already hold, ``next_due``
-    is the earliest time of the next packet (``fps``), ``linger_until`` the end of an
-    orbit's linger."""
-
-    link: Link
-    session: HostSession
-    events: _DeviceEvents
-    sent: threading.Event = field(default_factory=threading.Event)
-    clock: float = 0.0
-    bytes_sent: int = 0
-    bytes_received: int = 0
-    next_due: float = 0.0
-    linger_until: float | None = None
-
-    def __post_init__(self) -> None:
-        self.sent.set()
 
 
 @dataclass
