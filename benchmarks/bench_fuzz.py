@@ -23,6 +23,29 @@ device one view, which must be shown.
 
 Run: ``.venv/bin/python benchmarks/bench_fuzz.py [--inputs 100000] [--seed 11] [--json]``
 (``--inputs`` is per transport; ``--quick``: 5,000). Prints BENCHMARKS.md-ready lines.
+
+Three more sections (issue 21; ``--sections fuzz,lockout,flood,rest``, all by default):
+
+* ``lockout``: keyless peers (``tests/keyless_peers.py``, a process of their own) attack a
+  keyed ``eigencast-device`` process: none (the baseline), 3, 16 and 64 threads looping
+  HELLO-and-reconnect, and the flood of connections judged worst, from the key holder's own
+  address and from another one. Under each, the key holder runs ``eigencast provision
+  --key`` ``--tries`` times (10) and ``eigencast serve --key`` (one frame) 3 times; each
+  must succeed within ``--auth-timeout`` + 2 s, measured from the command's start (Python's
+  start-up included, as a user waits for it). Recorded: successes, median and worst times,
+  the attack's connections, the device's log lines during the attack.
+* ``flood``: a keyed device process on one core drives its own orbit (``--standalone
+  --orbit``); its frame rate idle, then while an unauthenticated peer (another core) floods
+  PINGs, VIEW_REQUESTs or zero bytes (and while 32 peers flood PINGs), as a ratio of idle
+  in the same run (>= 0.8 asked).
+  The device shows ``--flood-model`` (default: the tooth rendered at 256 px from 144 views
+  with depth and fitted ``--depth --key``, built in the run, about 2 minutes; ``--quick``:
+  the tiny model), so its frames cost what a real device's do.
+* ``rest``: ``eigencast serve`` for ``--rest-seconds`` (60) against a device process resting
+  on a view, one at a pole and an in-process device dragged then released, in each of the
+  ways serve can serve (`REST_MODES`: corrections of the device's own frames, the ray-cast
+  scores an older device gets, interpolated scores when the volume cannot be loaded) at
+  once per case; no traceback, exit 0, frames sent.
 """
 
 from __future__ import annotations
@@ -31,10 +54,13 @@ import argparse
 import contextlib
 import itertools
 import json
+import os
 import random
 import shutil
+import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -44,6 +70,7 @@ REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
+import keyless_peers  # noqa: E402
 from attack_helpers import (  # noqa: E402
     RawPeer,
     correction_attacks,
@@ -63,6 +90,8 @@ from protocol import messages as m  # noqa: E402
 from protocol.transport import open_transport  # noqa: E402
 
 ROLES = ("raw", "hello", "auth")
+KEY_FILE = Path()
+"""The key file of ``KEY`` (written beside the tiny model by ``main``)."""
 
 
 def _quiet(line: str) -> None:
@@ -288,6 +317,292 @@ def _decode_counts(stats: dict[str, Any]) -> dict[str, int]:
             + stats["missing_base"]}
 
 
+# --------------------------------------------------------------------------- lockout
+
+LOCKOUT_ATTACKS = (
+    ("none", 0, None),
+    ("loop", 3, None),
+    ("loop", 16, None),
+    ("loop", 64, None),
+    ("flood", 16, "127.0.0.2"),
+    ("flood", 16, None),
+)
+"""(mode, threads, source address): the baseline, the finding's loop at 3/16/64 threads, and
+the flood of connections from another address and from the key holder's own."""
+
+
+def _keyed_device(work: Path, name: str, model_path: Path, *extra: str) -> DeviceProcess:
+    """A keyed device process holding ``model_path`` (signed with ``KEY``)."""
+    flash = work / f"{name}-flash"
+    device = DeviceProcess(flash, "--headless", *extra, key_file=KEY_FILE)
+    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    return device
+
+
+def run_lockout(work: Path, model_path: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The key holder's provision and serve under each attack of ``LOCKOUT_ATTACKS``."""
+    limit = args.auth_timeout + 2.0
+    keyf = str(KEY_FILE)
+    cli = [sys.executable, "-m", "host.cli"]
+    device = _keyed_device(work, "lockout", model_path, "--auth-timeout", f"{args.auth_timeout:g}")
+    results = []
+    try:
+        for mode, threads, bind in LOCKOUT_ATTACKS:
+            label = "no attack" if mode == "none" else (
+                f"{mode} x{threads}" + (f" from {bind}" if bind else ""))
+            print(f"  lockout: {label} ...", flush=True)
+            lines_before = len(device.lines)
+            peers = (None if mode == "none" else
+                     keyless_peers.spawn(device.url, mode, threads, bind=bind))
+            try:
+                if peers is not None:
+                    time.sleep(1.0)  # the attack is under way before the key holder comes
+                provisions = [keyless_peers.timed(
+                    [*cli, "provision", str(model_path), "--port", device.url, "--key", keyf],
+                    limit, cwd=str(REPO)) for _ in range(args.tries)]
+                serves = [keyless_peers.timed(
+                    [*cli, "serve", str(model_path), "--port", device.url, "--key", keyf,
+                     "--orbit", "steps:1", "--fps", "0", "--no-reconnect"], limit,
+                    cwd=str(REPO)) for _ in range(3)]
+            finally:
+                counts = keyless_peers.finish(peers) if peers is not None else {}
+            alive = device.proc.poll() is None
+            times = sorted(t for _, t, _ in provisions)
+            results.append({
+                "attack": label, "limit_s": limit, "device_alive": alive,
+                "provision_ok": sum(ok for ok, _, _ in provisions), "tries": len(provisions),
+                "provision_median_s": times[len(times) // 2], "provision_max_s": times[-1],
+                "provision_failures": [tail for ok, _, tail in provisions if not ok][:3],
+                "serve_ok": sum(ok for ok, _, _ in serves), "serve_tries": len(serves),
+                "serve_max_s": max(t for _, t, _ in serves),
+                "peer_counts": counts,
+                "device_log_lines": len(device.lines) - lines_before,
+            })
+            if not alive:
+                break
+    finally:
+        device.stop()
+    return results
+
+
+def report_lockout(results: list[dict[str, Any]], args: argparse.Namespace) -> None:
+    print(f"\n### Lockout: keyless peers against a keyed TCP device (--auth-timeout "
+          f"{args.auth_timeout:g} s; bound {args.auth_timeout + 2:g} s per command)\n")
+    print("| attack | peer connections | `provision --key` within bound | median / worst | "
+          "`serve --key` frames within bound | worst | device log lines |")
+    print("|---|---|---|---|---|---|---|")
+    for r in results:
+        conns = r["peer_counts"].get("connections", 0)
+        print(f"| {r['attack']} | {conns:,} | {r['provision_ok']}/{r['tries']} | "
+              f"{r['provision_median_s']:.1f} / {r['provision_max_s']:.1f} s | "
+              f"{r['serve_ok']}/{r['serve_tries']} | {r['serve_max_s']:.1f} s | "
+              f"{r['device_log_lines']} |")
+    for r in results:
+        if r["provision_failures"]:
+            print(f"\n{r['attack']}: " + "; ".join(r["provision_failures"]))
+
+
+# --------------------------------------------------------------------------- flood
+
+FLOODS = (("ping", 1), ("view", 1), ("zeros", 1), ("ping", 32))
+"""(what, peers): one unauthenticated peer flooding each kind, and 32 flooding PINGs (every
+place in the lobby)."""
+
+
+def _presented(stats_file: Path) -> tuple[float, int]:
+    """(time, frames presented) from a device's ``--stats`` file, once it was rewritten."""
+    start = time.time_ns()
+    wait_until(lambda: stats_file.exists() and stats_file.stat().st_mtime_ns > start, 10,
+               "a fresh --stats file")
+    return time.monotonic(), json.loads(stats_file.read_text())["frames_presented"]
+
+
+def _flood_model(work: Path, args: argparse.Namespace, tiny: Path) -> Path:
+    """``--flood-model``, or the 256 px depth model built here (the tiny one with --quick)."""
+    if args.flood_model:
+        return Path(args.flood_model)
+    if args.quick:
+        return tiny
+    from host.cli import main as eigencast
+
+    db, out = work / "flood.cdb", work / "flood.ecs"
+    print("  flood: rendering and fitting the 256 px depth model ...", flush=True)
+    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
+                      "--size", "256", "--samples", "160", "--depth"]) == 0
+    assert eigencast(["fit", str(db), "-o", str(out), "--depth", "--key",
+                      str(tiny.parent / "device.key")]) == 0
+    return out
+
+
+def run_flood(work: Path, model_path: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The device's own orbit frame rate idle and under each unauthenticated flood, with the
+    device on one core and the peer on the other (a one-core board, the attacker elsewhere),
+    then with both free to use either core."""
+    model_path = _flood_model(work, args, model_path)
+    device = _keyed_device(work, "flood", model_path)
+    assert device.stop() == 0
+    return [_flood_runs(work, model_path, args, pinned) for pinned in (True, False)]
+
+
+def _flood_runs(work: Path, model_path: Path, args: argparse.Namespace,
+                pinned: bool) -> dict[str, Any]:
+    stats_file = work / "flood-stats.json"
+    cmd_prefix = ["taskset", "-c", "0"] if pinned else []
+    flash = work / "flood-flash"
+    env_note = ("device on core 0, peer on core 1" if pinned
+                else "device and peer on either core")
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1",
+               OMP_NUM_THREADS="1")
+    proc = subprocess.Popen(
+        [*cmd_prefix, sys.executable, "-m", "device_runtime.cli", "--listen", "127.0.0.1:0",
+         "--flash", str(flash), "--key", str(KEY_FILE), "--headless",
+         "--standalone", "--orbit", "turn:10", "--stats", str(stats_file)],
+        cwd=REPO, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env)
+    url = None
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if "listening on" in line:
+            url = "socket://" + line.rsplit("tcp-listen://", 1)[1].strip()
+            break
+    assert url, "".join(lines)
+    threading.Thread(target=lambda: [lines.append(x) for x in proc.stderr], daemon=True).start()
+    out: dict[str, Any] = {"note": env_note, "window_s": args.flood_seconds, "runs": [],
+                           "model": model_path.name}
+    try:
+        time.sleep(2.0)  # the orbit is running
+        for flood, n in (("idle", 0), *FLOODS, ("idle", 0)):
+            peers = None if flood == "idle" else keyless_peers.spawn(
+                url, flood, n, cpu=1 if pinned else None)
+            try:
+                time.sleep(1.0)
+                t0, f0 = _presented(stats_file)
+                time.sleep(args.flood_seconds)
+                t1, f1 = _presented(stats_file)
+            finally:
+                counts = keyless_peers.finish(peers) if peers is not None else {}
+            out["runs"].append({"flood": flood if n <= 1 else f"{flood} x{n}",
+                                "fps": (f1 - f0) / (t1 - t0),
+                                "peer_bytes": counts.get("bytes", 0),
+                                "peer_reconnects": counts.get("connections", 0)})
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    idle = [r["fps"] for r in out["runs"] if r["flood"] == "idle"]
+    out["idle_fps"] = sum(idle) / len(idle)
+    for r in out["runs"]:
+        r["ratio"] = r["fps"] / out["idle_fps"]
+    return out
+
+
+def report_flood(out: dict[str, Any]) -> None:
+    print(f"\n### Unauthenticated floods against the device's own orbit ({out['model']}, "
+          f"{out['note']}, {out['window_s']:g} s windows)\n")
+    print("| flood | frames/s | / idle | peer bytes sent | peer connections |")
+    print("|---|---|---|---|---|")
+    for r in out["runs"]:
+        print(f"| {r['flood']} | {r['fps']:.1f} | {r['ratio']:.2f} | {r['peer_bytes']:,} | "
+              f"{r['peer_reconnects']} |")
+
+
+# --------------------------------------------------------------------------- rest
+
+REST_CASES = {"resting": "30,10", "pole": "0,-90", "dragged": None}
+
+
+def _dragged_device(flash: Path, model_path: Path, seconds: float, *,
+                    predict: bool = True) -> tuple[Any, str, Any]:
+    """An in-process keyed device on TCP holding the model, and a thread that drags its view
+    for ``seconds`` (input actions, as a window sends them) and then lets go."""
+    from device_runtime.display import ViewDelta
+
+    device = RuntimeThread(flash, "tcp-listen://127.0.0.1:0", frames=None, predict=predict,
+                           config=DeviceConfig(flash_dir=flash, key=KEY))
+    wait_until(lambda: device.device.transport is not None, 10, "the device listening")
+    url = f"socket://127.0.0.1:{device.device.transport.port}"
+    provision(model_path, url, key=KEY, show_progress=False, log=_quiet)
+
+    def drag() -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not device.stop_event.is_set():
+            device.device.apply(ViewDelta(2.0, -1.0))
+            time.sleep(0.03)
+
+    return device, url, threading.Thread(target=drag, daemon=True)
+
+
+#: How ``serve`` serves in the rest section: (serve's extra arguments, the device's): the one
+#: path to a device that makes its own frames, ray-cast scores to one that does not (an
+#: older device), interpolated scores when the volume cannot be loaded.
+REST_MODES = {"correct": ((), ()), "motion": ((), ("--no-predict",)),
+              "interpolate": (("--volume", "/nonexistent/volume.mhd"), ("--no-predict",))}
+
+
+def run_rest(work: Path, model_path: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Every way of serving (`REST_MODES`) for ``--rest-seconds`` to a resting, a pole and a
+    dragged then released device, the modes of a case at once (one device each)."""
+    modes = tuple(REST_MODES)
+
+    keyf = KEY_FILE
+    base = _keyed_device(work, "rest", model_path)
+    assert base.stop() == 0
+    results = []
+    for case, view in REST_CASES.items():
+        print(f"  rest: {case}, {len(modes)} modes x {args.rest_seconds:g} s ...",
+              flush=True)
+        devices, serves = [], []
+        for mode in modes:
+            flash = work / f"rest-{case}-{mode}"
+            shutil.copytree(work / "rest-flash", flash)
+            serve_args, device_args = REST_MODES[mode]
+            if view is None:
+                device, url, drag = _dragged_device(flash, model_path, args.rest_seconds / 3,
+                                                    predict=not device_args)
+            else:
+                device = DeviceProcess(flash, "--headless", "--view", view, *device_args,
+                                       key_file=keyf)
+                url, drag = device.url, None
+            devices.append(device)
+            serves.append(subprocess.Popen(
+                [sys.executable, "-m", "host.cli", "serve", str(model_path), "--port", url,
+                 "--key", str(keyf), *serve_args, "--duration", f"{args.rest_seconds:g}"],
+                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+            if drag is not None:
+                drag.start()
+        for mode, proc, device in zip(modes, serves, devices, strict=True):
+            try:
+                out, err = proc.communicate(timeout=args.rest_seconds + 120)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out, err = proc.communicate()
+            line = next((x for x in out.splitlines() if x.startswith("served")), "")
+            frames = int(line.split(": ", 1)[1].split()[0]) if line else 0
+            ok = proc.returncode == 0 and "Traceback" not in err and frames >= 1
+            results.append({"case": case, "mode": mode, "ok": ok, "exit": proc.returncode,
+                            "frames": frames, "traceback": "Traceback" in err,
+                            "last_line": (err.strip().splitlines() or [""])[-1][:160]})
+            stopped = device.stop()
+            if isinstance(device, DeviceProcess) and stopped != 0:
+                results[-1]["ok"] = False
+    return results
+
+
+def report_rest(results: list[dict[str, Any]], args: argparse.Namespace) -> None:
+    print(f"\n### serve against a resting device ({args.rest_seconds:g} s per run)\n")
+    modes = list(dict.fromkeys(r["mode"] for r in results))
+    print("| device | " + " | ".join(modes) + " |")
+    print("|---|" + "---|" * len(modes))
+    for case in dict.fromkeys(r["case"] for r in results):
+        cells = []
+        for mode in modes:
+            r = next(x for x in results if x["case"] == case and x["mode"] == mode)
+            cells.append(f"{'ok' if r['ok'] else 'FAILED'}, {r['frames']} frames")
+        print(f"| {case} | " + " | ".join(cells) + " |")
+    for r in results:
+        if not r["ok"]:
+            print(f"\n{r['case']} / {r['mode']}: exit {r['exit']}: {r['last_line']}")
+
+
 def _mb(n: int) -> str:
     return f"{n / 1e6:.1f} MB"
 
@@ -303,7 +618,9 @@ def report(results: list[dict[str, Any]], args: argparse.Namespace) -> None:
                if "peak_rss" in r else "(in the test process)")
         print(f"| {r['transport']} | {r['inputs']:,} | {r['inputs_per_s']:,.0f} | "
               f"{r['restarts']} | {r['sessions_ended_by_device']} | {rss} |")
-    print("\nA PING was lost (a window's frames dropped by a full receive queue) in "
+    print("\nA PING had to be sent again (no PONG within 0.25 s: a window's frames dropped by a "
+          "full receive queue, or on TCP held back by the lobby's CPU budget for peers that "
+          "have not authenticated) in "
           + ", ".join(f"{r['barriers_with_lost_ping']} of {r['inputs'] // 40} windows "
                       f"({r['transport'].split()[0]})" for r in results) + ".")
     print("\nScore packets that reached the decoder (tagged ones of the auth role, and the real "
@@ -323,26 +640,56 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="5,000 inputs per transport")
     parser.add_argument("--transports", default="tcp,mem")
     parser.add_argument("--json", action="store_true", help="also print the results as JSON")
+    parser.add_argument("--sections", default="fuzz,lockout,flood,rest")
+    parser.add_argument("--tries", type=int, default=10,
+                        help="lockout: key-holder provisions per attack")
+    parser.add_argument("--auth-timeout", type=float, default=5.0,
+                        help="lockout: the device's --auth-timeout")
+    parser.add_argument("--flood-seconds", type=float, default=10.0,
+                        help="flood: seconds of each measurement window")
+    parser.add_argument("--flood-model", metavar="ECS",
+                        help="flood: a standalone model signed with the tests' key")
+    parser.add_argument("--rest-seconds", type=float, default=60.0,
+                        help="rest: seconds each serve runs")
     args = parser.parse_args()
     if args.quick:
-        args.inputs = 5_000
+        args.inputs, args.tries, args.flood_seconds, args.rest_seconds = 5_000, 3, 4.0, 10.0
+    sections = args.sections.split(",")
     work = Path(tempfile.mkdtemp(prefix="bench-fuzz-"))
     try:
         model_path = tiny_model(_Factory(work), name="fuzz")
-        from host.model import HostModel
+        global KEY_FILE
+        KEY_FILE = model_path.parent / "device.key"
+        from host.fit.model import HostModel
 
         model = HostModel.load(model_path)
         k, tag = model.image.n_coefficients, model.digest[:4]
-        results = []
-        for name in args.transports.split(","):
-            print(f"{name}: {args.inputs:,} inputs ...", flush=True)
-            run = run_tcp if name == "tcp" else run_mem
-            results.append(run(work, model_path, args, k, tag))
-        report(results, args)
+        results, failed = [], False
+        if "fuzz" in sections:
+            for name in args.transports.split(","):
+                print(f"{name}: {args.inputs:,} inputs ...", flush=True)
+                run = run_tcp if name == "tcp" else run_mem
+                results.append(run(work, model_path, args, k, tag))
+            report(results, args)
+            failed |= any(r["restarts"] or r.get("pids", 1) != 1 for r in results)
+        extra: dict[str, Any] = {}
+        if "lockout" in sections:
+            extra["lockout"] = run_lockout(work, model_path, args)
+            report_lockout(extra["lockout"], args)
+            failed |= any(r["provision_ok"] < r["tries"] or r["serve_ok"] < r["serve_tries"]
+                          or not r["device_alive"] for r in extra["lockout"])
+        if "flood" in sections:
+            extra["flood"] = run_flood(work, model_path, args)
+            for out in extra["flood"]:
+                report_flood(out)
+                failed |= any(r["ratio"] < 0.8 for r in out["runs"])
+        if "rest" in sections:
+            extra["rest"] = run_rest(work, model_path, args)
+            report_rest(extra["rest"], args)
+            failed |= any(not r["ok"] for r in extra["rest"])
         if args.json:
-            print(json.dumps(results, indent=1))
-        bad = [r for r in results if r["restarts"] or r.get("pids", 1) != 1]
-        return 1 if bad else 0
+            print(json.dumps({"fuzz": results, **extra}, indent=1))
+        return 1 if failed else 0
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

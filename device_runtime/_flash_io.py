@@ -15,12 +15,14 @@ import contextlib
 import functools
 import hashlib
 import os
+import stat
 from collections.abc import Callable
 from typing import Any, TypeVar
 
 from device_runtime.errors import FlashError
 
-__all__ = ["READ_CHUNK_BYTES", "FileOps", "file_ops", "install_file_ops"]
+__all__ = ["READ_CHUNK_BYTES", "FileOps", "NotARegularFile", "file_ops", "install_file_ops",
+           "open_regular"]
 
 READ_CHUNK_BYTES = 1 << 20
 """Buffer of every streaming read (verification, open_active)."""
@@ -103,6 +105,43 @@ def _wrap_os_errors(operation: str) -> Callable[[_F], _F]:
         return wrapper  # type: ignore[return-value]
 
     return decorate
+
+
+class NotARegularFile(OSError):
+    """A store file's name holds a directory, a FIFO, a device... instead of a file."""
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a file"
+
+
+def check_regular(fd: int, path: str) -> None:
+    """Raise :class:`NotARegularFile` (``fd`` left open) unless ``fd`` is a regular file."""
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        raise NotARegularFile(0, f"not a regular file ({_kind(mode)})", path)
+
+
+def open_regular(path: str | os.PathLike[str]) -> int:
+    """Open an existing store file for reading; return the fd (blocking reads).
+
+    Never blocks: the open is non-blocking, so a FIFO in the file's place (whose plain open
+    waits for a writer forever) is opened at once and refused with the rest. Raises
+    :class:`NotARegularFile` for anything but a regular file, FileNotFoundError when absent.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        check_regular(fd, str(path))
+        os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
 
 
 def _hash_fd(fd: int, offset: int, length: int) -> tuple[bytes | None, int]:

@@ -74,6 +74,9 @@ __all__ = ["KEY_FILE_NAME", "build_parser", "main", "paired_key_path"]
 PROG = "eigencast-device"
 KEY_FILE_NAME = "device.key"
 """Name of the key ``--pair`` installs in the flash folder."""
+PAIRED_MARK_NAME = "device.paired"
+"""What ``--pair`` also writes (the key's fingerprint): a paired folder whose key file is
+gone refuses to start instead of running keyless (fail closed); ``--unpair`` removes both."""
 _MB = 1024 * 1024
 DEFAULT_KEEP_FRAMES = 1000
 """PNGs ``--frames`` keeps by default: a served device makes 30-60 frames a second, so every
@@ -255,6 +258,21 @@ def paired_key_path(flash_dir: Path) -> Path:
     return Path(flash_dir) / KEY_FILE_NAME
 
 
+def _paired_fingerprint(flash_dir: Path) -> str | None:
+    """The fingerprint ``--pair`` recorded (None: never paired, or unpaired since)."""
+    try:
+        return (Path(flash_dir) / PAIRED_MARK_NAME).read_text().strip() or "?"
+    except FileNotFoundError:
+        return None
+
+
+def _missing_key(args: argparse.Namespace) -> str:
+    """The one line refusing a paired folder whose key file is gone."""
+    return (f"this device is paired (key {_paired_fingerprint(args.flash)}) but its key file "
+            f"{paired_key_path(args.flash)} is gone: restore it, start with --key KEYFILE, or "
+            f"unpair it on purpose (eigencast-device --unpair --flash {args.flash})")
+
+
 def _log(line: str) -> None:
     print(f"{PROG}: {line}", file=sys.stderr, flush=True)
 
@@ -271,12 +289,18 @@ def _status(args: argparse.Namespace) -> int:
     status = store.status(check_image=lambda stream: image_problem(
         stream, key=device_key, ram_budget_bytes=budget))
     key = None if paired is None else key_fingerprint(paired)
-    status["paired_key_fingerprint"] = key
+    marked = _paired_fingerprint(args.flash)
+    status["paired_key_fingerprint"] = key or marked
+    status["paired_key_missing"] = key is None and marked is not None
     if args.json:
         print(json.dumps(status, indent=2))
     else:
         print(format_status(status))
-        print(f"  key: {'paired, fingerprint ' + key if key else 'none paired'}")
+        if status["paired_key_missing"]:
+            print(f"  key: paired, fingerprint {marked}, but the key file is missing "
+                  f"({key_path}): the device refuses to start without it")
+        else:
+            print(f"  key: {'paired, fingerprint ' + key if key else 'none paired'}")
     return 0
 
 
@@ -286,16 +310,25 @@ def _pair(args: argparse.Namespace) -> int:
     target = paired_key_path(args.flash)
     write_key(target, key, force=True)
     os.chmod(target, 0o600)
+    (args.flash / PAIRED_MARK_NAME).write_text(key_fingerprint(key) + "\n")
     print(f"paired key {key_fingerprint(key)} into {target} (mode 0600)")
     return 0
 
 
 def _unpair(args: argparse.Namespace) -> int:
     target = paired_key_path(args.flash)
+    mark = args.flash / PAIRED_MARK_NAME
     if not target.exists():
-        raise _UsageError(f"--unpair: no paired key in {args.flash} ({target} does not exist)")
+        if not mark.exists():
+            raise _UsageError(f"--unpair: no paired key in {args.flash} ({target} does not "
+                              "exist)")
+        fingerprint = _paired_fingerprint(args.flash)
+        mark.unlink()
+        print(f"unpaired {args.flash} (key {fingerprint}, whose key file was already gone)")
+        return 0
     fingerprint = key_fingerprint(load_key(target))
     target.unlink()
+    mark.unlink(missing_ok=True)
     print(f"removed paired key {fingerprint} from {target}")
     return 0
 
@@ -316,6 +349,8 @@ def _config(args: argparse.Namespace) -> DeviceConfig:
                 f"(eigencast-device --unpair --flash {args.flash})"
             )
         key = load_key(paired)
+    elif _paired_fingerprint(args.flash) is not None:
+        raise _UsageError(_missing_key(args))
     if args.max_frame is not None and not 1024 <= args.max_frame <= 1 << 24:
         raise _UsageError(f"--max-frame {args.max_frame} must be in 1024..16777216")
     if not 1 <= args.window <= 65535:

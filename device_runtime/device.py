@@ -52,9 +52,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, ClassVar
 
+from device_runtime.device_config import (
+    DEFAULT_DEVICE_ID,
+    DEFAULT_RAM_BUDGET_BYTES,
+    DEFAULT_RX_WINDOW_FRAMES,
+    DeviceConfig,
+    DeviceStats,
+)
 from device_runtime.errors import DeviceError, FlashError
 from device_runtime.flash import (
     FlashStore,
@@ -66,6 +72,7 @@ from device_runtime.image_receiver import (
     read_device_image,
     required_ram_bytes,
 )
+from device_runtime.lobby import Lobby
 from device_runtime.wire_errors import DeviceRefusal, _one_line, error_for
 from protocol import auth
 from protocol import messages as m
@@ -101,11 +108,6 @@ __all__ = [
 
 _logger = logging.getLogger("device_runtime.device")
 
-DEFAULT_DEVICE_ID = "eigencast-device"
-DEFAULT_RAM_BUDGET_BYTES = 256 * 1024 * 1024
-"""RAM the eigenspace may use unless ``--ram-budget`` says otherwise (256 MiB)."""
-DEFAULT_RX_WINDOW_FRAMES = 32
-"""Image receive buffers advertised in HELLO_REPLY (chunks in flight)."""
 SUPPORTED_BAUDS = (
     9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
     1000000, 1152000, 1500000, 2000000, 2500000, 3000000, 3500000, 4000000,
@@ -114,122 +116,7 @@ SUPPORTED_BAUDS = (
 PROTOCOL_VERSIONS = (m.PROTOCOL_VERSION, m.PROTOCOL_VERSION)
 """(min, max) protocol versions this device speaks."""
 SOFTWARE = "eigencast-device 0.1"
-PREEMPT_GRACE_S = 1.0
-"""A keyed TCP device lets a waiting connection replace an unauthenticated one only after
-the current one had this long (or ``auth_timeout_s`` if shorter) to finish HELLO and AUTH,
-which a real host does in two round trips."""
 _DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
-
-
-# --------------------------------------------------------------------------- errors
-
-
-# --------------------------------------------------------------------------- config
-
-
-@dataclass(frozen=True)
-class DeviceConfig:
-    """What a device is and declares (the CLI builds it from flags).
-
-    Attributes
-    ----------
-    flash_dir : Path
-        The flash folder.
-    key : bytes or None
-        32-byte device key; None: no key (provisioning refused unless ``insecure``).
-    insecure : bool
-        Accept provisioning without authentication and unsigned images (no key only).
-    device_id : str
-        1..64 UTF-8 bytes; enters the AUTH proofs.
-    ram_budget_bytes : int
-        RAM an eigenspace may use; larger images are refused (TOO_LARGE_FOR_RAM).
-    slot_size_bytes : int or None
-        Flash slot capacity when formatting a new folder (None: the store's default,
-        or what an existing store has).
-    rx_window_frames : int
-        Image receive buffers (chunks in flight), 1..65535.
-    rx_buffer_bytes : int or None
-        Largest chunk accepted (None: what the frame size allows).
-    max_frame_bytes : int or None
-        Largest frame (None: the transport's).
-    display_width, display_height : int
-        Pixels (0: headless).
-    flush_interval_s : float
-        Longest time received chunks stay un-journalled (durability for resume
-        after a reboot), seconds.
-    idle_timeout_s : float
-        A TCP host that sends no valid frame for this long is dropped, seconds.
-    auth_timeout_s : float
-        Keyed device on TCP: a connection that has not completed AUTH this long after it
-        connected (or after its session lost authentication) is dropped, whatever else it
-        sends, seconds. A new connection replaces an unauthenticated one at once.
-    """
-
-    flash_dir: Path
-    key: bytes | None = None
-    insecure: bool = False
-    device_id: str = DEFAULT_DEVICE_ID
-    ram_budget_bytes: int = DEFAULT_RAM_BUDGET_BYTES
-    slot_size_bytes: int | None = None
-    rx_window_frames: int = DEFAULT_RX_WINDOW_FRAMES
-    rx_buffer_bytes: int | None = None
-    max_frame_bytes: int | None = None
-    display_width: int = 0
-    display_height: int = 0
-    flush_interval_s: float = 1.0
-    idle_timeout_s: float = 120.0
-    auth_timeout_s: float = 5.0
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "flash_dir", Path(self.flash_dir))
-        if self.key is not None and (not isinstance(self.key, bytes) or len(self.key) != 32):
-            raise ValueError("DeviceConfig: key must be 32 bytes")
-        if self.key is not None and self.insecure:
-            raise ValueError(
-                "DeviceConfig: insecure=True cannot be combined with a key (a device with a "
-                "key always authenticates)"
-            )
-        ident = self.device_id.encode("utf-8", "replace")
-        if not 1 <= len(ident) <= 64:
-            raise ValueError(f"device_id={self.device_id!r} must be 1..64 UTF-8 bytes")
-        if not isinstance(self.ram_budget_bytes, int) or self.ram_budget_bytes < 1:
-            raise ValueError(f"ram_budget_bytes={self.ram_budget_bytes!r} must be >= 1")
-        if not 1 <= self.rx_window_frames <= 0xFFFF:
-            raise ValueError(f"rx_window_frames={self.rx_window_frames} must be in 1..65535")
-        if self.rx_buffer_bytes is not None and self.rx_buffer_bytes < 1:
-            raise ValueError(f"rx_buffer_bytes={self.rx_buffer_bytes} must be >= 1")
-        if not 0 < self.auth_timeout_s < float("inf"):
-            raise ValueError(f"auth_timeout_s={self.auth_timeout_s} must be > 0 and finite")
-
-
-@dataclass
-class DeviceStats:
-    """Counters of a running device (all sessions).
-
-    The ``dropped_*`` counters are SCORES / IMAGE_CHUNK / KEYFRAME_REQUEST frames dropped
-    before they were decoded or stored: ``dropped_no_session`` before any HELLO,
-    ``dropped_unauthenticated`` on a keyed device outside an authenticated session or
-    without an event tag, ``dropped_bad_tag`` with a tag that does not verify,
-    ``dropped_replayed`` with a counter not above the last accepted one on its channel.
-    ``auth_timeouts`` and ``preempted`` count TCP connections dropped for not
-    authenticating in time or replaced by a newer connection.
-    """
-
-    sessions: int = 0
-    chunks: int = 0
-    chunk_bytes: int = 0
-    chunks_stale: int = 0
-    chunks_out_of_window: int = 0
-    acks: int = 0
-    flushes: int = 0
-    errors_sent: int = 0
-    refused: dict[str, int] = field(default_factory=dict)
-    dropped_no_session: int = 0
-    dropped_unauthenticated: int = 0
-    dropped_bad_tag: int = 0
-    dropped_replayed: int = 0
-    auth_timeouts: int = 0
-    preempted: int = 0
 
 
 @dataclass
@@ -319,6 +206,7 @@ class Device(ImageReceiver):
         self._baud_timer: threading.Timer | None = None
         self._told_no_transfer: set[int] = set()
         self._drop_logged: dict[str, float] = {}
+        self.lobby: Lobby | None = None
         self.store = FlashStore.open(config.flash_dir, capacity_bytes=config.slot_size_bytes)
         self.boot_result = self.boot()
 
@@ -520,15 +408,32 @@ class Device(ImageReceiver):
                         backoff = min(backoff * 2, 2.0)
                 backoff = 0.05
         finally:
+            if self.lobby is not None:
+                self.lobby.close()
+                self.lobby = None
             transport.close()
             self.close()
 
     def serve(self, transport: Any, *, stop: threading.Event | None = None) -> None:
-        """Serve one connection on ``transport`` until the link drops, RESET, or ``stop``."""
+        """Serve one connection on ``transport`` until the link drops, RESET, or ``stop``.
+
+        A keyed device listening on TCP first runs its :class:`~device_runtime.lobby.Lobby`
+        until a connection authenticates, and serves that one."""
         stop = stop or threading.Event()
         self.transport = transport
         self._end_session.clear()
         self.session = _Session()
+        listening = isinstance(transport, TcpListenTransport)
+        keyed = self.config.key is not None
+        admitted = None
+        if listening and keyed:
+            if self.lobby is None or self.lobby.transport is not transport:
+                self.lobby = Lobby(transport, self, auth_timeout_s=self.config.auth_timeout_s,
+                                   log=self._log_limited)
+            admitted = self.lobby.admit(stop)
+            if admitted is None:
+                return
+            self.session = admitted.session
         last_frame = [time.monotonic()]
 
         def on_frame(frame: Frame) -> None:
@@ -546,9 +451,12 @@ class Device(ImageReceiver):
             on_frame=on_frame,
         )
         self.link = link
+        if admitted is not None:  # the AUTH_CHALLENGE (and what followed) read by the lobby
+            for frame in admitted.frames:
+                link.handle_frame(frame)
+            for frame in link.decoder.feed(admitted.partial):
+                link.handle_frame(frame)
         link.start()
-        listening = isinstance(transport, TcpListenTransport)
-        keyed = self.config.key is not None
         unauth_since: float | None = None  # keyed TCP: since when this peer is not authenticated
         try:
             while not stop.is_set() and not self._end_session.is_set():
@@ -560,7 +468,8 @@ class Device(ImageReceiver):
                     and transport.connected
                     and now - last_frame[0] > self.config.idle_timeout_s
                 ):
-                    self.log(f"host silent for {self.config.idle_timeout_s:.0f} s; dropped")
+                    self._log_limited("silent", f"host silent for "
+                                      f"{self.config.idle_timeout_s:.0f} s; dropped")
                     break
                 if listening and not transport.connected:
                     last_frame[0] = now
@@ -568,25 +477,17 @@ class Device(ImageReceiver):
                     continue
                 if not (listening and keyed):
                     continue
-                # Fair use of the single TCP slot on a keyed device: whatever it sends, an
-                # unauthenticated peer gets auth_timeout_s, and a newer connection replaces it
-                # once the peer has had PREEMPT_GRACE_S (so a host between HELLO and AUTH is
-                # not displaced by a peer that reconnects in a loop).
+                # The lobby let in a connection whose AUTH verifies; should its session lose
+                # authentication (a new HELLO), it has auth_timeout_s to authenticate again.
                 if self.session.authenticated:
                     unauth_since = None
                     continue
                 if unauth_since is None:
                     unauth_since = now
-                if transport.pending() and now - unauth_since >= min(
-                    PREEMPT_GRACE_S, self.config.auth_timeout_s
-                ):
-                    self.stats.preempted += 1
-                    self.log("a new connection replaces the unauthenticated one")
-                    break
                 if now - unauth_since > self.config.auth_timeout_s:
                     self.stats.auth_timeouts += 1
-                    self.log(f"peer did not authenticate within "
-                             f"{self.config.auth_timeout_s:g} s; dropped")
+                    self._log_limited("auth-timeout", f"peer did not authenticate within "
+                                      f"{self.config.auth_timeout_s:g} s; dropped")
                     break
         finally:
             error = link.error
@@ -596,6 +497,7 @@ class Device(ImageReceiver):
             if listening:
                 transport.disconnect()
             had_session = self.session.hello_done
+            authenticated = self.session.authenticated
             self.session = _Session()
             with contextlib.suppress(FlashError):
                 self.store.close()  # flush: a resumed transfer keeps what was received
@@ -603,7 +505,10 @@ class Device(ImageReceiver):
                 why = ""
                 if error is not None and "disconnected" not in str(error):
                     why = f" ({_one_line(str(error), 120)})"
-                self.log(f"host disconnected{why}")
+                if authenticated:
+                    self.log(f"host disconnected{why}")
+                else:  # any peer can cause this one: at most one a few seconds
+                    self._log_limited("disconnected", f"host disconnected{why}")
 
     # ------------------------------------------------------------------ dispatch
     def _map_error(self, exc: BaseException, where: str) -> m.Error:
@@ -821,15 +726,7 @@ class Device(ImageReceiver):
                 m.ErrorCode.NOT_AUTHENTICATED,
                 "this device has no key (pair one with eigencast-device --pair KEYFILE)",
             )
-        assert session.host_nonce is not None and session.device_nonce is not None
-        expected = auth.auth_proof(
-            self.config.key,
-            role="host",
-            host_nonce=session.host_nonce,
-            device_nonce=session.device_nonce,
-            device_id=self.config.device_id,
-        )
-        if not hmac.compare_digest(expected, msg.host_proof):
+        if not self.proves_key(session, msg):
             self._log_limited("auth-failed",
                               "auth failed: the host's proof does not verify (wrong key?)")
             raise AuthenticationError(
@@ -854,6 +751,35 @@ class Device(ImageReceiver):
             slot_size_bytes=self.store.capacity_bytes,
         )
 
+    def proves_key(self, session: _Session | None, msg: m.AuthChallenge) -> bool:
+        """Whether ``msg``'s host proof verifies with this device's key in ``session``
+        (HELLO done)."""
+        if self.config.key is None or session is None or not session.hello_done:
+            return False
+        assert session.host_nonce is not None and session.device_nonce is not None
+        expected = auth.auth_proof(
+            self.config.key,
+            role="host",
+            host_nonce=session.host_nonce,
+            device_nonce=session.device_nonce,
+            device_id=self.config.device_id,
+        )
+        return hmac.compare_digest(expected, msg.host_proof)
+
+    def lobby_frame(self, session: _Session | None, msg: m.Message,
+                    frame: Frame) -> tuple[m.Message | None, _Session]:
+        """Answer one frame of a connection that has not authenticated, as its own session
+        (the lobby's thread, while no host is served): (the reply, its session now). An
+        exception becomes the ERROR a request gets (as on a link)."""
+        self.session = session or _Session()
+        try:
+            reply = self.handle(msg, frame)
+        except Exception as exc:
+            reply = self._map_error(exc, msg.TYPE.name) if frame.kind == m.Kind.REQUEST else None
+        finally:
+            session, self.session = self.session, _Session()
+        return reply, session
+
     def handle_ping(self, msg: m.Ping, frame: Frame) -> m.Message:
         """Echo a PING."""
         return m.Pong(
@@ -864,7 +790,11 @@ class Device(ImageReceiver):
 
     def handle_bye(self, msg: m.Bye, frame: Frame) -> None:
         """End the session (state forgotten; a transfer resumes from its journal)."""
-        self.log(f"bye from host{': ' + msg.reason if msg.reason else ''}")
+        line = f"bye from host{': ' + _one_line(msg.reason, 120) if msg.reason else ''}"
+        if self.session.authenticated:
+            self.log(line)
+        else:
+            self._log_limited("bye", line)
         with contextlib.suppress(FlashError):
             self.store.close()
         self.session = _Session()

@@ -166,10 +166,13 @@ from device_runtime._flash_format import (
     encode_record,
 )
 from device_runtime._flash_io import (
+    NotARegularFile,
     _check_uint,
     _hash_fd,
     _wrap_os_errors,
+    check_regular,
     file_ops,
+    open_regular,
 )
 from device_runtime.errors import (
     BadChunk,
@@ -613,8 +616,8 @@ class FlashStore:
         if header.sha256 != bytes(sha256) or header.block_bytes != JOURNAL_BLOCK_BYTES:
             return 0
         try:
-            fd = os.open(self._slot_path(target), os.O_RDONLY)
-        except FileNotFoundError:
+            fd = open_regular(self._slot_path(target))
+        except (FileNotFoundError, NotARegularFile):
             return 0
         try:
             verified = self._scan_journal(target, header, old[1], fd, None, 0)[0]
@@ -829,7 +832,7 @@ class FlashStore:
         info = self._record.slots[index]
         if info.state is SlotState.EMPTY:
             raise NoImage(f"flash open_slot: slot {SLOT_NAMES[index]} is empty ({self.path})")
-        fd = os.open(self._slot_path(index), os.O_RDONLY)
+        fd = open_regular(self._slot_path(index))
         return io.BufferedReader(_SlotReader(fd, info.size_bytes), buffer_size=64 * 1024)
 
     @_wrap_os_errors("open_active")
@@ -845,7 +848,7 @@ class FlashStore:
         if record.active is None:
             raise NoImage(f"flash open_active: no image is active ({self.path})")
         info = record.slots[record.active]
-        fd = os.open(self._slot_path(record.active), os.O_RDONLY)
+        fd = open_regular(self._slot_path(record.active))
         return io.BufferedReader(_SlotReader(fd, info.size_bytes), buffer_size=64 * 1024)
 
     @_wrap_os_errors("status")
@@ -877,7 +880,9 @@ class FlashStore:
             ``check_image``, the device would load it) and ``problem`` (why it does not
             verify, else None); ``journal``: None or a dict
             with ``slot``, ``size_bytes``, ``sha256``, ``image_generation`` and
-            ``verified_offset`` (None when not checked). JSON-serialisable.
+            ``verified_offset`` (None when not checked); ``boots``: the slot whose image
+            a device would show after booting (what :meth:`boot` and the device's load
+            fallback choose from these checks), or None. JSON-serialisable.
         """
         record = self._record
         slots = []
@@ -920,6 +925,7 @@ class FlashStore:
             "capacity_bytes": record.capacity_bytes,
             "record_generation": record.generation,
             "active_slot": self.active_slot,
+            "boots": _would_boot(record, [slot["verifies"] is not False for slot in slots]),
             "slots": slots,
             "journal": journal,
         }
@@ -993,8 +999,10 @@ class FlashStore:
         record = dataclasses.replace(record, generation=generation)
         path = self.path / _RECORD_FILES[generation % 2]
         created = not path.exists()
-        fd = file_ops().open(str(path), os.O_WRONLY | os.O_CREAT)
+        # non-blocking: a FIFO in the copy's place fails at once instead of waiting for a reader
+        fd = file_ops().open(str(path), os.O_WRONLY | os.O_CREAT | os.O_NONBLOCK)
         try:
+            check_regular(fd, str(path))
             file_ops().pwrite(fd, encode_record(record), 0)
             file_ops().fsync(fd)
         finally:
@@ -1004,9 +1012,10 @@ class FlashStore:
         self._record = record
 
     def _hash_slot(self, index: int, size_bytes: int) -> tuple[bytes | None, int]:
-        """SHA-256 of the slot's first ``size_bytes`` bytes, or (None, bytes present) if short."""
+        """SHA-256 of the slot's first ``size_bytes`` bytes, or (None, bytes present) if short
+        (NotARegularFile when the slot's name holds no file)."""
         try:
-            fd = os.open(self._slot_path(index), os.O_RDONLY)
+            fd = open_regular(self._slot_path(index))
         except FileNotFoundError:
             return None, 0
         try:
@@ -1018,7 +1027,10 @@ class FlashStore:
         """(digest matches, a few words why not) for a slot with a recorded digest."""
         if info.sha256 is None:
             return False, "no digest recorded"
-        digest, have = self._hash_slot(index, info.size_bytes)
+        try:
+            digest, have = self._hash_slot(index, info.size_bytes)
+        except NotARegularFile as exc:
+            return False, f"slot file {exc.filename}: {exc.strerror}"
         if digest is None:
             return False, f"slot file holds {have} of the image's {info.size_bytes} bytes"
         if digest != info.sha256:
@@ -1027,15 +1039,18 @@ class FlashStore:
         return True, "digest verified"
 
     def _read_journal_header(self, index: int) -> tuple[JournalHeader, int] | None:
+        """The journal's header and CRC; None when absent, not a file, invalid, or claiming
+        an image larger than a slot (nothing else about it can be true then)."""
         try:
-            with open(self._journal_path(index), "rb") as handle:
+            with os.fdopen(open_regular(self._journal_path(index)), "rb") as handle:
                 data = handle.read(JOURNAL_HEADER_SIZE)
-        except FileNotFoundError:
+        except (FileNotFoundError, NotARegularFile):
             return None
         try:
-            return decode_journal_header(data)
+            header = decode_journal_header(data)
         except FormatInvalid:
             return None
+        return header if header[0].size_bytes <= self.capacity_bytes else None
 
     def _scan_journal(
         self,
@@ -1056,7 +1071,7 @@ class FlashStore:
         verified = bytearray(n_blocks)
         written = 0
         batch_entries = 1024
-        with open(self._journal_path(index), "rb") as handle:
+        with os.fdopen(open_regular(self._journal_path(index)), "rb") as handle:
             handle.seek(JOURNAL_HEADER_SIZE)
             done = False
             while not done:
@@ -1165,10 +1180,13 @@ def _read_newest_record(folder: Path) -> tuple[StateRecord | None, list[str]]:
     problems = []
     for index, name in enumerate(_RECORD_FILES):
         try:
-            with open(folder / name, "rb") as handle:
+            with os.fdopen(open_regular(folder / name), "rb") as handle:
                 data = handle.read(RECORD_SIZE)
         except FileNotFoundError:
             problems.append(f"{name}: missing")
+            continue
+        except NotARegularFile as exc:
+            problems.append(f"{name}: {exc.strerror}")
             continue
         try:
             record = decode_record(data, copy_index=index, names=SLOT_NAMES)
@@ -1178,6 +1196,20 @@ def _read_newest_record(folder: Path) -> tuple[StateRecord | None, list[str]]:
         if best is None or record.generation > best.generation:
             best = record
     return best, problems
+
+
+def _would_boot(record: StateRecord, good: list[bool]) -> str | None:
+    """The slot :meth:`FlashStore.boot` (then the device's load check) would end on, given
+    which slots verify (``good``; unchecked ones count as good)."""
+    if record.active is None:
+        return None
+    active, other = record.slots[record.active], record.slots[1 - record.active]
+    fallback = other.state is SlotState.CONFIRMED and good[1 - record.active]
+    if active.state is SlotState.TEST and active.boot_attempts >= 1 and fallback:
+        return other.name
+    if active.bootable and good[record.active]:
+        return active.name
+    return other.name if fallback else None
 
 
 def _format(folder: Path, capacity_bytes: int) -> StateRecord:
@@ -1216,6 +1248,11 @@ def format_status(status: dict[str, Any]) -> str:
             if slot["bad_reason"]:
                 text += f" ({slot['bad_reason']})"
         lines.append(text)
+    if "boots" in status:
+        boots, active = status["boots"], status["active_slot"]
+        lines.append(f"  boots slot {boots}" + (f" (slot {active} does not load)"
+                                                if active and boots != active else "")
+                     if boots else "  boots no image (nothing to show until one is provisioned)")
     journal = status.get("journal")
     if journal:
         progress = journal["verified_offset"]

@@ -396,6 +396,12 @@ class FrameDecoder:
         """Bytes of an unterminated frame held now (<= ``max_buffered_bytes``)."""
         return len(self._buf)
 
+    @property
+    def partial(self) -> bytes:
+        """The bytes of the unterminated frame held now (to hand the stream to another
+        decoder: feeding them to it continues where this one stopped)."""
+        return b"" if self._discarding else bytes(self._buf)
+
     def counters(self) -> dict[str, int]:
         """Return all counters as a dict (for status output and logs)."""
         return {

@@ -57,6 +57,7 @@ from protocol.errors import TransportClosed, TransportError, TransportTimeout
 __all__ = [
     "DEFAULT_MAX_FRAME_BYTES",
     "DEFAULT_TIMEOUT_S",
+    "LISTEN_BACKLOG",
     "OPENERS",
     "FdTransport",
     "PtyPair",
@@ -73,6 +74,9 @@ _logger = logging.getLogger("protocol.transport")
 
 DEFAULT_TIMEOUT_S = 5.0
 """Default write and connect timeout of ``open_transport``."""
+LISTEN_BACKLOG = 128
+"""Connections the kernel holds for a ``tcp-listen://`` device before it accepts them (a
+backlog of 1 let looping peers keep a host's connection from being accepted at all)."""
 
 DEFAULT_MAX_FRAME_BYTES = {
     "": 4096,  # device paths (real UARTs)
@@ -304,13 +308,14 @@ def _open_mem(url: str, *, baud: int, timeout_s: float, max_frame_bytes: int) ->
 class TcpListenTransport:
     """``tcp-listen://HOST:PORT``: the device side of TCP; one host at a time.
 
-    Listens on HOST:PORT (PORT 0 picks a free port: see ``port``). ``read``
-    accepts a host when none is connected (within its timeout); further hosts
-    wait in the backlog until the current one disconnects. When the host goes
-    away, ``read``/``write`` raise ``TransportClosed`` once and the next
-    ``read`` (or :meth:`accept`) waits for a new host. :meth:`disconnect` drops
-    a silent host (the link engine's inactivity timeout); :meth:`pending` says
-    whether another host waits (a keyed device then drops an unauthenticated one).
+    Listens on HOST:PORT (PORT 0 picks a free port: see ``port``) with a backlog of
+    ``LISTEN_BACKLOG``. ``read`` accepts a host when none is connected (within its
+    timeout); further hosts wait in the backlog until the current one disconnects. When
+    the host goes away, ``read``/``write`` raise ``TransportClosed`` once and the next
+    ``read`` (or :meth:`accept`) waits for a new host. :meth:`disconnect` drops a silent
+    host (the link engine's inactivity timeout). A keyed device accepts from
+    :attr:`listener` itself (``device_runtime.lobby``: every pending connection, until one
+    authenticates) and hands the one that did to :meth:`adopt`.
 
     Parameters
     ----------
@@ -328,9 +333,10 @@ class TcpListenTransport:
         self._conn: socket.socket | None = None
         self.peer: tuple[Any, ...] | None = None
         try:
-            self._listener = socket.create_server((host, port), backlog=1)
+            self._listener = socket.create_server((host, port), backlog=LISTEN_BACKLOG)
         except OSError as exc:
             raise TransportError(f"open tcp-listen://{host}:{port}: {exc}") from None
+        self._listener.setblocking(False)  # accept after select: never blocks
         self.host = host
         self.port: int = self._listener.getsockname()[1]
         self.url = f"tcp-listen://{host}:{self.port}"
@@ -368,17 +374,25 @@ class TcpListenTransport:
         _logger.info("%s: host %s connected", self.url, peer)
         return True
 
-    def pending(self) -> bool:
-        """True when another host is waiting to connect (in the listen backlog).
+    @property
+    def listener(self) -> socket.socket:
+        """The listening socket (non-blocking), for a caller that accepts by itself."""
+        return self._listener
 
-        A keyed device uses it to let a new connection replace one that has not
-        authenticated (docs/protocol.md, "Threat model").
+    def adopt(self, conn: socket.socket, peer: tuple[Any, ...]) -> None:
+        """Make ``conn`` (accepted from :attr:`listener`) the connected host.
+
+        Raises
+        ------
+        TransportError
+            A host is connected already.
         """
-        try:
-            ready, _, _ = select.select([self._listener], [], [], 0.0)
-        except (OSError, ValueError):
-            return False
-        return bool(ready)
+        with self._lock:
+            if self._conn is not None:
+                raise TransportError(f"adopt {self.url}: a host is connected already")
+            conn.settimeout(self._timeout_s)
+            self._conn, self.peer = conn, peer
+        _logger.info("%s: host %s connected", self.url, peer)
 
     def disconnect(self) -> None:
         """Drop the current host (if any); the next read waits for a new one."""

@@ -23,6 +23,7 @@ import contextlib
 import itertools
 import json
 import random
+import socket
 import subprocess
 import sys
 import threading
@@ -31,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cbor2
+import keyless_peers
 import pytest
 from attack_helpers import (
     RawPeer,
@@ -43,16 +45,27 @@ from attack_helpers import (
     scores_frame,
     unauthenticated_state_changes,
 )
-from provision_helpers import KEY, OTHER_KEY, REPO, DeviceProcess, make_image, mem_name
+from provision_helpers import (
+    KEY,
+    OTHER_KEY,
+    REPO,
+    DeviceProcess,
+    DeviceThread,
+    make_image,
+    mem_name,
+)
 from runtime_helpers import RuntimeThread, key_file, read_frames, wait_until
 
 from device_runtime.device import DeviceConfig
+from device_runtime.lobby import PEER_CPU
 from device_runtime.runtime import parse_orbit
 from host.link import FrameEncoder, provision, serve
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import FrameDecoder
+from protocol.host_session import HostSession
 from protocol.keys import write_key
+from protocol.link import Link
 from protocol.scores import ScoreDecoder
 from protocol.transport import open_transport
 
@@ -638,8 +651,9 @@ def peer_barrier(target: Target) -> bool:
 
 
 def test_an_unauthenticated_hog_does_not_lock_out_a_real_host(targets, model_path):
-    """Finding 3: HELLO then PINGs kept the only TCP slot; now a real host replaces the hog at
-    once (the `provision --key` CLI, then serve)."""
+    """Finding 3: HELLO then PINGs kept the only TCP slot; now a real host gets in beside the
+    hog at once (the `provision --key` CLI, then serve), and the hog is still dropped at its
+    deadline."""
     target = targets("tcp-keyed")
     since = target.mark()
     hog = target.peer()
@@ -694,6 +708,116 @@ def test_a_connection_that_does_not_authenticate_is_dropped(tmp_path, model_path
         provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
     finally:
         assert device.stop() == 0, "\n".join(device.lines[-10:])
+
+
+# --------------------------------------------------------------------------- availability
+
+AUTH_TIMEOUT_S = 5.0
+"""The device's --auth-timeout in the availability tests (its default)."""
+LOCKOUTS = [("loop", 3, None), ("loop", 16, None), ("loop", 64, None),
+            ("flood", 16, "127.0.0.2")]
+"""Issue 21, finding 2: keyless peers looping HELLO-and-reconnect (3 kept a key holder out
+entirely), and the flood of connections judged worst (``tests/keyless_peers.py``)."""
+
+
+@pytest.fixture(scope="module")
+def guarded(tmp_path_factory, model_path):
+    """A keyed device process holding the model, for the availability tests."""
+    device = DeviceProcess(tmp_path_factory.mktemp("guarded") / "flash", "--headless",
+                           "--auth-timeout", f"{AUTH_TIMEOUT_S:g}", key_file=key_file(model_path))
+    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    yield device
+    assert device.stop() == 0, "\n".join(device.lines[-20:])
+
+
+@pytest.mark.parametrize(("mode", "threads", "bind"), LOCKOUTS)
+def test_keyless_peers_cannot_lock_the_key_holder_out(guarded, model_path, mode, threads, bind):
+    """Under each attack the key holder's provision (5 times, and once through the CLI) and
+    serve get in, each within --auth-timeout + 2 s: they waited behind every unauthenticated
+    connection before (0 of 5 under 3 looping sockets). The long runs (10 CLI provisions
+    per attack) and their figures: ``benchmarks/bench_fuzz.py --sections lockout``."""
+    bound = AUTH_TIMEOUT_S + 2.0
+    peers = keyless_peers.spawn(guarded.url, mode, threads, bind=bind)  # once they connected
+    try:
+        for attempt in range(5):
+            t0 = time.monotonic()
+            result = provision(model_path, guarded.url, key=KEY, show_progress=False,
+                               log=_quiet)
+            took = time.monotonic() - t0
+            assert result.outcome == "already-active", result
+            assert took <= bound, f"{mode} x{threads}: provision {attempt} took {took:.1f} s"
+        ok, took, tail = keyless_peers.timed(
+            [*CLI, "provision", str(model_path), "--port", guarded.url, "--key",
+             str(key_file(model_path))], bound, cwd=str(REPO))
+        assert ok, f"{mode} x{threads}: provision --key: {took:.1f} s: {tail}"
+        t0 = time.monotonic()
+        stats = serve(model_path, guarded.url, key=KEY, orbit=parse_orbit("steps:1:20"), fps=0,
+                      log=_quiet, reconnect=False, stats_every_s=0, scores="interpolate")
+        assert stats.frames == 1 and time.monotonic() - t0 <= bound
+    finally:
+        counts = keyless_peers.finish(peers)
+    assert counts.get("connections", 0) > threads, counts  # the attack did run
+    assert guarded.proc.poll() is None
+
+
+@pytest.mark.parametrize("flood", ["ping", "view", "zeros"])
+def test_work_for_an_unauthenticated_flood_is_bounded(tmp_path, flood):
+    """Finding 3: PINGs, VIEW_REQUESTs or zero bytes from a peer that never authenticates
+    took the device's CPU (its own orbit fell from 19 to 6 frames/s). The lobby spends at
+    most its CPU budget on such a peer, however fast it sends; the frame rates themselves
+    are ``benchmarks/bench_fuzz.py --sections flood``."""
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash", key=KEY,
+                      auth_timeout_s=600) as dev:
+        url = f"socket://127.0.0.1:{dev.transport.port}"
+        peers = keyless_peers.spawn(url, flood, 1)
+        try:
+            wait_until(lambda: dev.device.lobby is not None and dev.device.lobby.stats.frames
+                       + dev.device.lobby.stats.cpu_s > 0, 20, "the flood reaching the lobby")
+            t0, cpu0 = time.monotonic(), dev.device.lobby.stats.cpu_s
+            threading.Event().wait(2.0)
+            spent = dev.device.lobby.stats.cpu_s - cpu0
+            elapsed = time.monotonic() - t0
+        finally:
+            counts = keyless_peers.finish(peers)
+        burst, rate = PEER_CPU
+        assert spent <= burst + rate * elapsed + 0.02, (flood, spent, elapsed)
+        assert dev.device.lobby.stats.bytes_read < counts.get("bytes", 0), counts  # unread
+        session = HostSession(Link(open_transport(url, timeout_s=5), owns_transport=True).start(),
+                              key=KEY)
+        try:
+            session.start()  # the key holder still gets in, the flood's peer still there
+            assert session.authenticated
+        finally:
+            session.link.close()
+
+
+@pytest.mark.parametrize("keyed", [True, False])
+def test_unauthenticated_connections_cannot_flood_the_log(tmp_path, model_path, keyed):
+    """Finding 5: "host disconnected" was logged once per connection (2,001 lines for 2,000
+    unauthenticated connections); every line such a peer causes is now rate-limited."""
+    extra = () if keyed else ("--insecure",)
+    device = DeviceProcess(tmp_path / "flash", "--headless", *extra,
+                           key_file=key_file(model_path) if keyed else None)
+    try:
+        wire = m.Hello(min_version=1, max_version=m.PROTOCOL_VERSION, nonce=bytes(16),
+                       host_id="flood").encode(request_id=1)
+        wait_until(lambda: any("listening" in line for line in device.lines), 10, "listening")
+        before = len(device.lines)
+        for _ in range(300):
+            with socket.create_connection(("127.0.0.1", device.port), timeout=10) as sock:
+                sock.sendall(wire)
+                assert sock.recv(4096), "HELLO not answered"
+                sock.sendall(m.Bye(reason="x").encode())
+        peer = RawPeer(open_transport(device.url, timeout_s=5))
+        try:
+            assert peer.barrier()  # the device has handled the 300 connections before this one
+        finally:
+            peer.close()
+        new = device.lines[before:]
+        kinds = {line.split(":", 1)[-1].split("(")[0].split("'")[0].strip() for line in new}
+        assert len(new) <= 2 * len(kinds) + 2 and len(new) < 20, new
+    finally:
+        assert device.stop() == 0
 
 
 # --------------------------------------------------------------------------- downgrade

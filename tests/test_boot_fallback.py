@@ -9,12 +9,12 @@ their slot digest is right, so only loading them finds the problem.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import subprocess
 import sys
 
 import pytest
+from flash_helpers import commit_image
 from provision_helpers import KEY, OTHER_KEY, make_image, mem_name
 from runtime_helpers import RuntimeThread, check_frames, read_frames, wait_until
 
@@ -31,22 +31,6 @@ def _quiet(line: str) -> None:
     pass
 
 
-def _commit(flash, data: bytes, *, generation: int, confirm: bool = True) -> str:
-    """Write ``data`` into the inactive slot with the flash API, commit it, confirm it."""
-    store = FlashStore.open(flash)
-    writer = store.begin_image(size_bytes=len(data), sha256=hashlib.sha256(data).digest(),
-                               image_generation=generation, force=True)
-    for offset in range(0, len(data), 8192):
-        writer.write_chunk(offset, data[offset:offset + 8192])
-    assert writer.verify()
-    store.commit_test()
-    if confirm:
-        store.confirm()
-    slot = store.active_slot
-    store.close()
-    return slot
-
-
 def _ram(path) -> int:
     return required_ram_bytes(read_manifest(path))
 
@@ -56,7 +40,7 @@ def good_flash(tmp_path):
     """Slot A: an image signed with KEY, confirmed. Returns (flash dir, its bytes)."""
     image = make_image(tmp_path / "good.ecs", size_bytes=20_000, key=KEY, generation=1)
     flash = tmp_path / "flash"
-    assert _commit(flash, image, generation=1) == "A"
+    assert commit_image(flash, image, generation=1) == "A"
     return flash, image
 
 
@@ -91,7 +75,7 @@ WHY = {"unsigned": "not signed", "other-key": "tag", "inner-digest": "digest",
 def test_boot_falls_back_when_the_active_image_does_not_load(good_flash, tmp_path, kind, state):
     flash, good = good_flash
     bad, overrides = _bad_image(kind, tmp_path)
-    assert _commit(flash, bad, generation=2, confirm=state == "confirmed") == "B"
+    assert commit_image(flash, bad, generation=2, confirm=state == "confirmed") == "B"
     lines: list[str] = []
     device = Device(DeviceConfig(flash_dir=flash, key=KEY, **overrides), log=lines.append)
     try:
@@ -112,7 +96,7 @@ def test_boot_falls_back_when_the_active_image_does_not_load(good_flash, tmp_pat
 def test_nothing_to_fall_back_to_leaves_no_image_active(tmp_path):
     flash = tmp_path / "flash"
     unsigned = make_image(tmp_path / "u.ecs", size_bytes=20_000, key=None)
-    _commit(flash, unsigned, generation=1)
+    commit_image(flash, unsigned, generation=1)
     lines: list[str] = []
     device = Device(DeviceConfig(flash_dir=flash, key=KEY), log=lines.append)
     device.close()
@@ -134,7 +118,7 @@ def test_the_issue_scenario_pair_unsigned_commit_boot_falls_back_and_status_tell
                            show_progress=False, log=_quiet)
     assert result.confirmed and result.slot == "A"
     unsigned = make_image(tmp_path / "u.ecs", size_bytes=20_000, key=None, generation=1 << 40)
-    assert _commit(flash, unsigned, generation=1 << 40) == "B"
+    assert commit_image(flash, unsigned, generation=1 << 40) == "B"
     capsys.readouterr()
 
     assert device_main(["--flash", str(flash), "--status", "--json"]) == 0

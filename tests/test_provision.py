@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 import random
+import socket
 import struct
 import threading
 import time
@@ -767,10 +768,12 @@ def test_auth_deadline_drops_a_hello_and_ping_hog(tmp_path):
             hog.link.close()
 
 
-def test_a_new_connection_preempts_an_unauthenticated_one(tmp_path, model):
+def test_a_host_gets_in_beside_an_unauthenticated_connection(tmp_path, model):
+    """The lobby serves connections side by side: a host authenticates while a peer that said
+    HELLO holds its place, and nobody is replaced (the deadline does not explain it)."""
     path, image = model
     with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
-                      auth_timeout_s=600) as dev:  # the deadline does not explain it
+                      auth_timeout_s=600) as dev:
         hog = _open_session(_tcp(dev), auth=False)
         try:
             version = m.PROTOCOL_VERSION
@@ -778,11 +781,33 @@ def test_a_new_connection_preempts_an_unauthenticated_one(tmp_path, model):
                                      nonce=bytes(16)))
             result = provision(path, _tcp(dev), key=KEY, **QUIET)
             assert result.outcome == "installed" and result.confirmed
-            assert dev.device.stats.preempted >= 1
-            _wait(lambda: hog.link.closed, "the hog dropped")
+            assert dev.device.stats.preempted == 0 and not hog.link.closed
+            assert dev.device.lobby.stats.admitted >= 1
+            hog.link.request(m.Ping(sent_us=1), timeout_s=2.0)  # still served, unauthenticated
         finally:
             hog.link.close()
         _check_device_holds(tmp_path / "flash", image)
+
+
+def test_the_lobby_is_paused_while_a_host_is_served(tmp_path):
+    """Connections in the lobby wait, their clocks stopped, while a host is served: a peer
+    given 2 s to authenticate is still there after a 2.5 s session, and dropped after."""
+    with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
+                      auth_timeout_s=2.0) as dev:
+        peer = _open_session(_tcp(dev), auth=False)
+        try:
+            version = m.PROTOCOL_VERSION
+            peer.link.request(m.Hello(min_version=version, max_version=version,
+                                      nonce=bytes(16)))
+            host = _open_session(_tcp(dev))
+            threading.Event().wait(2.5)  # the session outlasts the peer's deadline
+            host.ping(timeout_s=1.0)
+            host.link.close()
+            peer.link.request(m.Ping(sent_us=1), timeout_s=0.5, retries=0)  # still served
+            _wait(lambda: peer.link.closed, "the peer dropped at its deadline")
+            assert dev.device.stats.auth_timeouts == 1
+        finally:
+            peer.link.close()
 
 
 def test_a_reconnecting_peer_does_not_displace_a_host_between_hello_and_auth(tmp_path):
@@ -794,8 +819,8 @@ def test_a_reconnecting_peer_does_not_displace_a_host_between_hello_and_auth(tmp
 
         def slow_authenticate() -> None:  # the hog connects after our HELLO, before AUTH
             newcomers.append(_open_session(_tcp(dev), auth=False))
-            _wait(dev.transport.pending, "the newcomer waits in the backlog")
-            threading.Event().wait(0.3)  # a slow host: well within PREEMPT_GRACE_S
+            _wait(lambda: dev.device.lobby.peers[0] == 2, "the newcomer in the lobby")
+            threading.Event().wait(0.3)  # a slow host
             authenticate()
 
         host.authenticate = slow_authenticate
@@ -843,20 +868,21 @@ def test_a_signed_request_with_an_added_handler_still_needs_authentication(tmp_p
 
 
 def test_an_unauthenticated_peer_cannot_flood_the_device_log(tmp_path):
+    """30 connections, each HELLO, a bad AUTH, a NOTICE and a BYE, then gone: one line of
+    each kind (and of "host disconnected": none, it was never a host)."""
     with DeviceThread("tcp-listen://127.0.0.1:0", tmp_path / "flash",
                       auth_timeout_s=600) as dev:
-        raw = _open_session(_tcp(dev), auth=False)
-        try:
-            version = m.PROTOCOL_VERSION
-            for _ in range(30):
-                raw.link.request(m.Hello(min_version=version, max_version=version,
-                                         nonce=bytes(16)))
-                with contextlib.suppress(ProtocolError):
-                    raw.link.request(m.AuthChallenge(host_proof=bytes(32)), retries=0)
-                raw.link.send(m.Notice(level=1, text="x" * 200))
-            raw.ping(timeout_s=2.0)  # everything before it has been handled
-            assert dev.device.stats.sessions >= 30
-            for what in ("hello from host", "auth failed", "host notice"):
-                assert sum(what in line for line in dev.lines) == 1, what
-        finally:
-            raw.link.close()
+        version = m.PROTOCOL_VERSION
+        wire = b"".join(msg.encode(request_id=i + 1) for i, msg in enumerate((
+            m.Hello(min_version=version, max_version=version, nonce=bytes(16)),
+            m.AuthChallenge(host_proof=bytes(32)),
+            m.Notice(level=1, text="x" * 200),
+            m.Bye(reason="y" * 50))))
+        for _ in range(30):
+            with socket.create_connection(("127.0.0.1", dev.transport.port)) as raw:
+                raw.sendall(wire)
+        _wait(lambda: dev.device.lobby.stats.frames >= 4 * 30, "the 120 frames handled")
+        assert dev.device.stats.sessions >= 30
+        for what in ("hello from host", "auth failed", "host notice", "bye from host"):
+            assert sum(what in line for line in dev.lines) == 1, what
+        assert not any("disconnected" in line for line in dev.lines)

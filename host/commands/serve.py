@@ -52,10 +52,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "model; it must be the same volume)")
     parser.add_argument("--provision", action="store_true",
                         help="install the image first when the device lacks it")
+    parser.add_argument("--force", action="store_true",
+                        help="with --provision: install it even when it is an older image "
+                        "generation than the device's (rollback)")
     parser.add_argument("--max-frames", metavar="N", type=int,
                         help="stop after sending N packets")
     parser.add_argument("--duration", metavar="S", type=float,
-                        help="stop after S seconds of streaming")
+                        help="stop S seconds after streaming began (time spent reconnecting "
+                        "counts)")
     parser.add_argument("--no-reconnect", action="store_true",
                         help="exit when the link is lost instead of reconnecting")
     parser.add_argument("--stats-every", metavar="S", type=float, default=5.0,
@@ -79,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
         raise EigencastError(f"--keyframe-interval {args.keyframe_interval}: must be >= 0")
     if args.max_frames is not None and args.max_frames < 1:
         raise EigencastError(f"--max-frames {args.max_frames}: must be >= 1")
+    if args.force and not args.provision:
+        raise EigencastError("--force only applies with --provision (it allows installing an "
+                             "older image generation)")
     if args.duration is not None and not args.duration > 0:
         raise EigencastError(f"--duration {args.duration}: must be > 0")
     orbit = None
@@ -109,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps,
         keyframe_interval=args.keyframe_interval,
         provision_missing=args.provision,
+        force=args.force,
         max_frames=args.max_frames,
         duration_s=args.duration,
         reconnect=not args.no_reconnect,

@@ -33,15 +33,17 @@ streams one SCORES packet per view:
   previous has left, so on a slow serial line views are coalesced instead of queued), and
   at most ``fps`` packets per second (0: as fast as the link carries them).
 * **Link loss.** The host reconnects with exponential backoff (50 ms doubling to 2 s) and
-  carries on with a key frame; it logs frames sent, bytes per frame, the achieved frame
-  rate and the link rate every few seconds.
+  carries on with a key frame (a first connection that fails is an error instead: nothing
+  to reconnect to; ``duration_s`` counts the time spent reconnecting); it logs frames sent,
+  bytes per frame, the achieved frame rate and the link rate every few seconds.
 
 The steps are the methods of ``_Serving``: a session is ``_open``, ``_handshake``,
 ``_holds_image`` (or provision and connect again), ``_begin``, ``_stream``, ``_end``, in
 that order in ``_Serving._attempt``, with ``_back_off`` between sessions; each turn of
 ``_stream`` is ``_tick``, ``_may_send``, ``_choose`` (``_orbit_view``, ``_linger``,
 ``_resting`` or the newest request), ``_score`` and ``_send``. :func:`serve` only checks
-its options, loads the model, picks the score sources and runs them.
+its options, loads the model, picks the score sources and runs them. The device's events,
+one session's connection and the port opener are `host.link.serve_link`.
 """
 
 from __future__ import annotations
@@ -58,13 +60,17 @@ from typing import Any
 
 import numpy as np
 
-from device_runtime.orbit import Orbit, OrbitSpec, canonical_view
+from device_runtime.orbit import Orbit, OrbitSpec
 from host.fit.model import HostModel
 from host.link.encoding import FrameEncoder
 from host.link.errors import ServeError
+from host.link.serve_link import Connection as _Connection
+from host.link.serve_link import DeviceEvents as _DeviceEvents
+from host.link.serve_link import device_opener as _device_opener
 from host.link.true_views import open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
+    ProtocolError,
     RemoteError,
     TransportClosed,
     TransportError,
@@ -72,8 +78,7 @@ from protocol.errors import (
 )
 from protocol.host_session import HostSession
 from protocol.link import Link
-from protocol.scores import EncodedScores, max_packet_size
-from protocol.transport import open_transport
+from protocol.scores import EncodedScores
 
 __all__ = [
     "FrameEncoder",
@@ -211,52 +216,6 @@ SCORE_MODES = ("auto", "motion", "interpolate")
 DEFAULT_DEADLINE_S = 1.0 / 30.0
 
 
-# --------------------------------------------------------------------------- events
-
-
-class _DeviceEvents:
-    """The host link's handler: newest VIEW_REQUEST, KEYFRAME_REQUESTs, NOTICEs."""
-
-    def __init__(self, stats: ServeStats, say: Callable[[str], None]) -> None:
-        self._cond = threading.Condition()
-        self.view: tuple[float, float] | None = None
-        self.sequence = 0
-        self.fresh = False
-        self.keyframe = False
-        self.stats = stats
-        self.say = say
-
-    def __call__(self, msg: m.Message, frame: Any) -> None:
-        with self._cond:
-            if isinstance(msg, m.ViewRequest):
-                self.stats.requests += 1
-                if self.fresh:
-                    self.stats.coalesced += 1
-                self.view = canonical_view(msg.phi_deg, msg.theta_deg)
-                self.sequence = msg.sequence
-                self.fresh = True
-            elif isinstance(msg, m.KeyframeRequest):
-                self.stats.keyframe_requests += 1
-                self.keyframe = True
-            elif isinstance(msg, m.Notice):
-                self.say(f"device: {msg.text}")
-            self._cond.notify_all()
-        return None
-
-    def wait(self, timeout_s: float) -> None:
-        with self._cond:
-            if not (self.fresh or self.keyframe):
-                self._cond.wait(timeout_s)
-
-    def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
-        """(view, sequence, fresh, keyframe wanted) and clear the flags."""
-        with self._cond:
-            out = (self.view, self.sequence, self.fresh, self.keyframe)
-            self.fresh = False
-            self.keyframe = False
-            return out
-
-
 # --------------------------------------------------------------------------- serve
 
 
@@ -271,6 +230,7 @@ def serve(
     fps: float = 60.0,
     keyframe_interval: int = 0,
     provision_missing: bool = False,
+    force: bool = False,
     max_frames: int | None = None,
     duration_s: float | None = None,
     reconnect: bool = True,
@@ -312,10 +272,15 @@ def serve(
         See :class:`FrameEncoder` (1: key frames only).
     provision_missing : bool
         Install the image first when the device's active image is another one.
+    force : bool
+        With ``provision_missing``: install it even when it is an older generation than
+        the device's active image (a rollback; see `host.link.provisioning.provision`).
     max_frames, duration_s : optional
-        Stop after this many packets / seconds of streaming.
+        Stop after this many packets / this many seconds after the first session began
+        (time spent reconnecting counts).
     reconnect : bool
-        Reconnect after a lost link (with backoff); False: return.
+        Reconnect after a lost link (with backoff); False: return. A first connection
+        that fails raises (reconnecting is for a link that was up).
     max_reconnects : int, optional
         Give up after this many failed connection attempts in a row (default: never).
     stop : threading.Event, optional
@@ -358,7 +323,7 @@ def serve(
     RemoteError, AuthenticationError
         The device refused the session.
     TransportError
-        The device cannot be reached (``reconnect`` off, or ``max_reconnects`` exceeded).
+        The device cannot be reached or does not answer at the first connection.
     """
     from host.link.provisioning import inspect_image
 
@@ -380,7 +345,7 @@ def serve(
     pace = _Pace(deadline_s, fps)
     settings = _Settings(
         model_path=model_path, url=url, key=key, insecure=insecure, baud=baud, orbit=orbit,
-        fps=fps, provision_missing=provision_missing, max_frames=max_frames,
+        fps=fps, provision_missing=provision_missing, force=force, max_frames=max_frames,
         duration_s=duration_s, reconnect=reconnect, max_reconnects=max_reconnects,
         transport_factory=transport_factory, stats_every_s=stats_every_s,
         request_timeout_s=request_timeout_s, host_id=host_id,
@@ -414,18 +379,6 @@ def _open_renderer(model: HostModel, volume: str | None, scores: str,
         return None
 
 
-def _device_opener(
-    url: str, baud: int, request_timeout_s: float, model: HostModel
-) -> Callable[[int], Any]:
-    """``factory(attempt)`` opening ``url``, its frames as large as the model's largest packet."""
-    # this end sends frames as large as the model's largest score packet; the device's own
-    # limit (HELLO's max_frame_bytes, eigencast-device --max-frame) is the one that binds
-    k, n_cells = model.image.n_coefficients, model.image.n_cells
-    frame_limit = max(16384, max_packet_size(k, max(k, n_cells), n_cells=n_cells) + 256)
-    return lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s),
-                                          max_frame_bytes=frame_limit)
-
-
 # --------------------------------------------------------------------------- the steps
 
 
@@ -441,6 +394,7 @@ class _Settings:
     orbit: OrbitSpec | None
     fps: float
     provision_missing: bool
+    force: bool
     max_frames: int | None
     duration_s: float | None
     reconnect: bool
@@ -449,28 +403,6 @@ class _Settings:
     stats_every_s: float
     request_timeout_s: float
     host_id: str
-
-
-@dataclass
-class _Connection:
-    """One session's way to the device (the link engine, the host session on it, the
-    device's events) and its stream's state: ``sent`` is set while no packet is in flight,
-    ``clock`` and the link's byte counts are what the statistics already hold, ``next_due``
-    is the earliest time of the next packet (``fps``), ``linger_until`` the end of an
-    orbit's linger."""
-
-    link: Link
-    session: HostSession
-    events: _DeviceEvents
-    sent: threading.Event = field(default_factory=threading.Event)
-    clock: float = 0.0
-    bytes_sent: int = 0
-    bytes_received: int = 0
-    next_due: float = 0.0
-    linger_until: float | None = None
-
-    def __post_init__(self) -> None:
-        self.sent.set()
 
 
 @dataclass
@@ -539,6 +471,9 @@ class _Serving:
     attempt: int = 0
     failures: int = 0
     warned_insecure: bool = False
+    deadline: float | None = None
+    """``duration_s`` after the first session began (monotonic): reconnecting counts."""
+    streaming: bool = False
 
     def run(self) -> ServeStats:
         """Serve sessions until done; reconnect after a lost link (or give up)."""
@@ -551,17 +486,19 @@ class _Serving:
                 except (TransportClosed, TransportTimeout, TransportError) as exc:
                     if isinstance(exc, RemoteError):
                         raise
+                    self.streaming = False
                     if self.link is not None:
                         with contextlib.suppress(Exception):
                             self.link.close(flush_timeout_s=0.0)
                         self.link = None
-                    if not self._back_off(exc):
+                    if self._done() or not self._back_off(exc):
                         break
                 finally:
                     if self.link is not None:
                         with contextlib.suppress(Exception):
                             self.link.close(flush_timeout_s=0.5)
         finally:
+            self.deadline = None  # ends the watchdog
             self.sources.clear()
         return self._finish()
 
@@ -571,7 +508,21 @@ class _Serving:
         settings, stats = self.settings, self.stats
         if settings.max_frames is not None and stats.frames >= settings.max_frames:
             return True
-        return settings.duration_s is not None and stats.stream_seconds >= settings.duration_s
+        return self.deadline is not None and time.monotonic() >= self.deadline
+
+    def _watch_deadline(self) -> None:
+        """``duration_s`` while reconnecting: at the deadline, cut a connection attempt that
+        hangs (a device that accepts and never answers); a stream ends by itself."""
+        while self.deadline is not None and not self.stop.is_set():
+            left = self.deadline - time.monotonic()
+            if left > 0:
+                self.stop.wait(min(left, 0.5))
+                continue
+            link = self.link
+            if link is not None and not self.streaming:
+                with contextlib.suppress(Exception):
+                    link.close(flush_timeout_s=0.0)
+            return
 
     def _attempt(self) -> bool:
         """One session, start to BYE. False: the image was provisioned first (connect again)."""
@@ -628,7 +579,7 @@ class _Serving:
         self.link = None
         self.say(f"device '{hello.device_id}' lacks the image: provisioning it")
         provision(model_path, url, baud=settings.baud, key=settings.key,
-                  insecure=settings.insecure, log=self.say,
+                  insecure=settings.insecure, force=settings.force, log=self.say,
                   transport_factory=settings.transport_factory)
         self.stats.provisioned = True
         return False
@@ -641,6 +592,11 @@ class _Serving:
         if stats.sessions > 1:
             stats.reconnects += 1
         self.failures = 0
+        if self.deadline is None and self.settings.duration_s is not None:
+            self.deadline = time.monotonic() + self.settings.duration_s
+            threading.Thread(target=self._watch_deadline, daemon=True,
+                             name="serve-deadline").start()
+        self.streaming = True
         what = self._pick(hello)
         self.say(f"serving {Path(self.settings.model_path).name} to device '{hello.device_id}' "
                  f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
@@ -704,11 +660,33 @@ class _Serving:
             self._check_sources()
             if conn.linger_until is not None and now >= conn.linger_until:
                 break
-            frame = self._choose(conn, request, now)
+            frame = self._framed(conn, request, now)
             if frame is None:
                 continue
-            self._score(frame)
             self._send(conn, frame, now)
+
+    def _framed(self, conn: _Connection, request: tuple[Any, int, bool, bool],
+                now: float) -> _Frame | None:
+        """`_choose` and `_score`; any exception of a frame source (a bug, whatever view
+        the device asked for) ends serving in one line (ServeError) after a BYE, never a
+        traceback. Link failures go on to the reconnect."""
+        try:
+            frame = self._choose(conn, request, now)
+            if frame is not None:
+                self._score(frame)
+            return frame
+        except (ProtocolError, ServeError):
+            raise
+        except Exception as exc:
+            view = self.current.view if request[0] is None else request[0]
+            where = f" at view ({view[0]:g}, {view[1]:g})" if view is not None else ""
+            with contextlib.suppress(Exception):
+                conn.session.bye("the host's frame source failed")
+                conn.link.close(flush_timeout_s=0.5)
+            source = {"correct": "correction", "motion": "ray-cast"}.get(self.kind,
+                                                                         "interpolation")
+            raise ServeError(f"the {source} frame source failed{where}: "
+                             f"{type(exc).__name__}: {_short(exc)}; serving stopped") from None
 
     def _tick(self, conn: _Connection) -> float:
         """Add the time and wire bytes since the last turn; the statistics line when due."""
@@ -742,7 +720,7 @@ class _Serving:
 
     def _fall_back(self, error: BaseException) -> None:
         """Ray-casting failed: say so and send what needs no ray-cast from now on."""
-        self.say(f"ray-casting failed ({_short(error)}); "
+        self.say(f"ray-casting failed ({type(error).__name__}: {_short(error)}); "
                  + ("the device shows its own frames uncorrected" if self.kind == "correct"
                     else "sending interpolated scores only"))
         self.renderer = None
@@ -808,8 +786,8 @@ class _Serving:
     def _sparse(self, call: Callable[[tuple[float, float]], Any],
                 view: tuple[float, float]) -> Any | None:
         """``call(view)`` of the sparse source, its rays and time counted; None when it
-        made nothing (a resting view already complete) or failed (then serving falls back
-        to what needs no ray-cast)."""
+        failed (then serving falls back to what needs no ray-cast) or had nothing to do
+        (``refine`` of a view already fully ray-cast, or no longer the last frame's)."""
         try:
             step = call(view)
         except Exception as exc:
@@ -895,19 +873,25 @@ class _Serving:
         conn.session.bye("done")
         conn.link.close(flush_timeout_s=1.0)
         self.link = None
+        self.streaming = False
 
     def _back_off(self, exc: BaseException) -> bool:
-        """After a lost link: wait (exponential backoff) and reconnect (True), or stop
-        (False; ``exc`` again when no session ever started)."""
+        """After a lost link: wait (exponential backoff, never past the ``duration_s``
+        deadline) and reconnect (True), or stop (False).
+
+        Raises ``exc`` again when no session ever started: reconnecting is for a link that
+        was up (a device that is not there, or does not answer, is one line for the user)."""
         self.failures += 1
         settings = self.settings
+        if self.stats.sessions == 0 and not self.stats.provisioned:
+            raise exc
         if not settings.reconnect or (settings.max_reconnects is not None
                                       and self.failures > settings.max_reconnects):
-            if self.stats.sessions == 0:
-                raise exc
             self.say(f"link lost ({_short(exc)}); not reconnecting")
             return False
         delay = min(_BACKOFF_S[0] * 2 ** (self.failures - 1), _BACKOFF_S[1])
+        if self.deadline is not None:
+            delay = min(delay, max(0.0, self.deadline - time.monotonic()))
         self.say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
         self.stop.wait(delay)  # reconnect backoff (a protocol timer)
         return True

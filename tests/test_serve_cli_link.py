@@ -1,0 +1,106 @@
+"""``eigencast serve`` and the link, with the real commands: a device that is not there, a
+device lost mid-session while ``--duration`` runs, and ``--provision`` of an older image
+(``--force``)."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+import pytest
+from provision_helpers import KEY, REPO, DeviceProcess
+from runtime_helpers import key_file
+
+from host.cli import main as eigencast
+from host.link import provision
+
+CLI = [sys.executable, "-m", "host.cli"]
+
+
+def _quiet(line: str) -> None:
+    pass
+
+
+def _closed_port() -> int:
+    """A local TCP port nothing listens on (bound, then released)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_serve_to_a_port_where_nothing_listens_is_one_line(model_path):
+    """It retried forever (``reconnecting in 2.00 s``) and ignored --duration; reconnecting
+    is for a link that was up."""
+    url = f"socket://127.0.0.1:{_closed_port()}"
+    try:
+        run = subprocess.run([*CLI, "serve", str(model_path), "--port", url, "--key",
+                              str(key_file(model_path)), "--duration", "3"],
+                             capture_output=True, text=True, timeout=60, cwd=REPO)
+    except subprocess.TimeoutExpired:
+        pytest.fail("serve to a closed port did not end")
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 1 and len(lines) == 1, run.stderr
+    assert "refused" in lines[0] and url in lines[0], lines
+    assert "reconnecting" not in run.stderr and run.stdout == "", run.stdout
+
+
+def test_duration_holds_while_reconnecting(tmp_path, model_path):
+    """A device killed mid-session: serve reconnects, and stops when --duration is over."""
+    device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
+    try:
+        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        serving = subprocess.Popen(
+            [*CLI, "serve", str(model_path), "--port", device.url, "--key",
+             str(key_file(model_path)), "--duration", "4", "--scores", "interpolate"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+        first = serving.stderr.readline()  # "serving tooth.ecs to device ..." once it streams
+        assert "serving" in first, first
+    finally:
+        device.kill()
+    try:
+        out, err = serving.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        serving.kill()
+        pytest.fail("serve --duration 4 went on reconnecting after the device was gone")
+    err = first + err
+    assert serving.returncode == 0, err
+    assert "reconnecting" in err and "Traceback" not in err, err
+    assert "served" in out and "to device 'eigencast-device'" in out, out
+
+
+@pytest.fixture(scope="module")
+def newer_model(tmp_path_factory, model_path):
+    """The tiny model fitted again: a newer image generation of the same database."""
+    out = tmp_path_factory.mktemp("newer") / "newer.ecs"
+    assert eigencast(["fit", str(model_path.parent / "tooth.cdb"), "-o", str(out), "--cell",
+                      "12", "--threshold", "0.99", "--standalone", "--key",
+                      str(key_file(model_path))]) == 0
+    return out
+
+
+def test_serve_provision_of_an_older_image_says_force_and_has_it(tmp_path, model_path,
+                                                                newer_model):
+    """``serve --provision`` told the user to pass a --force it did not have."""
+    device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
+    keyf = str(key_file(model_path))
+    try:
+        provision(newer_model, device.url, key=KEY, show_progress=False, log=_quiet)
+        base = [*CLI, "serve", str(model_path), "--port", device.url, "--key", keyf,
+                "--provision", "--max-frames", "1", "--scores", "interpolate", "--orbit",
+                "steps:1", "--fps", "0"]
+        refused = subprocess.run(base, capture_output=True, text=True, timeout=60, cwd=REPO)
+        lines = refused.stderr.strip().splitlines()
+        assert refused.returncode == 1, refused.stderr
+        assert "ROLLBACK_REFUSED" in lines[-1] and "--force" in lines[-1], lines
+        forced = subprocess.run([*base, "--force"], capture_output=True, text=True,
+                                timeout=60, cwd=REPO)
+        assert forced.returncode == 0, forced.stderr
+        assert "1 frames" in forced.stdout, forced.stdout
+        alone = subprocess.run([*CLI, "serve", str(model_path), "--port", device.url,
+                                "--force"], capture_output=True, text=True, timeout=60,
+                               cwd=REPO)
+        assert alone.returncode == 1 and "--provision" in alone.stderr, alone.stderr
+        assert len(alone.stderr.strip().splitlines()) == 1, alone.stderr
+    finally:
+        assert device.stop() == 0, "\n".join(device.lines[-10:])
