@@ -52,7 +52,7 @@ def test_duration_holds_while_reconnecting(tmp_path, model_path):
         provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
         serving = subprocess.Popen(
             [*CLI, "serve", str(model_path), "--port", device.url, "--key",
-             str(key_file(model_path)), "--duration", "4", "--scores", "interpolate"],
+             str(key_file(model_path)), "--duration", "4"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
         first = serving.stderr.readline()  # "serving tooth.ecs to device ..." once it streams
         assert "serving" in first, first
@@ -87,7 +87,7 @@ def test_serve_provision_of_an_older_image_says_force_and_has_it(tmp_path, model
     try:
         provision(newer_model, device.url, key=KEY, show_progress=False, log=_quiet)
         base = [*CLI, "serve", str(model_path), "--port", device.url, "--key", keyf,
-                "--provision", "--max-frames", "1", "--scores", "interpolate", "--orbit",
+                "--provision", "--max-frames", "1", "--orbit",
                 "steps:1", "--fps", "0"]
         refused = subprocess.run(base, capture_output=True, text=True, timeout=60, cwd=REPO)
         lines = refused.stderr.strip().splitlines()

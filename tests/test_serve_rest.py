@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -50,9 +51,11 @@ def _serve_every_mode(url: str, model_path, model, lines: list[str]) -> dict:
     """Each score mode for REST_S seconds against the device at ``url``; their statistics."""
     out = {}
     for mode in SCORE_MODES:
+        start = time.monotonic()
         out[mode] = serve(model_path, url, key=KEY, model=model, scores=mode,
                           duration_s=REST_S, reconnect=False, log=lines.append,
                           stats_every_s=0)
+        out[mode].wall_s = time.monotonic() - start
     return out
 
 
@@ -89,7 +92,7 @@ def test_every_score_mode_serves_resting_device_processes(provisioned_flash, tmp
     for case in RESTING:
         for mode, got in stats[case].items():
             assert got.sessions == 1 and got.frames >= 1, (case, mode, got, lines[case])
-            assert got.stream_seconds >= REST_S / 2, (case, mode, got)  # ended by --duration
+            assert got.wall_s >= REST_S, (case, mode, got)  # ended by --duration
         # the path that crashed: the resting view refined until it is the full projection
         # (``auto``: the complete correction of the device's own frame), and serving went
         # on after that
@@ -117,10 +120,12 @@ def test_every_score_mode_serves_a_view_dragged_then_released(tmp_path, model_pa
             box: dict = {}
 
             def host(mode=mode, box=box) -> None:
+                start = time.monotonic()
                 try:
                     box["stats"] = serve(
                         model_path, url, key=KEY, model=model, scores=mode,
                         duration_s=REST_S, reconnect=False, log=lines.append, stats_every_s=0)
+                    box["wall_s"] = time.monotonic() - start
                 except BaseException as exc:  # reported below
                     box["error"] = exc
 
@@ -133,7 +138,7 @@ def test_every_score_mode_serves_a_view_dragged_then_released(tmp_path, model_pa
             assert "error" not in box, (mode, box.get("error"), lines[-5:])
             got = box["stats"]
             assert device.device.runtime_stats.view_requests > start, mode
-            assert got.frames >= 1 and got.stream_seconds >= REST_S / 2, (mode, got)
+            assert got.frames >= 1 and box["wall_s"] >= REST_S, (mode, got)
     finally:
         device.stop()
     assert not device.errors, device.errors
