@@ -309,10 +309,13 @@ class MotionScores:
         return self.strides[-1] if self._skipped + 1 >= PROBE_EVERY else 0
 
     def prepare(self) -> None:
-        """Compute the recovery factors of every stride now (not during the first frames)."""
+        """Compute the recovery factors of every stride and the model's projection now (not
+        during the first frames: together 1-2 s at 256 on 2 cores, which a first resting
+        view would otherwise wait for)."""
         for s in self.strides:
             if s > 1:
                 self.recovery.factor(self._patterns[s])
+        self.model.project(np.zeros((*self.shape, 3), dtype=np.uint8))
 
     # ------------------------------------------------------------------ frames
     def _cast(self, phi_theta: tuple[float, float], rows: np.ndarray, cols: np.ndarray, *,

@@ -647,6 +647,7 @@ class _Serving:
 
                 own = OwnFrames(self.encoder.model.image)
             source = MotionScores(self.encoder.model, self.renderer, own=own)
+            source.prepare()  # its factors now, not while the first views wait
             self.sources[kind] = source
         return source
 
