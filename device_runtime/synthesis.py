@@ -61,6 +61,7 @@ __all__ = [
     "fill_holes",
     "forward_warp",
     "orbit_pose",
+    "row_weights",
     "synthesis_memory_bytes",
     "upsample2",
     "upsample2_at",
@@ -86,6 +87,13 @@ DEPTH_DELTA_SECTION = "depth_scores_delta"
 #: drag at 512), for 6 MB more.
 CACHE_VIEWS = 4
 
+#: A view's neighbours on two theta rows of the grid (12 degrees apart on the paper's
+#: grid): the farther row is faded out below this share of the interpolation weight and
+#: dropped below it (`row_weights`), so away from the rows' middle one row's two views are
+#: warped. Fewer, nearer sources blend fewer misaligned reconstructions: object SSIM +0.005
+#: (tooth) and +0.015 (head) at 256 against all four (docs/rate-distortion.md 9.10), and
+#: a drag along a row reconstructs half the neighbours.
+ROW_RAMP = 0.4
 #: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
 #: within this of the nearest one are blended, the rest are hidden.
 Z_TOLERANCE = 0.02
@@ -100,8 +108,6 @@ MAX_WARP_PIXELS = 1 << 24
 #: upsampling, the warp's passes): bounds the temporaries to a few hundred kilobytes
 #: whatever the frame size.
 CHUNK = 1 << 15
-#: Depth components per pass of `DepthEigenspace.reconstruct` (whole cells at a time).
-COMPONENT_CHUNK = 256
 #: Scratch of a predicting device's warp worker's own reconstructor (one thread): a third
 #: of the display's, for 1.5x its time per neighbour (a cache miss, ~1.7 per drag frame),
 #: on a thread that shares the 2 cores with the display anyway.
@@ -113,6 +119,32 @@ HOLE_NEIGHBOURS = 4
 #: A reconstructed pixel whose largest channel is above this (0..255) carries the object
 #: (`host.evaluate.masks.OBJECT_LEVEL`; the renderings have a black background).
 OBJECT_LEVEL = 2
+
+
+def row_weights(theta_deg: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The warp's weights of a view's neighbours: the interpolation's, with the farther of
+    two theta rows faded out unless the view is near their middle (`ROW_RAMP`).
+
+    Where the neighbours lie on two rows of the grid (the bilinear interpolation's 2 x 2),
+    the farther row's share ``wm`` of the weight becomes ``0.5 * clip((wm - ROW_RAMP) /
+    (0.5 - ROW_RAMP), 0, 1)`` and the nearer row takes the rest, each row's views keeping
+    their proportions: a continuous function of the view. Any other set of neighbours
+    keeps its weights. ``theta_deg`` holds each neighbour's theta, ``weights`` (> 0) their
+    interpolation weights; float64, a new array.
+    """
+    w = np.array(weights, dtype=np.float64)
+    rows = np.unique(theta_deg)
+    if rows.size != 2 or ROW_RAMP >= 0.5:
+        return w
+    first = theta_deg == rows[0]
+    share = float(w[first].sum()) / float(w.sum())
+    near = share >= 0.5
+    wm = 1.0 - share if near else share
+    keep = 0.5 * min(max((wm - ROW_RAMP) / (0.5 - ROW_RAMP), 0.0), 1.0)
+    minor = ~first if near else first
+    w[minor] *= keep / wm
+    w[~minor] *= (1.0 - keep) / (1.0 - wm)
+    return w
 
 
 class WarpCancelled(Exception):
@@ -182,8 +214,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     device that predicts warps its own frames while the host's are on their way (both
     share the image's one standalone table, a section). Per cached view: the object
     pixels' packed points and uint8 colours (9 bytes per pixel at most); on a miss, a
-    view's indices, depths and masks and a pass of depth components (`COMPONENT_CHUNK`
-    whole cells); per frame, the splats' target pixels of 4 views (4 bytes each, all
+    view's indices, depths and masks and one depth cell's components as float32; per frame, the splats' target pixels of 4 views (4 bytes each, all
     pixels at most: the reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
     planes, and the warped frame on show (its own array). A predicting device's worker
@@ -199,7 +230,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     cache = CACHE_VIEWS * n * 9
     cell = int(record.get("depth_cell") or 1)
     depth = 3 * 4 * (h // 2 + cell) * (w // 2 + cell) + n * (8 + 4 + 3)
-    depth += 4 * max(COMPONENT_CHUNK, cell * cell) * cell * cell
+    depth += 4 * cell * cell * cell * cell  # one cell's components as float32
     warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
     colour = 2 * n * 3 + WORKER_SCRATCH_BYTES
     return int(cache + depth + warp + colour)
@@ -220,13 +251,14 @@ def orbit_pose(phi_deg: float, theta_deg: float, distance: float
     """
     phi, theta = math.radians(phi_deg), math.radians(theta_deg)
     cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
-    direction = np.array([ct * cp, ct * sp, st])
-    position = distance * direction
-    f = -direction
-    u = np.array([-st * cp, -st * sp, ct])
-    r = np.cross(f, u)
-    r /= np.linalg.norm(r)
-    return position, np.stack([r, u, f], axis=1)
+    # forward f = -direction, up u, right r = f x u normalised: in Python floats (a frame
+    # needs five poses; numpy's cross and norm cost more than the arithmetic)
+    f = (-ct * cp, -ct * sp, -st)
+    u = (-st * cp, -st * sp, ct)
+    r = (f[1] * u[2] - f[2] * u[1], f[2] * u[0] - f[0] * u[2], f[0] * u[1] - f[1] * u[0])
+    n = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
+    position = np.array([distance * ct * cp, distance * ct * sp, distance * st])
+    return position, np.array([[r[i] / n, u[i], f[i]] for i in range(3)])
 
 
 class Warper:
@@ -268,6 +300,9 @@ class Warper:
         self.tol_mm = float(z_tolerance_mm)
         self._splats: np.ndarray | None = None
         self._grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        #: The grid's rectangle (rows r0:r1, columns c0:c1) the last frame wrote, besides
+        #: pixel 0; None: clean.
+        self.dirty: tuple[int, int, int, int] | None = None
 
     def splats(self, total: int) -> np.ndarray:
         """The target pixel of each of ``total`` splats (int32), reused between frames
@@ -279,11 +314,26 @@ class Warper:
 
     def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The padded grid's z-buffer (float32; then the blend weights), colour accumulators
-        (3, h + 2, w + 2) float32 and coverage (bool), made once, reused by every frame."""
+        (3, h + 2, w + 2) float32 and coverage (bool), made once, reused by every frame.
+
+        Returned clean (z-buffer inf, accumulators 0, coverage False): a frame dirties only
+        the rectangle its splats land in and pixel 0 (`dirty`, set by `forward_warp`), and
+        only that is cleaned here."""
         if self._grid is None:
             shape = (self.height + 2, self.width + 2)
-            self._grid = (np.empty(shape, np.float32), np.empty((3, *shape), np.float32),
-                          np.empty(shape, bool))
+            self._grid = (np.full(shape, np.inf, np.float32),
+                          np.zeros((3, *shape), np.float32), np.zeros(shape, bool))
+            self.dirty = None
+        zgrid, acc, covered = self._grid
+        if self.dirty is not None:
+            r0, r1, c0, c1 = self.dirty
+            zgrid[r0:r1, c0:c1] = np.inf
+            acc[:, r0:r1, c0:c1] = 0.0
+            covered[r0:r1, c0:c1] = False
+            zgrid[0, 0] = np.inf
+            acc[:, 0, 0] = 0.0
+            covered[0, 0] = False
+            self.dirty = None
         return self._grid
 
     def pose(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -351,6 +401,84 @@ class Warper:
             rgb[c] = flat[src, c]
         return points, rgb
 
+    def cloud_at(self, colour: np.ndarray, half_depth: np.ndarray, src: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """A cached view: the pixels ``src`` (flat indices) of ``colour`` unprojected, packed.
+
+        `unproject_at(colour, upsample2_at(half_depth, src, width), src, packed=True)` in
+        one pass of float32 arithmetic, `CHUNK` pixels at a time: each pixel's depth from
+        the half-resolution map ``half_depth`` (h / 2, w / 2) by `upsample2`'s bilinear
+        weights, its ray from float32 tangents, the point in int16 `point_step`s from the
+        orbit centre (what `forward_warp` takes). Non-finite depths are dropped.
+
+        Returns
+        -------
+        points : ndarray (3, n) int16
+        rgb : ndarray (3, n) uint8
+        """
+        d = np.asarray(half_depth, dtype=np.float32)
+        hh, hw = d.shape
+        flat = d.reshape(-1)
+        qa, qb = np.float32(0.75), np.float32(0.25)
+        k = np.float32(1.0 / self.point_step)
+        dist = np.float32(self.distance)
+        gx32, gy32 = self._gx.astype(np.float32), self._gy.astype(np.float32)
+        points = np.empty((3, src.size), np.int16)
+        keep = np.ones(src.size, bool)
+        for lo in range(0, src.size, CHUNK):
+            hi = min(lo + CHUNK, src.size)
+            y, x = np.divmod(src[lo:hi], self.width)
+            # the depth: even output rows/columns take the previous half-resolution one,
+            # odd the next (clamped)
+            iy, ix = y >> 1, x >> 1
+            ny = iy + ((y & 1) * 2 - 1)
+            np.clip(ny, 0, hh - 1, out=ny)
+            nx = ix + ((x & 1) * 2 - 1)
+            np.clip(nx, 0, hw - 1, out=nx)
+            iy *= hw
+            ny *= hw
+            near = qa * flat[iy + ix]
+            near += qb * flat[ny + ix]
+            far = qa * flat[iy + nx]
+            far += qb * flat[ny + nx]
+            del iy, ix, ny, nx
+            near *= qa
+            far *= qb
+            t = near
+            t += far
+            del far
+            ok = np.isfinite(t)
+            if not ok.all():
+                keep[lo:hi] = ok
+                t[~ok] = 0.0
+            # the ray's tangents; the point's forward coordinate is t / |(gx, gy, 1)|
+            gx, gy = gx32[x], gy32[y]
+            del x, y
+            inv = gx * gx
+            inv += gy * gy
+            inv += np.float32(1.0)
+            np.sqrt(inv, out=inv)
+            np.divide(t, inv, out=t)  # t: the forward coordinate now
+            del inv
+            t *= k
+            for r, p in enumerate((gx, gy)):
+                p *= t
+                np.rint(p, out=p)
+                np.clip(p, -32767, 32767, out=p)
+                points[r, lo:hi] = p
+            t -= dist * k
+            np.rint(t, out=t)
+            np.clip(t, -32767, 32767, out=t)
+            points[2, lo:hi] = t
+            del gx, gy, t
+        if not keep.all():
+            src, points = src[keep], np.ascontiguousarray(points[:, keep])
+        rgb = np.empty((3, src.size), colour.dtype)
+        cflat = colour.reshape(-1, 3)
+        for c in range(3):
+            rgb[c] = cflat[src, c]
+        return points, rgb
+
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
              valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
              weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
@@ -378,16 +506,19 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     (points beyond it are clamped onto that border, which is then emptied), so nothing
     needs masking.
 
-    Memory: three passes over the sources, `CHUNK` points at a time (the z-buffer; the
-    z-test, which moves a hidden splat to the border pixel; the blend), so a frame's
+    Memory and time: three passes over the sources, `CHUNK` points at a time (the z-buffer;
+    the z-test, which moves a hidden splat to the border pixel; the blend), so a frame's
     temporaries are a chunk's; what persists is the warper's grid and each splat's target
     pixel (4 bytes, `Warper.splats`). Accumulation is float32 in place (``np.add.at``),
-    never a float64 copy of the grid.
+    never a float64 copy of the grid. Everything after the splats (filter, blend, hole
+    filling, the frame) works on the rectangle the splats landed in, 3 pixels larger on
+    every side (what the filter and hole filling reach), not the whole grid; the grid is
+    left clean outside it (`Warper.grid`).
 
     Parameters
     ----------
     w : Warper
-    clouds : list of (points (3, n) float32, rgb (3, n) uint8 or float32)
+    clouds : list of (points (3, n) float32 or int16 packed, rgb (3, n) uint8 or float32)
         Each source's object points in its camera frame and their colours.
     sources, target : (position (3,), rotation (3, 3)) from `Warper.pose`
     weights : ndarray (m,)
@@ -419,9 +550,9 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     scale = np.diag([sx, -sx, 1.0])
     ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
     idx = w.splats(sum(u[0].shape[1] for u in used))
-    zgrid, acc, covered = w.grid()
+    zgrid, acc, covered = w.grid()  # clean: inf, 0, False
+    w.dirty = (0, h + 2, 0, w2)  # until this frame ends (a cancelled warp leaves it all)
     zbuf = zgrid.reshape(-1)
-    zbuf.fill(np.inf)
     pieces = []  # (slice of idx, the points and colours there, the view's m, b and weight)
     o = 0
     for pts, col, (p_s, r_s), wv in used:
@@ -436,6 +567,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
             e = min(a + CHUNK, k)
             pieces.append((slice(o + a, o + e), pts[:, a:e], col[:, a:e], m, b, f32(wv)))
         o += k
+    x0, x1, y0, y1 = w2, 0.0, h + 2.0, 0.0  # the rectangle the splats land in
     for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
         _give_up_if(cancel)
         z = _forward(m, b, pts)
@@ -459,6 +591,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         # (exact: the grid has fewer than MAX_WARP_PIXELS, check_synthesis), one cast
         np.trunc(cx, out=cx)
         np.trunc(cy, out=cy)
+        x0, x1 = min(x0, float(cx.min())), max(x1, float(cx.max()))
+        y0, y1 = min(y0, float(cy.min())), max(y1, float(cy.max()))
         cy *= f32(w2)
         cx += cy
         idx[s] = cx
@@ -475,10 +609,15 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         zmax += tol
         at[_forward(m, b, pts) > zmax] = 0
         del zmax
-    np.isfinite(zgrid, out=covered)
+    # from here on the rectangle the splats landed in, 3 pixels to spare on every side
+    r0, r1 = max(0, int(y0) - 3), min(h + 2, int(y1) + 4)
+    c0, c1 = max(0, int(x0) - 3), min(w2, int(x1) + 4)
+    region = (slice(r0, r1), slice(c0, c1))
+    cov = covered[region]
+    np.isfinite(zgrid[region], out=cov)
     weight = zgrid  # the z-buffer is done with: it accumulates the blend weights now
-    weight.fill(0.0)
-    acc.fill(0.0)
+    weight[region] = 0.0
+    weight.reshape(-1)[0] = 0.0  # where the hidden splats go, whether in the region or not
     flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
     for s, _, col, _, _, wv in pieces:  # pass 3: the blend
         _give_up_if(cancel)
@@ -486,24 +625,33 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         np.add.at(flat_w, at, wv)
         for c in range(3):
             np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
-    # everything from here on the padded grid, its border (clamped strays, hidden splats)
-    # emptied
-    for a_ in (covered, weight, *acc):
-        a_[[0, -1]] = 0
-        a_[:, [0, -1]] = 0
+    wreg, planes = weight[region], acc[(slice(None), *region)]
+    # the grid's border (clamped strays, hidden splats) emptied where the rectangle meets it
+    for a_ in (cov, wreg, *planes):
+        if r0 == 0:
+            a_[0] = 0
+        if r1 == h + 2:
+            a_[-1] = 0
+        if c0 == 0:
+            a_[:, 0] = 0
+        if c1 == w2:
+            a_[:, -1] = 0
     _give_up_if(cancel)
     if SPLAT_TENT:
-        _tent(acc)
-        _tent(weight[None])
-    planes = acc
-    np.divide(f32(1.0), weight, out=weight, where=covered)
-    np.multiply(weight, covered, out=weight)  # 1 / weight where covered, else 0
-    planes *= weight
-    _fill_holes_padded(planes, covered)
+        _tent(planes)
+        _tent(wreg[None])
+    np.divide(f32(1.0), wreg, out=wreg, where=cov)
+    np.multiply(wreg, cov, out=wreg)  # 1 / weight where covered, else 0
+    planes *= wreg
+    _fill_holes_padded(acc, covered, region)
     planes += f32(0.5)
     np.clip(planes, 0, 255, out=planes)
+    # the frame's pixels inside the rectangle (padded row y is the frame's row y - 1)
+    fr0, fr1, fc0, fc1 = max(r0, 1), min(r1, h + 1), max(c0, 1), min(c1, wd + 1)
+    out = frame[fr0 - 1:fr1 - 1, fc0 - 1:fc1 - 1]
     for c in range(3):
-        frame[..., c] = planes[c, 1:-1, 1:-1]
+        out[..., c] = planes[c, fr0 - r0:fr1 - r0, fc0 - c0:fc1 - c0]
+    w.dirty = (r0, r1, c0, c1)
     return frame
 
 
@@ -559,28 +707,40 @@ def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
     return frame
 
 
-def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray) -> np.ndarray:
+def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray,
+                       region: tuple[slice, slice] | None = None) -> np.ndarray:
     """`fill_holes` on planar channels (c, h + 2, w + 2) float32 with an empty border and 0
-    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place.
+    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place; both
+    C-contiguous. ``region`` (rows, columns; its outermost pixels are never filled): the
+    rectangle to fill within, the grid's inner pixels by default.
 
     The neighbour counts are uint8 (at most 8): a quarter of float32's temporaries."""
     c, hp, wp = planes.shape
     flat = planes.reshape(c, -1)
+    rows, cols = region if region is not None else (slice(0, hp), slice(0, wp))
+    r0, c0 = rows.start, cols.start
+    cov = covered[rows, cols]
+    rh, rw = cov.shape
     offsets = [dy * wp + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    count = np.zeros((hp, wp), np.uint8)
+    count = np.zeros((rh, rw), np.uint8)
     for _ in range(HOLE_PASSES):
-        count[1:-1, 1:-1] = _box8(covered.view(np.uint8), hp - 2, wp - 2)
+        count[1:-1, 1:-1] = _box8(cov.view(np.uint8), rh - 2, rw - 2)
         fill = count >= HOLE_NEIGHBOURS
-        fill &= ~covered
+        fill &= ~cov
         at = np.flatnonzero(fill)
         del fill
         if at.size == 0:
             break
+        n = count.reshape(-1)[at].astype(np.float32)
+        # the region's flat index -> the grid's
+        if rw != wp:
+            at += (at // rw) * (wp - rw)
+        at += r0 * wp + c0
         # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
         acc = flat[:, at + offsets[0]]
         for off in offsets[1:]:
             acc += flat[:, at + off]
-        acc *= np.float32(1.0) / count.reshape(-1)[at].astype(np.float32)
+        acc *= np.float32(1.0) / n
         flat[:, at] = acc
         covered.reshape(-1)[at] = True
     return planes
@@ -690,27 +850,15 @@ class DepthEigenspace:
         self.padded = (-(-self.shape[0] // self.cell) * self.cell,
                        -(-self.shape[1] // self.cell) * self.cell)
         self.mean = np.asarray(mean, dtype=np.float32)
-        self.components = components
+        # C order: each cell's rows cast and summed the same way whatever made the array (a
+        # fit's components are Fortran-ordered; a transposed product rounds differently)
+        self.components = np.ascontiguousarray(components)
         self.scales = np.asarray(scales, dtype=np.float32)
         self.counts = np.asarray(counts, dtype=np.int64)
         self.table = table
         self.step = float(step)
         self.offset = float(offset)
-        # the components in passes of whole cells, about COMPONENT_CHUNK at a time: (cells,
-        # first component, last component, each cell's first component within the pass)
-        ends = np.cumsum(self.counts)
-        self._passes: list[tuple[np.ndarray, int, int, np.ndarray]] = []
-        cells = np.flatnonzero(self.counts > 0)
-        i = 0
-        while i < cells.size:
-            first = int(ends[cells[i]] - self.counts[cells[i]])
-            j = i + 1
-            while j < cells.size and ends[cells[j]] - first <= COMPONENT_CHUNK:
-                j += 1
-            group = cells[i:j]
-            starts = (ends[group] - self.counts[group] - first).astype(np.int64)
-            self._passes.append((group, first, int(ends[group[-1]]), starts))
-            i = j
+        self._ends = np.cumsum(self.counts)
 
     @property
     def n_components(self) -> int:
@@ -768,20 +916,45 @@ class DepthEigenspace:
         return cls(cell, shape, mean, comps, scales, counts, table, record["depth_step"],
                    record["depth_offset_mm"])
 
-    def reconstruct(self, view: int) -> np.ndarray:
+    def reconstruct(self, view: int, cells: np.ndarray | None = None) -> np.ndarray:
         """Depth map (h, w) float32 in mm along the rays, of training view ``view``.
 
-        The int8 components are scaled to float32 a pass of whole cells at a time
-        (`COMPONENT_CHUNK`), never all at once."""
+        ``cells`` (bool, one per cell, optional): only these cells are reconstructed, the
+        others hold their mean (a cache miss needs the cells under the view's object only,
+        `needed_cells`). Each cell is one vector-matrix product of its components, scaled
+        to float32 one cell at a time (at most ``cell ** 4`` values), never all at once."""
         y = self.table[view].astype(np.float32) * np.float32(self.step)
         coef = self.scales * y
-        cells = self.mean.copy()
-        for group, a, b, starts in self._passes:
-            w = self.components[a:b].astype(np.float32)
-            w *= coef[a:b, None]
-            cells[group] += np.add.reduceat(w, starts, axis=0)
-        full = merge_cells(cells, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
+        out = self.mean.astype(np.float32)
+        todo = self.counts > 0
+        if cells is not None:
+            todo &= cells
+        for c in np.flatnonzero(todo):
+            a, b = int(self._ends[c] - self.counts[c]), int(self._ends[c])
+            out[c] += coef[a:b] @ self.components[a:b].astype(np.float32)
+        full = merge_cells(out, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
         return full + np.float32(self.offset)
+
+    def needed_cells(self, obj: np.ndarray) -> np.ndarray:
+        """The cells (bool, one each) whose depth the full-resolution object pixels ``obj``
+        (bool (2h, 2w)) need through `upsample2_at`: each pixel's half-resolution pixel and
+        its neighbours (the bilinear taps reach one pixel)."""
+        hh, hw = self.shape
+        need = np.zeros(self.padded, bool)
+        occ = need[:hh, :hw]
+        np.logical_or(obj[0::2, 0::2], obj[1::2, 0::2], out=occ)
+        occ |= obj[0::2, 1::2]
+        occ |= obj[1::2, 1::2]
+        rows = need.copy()
+        rows[1:] |= need[:-1]
+        rows[:-1] |= need[1:]
+        np.copyto(need, rows)
+        need[:, 1:] |= rows[:, :-1]
+        need[:, :-1] |= rows[:, 1:]
+        cy, cx = self.padded[0] // self.cell, self.padded[1] // self.cell
+        # any over each cell: the rows of a cell, then its columns (contiguous reductions)
+        per_row = need.reshape(cy * self.cell, cx, self.cell).any(axis=2)
+        return per_row.reshape(cy, self.cell, cx).any(axis=1).reshape(-1)
 
 
 def _describe(a: np.ndarray) -> str:
@@ -847,14 +1020,33 @@ class ViewSynthesizer:
         # (h, w, 3) uint8 costs as much as the reconstruction)
         top = np.maximum(colour[..., 0], colour[..., 1])
         np.maximum(top, colour[..., 2], out=top)
-        src = np.flatnonzero(top > OBJECT_LEVEL).astype(np.int32)
+        obj = top > OBJECT_LEVEL
         del top
-        depth = upsample2_at(self.depth.reconstruct(view), src, self.warper.width)
-        cloud = self.warper.unproject_at(colour, depth, src, packed=True)
+        src = np.flatnonzero(obj).astype(np.int32)
+        cells = self.depth.needed_cells(obj)
+        del obj
+        cloud = self.warper.cloud_at(colour, self.depth.reconstruct(view, cells), src)
         self._cache[view] = cloud
         while len(self._cache) > self.cache_views:
             self._cache.popitem(last=False)
         return cloud
+
+    def neighbours(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """The training views a frame of this view warps and their weights (> 0): the
+        interpolator's neighbours with positive weight, reweighted by `row_weights`.
+
+        Returns
+        -------
+        views : ndarray (m,) int64
+        weights : ndarray (m,) float64
+        """
+        idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
+        idx = np.asarray(idx).ravel().astype(np.int64)
+        wts = np.asarray(wts, dtype=np.float64).ravel()
+        used = wts > 0
+        idx, wts = idx[used], row_weights(self.theta[idx[used]], wts[used])
+        used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
+        return idx[used], wts[used]
 
     def frame(self, phi_deg: float, theta_deg: float,
               cancel: Callable[[], bool] | None = None) -> np.ndarray:
@@ -864,11 +1056,7 @@ class ViewSynthesizer:
         neighbour missing from the cache is made (a neighbour made is kept: the next view
         most likely needs it) and inside the warp (`forward_warp`); True raises
         `WarpCancelled`."""
-        idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
-        idx = np.asarray(idx).ravel().astype(np.int64)
-        wts = np.asarray(wts, dtype=np.float64).ravel()
-        used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
-        idx, wts = idx[used], wts[used]
+        idx, wts = self.neighbours(phi_deg, theta_deg)
         views = [int(i) for i in idx]
         self._make_room(views)
         clouds = []

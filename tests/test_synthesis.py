@@ -185,8 +185,7 @@ def test_the_view_cache_keeps_a_frames_neighbours_and_evicts_only_others(depth_m
     for step in range(60):  # a drag that turns back and forth across grid lines
         view = ((view[0] + rng.uniform(-12.0, 16.0)) % 360.0,
                 float(np.clip(view[1] + rng.uniform(-8.0, 9.0), -75.0, 75.0)))
-        idx, w = synth.standalone.interpolator.weights(*view)
-        need = {int(i) for i, x in zip(np.ravel(idx), np.ravel(w)) if x > 0}
+        need = {int(i) for i in synth.neighbours(*view)[0]}
         cached = set(synth._cache)
         misses = synth.misses
         synth.frame(*view)
@@ -196,17 +195,54 @@ def test_the_view_cache_keeps_a_frames_neighbours_and_evicts_only_others(depth_m
     assert len(seen) > 2 * CACHE_VIEWS  # the drag crossed several grid cells
 
 
-def test_depth_reconstruction_in_passes_of_whole_cells_is_the_one_pass_result(depth_model,
-                                                                               monkeypatch):
-    from device_runtime import synthesis
+def test_depth_reconstruction_is_the_eigenspace_sum_and_only_the_cells_asked(depth_model):
+    """Each depth cell is its mean plus its components times their scores (float64 here),
+    and a miss' reconstruction of the cells under the object only is the full one there."""
+    from device_runtime.synthesis import merge_cells
 
     image = read_image(depth_model, key=KEY)
-    whole = synthesis.DepthEigenspace.from_image(image)
-    monkeypatch.setattr(synthesis, "COMPONENT_CHUNK", 3)
-    passes = synthesis.DepthEigenspace.from_image(read_image(depth_model, key=KEY))
-    assert len(passes._passes) > 3 * len(whole._passes)
+    eig = synthesis_depth(image)
+    ends = np.cumsum(eig.counts)
     for view in (0, 33, 101):
-        np.testing.assert_array_equal(passes.reconstruct(view), whole.reconstruct(view))
+        coef = eig.scales.astype(np.float64) * eig.table[view] * eig.step
+        cells = eig.mean.astype(np.float64)
+        for c in range(eig.counts.size):
+            a, b = ends[c] - eig.counts[c], ends[c]
+            cells[c] += coef[a:b] @ eig.components[a:b].astype(np.float64)
+        want = merge_cells(cells, eig.cell, eig.padded)[:eig.shape[0], :eig.shape[1]]
+        full = eig.reconstruct(view)
+        np.testing.assert_allclose(full, want + eig.offset, rtol=0, atol=1e-3)
+        some = np.zeros(eig.counts.size, bool)
+        some[::3] = True
+        part = eig.reconstruct(view, some)
+        cell_of = merge_cells(np.repeat(np.arange(eig.counts.size)[:, None], eig.cell ** 2, 1),
+                              eig.cell, eig.padded)[:eig.shape[0], :eig.shape[1]]
+        np.testing.assert_array_equal(part[some[cell_of]], full[some[cell_of]])
+        assert not np.array_equal(part, full)  # the others were not reconstructed
+
+
+def test_the_cells_a_miss_needs_cover_every_depth_the_upsampling_reads(depth_model):
+    from device_runtime.synthesis import upsample2, upsample2_at
+
+    image = read_image(depth_model, key=KEY)
+    eig = synthesis_depth(image)
+    h, w = image.image_shape
+    rng = np.random.default_rng(5)
+    obj = np.zeros((h, w), bool)
+    obj[rng.integers(0, h, 12), rng.integers(0, w, 12)] = True
+    obj[h // 3:h // 2, w // 4:w // 3] = True
+    need = eig.needed_cells(obj)
+    assert 0 < need.sum() < need.size
+    src = np.flatnonzero(obj)
+    for view in (4, 77):
+        np.testing.assert_array_equal(upsample2_at(eig.reconstruct(view, need), src, w),
+                                      upsample2(eig.reconstruct(view)).reshape(-1)[src])
+
+
+def synthesis_depth(image):
+    from device_runtime.synthesis import DepthEigenspace
+
+    return DepthEigenspace.from_image(image)
 
 
 def test_a_standalone_device_warps_with_the_displays_reconstructor(depth_model):
