@@ -214,8 +214,9 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     device that predicts warps its own frames while the host's are on their way (both
     share the image's one standalone table, a section). Per cached view: the object
     pixels' packed points and uint8 colours (9 bytes per pixel at most); on a miss, a
-    view's indices, depths and masks and one depth cell's components as float32; per frame, the splats' target pixels of 4 views (4 bytes each, all
-    pixels at most: the reused `Warper.splats`), one view's projection temporaries, the
+    view's indices, depths and masks and one depth cell's components as float32; per
+    frame, the splats' target pixels of 4 views (4 bytes each, all pixels at most: the
+    reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
     planes, and the warped frame on show (its own array). A predicting device's worker
     also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`), counted
