@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
@@ -610,49 +611,52 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         zmax += tol
         at[_forward(m, b, pts) > zmax] = 0
         del zmax
-    # from here on the rectangle the splats landed in, 3 pixels to spare on every side
+    # from here on the band of rows the splats landed in, 3 rows to spare above and below
+    # (what the filter and hole filling reach): whole rows, so every plane of it is one
+    # contiguous run of the grid (a rectangle's rows are strided: 4x slower per pixel)
     r0, r1 = max(0, int(y0) - 3), min(h + 2, int(y1) + 4)
-    c0, c1 = max(0, int(x0) - 3), min(w2, int(x1) + 4)
-    region = (slice(r0, r1), slice(c0, c1))
-    cov = covered[region]
-    np.isfinite(zgrid[region], out=cov)
-    weight = zgrid  # the z-buffer is done with: it accumulates the blend weights now
-    weight[region] = 0.0
-    weight.reshape(-1)[0] = 0.0  # where the hidden splats go, whether in the region or not
-    flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
+    band = slice(r0 * w2, r1 * w2)
+    rows = r1 - r0
+    zflat = zgrid.reshape(-1)
+    cov = covered.reshape(-1)[band]
+    np.isfinite(zflat[band], out=cov)
+    flat_w = zflat  # the z-buffer is done with: it accumulates the blend weights now
+    flat_w[band] = 0.0
+    flat_w[0] = 0.0  # where the hidden splats go, whether in the band or not
+    flat_acc = acc.reshape(3, -1)
     for s, _, col, _, _, wv in pieces:  # pass 3: the blend
         _give_up_if(cancel)
         at = idx[s]
         np.add.at(flat_w, at, wv)
         for c in range(3):
             np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
-    wreg, planes = weight[region], acc[(slice(None), *region)]
-    # the grid's border (clamped strays, hidden splats) emptied where the rectangle meets it
-    for a_ in (cov, wreg, *planes):
+    wb, pb = flat_w[band], flat_acc[:, band]
+    # the grid's border (clamped strays, hidden splats) emptied: its first and last columns
+    # in every row of the band, its first and last rows where the band meets them
+    for a_ in (cov, wb, *pb):
+        a2 = a_.reshape(rows, w2)
+        a2[:, 0] = 0
+        a2[:, -1] = 0
         if r0 == 0:
-            a_[0] = 0
+            a2[0] = 0
         if r1 == h + 2:
-            a_[-1] = 0
-        if c0 == 0:
-            a_[:, 0] = 0
-        if c1 == w2:
-            a_[:, -1] = 0
+            a2[-1] = 0
     _give_up_if(cancel)
     if SPLAT_TENT:
-        _tent(planes)
-        _tent(wreg[None])
-    np.divide(f32(1.0), wreg, out=wreg, where=cov)
-    np.multiply(wreg, cov, out=wreg)  # 1 / weight where covered, else 0
-    planes *= wreg
-    _fill_holes_padded(acc, covered, region)
-    planes += f32(0.5)
-    np.clip(planes, 0, 255, out=planes)
-    # the frame's pixels inside the rectangle (padded row y is the frame's row y - 1)
-    fr0, fr1, fc0, fc1 = max(r0, 1), min(r1, h + 1), max(c0, 1), min(c1, wd + 1)
-    out = frame[fr0 - 1:fr1 - 1, fc0 - 1:fc1 - 1]
+        _tent(pb, w2)
+        _tent(wb[None], w2)
+    np.divide(f32(1.0), wb, out=wb, where=cov)
+    np.multiply(wb, cov, out=wb)  # 1 / weight where covered, else 0
+    pb *= wb
+    _fill_holes_padded(acc, covered, (slice(r0, r1), slice(0, w2)))
+    pb += f32(0.5)
+    np.clip(pb, 0, 255, out=pb)
+    # the frame's rows inside the band (padded row y is the frame's row y - 1)
+    fr0, fr1 = max(r0, 1), min(r1, h + 1)
+    out = frame[fr0 - 1:fr1 - 1]
     for c in range(3):
-        out[..., c] = planes[c, fr0 - r0:fr1 - r0, fc0 - c0:fc1 - c0]
-    w.dirty = (r0, r1, c0, c1)
+        out[..., c] = acc[c, fr0:fr1, 1:-1]
+    w.dirty = (r0, r1, 0, w2)
     return frame
 
 
@@ -670,25 +674,24 @@ def _forward(m: np.ndarray, b: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return z
 
 
-def _tent(a: np.ndarray) -> np.ndarray:
-    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32, in
-    place, one plane at a time with one plane of scratch.
+def _tent(a: np.ndarray, width: int) -> np.ndarray:
+    """Separable [1, 6, 1] filter of rows ``width`` long, times 64 (zero outside), float32,
+    in place: ``a`` (planes, n) holds each plane's rows end to end (contiguous), with a
+    zero first and last column (the grid's border), so a shift by one pixel along the run
+    never carries a value from one row into the next. One plane of scratch.
 
-    Each pass scales its input by 1/8 in place (exact: a power of two) and takes 6 of it for
-    the centre (one rounding, as 3/4 of the unscaled input), so the sums are those of
-    ``0.75 * p + 0.125 * p[-1] + 0.125 * p[+1]`` without a second temporary."""
-    lo, six = np.float32(0.125), np.float32(6.0)
+    64 times the [1/8, 3/4, 1/8] filter exactly (a power of two), which the blend's
+    normalisation cancels bit for bit: weights and weighted colours are both filtered."""
+    six = np.float32(6.0)
     t = np.empty(a.shape[1:], a.dtype)
     for k in range(a.shape[0]):
         p = a[k]
-        p *= lo
         np.multiply(p, six, out=t)
-        t[1:] += p[:-1]
-        t[:-1] += p[1:]
-        t *= lo
+        t[width:] += p[:-width]
+        t[:-width] += p[width:]
         np.multiply(t, six, out=p)
-        p[:, 1:] += t[:, :-1]
-        p[:, :-1] += t[:, 1:]
+        p[1:] += t[:-1]
+        p[:-1] += t[1:]
     return a
 
 
@@ -1092,11 +1095,20 @@ class WarpWorker:
     reconstruction) and asks for the view's warp here; its display thread keeps taking input
     and host frames while the warp is made (numpy releases the GIL in its array work, and a
     warp costs several blends), and shows the warp only if its view is still the one on show
-    and no host frame for it came first. A request replaces one not started yet, and gives
-    up the warp in flight at its next check (`ViewSynthesizer.frame`'s ``cancel``: a
-    neighbour already made stays cached), so while the view keeps moving faster than a warp
-    takes the worker does not spend a core on warps nobody will see; at most one warp is
-    in flight.
+    and no host frame for it came first. At most one warp is in flight.
+
+    Never a warp whose view will be gone before it is shown: while views are requested
+    faster than a warp takes (a fast drag, a 60 Hz orbit), a requested view waits before
+    its warp starts (`hold_s`: two recent request intervals, at most a warp's time); a
+    newer request in that time replaces it unstarted (``skipped``), and the warp starts
+    once the view rests. A view requested while a warp is in flight gives that warp up at
+    its next check (`ViewSynthesizer.frame`'s ``cancel``: a neighbour already made stays
+    cached). Where warps take less than the request interval every view's warp starts at
+    once, as before.
+
+    Any caller can always get the frame of a view: ``take(view, timeout_s)`` with a timeout
+    asks for the view if it is neither asked nor made, starts it at once (no hold) and
+    waits for it; the frame is `ViewSynthesizer.frame`'s, bit for bit.
 
     Parameters
     ----------
@@ -1105,34 +1117,86 @@ class WarpWorker:
 
     Attributes
     ----------
-    made, dropped, cancelled, errors : int
+    made, dropped, cancelled, skipped, errors : int
         Warps made; made but superseded by a newer request before anyone took them; given
-        up for a newer request; failed (counted, never raised: the blend stays on show).
+        up for a newer request; requests replaced before their warp started; failed
+        (counted, never raised: the blend stays on show).
+    warp_s : float or None
+        The recent time a warp takes (exponential average of the warps made, raised by a
+        warp given up later than that); None until the first.
     """
 
-    def __init__(self, synthesis: ViewSynthesizer) -> None:
+    #: Request intervals longer than this are a view at rest, not a drag.
+    REST_S = 0.25
+    #: Weight of the newest sample in the averages of warp time and request interval.
+    SMOOTHING = 0.3
+
+    def __init__(self, synthesis: Any) -> None:
         self.synthesis = synthesis
         self._cond = threading.Condition()
         self._pending: tuple[float, float] | None = None
+        self._pending_t = 0.0
+        self._urgent = False  # someone waits for the pending view: start it at once
         self._result: tuple[tuple[float, float], np.ndarray] | None = None
         self._current: tuple[float, float] | None = None  # the view being warped
         self._closed = False
-        self.made = self.dropped = self.cancelled = self.errors = 0
+        self._last_request_t: float | None = None
+        self.interval_s: float | None = None  # recent request interval (None: at rest)
+        self.warp_s: float | None = None
+        self.made = self.dropped = self.cancelled = self.skipped = self.errors = 0
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
         self._thread.start()
 
+    @staticmethod
+    def hold_for(warp_s: float | None, interval_s: float | None) -> float:
+        """How long a requested view waits before its warp starts (`hold_s`): 0 when warps
+        are known to take no longer than the interval between requests (or either is
+        unknown: a view at rest, the first warp), else two intervals (a request that did
+        not come: the drag stopped or slowed; one late request is not a stop), at most one
+        warp's time."""
+        if warp_s is None or interval_s is None or warp_s <= interval_s:
+            return 0.0
+        return min(2.0 * interval_s, warp_s)
+
+    def hold_s(self) -> float:
+        """The hold of a view requested now (`hold_for` of the current averages)."""
+        return self.hold_for(self.warp_s, self.interval_s)
+
     def request(self, view: tuple[float, float]) -> None:
         """Warp ``view`` next (any thread); an older result not taken is forgotten."""
+        now = time.monotonic()
         with self._cond:
-            self._pending = (float(view[0]), float(view[1]))
+            view = (float(view[0]), float(view[1]))
+            if self._last_request_t is not None:
+                gap = now - self._last_request_t
+                if gap > self.REST_S:
+                    self.interval_s = None
+                else:
+                    self.interval_s = gap if self.interval_s is None else (
+                        self.interval_s + self.SMOOTHING * (gap - self.interval_s))
+            self._last_request_t = now
+            if self._pending is not None and self._pending != view:
+                self.skipped += 1
+                self._urgent = False
+            self._pending, self._pending_t = view, now
             self._result = None
             self._cond.notify_all()
 
     def take(self, view: tuple[float, float], timeout_s: float = 0.0) -> np.ndarray | None:
-        """The warp of ``view`` if it is made (waiting up to ``timeout_s``), else None."""
+        """The warp of ``view`` if it is made (waiting up to ``timeout_s``), else None.
+
+        With a timeout, a view neither made, in flight nor asked is asked now, and its warp
+        starts at once (no hold): the caller waits for it."""
         want = (float(view[0]), float(view[1]))
         with self._cond:
             if timeout_s > 0:
+                made = self._result is not None and self._result[0] == want
+                if not made and self._current != want and self._pending != want:
+                    self._pending, self._pending_t = want, time.monotonic()
+                    self._result = None
+                if self._pending == want:
+                    self._urgent = True
+                    self._cond.notify_all()
                 self._cond.wait_for(lambda: self._closed or (
                     self._result is not None and self._result[0] == want), timeout_s)
             if self._result is None or self._result[0] != want:
@@ -1154,27 +1218,52 @@ class WarpWorker:
         pending = self._pending
         return self._closed or (pending is not None and pending != self._current)
 
+    def _next_view(self) -> tuple[float, float] | None:
+        """The view to warp next, once it has waited its hold (under the lock); None:
+        closing."""
+        while True:
+            self._cond.wait_for(lambda: self._pending is not None or self._closed)
+            if self._closed:
+                return None
+            wait = self._pending_t + self.hold_s() - time.monotonic()
+            if self._urgent or wait <= 0.0:
+                view, self._pending, self._urgent = self._pending, None, False
+                return view
+            self._cond.wait(wait)  # a newer request, a waiting caller, or the hold is over
+
     def _run(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._pending is not None or self._closed)
-                if self._closed:
+                view = self._next_view()
+                if view is None:
                     return
-                view, self._pending = self._pending, None
                 self._current = view
+            t0 = time.monotonic()
             try:
                 frame = self.synthesis.frame(*view, cancel=self._superseded)
             except WarpCancelled:
                 with self._cond:
                     self.cancelled += 1
+                    spent = time.monotonic() - t0
+                    if self.warp_s is None or spent > self.warp_s:
+                        self.warp_s = spent  # a warp takes at least this long
+                    self._current = None
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1
+                    self._current = None
+                    self._cond.notify_all()
                 continue
+            spent = time.monotonic() - t0
             with self._cond:
                 self.made += 1
+                self.warp_s = spent if self.warp_s is None else (
+                    self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                self._current = None
                 if self._pending == view or self._pending is None:
+                    if self._pending == view:
+                        self._pending, self._urgent = None, False
                     self._result = (view, frame)
                     self._cond.notify_all()
                 else:

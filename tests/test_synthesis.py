@@ -496,6 +496,81 @@ def test_a_warp_superseded_by_a_newer_view_is_given_up(depth_model):
         synth.frame(123.0, 17.0, cancel=lambda: True)
 
 
+def test_the_warp_worker_holds_a_view_only_while_views_come_faster_than_warps():
+    from device_runtime.synthesis import WarpWorker
+
+    hold = WarpWorker.hold_for
+    assert hold(None, 0.016) == 0.0 and hold(0.04, None) == 0.0  # first warp; at rest
+    assert hold(0.010, 0.016) == 0.0  # a warp fits between two requests: start at once
+    assert hold(0.040, 0.016) == pytest.approx(0.032)  # 2 intervals: has the drag stopped?
+    assert hold(0.020, 0.016) == pytest.approx(0.020)  # never longer than a warp
+
+
+class _Sleepy:
+    """A synthesizer whose warps take ``work_s`` (checking ``cancel``) and record what
+    they were started for; the frame's first pixel holds the view's phi."""
+
+    def __init__(self, work_s):
+        self.work_s, self.started = work_s, []
+
+    def frame(self, phi, theta, cancel=None):
+        from device_runtime.synthesis import WarpCancelled
+
+        self.started.append((phi, theta))
+        end = time.monotonic() + self.work_s
+        while time.monotonic() < end:
+            if cancel is not None and cancel():
+                raise WarpCancelled
+            time.sleep(0.001)  # the work being simulated, not a wait for a race
+        return np.full((2, 2, 3), int(phi) % 256, np.uint8)
+
+
+def test_a_fast_drag_starts_no_warps_nobody_would_see_and_the_last_view_is_made():
+    """Views asked every 2 ms of warps that take 60 ms: after the first warps tell the
+    worker how long a warp takes, the requests are replaced before theirs start; once the
+    drag stops, the last view's warp is made."""
+    from device_runtime.synthesis import WarpWorker
+
+    synth = _Sleepy(0.06)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        assert worker.take((0.0, 10.0), timeout_s=10.0) is not None  # learns a warp's time
+        views = [(float(i), 10.0) for i in range(1, 301)]
+        for view in views:
+            worker.request(view)
+            time.sleep(0.002)  # the drag's pace (the input being simulated)
+        got = worker.take(views[-1], timeout_s=10.0)
+        assert got is not None and got[0, 0, 0] == 300 % 256
+        started = len(synth.started) - 1
+        # the old worker started every one (each given up at the next request)
+        assert worker.skipped > 200 and started < 100, (worker.skipped, started)
+        assert synth.started[-1] == views[-1]
+    finally:
+        worker.close()
+
+
+def test_take_with_a_timeout_gets_a_held_or_unasked_view_at_once():
+    """A caller that needs a view's frame (a host correction for it arrived) does not wait
+    out the hold, and gets a view nobody asked for too."""
+    from device_runtime.synthesis import WarpWorker
+
+    synth = _Sleepy(0.0)
+    worker = WarpWorker(synth)
+    try:
+        worker.warp_s, worker.interval_s = 100.0, 60.0  # a hold of 90 s
+        worker._last_request_t = time.monotonic()
+        worker.request((7.0, 1.0))
+        assert worker.hold_s() > 60.0
+        got = worker.take((7.0, 1.0), timeout_s=30.0)
+        assert got is not None and got[0, 0, 0] == 7
+        got = worker.take((9.0, 2.0), timeout_s=30.0)  # never requested
+        assert got is not None and got[0, 0, 0] == 9
+        assert synth.started == [(7.0, 1.0), (9.0, 2.0)]
+    finally:
+        worker.close()
+
+
 def test_served_session_warps_before_the_hosts_correction_arrives(depth_model, tmp_path):
     """A real ``serve --scores predict`` session over a paced 115200-baud mem:// line with
     an image fitted with --depth: a new view shows the score blend, then the warp
