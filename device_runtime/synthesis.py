@@ -572,35 +572,42 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     x0, x1, y0, y1 = w2, 0.0, h + 2.0, 0.0  # the rectangle the splats land in
     for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
         _give_up_if(cancel)
-        z = _forward(m, b, pts)
-        # einsum, not matmul: (2, 3) @ (3, n) float32 through BLAS is ~50x slower here
-        cxy = np.einsum("ij,jk->ik", m[:2], pts)
-        cxy += b[:2, None]
-        behind = z <= f32(1e-3)
-        inv = np.maximum(z, f32(1e-3))
-        np.reciprocal(inv, out=inv)
-        cx, cy = cxy[0], cxy[1]
+        # einsum, not matmul: (3, 3) @ (3, n) float32 through BLAS is ~50x slower here
+        xyz = np.einsum("ij,jk->ik", m, pts)
+        xyz += b[:, None]
+        cx, cy, z = xyz
+        if float(z.min()) > 1e-3:
+            inv = np.reciprocal(z)
+            behind = None
+        else:  # points behind the camera land on the border (pixel 0), emptied below
+            behind = z <= f32(1e-3)
+            inv = np.maximum(z, f32(1e-3))
+            np.reciprocal(inv, out=inv)
         cx *= inv
         cx += f32(ox)
         cy *= inv
         cy += f32(oy)
-        if behind.any():
+        del inv
+        if behind is not None:
             cx[behind] = 0.0
             cy[behind] = 0.0
-        np.clip(cx, 0, w2 - 1, out=cx)
-        np.clip(cy, 0, h + 1, out=cy)
+        lo_x, hi_x, lo_y, hi_y = (float(cx.min()), float(cx.max()), float(cy.min()),
+                                  float(cy.max()))
+        if lo_x < 0.0 or hi_x > w2 - 1:  # strays beyond the grid land on its border
+            np.clip(cx, 0, w2 - 1, out=cx)
+        if lo_y < 0.0 or hi_y > h + 1:
+            np.clip(cy, 0, h + 1, out=cy)
+        x0, x1 = min(x0, max(lo_x, 0.0)), max(x1, min(hi_x, w2 - 1.0))
+        y0, y1 = min(y0, max(lo_y, 0.0)), max(y1, min(hi_y, h + 1.0))
         # the pixel the point lands in: truncation of values >= 0, row * w2 + col in float32
         # (exact: the grid has fewer than MAX_WARP_PIXELS, check_synthesis), one cast
         np.trunc(cx, out=cx)
         np.trunc(cy, out=cy)
-        x0, x1 = min(x0, float(cx.min())), max(x1, float(cx.max()))
-        y0, y1 = min(y0, float(cy.min())), max(y1, float(cy.max()))
         cy *= f32(w2)
         cx += cy
         idx[s] = cx
-        del cxy, cx, cy, inv, behind
         np.minimum.at(zbuf, idx[s], z)
-        del z
+        del xyz, cx, cy, z
     # pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
     # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
     tol = f32(w.tol_mm)
@@ -648,9 +655,10 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     np.divide(f32(1.0), wb, out=wb, where=cov)
     np.multiply(wb, cov, out=wb)  # 1 / weight where covered, else 0
     pb *= wb
-    _fill_holes_padded(acc, covered, (slice(r0, r1), slice(0, w2)))
+    _fill_holes_padded(acc, covered, slice(r0, r1))
+    # rounded by truncation: every value is a mean of colours in 0..255 with positive
+    # weights (to float32's precision), so none leaves 0..255.5 and the cast needs no clip
     pb += f32(0.5)
-    np.clip(pb, 0, 255, out=pb)
     # the frame's rows inside the band (padded row y is the frame's row y - 1)
     fr0, fr1 = max(r0, 1), min(r1, h + 1)
     out = frame[fr0 - 1:fr1 - 1]
@@ -712,52 +720,52 @@ def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
 
 
 def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray,
-                       region: tuple[slice, slice] | None = None) -> np.ndarray:
+                       rows: slice | None = None) -> np.ndarray:
     """`fill_holes` on planar channels (c, h + 2, w + 2) float32 with an empty border and 0
     at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place; both
-    C-contiguous. ``region`` (rows, columns; its outermost pixels are never filled): the
-    rectangle to fill within, the grid's inner pixels by default.
+    C-contiguous. ``rows``: the band of rows to fill within (its first and last rows are
+    never filled), all of them by default.
 
-    The neighbour counts are uint8 (at most 8): a quarter of float32's temporaries."""
+    The band's rows end to end are one run of the grid, so the neighbour counts are sums
+    of the run shifted by a pixel and by a row (uint8, at most 8): a shift by one pixel
+    carries the last column of a row into the next row's first, which is the empty border
+    (and border pixels are never filled)."""
     c, hp, wp = planes.shape
+    r0, r1 = (0, hp) if rows is None else (rows.start, rows.stop)
+    n = (r1 - r0) * wp
+    if r1 - r0 < 3:
+        return planes
     flat = planes.reshape(c, -1)
-    rows, cols = region if region is not None else (slice(0, hp), slice(0, wp))
-    r0, c0 = rows.start, cols.start
-    cov = covered[rows, cols]
-    rh, rw = cov.shape
+    cov = covered.reshape(-1)[r0 * wp:r1 * wp]
+    c8 = cov.view(np.uint8)
+    inner = slice(wp + 1, n - wp - 1)  # the band's pixel k = j + wp + 1 for count[j]
     offsets = [dy * wp + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    count = np.zeros((rh, rw), np.uint8)
     for _ in range(HOLE_PASSES):
-        count[1:-1, 1:-1] = _box8(cov.view(np.uint8), rh - 2, rw - 2)
+        h3 = c8[:-2] + c8[1:-1]
+        h3 += c8[2:]
+        count = h3[:-2 * wp] + h3[wp:-wp]
+        count += h3[2 * wp:]
+        del h3
+        count -= c8[inner]  # the 8 neighbours
         fill = count >= HOLE_NEIGHBOURS
-        fill &= ~cov
+        np.greater(fill, cov[inner], out=fill)  # and not covered
+        fill[wp - 1::wp] = False  # the grid's first column
+        fill[wp - 2::wp] = False  # and its last
         at = np.flatnonzero(fill)
         del fill
         if at.size == 0:
             break
-        n = count.reshape(-1)[at].astype(np.float32)
-        # the region's flat index -> the grid's
-        if rw != wp:
-            at += (at // rw) * (wp - rw)
-        at += r0 * wp + c0
+        k = count[at].astype(np.float32)
+        at += r0 * wp + wp + 1  # the grid's flat index
         # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
-        acc = flat[:, at + offsets[0]]
+        acc = np.take(flat, at + offsets[0], axis=1)
         for off in offsets[1:]:
-            acc += flat[:, at + off]
-        acc *= np.float32(1.0) / n
-        flat[:, at] = acc
+            acc += np.take(flat, at + off, axis=1)
+        acc *= np.float32(1.0) / k
+        for p in range(c):
+            flat[p, at] = acc[p]
         covered.reshape(-1)[at] = True
     return planes
-
-
-def _box8(p: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Sum of the 8 neighbours of every pixel of the padded (h + 2, w + 2) ``p``."""
-    rows = p[:, :-2] + p[:, 1:-1]
-    rows += p[:, 2:]
-    out = rows[:-2] + rows[1:-1]
-    out += rows[2:]
-    out -= p[1:-1, 1:-1]
-    return out
 
 
 def upsample2(d: np.ndarray) -> np.ndarray:
