@@ -302,9 +302,9 @@ class Warper:
         self.tol_mm = float(z_tolerance_mm)
         self._splats: np.ndarray | None = None
         self._grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        #: The grid's rectangle (rows r0:r1, columns c0:c1) the last frame wrote, besides
-        #: pixel 0; None: clean.
-        self.dirty: tuple[int, int, int, int] | None = None
+        #: What the last frame wrote in the z-buffer: its rectangle (rows r0:r1, columns
+        #: c0:c1) and its first ``run`` pixels, (r0, r1, c0, c1, run); None: clean.
+        self.dirty: tuple[int, int, int, int, int] | None = None
 
     def splats(self, total: int) -> np.ndarray:
         """The target pixel of each of ``total`` splats (int32), reused between frames
@@ -315,26 +315,25 @@ class Warper:
         return self._splats[:total]
 
     def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The padded grid's z-buffer (float32; then the blend weights), colour accumulators
-        (3, h + 2, w + 2) float32 and coverage (bool), made once, reused by every frame.
+        """The warp's working set, made once, reused by every frame: the padded grid's
+        z-buffer (h + 2, w + 2) float32, returned clean (inf), and scratch for the compact
+        grid of the splats' rectangle: three colour accumulators (one flat float32 run of
+        3 x (grid + 1)) and coverage (bool, grid size).
 
-        Returned clean (z-buffer inf, accumulators 0, coverage False): a frame dirties only
-        the rectangle its splats land in and pixel 0 (`dirty`, set by `forward_warp`), and
-        only that is cleaned here."""
+        A frame dirties the z-buffer's rectangle its splats land in and the z-buffer's
+        first pixels, where it accumulates the blend weights (`dirty`, set by
+        `forward_warp`); only those are cleaned here."""
+        shape = (self.height + 2, self.width + 2)
         if self._grid is None:
-            shape = (self.height + 2, self.width + 2)
+            size = shape[0] * shape[1]
             self._grid = (np.full(shape, np.inf, np.float32),
-                          np.zeros((3, *shape), np.float32), np.zeros(shape, bool))
+                          np.empty(3 * (size + 1), np.float32), np.empty(size, bool))
             self.dirty = None
-        zgrid, acc, covered = self._grid
+        zgrid = self._grid[0]
         if self.dirty is not None:
-            r0, r1, c0, c1 = self.dirty
+            r0, r1, c0, c1, run = self.dirty
             zgrid[r0:r1, c0:c1] = np.inf
-            acc[:, r0:r1, c0:c1] = 0.0
-            covered[r0:r1, c0:c1] = False
-            zgrid[0, 0] = np.inf
-            acc[:, 0, 0] = 0.0
-            covered[0, 0] = False
+            zgrid.reshape(-1)[:run] = np.inf
             self.dirty = None
         return self._grid
 
@@ -552,8 +551,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     scale = np.diag([sx, -sx, 1.0])
     ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
     idx = w.splats(sum(u[0].shape[1] for u in used))
-    zgrid, acc, covered = w.grid()  # clean: inf, 0, False
-    w.dirty = (0, h + 2, 0, w2)  # until this frame ends (a cancelled warp leaves it all)
+    zgrid, acc, cover = w.grid()  # the z-buffer clean (inf); scratch
+    w.dirty = (0, h + 2, 0, w2, zgrid.size)  # until pass 2 ends (a cancelled warp: all)
     zbuf = zgrid.reshape(-1)
     pieces = []  # (slice of idx, the points and colours there, the view's m, b and weight)
     o = 0
@@ -608,63 +607,75 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         idx[s] = cx
         np.minimum.at(zbuf, idx[s], z)
         del xyz, cx, cy, z
+    # from here on the rectangle the splats landed in, 3 pixels to spare on every side (what
+    # the filter and hole filling reach), as a compact grid of its own: each plane one
+    # contiguous run (rows of a rectangle inside the grid are strided: 4x slower per pixel)
+    r0, r1 = max(0, int(y0) - 3), min(h + 2, int(y1) + 4)
+    c0, c1 = max(0, int(x0) - 3), min(w2, int(x1) + 4)
+    rh, rw = r1 - r0, c1 - c0
+    n = rh * rw
+    shift, base = w2 - rw, r0 * rw + c0
     # pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
-    # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
+    # the compact grid's spare last pixel (n) so the blend needs no per-splat weight; the
+    # others to their pixel in the compact grid
     tol = f32(w.tol_mm)
     for s, pts, _, m, b, _ in pieces:
         _give_up_if(cancel)
         at = idx[s]
         zmax = zbuf[at]
         zmax += tol
-        at[_forward(m, b, pts) > zmax] = 0
+        hidden = _forward(m, b, pts) > zmax
         del zmax
-    # from here on the band of rows the splats landed in, 3 rows to spare above and below
-    # (what the filter and hole filling reach): whole rows, so every plane of it is one
-    # contiguous run of the grid (a rectangle's rows are strided: 4x slower per pixel)
-    r0, r1 = max(0, int(y0) - 3), min(h + 2, int(y1) + 4)
-    band = slice(r0 * w2, r1 * w2)
-    rows = r1 - r0
-    zflat = zgrid.reshape(-1)
-    cov = covered.reshape(-1)[band]
-    np.isfinite(zflat[band], out=cov)
-    flat_w = zflat  # the z-buffer is done with: it accumulates the blend weights now
-    flat_w[band] = 0.0
-    flat_w[0] = 0.0  # where the hidden splats go, whether in the band or not
-    flat_acc = acc.reshape(3, -1)
+        if shift:
+            y = at // w2
+            y *= shift
+            at -= y
+            del y
+        at -= base
+        at[hidden] = n
+        del hidden
+    cov = cover[:n]
+    np.isfinite(zgrid[r0:r1, c0:c1], out=cov.reshape(rh, rw))
+    w.dirty = (r0, r1, c0, c1, n + 1)  # the z-buffer's run holds the weights now
+    flat_w = zbuf[:n + 1]  # the z-buffer is done with: it accumulates the blend weights
+    flat_w[...] = 0.0
+    flat_acc = acc[:3 * (n + 1)].reshape(3, n + 1)
+    flat_acc[...] = 0.0
     for s, _, col, _, _, wv in pieces:  # pass 3: the blend
         _give_up_if(cancel)
         at = idx[s]
         np.add.at(flat_w, at, wv)
         for c in range(3):
             np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
-    wb, pb = flat_w[band], flat_acc[:, band]
-    # the grid's border (clamped strays, hidden splats) emptied: its first and last columns
-    # in every row of the band, its first and last rows where the band meets them
+    wb, pb = flat_w[:n], flat_acc[:, :n]
+    # the grid's border (clamped strays) emptied where the rectangle meets it
     for a_ in (cov, wb, *pb):
-        a2 = a_.reshape(rows, w2)
-        a2[:, 0] = 0
-        a2[:, -1] = 0
+        a2 = a_.reshape(rh, rw)
         if r0 == 0:
             a2[0] = 0
         if r1 == h + 2:
             a2[-1] = 0
+        if c0 == 0:
+            a2[:, 0] = 0
+        if c1 == w2:
+            a2[:, -1] = 0
     _give_up_if(cancel)
     if SPLAT_TENT:
-        _tent(pb, w2)
-        _tent(wb[None], w2)
+        _tent(pb, rw)
+        _tent(wb[None], rw)
     np.divide(f32(1.0), wb, out=wb, where=cov)
     np.multiply(wb, cov, out=wb)  # 1 / weight where covered, else 0
     pb *= wb
-    _fill_holes_padded(acc, covered, slice(r0, r1))
+    _fill_holes_padded(flat_acc, cov, rw)
     # rounded by truncation: every value is a mean of colours in 0..255 with positive
     # weights (to float32's precision), so none leaves 0..255.5 and the cast needs no clip
     pb += f32(0.5)
-    # the frame's rows inside the band (padded row y is the frame's row y - 1)
-    fr0, fr1 = max(r0, 1), min(r1, h + 1)
-    out = frame[fr0 - 1:fr1 - 1]
+    # the frame's pixels inside the rectangle (padded pixel (y, x) is the frame's
+    # (y - 1, x - 1))
+    fr0, fr1, fc0, fc1 = max(r0, 1), min(r1, h + 1), max(c0, 1), min(c1, wd + 1)
+    out = frame[fr0 - 1:fr1 - 1, fc0 - 1:fc1 - 1]
     for c in range(3):
-        out[..., c] = acc[c, fr0:fr1, 1:-1]
-    w.dirty = (r0, r1, 0, w2)
+        out[..., c] = pb[c].reshape(rh, rw)[fr0 - r0:fr1 - r0, fc0 - c0:fc1 - c0]
     return frame
 
 
@@ -713,32 +724,27 @@ def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
     planes = np.zeros((frame.shape[2], h + 2, w + 2), np.float32)
     planes[:, 1:-1, 1:-1] = np.moveaxis(frame, 2, 0)
     planes *= cov
-    _fill_holes_padded(planes, cov)
+    _fill_holes_padded(planes.reshape(planes.shape[0], -1), cov.reshape(-1), w + 2)
     filled = cov[1:-1, 1:-1] & ~covered
     frame[filled] = np.moveaxis(planes[:, 1:-1, 1:-1], 0, 2)[filled]
     return frame
 
 
-def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray,
-                       rows: slice | None = None) -> np.ndarray:
-    """`fill_holes` on planar channels (c, h + 2, w + 2) float32 with an empty border and 0
-    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place; both
-    C-contiguous. ``rows``: the band of rows to fill within (its first and last rows are
-    never filled), all of them by default.
+def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray, width: int) -> np.ndarray:
+    """`fill_holes` on planar channels (c, >= n) float32 (C-contiguous; the pixels past n are
+    left alone) of a grid of n = ``covered.size`` pixels in rows ``width`` long whose first
+    and last rows and columns are empty and never filled, 0 at every uncovered pixel;
+    ``covered`` (n,) bool is updated. In place.
 
-    The band's rows end to end are one run of the grid, so the neighbour counts are sums
-    of the run shifted by a pixel and by a row (uint8, at most 8): a shift by one pixel
-    carries the last column of a row into the next row's first, which is the empty border
-    (and border pixels are never filled)."""
-    c, hp, wp = planes.shape
-    r0, r1 = (0, hp) if rows is None else (rows.start, rows.stop)
-    n = (r1 - r0) * wp
-    if r1 - r0 < 3:
+    The neighbour counts are sums of the run shifted by a pixel and by a row (uint8, at
+    most 8): a shift by one pixel carries the last column of a row into the next row's
+    first, which is empty."""
+    c, n = planes.shape[0], covered.size
+    wp = int(width)
+    if n < 3 * wp:
         return planes
-    flat = planes.reshape(c, -1)
-    cov = covered.reshape(-1)[r0 * wp:r1 * wp]
-    c8 = cov.view(np.uint8)
-    inner = slice(wp + 1, n - wp - 1)  # the band's pixel k = j + wp + 1 for count[j]
+    c8 = covered.view(np.uint8)
+    inner = slice(wp + 1, n - wp - 1)  # pixel k = j + wp + 1 for count[j]
     offsets = [dy * wp + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
     for _ in range(HOLE_PASSES):
         h3 = c8[:-2] + c8[1:-1]
@@ -748,23 +754,23 @@ def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray,
         del h3
         count -= c8[inner]  # the 8 neighbours
         fill = count >= HOLE_NEIGHBOURS
-        np.greater(fill, cov[inner], out=fill)  # and not covered
-        fill[wp - 1::wp] = False  # the grid's first column
-        fill[wp - 2::wp] = False  # and its last
+        np.greater(fill, covered[inner], out=fill)  # and not covered
+        fill[wp - 1::wp] = False  # the first column
+        fill[wp - 2::wp] = False  # and the last
         at = np.flatnonzero(fill)
         del fill
         if at.size == 0:
             break
         k = count[at].astype(np.float32)
-        at += r0 * wp + wp + 1  # the grid's flat index
+        at += wp + 1
         # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
-        acc = np.take(flat, at + offsets[0], axis=1)
+        acc = np.take(planes, at + offsets[0], axis=1)
         for off in offsets[1:]:
-            acc += np.take(flat, at + off, axis=1)
+            acc += np.take(planes, at + off, axis=1)
         acc *= np.float32(1.0) / k
         for p in range(c):
-            flat[p, at] = acc[p]
-        covered.reshape(-1)[at] = True
+            planes[p, at] = acc[p]
+        covered[at] = True
     return planes
 
 
