@@ -546,10 +546,10 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     frame = np.zeros((h, wd, 3), dtype=np.uint8)
     if not used:
         return frame
-    # target camera -> padded pixel coordinates: col + 1 = x / z * sx + ox, row + 1 = ...
+    # target camera -> padded pixel coordinates: col + 1 = x / z * sx + ox, row + 1 = ...,
+    # as one projective 3 x 3 (x' / z, y' / z are the padded column and row)
     sx = 0.5 * h / w.half
-    scale = np.diag([sx, -sx, 1.0])
-    ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
+    scale = np.array([[sx, 0.0, 0.5 * wd + 1.0], [0.0, -sx, 0.5 * h + 1.0], [0.0, 0.0, 1.0]])
     idx = w.splats(sum(u[0].shape[1] for u in used))
     zgrid, acc, cover = w.grid()  # the z-buffer clean (inf); scratch
     w.dirty = (0, h + 2, 0, w2, zgrid.size)  # until pass 2 ends (a cancelled warp: all)
@@ -576,17 +576,13 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         xyz += b[:, None]
         cx, cy, z = xyz
         if float(z.min()) > 1e-3:
-            inv = np.reciprocal(z)
-            behind = None
+            div, behind = z, None
         else:  # points behind the camera land on the border (pixel 0), emptied below
             behind = z <= f32(1e-3)
-            inv = np.maximum(z, f32(1e-3))
-            np.reciprocal(inv, out=inv)
-        cx *= inv
-        cx += f32(ox)
-        cy *= inv
-        cy += f32(oy)
-        del inv
+            div = np.maximum(z, f32(1e-3))
+        np.divide(cx, div, out=cx)
+        np.divide(cy, div, out=cy)
+        del div
         if behind is not None:
             cx[behind] = 0.0
             cy[behind] = 0.0
