@@ -426,9 +426,14 @@ class Warper:
         gx32, gy32 = self._gx.astype(np.float32), self._gy.astype(np.float32)
         points = np.empty((3, src.size), np.int16)
         keep = np.ones(src.size, bool)
+        shift = self.width.bit_length() - 1  # a power-of-two width: shifts, not a division
+        pow2 = self.width == 1 << shift
         for lo in range(0, src.size, CHUNK):
             hi = min(lo + CHUNK, src.size)
-            y, x = np.divmod(src[lo:hi], self.width)
+            if pow2:
+                y, x = src[lo:hi] >> shift, src[lo:hi] & (self.width - 1)
+            else:
+                y, x = np.divmod(src[lo:hi], self.width)
             # the depth: even output rows/columns take the previous half-resolution one,
             # odd the next (clamped)
             iy, ix = y >> 1, x >> 1
@@ -475,9 +480,10 @@ class Warper:
         if not keep.all():
             src, points = src[keep], np.ascontiguousarray(points[:, keep])
         rgb = np.empty((3, src.size), colour.dtype)
-        cflat = colour.reshape(-1, 3)
+        cflat = np.ascontiguousarray(colour).reshape(-1)
+        at = src * 3
         for c in range(3):
-            rgb[c] = cflat[src, c]
+            np.take(cflat, at + c if c else at, out=rgb[c])
         return points, rgb
 
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
