@@ -141,6 +141,8 @@ def row_weights(theta_deg: np.ndarray, weights: np.ndarray) -> np.ndarray:
     share = float(w[first].sum()) / float(w.sum())
     near = share >= 0.5
     wm = 1.0 - share if near else share
+    if not wm > 0.0:
+        return w
     keep = 0.5 * min(max((wm - ROW_RAMP) / (0.5 - ROW_RAMP), 0.0), 1.0)
     minor = ~first if near else first
     w[minor] *= keep / wm

@@ -4,6 +4,7 @@ exactly the host's warped frames. The warp itself on synthetic scenes: test_warp
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import time
@@ -309,6 +310,102 @@ def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
         np.testing.assert_array_equal(got, warp.frame(phi, theta))
         differs += int(np.abs(got.astype(int) - model.view(phi, theta)).max() > 8)
     assert differs >= 3
+
+
+def test_a_views_frame_is_the_same_whatever_the_cache_the_reconstructor_and_the_thread(
+        depth_model):
+    """`ViewSynthesizer.frame` is a function of the image and the view: a synthesizer that
+    made other views first (its cache and its reconstructor's last cells differ), a fresh
+    one per view, one with a lean reconstructor (a warp worker's: one thread, little
+    scratch) or one with two threads, on another thread, all give the same bits. A host
+    computes the device's frame this way (evaluate's pca_warp; a correction added to it)."""
+    import threading
+
+    from device_runtime.synthesis import WORKER_SCRATCH_BYTES
+
+    image = read_image(depth_model, key=KEY)
+    views = [(3.0, 14.0), (7.5, 14.5), (12.0, 17.9), (12.0, 18.0), (200.0, -40.0),
+             (201.0, -38.0), (3.0, 14.0)]
+    along = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    drag = [along.frame(*v) for v in views]
+    assert along.misses < 4 * len(views)  # the cache was used
+    for i, view in enumerate(views):
+        fresh = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+        np.testing.assert_array_equal(fresh.frame(*view), drag[i])
+    lean = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(
+        image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
+    two = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(
+        image, threads=2, scratch_bytes=4 << 20))
+    got: dict[str, list] = {}
+
+    def run(name, synth):
+        got[name] = [synth.frame(*v) for v in reversed(views)]
+
+    threads = [threading.Thread(target=run, args=a) for a in (("lean", lean), ("two", two))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    two.reconstructor.close()
+    for name in ("lean", "two"):
+        for a, b in zip(got[name], reversed(drag)):
+            np.testing.assert_array_equal(a, b)
+    assert any(not np.array_equal(a, b) for a, b in itertools.pairwise(drag))
+
+
+def test_row_weights_warp_one_row_away_from_the_middle_and_fade_continuously():
+    from device_runtime.synthesis import ROW_RAMP, row_weights
+
+    theta = np.array([12.0, 12.0, 24.0, 24.0])
+    # the bilinear weights of a view 3 degrees above row 12 (a quarter of the way to 24)
+    w = np.array([0.6, 0.15, 0.2, 0.05])
+    out = row_weights(theta, w)
+    np.testing.assert_allclose(out, [0.8, 0.2, 0.0, 0.0])  # one row, its proportions kept
+    assert row_weights(theta, w * 3.0).sum() == pytest.approx(3.0)  # the total kept
+    # at the middle nothing changes; just past the ramp the far row comes in from 0
+    mid = np.array([0.3, 0.2, 0.3, 0.2])
+    np.testing.assert_allclose(row_weights(theta, mid), mid)
+    prev = None
+    for share in np.linspace(0.0, 0.5, 101):  # the far row's share of the weight
+        out = row_weights(theta, np.array([0.5, 0.5, 0.5, 0.5]) * [1 - share, 1 - share,
+                                                                   share, share])
+        far = out[2:].sum() / out.sum()
+        assert far == 0.0 if share <= ROW_RAMP else 0.0 < far <= share + 1e-12
+        if prev is not None:
+            assert abs(far - prev) <= 0.5 * 0.005 / (0.5 - ROW_RAMP) + 1e-9  # continuous
+        prev = far
+    # neighbours on one row, or on three, keep the interpolation's weights
+    np.testing.assert_array_equal(row_weights(np.array([12.0, 12.0]), np.array([0.7, 0.3])),
+                                  [0.7, 0.3])
+    three = np.array([0.5, 0.3, 0.2])
+    np.testing.assert_array_equal(row_weights(np.array([0.0, 12.0, 24.0]), three), three)
+
+
+def test_a_drags_memory_stays_under_the_synthesis_declaration(depth_model):
+    """tracemalloc over a drag that reconstructs neighbours (misses) and warps: everything
+    the synthesis allocates beyond the image's sections (its view cache, the warp's grid and
+    temporaries, a lean reconstructor's buffers and scratch, the frame) peaks under
+    `synthesis_memory_bytes`, the figure a device checks against its RAM budget."""
+    import tracemalloc
+
+    from device_runtime.synthesis import WORKER_SCRATCH_BYTES, synthesis_memory_bytes
+
+    image = read_image(depth_model, key=KEY)
+    declared = synthesis_memory_bytes(read_manifest(depth_model))
+    standalone = StandaloneScores(image)
+    views = [(3.0 * i, 10.0 + 0.7 * i) for i in range(40)]
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        synth = ViewSynthesizer(image, standalone, Reconstructor.from_image(
+            image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
+        for view in views:
+            frame = synth.frame(*view)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert synth.misses > 10 and frame.any()
+    assert peak <= declared, (peak, declared)
 
 
 # --------------------------------------------------------------------------- served devices
