@@ -331,14 +331,15 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     (points beyond it are clamped onto that border, which is then emptied), so nothing
     needs masking.
 
-    Memory and time: three passes over the sources, `CHUNK` points at a time (the z-buffer;
-    the z-test, which moves a hidden splat to the border pixel; the blend), so a frame's
-    temporaries are a chunk's; what persists is the warper's grid and each splat's target
-    pixel (4 bytes, `Warper.splats`). Accumulation is float32 in place (``np.add.at``),
-    never a float64 copy of the grid. Everything after the splats (filter, blend, hole
-    filling, the frame) works on the rectangle the splats landed in, 3 pixels larger on
-    every side (what the filter and hole filling reach), not the whole grid; the grid is
-    left clean outside it (`Warper.grid`).
+    Memory and time: three passes over the sources, `CHUNK` points at a time (the z-buffer
+    and the rectangle the splats land in; the z-test, which moves each splat to its pixel
+    of a compact grid of that rectangle, 3 pixels larger on every side (what the filter and
+    hole filling reach), a hidden one to its spare last pixel; the blend on that grid), so a
+    frame's temporaries are a chunk's; what persists is the warper's z-buffer and scratch
+    (`Warper.grid`) and each splat's target pixel (4 bytes, `Warper.splats`). Accumulation
+    is float32 in place (``np.add.at``), never a float64 copy of the grid. The filter,
+    normalisation, hole filling and rounding then run on the compact grid, each plane one
+    contiguous run (a rectangle inside the padded grid is strided: 4x slower per pixel).
 
     Parameters
     ----------
