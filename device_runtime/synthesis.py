@@ -116,18 +116,19 @@ DEPTH_DELTA_SECTION = "depth_scores_delta"
 #: Training views whose points and colours stay cached (a view at 512: ~1.5 MB): the
 #: neighbours of one frame. While a drag moves they change only every grid step; a cache
 #: of 8 made as many reconstructions (0.58 per frame of an orbit, 1.67 of a 3-degree
-#: drag at 512), for 6 MB more.
+#: drag at 512, with four neighbours a frame; 0.30 and 0.83 since `row_weights`), for
+#: 6 MB more.
 CACHE_VIEWS = 4
 
 #: A view's neighbours on two theta rows of the grid (12 degrees apart on the paper's
-#: grid): the farther row is faded out below this share of the interpolation weight and
-#: dropped below it (`row_weights`), so away from the rows' middle one row's two views are
-#: warped. Fewer, nearer sources blend fewer misaligned reconstructions: object SSIM +0.005
-#: (tooth) and +0.015 (head) at 256 against all four (docs/rate-distortion.md 9.10), and
-#: a drag along a row reconstructs half the neighbours.
+#: grid): the farther row is dropped while its share of the interpolation weight is below
+#: this, and faded in linearly from here to half (`row_weights`), so away from the rows'
+#: middle one row's two views are warped. Fewer, nearer sources blend fewer misaligned
+#: reconstructions: object SSIM +0.003 to +0.016 on every shared volume against all four
+#: (docs/rate-distortion.md 9.10), and a drag along a row reconstructs half the neighbours.
 ROW_RAMP = 0.4
 #: Scratch of a predicting device's warp worker's own reconstructor (one thread): a third
-#: of the display's, for 1.5x its time per neighbour (a cache miss, ~1.7 per drag frame),
+#: of the display's, for 1.5x its time per neighbour (a cache miss, ~0.8 per drag frame),
 #: on a thread that shares the 2 cores with the display anyway.
 WORKER_SCRATCH_BYTES = 1 << 20
 #: A reconstructed pixel whose largest channel is above this (0..255) carries the object
