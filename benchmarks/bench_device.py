@@ -37,15 +37,19 @@ f. **Cost of the SCORES event tag** (protocol 2, a keyed device) at each ``--siz
 
 w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a standalone
    image fitted with ``--depth``): the standalone device's frame over a drag (3 degrees of phi
-   per frame at theta 15) made by `device_runtime.synthesis.ViewSynthesizer` (4 neighbours'
-   colour and depth reconstructed on a cache miss, warped, blended, holes filled) against
-   today's blended standalone frame (`StandaloneScores` + ``Reconstructor.update``, threads
-   "auto") on the same views in the same run; the ratio, the median CPU time of both (all
-   threads: less sensitive to the shared cores' load than wall time), the cache misses, and
-   the synthesis' declared scratch (`synthesis_memory_bytes`) and depth sections. Target:
-   < 40 ms at 512. With ``--rss-frames N`` also the peak RSS (``VmHWM``) of a real
-   ``eigencast-device --standalone`` process showing N orbit frames of the image (and of
-   ``--warp-baseline``, the model without depth), against the issue's bound: (d)'s plus
+   per frame at theta 15) made by `device_runtime.synthesis.ViewSynthesizer` (the
+   neighbours' colour and depth reconstructed on a cache miss, warped, blended, holes
+   filled) against today's blended standalone frame (`StandaloneScores` +
+   ``Reconstructor.update``, threads "auto") on the same views in the same run; the ratio,
+   the median and mean CPU time of both (all threads: less sensitive to the shared cores'
+   load than wall time), the cache misses, the synthesized frame of a display-rate orbit (1
+   degree a frame: ``--orbit turn:12`` at 30 frames a second) and the frames a second its
+   mean CPU time allows, and the synthesis' declared scratch (`synthesis_memory_bytes`) and
+   depth sections. Targets: < 40 ms at 512 (issue 15); within 2x the blended frame on one
+   core (issue 22: run under ``OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 taskset -c 0``).
+   With ``--rss-frames N`` also the peak RSS (``VmHWM``) of a real ``eigencast-device
+   --standalone`` process showing N orbit frames of the image (and of ``--warp-baseline``,
+   the model without depth), against the issue's bound: (d)'s plus
    the image's other sections (the standalone table) and its depth sections (the synthesis'
    working set must fit inside it); and against the bare runtime process plus what the
    image declares it needs (`required_ram_bytes`, with the synthesis scratch). With
@@ -746,7 +750,8 @@ def print_serial(r: dict) -> None:
 
 
 def section_warp(path: Path, frames: int) -> dict:
-    """(w): synthesized vs blended standalone frames over the same drag."""
+    """(w): synthesized vs blended standalone frames over the same drag, and the display-rate
+    orbit's synthesized frame."""
     from device_runtime.image_receiver import required_ram_bytes
     from device_runtime.standalone import StandaloneScores
     from device_runtime.synthesis import ViewSynthesizer, synthesis_memory_bytes
@@ -772,6 +777,16 @@ def section_warp(path: Path, frames: int) -> dict:
         t_warp.append(t2 - t1)
         c_blend.append(c1 - c0)
         c_warp.append(c2 - c1)
+    misses = (synth.misses - misses0) / len(views)
+    # a standalone device's orbit (``--orbit turn:12``: 30 degrees a second) at 30 frames a
+    # second moves 1 degree a frame
+    orbit = orbit_views(360, theta=15.0, turns=frames / 360.0)
+    synth.frame(*orbit[0])
+    misses0, c_orbit = synth.misses, []
+    for view in orbit:
+        c0 = time.process_time()
+        synth.frame(*view)
+        c_orbit.append(time.process_time() - c0)
     cold = ViewSynthesizer(image, standalone, Reconstructor.from_image(image, threads="auto"))
     t0 = time.perf_counter()
     cold.frame(*views[-1])
@@ -783,7 +798,12 @@ def section_warp(path: Path, frames: int) -> dict:
             "warp_p90_ms": float(np.percentile(t_warp, 90) * 1e3),
             "ratio": med_ms(t_warp) / med_ms(t_blend), "cold_ms": cold_ms,
             "blend_cpu_ms": med_ms(c_blend), "warp_cpu_ms": med_ms(c_warp),
-            "misses_per_frame": (synth.misses - misses0) / len(views),
+            "cpu_ratio": med_ms(c_warp) / med_ms(c_blend),
+            "blend_cpu_mean_ms": 1e3 * statistics.mean(c_blend),
+            "warp_cpu_mean_ms": 1e3 * statistics.mean(c_warp),
+            "misses_per_frame": misses,
+            "orbit_cpu_ms": med_ms(c_orbit), "orbit_cpu_mean_ms": 1e3 * statistics.mean(c_orbit),
+            "orbit_misses_per_frame": (synth.misses - misses0) / len(orbit),
             "depth_sections_bytes": depth_bytes,
             "synthesis_scratch_bytes": synthesis_memory_bytes(manifest),
             "required_ram_bytes": required_ram_bytes(manifest)}
@@ -904,9 +924,13 @@ def print_warp_rss(r: dict) -> None:
 def print_warp(r: dict) -> None:
     print(f"  {r['size']:>5} px: blended {r['blend_ms']:.1f} ms, synthesized "
           f"{r['warp_ms']:.1f} ms (p90 {r['warp_p90_ms']:.1f}, cold {r['cold_ms']:.0f}) = "
-          f"{r['ratio']:.1f}x (CPU {r['blend_cpu_ms']:.1f} vs {r['warp_cpu_ms']:.1f} ms); "
-          f"{r['misses_per_frame']:.2f} neighbour reconstructions per frame; "
-          f"depth sections {r['depth_sections_bytes'] / MB:.1f} MB, synthesis scratch "
+          f"{r['ratio']:.1f}x (CPU {r['blend_cpu_ms']:.1f} vs {r['warp_cpu_ms']:.1f} ms = "
+          f"{r['cpu_ratio']:.2f}x; means {r['blend_cpu_mean_ms']:.1f} vs "
+          f"{r['warp_cpu_mean_ms']:.1f} ms); {r['misses_per_frame']:.2f} neighbour "
+          f"reconstructions per frame; a 1 degree/frame orbit: CPU {r['orbit_cpu_ms']:.1f} ms "
+          f"(mean {r['orbit_cpu_mean_ms']:.1f}, {1e3 / r['orbit_cpu_mean_ms']:.0f} frames/s), "
+          f"{r['orbit_misses_per_frame']:.2f} reconstructions per frame; depth sections "
+          f"{r['depth_sections_bytes'] / MB:.1f} MB, synthesis scratch "
           f"{r['synthesis_scratch_bytes'] / MB:.1f} MB (image needs "
           f"{r['required_ram_bytes'] / MB:.1f} MB)", flush=True)
 

@@ -44,6 +44,7 @@ __all__ = [
     "Reconstructor",
     "reconstruct_view",
     "reconstruction_memory_bytes",
+    "usable_cpus",
 ]
 
 #: Default scratch budget (float32 cast buffer + output rows), in bytes.
@@ -114,8 +115,8 @@ class Reconstructor:
     scratch_bytes : int
         Budget for the float32 scratch buffers (split between threads).
     threads : int or "auto"
-        1 or 2 worker threads; ``"auto"`` picks 2 when the machine has at least 2 CPUs and the
-        eigenspace is larger than 8 MB.
+        1 or 2 worker threads; ``"auto"`` picks 2 when the process may run on at least 2
+        CPUs (`usable_cpus`) and the eigenspace is larger than 8 MB.
 
     Attributes
     ----------
@@ -175,7 +176,7 @@ class Reconstructor:
                 )
         if threads == "auto":
             big = eigenimages.nbytes > 8_000_000
-            threads = 2 if big and (os.cpu_count() or 1) >= 2 else 1
+            threads = 2 if big and usable_cpus() >= 2 else 1
         if threads not in (1, 2):
             raise ValueError(f"Reconstructor: threads={threads!r} must be 1, 2 or 'auto'")
         min_scratch = self.min_scratch_bytes(cell_shape) * threads
@@ -537,6 +538,15 @@ class Reconstructor:
         pool = getattr(self, "_pool", None)
         if pool is not None:
             pool.shutdown(wait=False)
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity, e.g. ``taskset -c 0``: 1), else the
+    machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
 
 
 def reconstruction_memory_bytes(

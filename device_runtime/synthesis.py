@@ -8,23 +8,29 @@ distance along each pixel's ray where the opacity crosses one half, at half reso
 names the synthesis method in its manifest (``"synthesis": {"method": "warp-depth-1", ...}``,
 :data:`SYNTHESIS_METHOD`). For a novel view the device then
 
-1. takes the interpolator's neighbours and weights (:class:`StandaloneScores`' interpolator);
+1. takes the interpolator's neighbours and weights (:class:`StandaloneScores`' interpolator)
+   and, where they lie on two theta rows, fades the farther row out unless the view is
+   near the rows' middle (`row_weights`, issue 22: two views warped instead of four, better
+   frames and half the reconstructions along a drag);
 2. reconstructs each neighbour's colour (the int8 eigenspace, the device's `Reconstructor`)
-   and depth (:class:`DepthEigenspace`, upsampled 2x by :func:`upsample2`), and unprojects
-   its object pixels once into points in that camera's frame (int16, packed: 9 bytes per
-   object pixel with the colour); they are cached per training view (:class:`ViewSynthesizer`,
-   the :data:`CACHE_VIEWS` views of one frame: while a drag moves, the neighbours change
-   only every grid step);
+   and depth (:class:`DepthEigenspace`: only the cells under the object), and unprojects its
+   object pixels once into points in that camera's frame (`Warper.cloud_at`: the depth
+   upsampled 2x at those pixels, int16 packed points, 9 bytes per object pixel with the
+   colour); they are cached per training view (:class:`ViewSynthesizer`, the
+   :data:`CACHE_VIEWS` views of one frame: while a drag moves, the neighbours change only
+   every grid step);
 3. forward-warps every neighbour's points into the new camera with a z-test, blends them by
-   the interpolation weights and fills the cracks (:func:`forward_warp`, :func:`fill_holes`).
+   their weights and fills the cracks (`device_runtime.warping`: :func:`forward_warp`,
+   :func:`fill_holes`; its names are re-exported here).
 
 Everything is numpy, float32, with no per-pixel Python loop. Memory is bounded by the frame
 size (:func:`synthesis_memory_bytes`) and kept to what a device's RAM bound allows
 (docs/rate-distortion.md 9.9): the warp works one view at a time on a grid it reuses, and a
-standalone device reconstructs the neighbours with the display's reconstructor. The same
-code makes the host's frames
-(``eigencast evaluate``'s ``pca_warp``) so host and device frames are identical, and
-``scripts/warp_views.py`` (the go/no-go measurement) imports it.
+standalone device reconstructs the neighbours with the display's reconstructor. A frame is a
+function of the image and the view only (not of the cache, the reconstructor or the thread):
+the same code makes the host's frames (``eigencast evaluate``'s ``pca_warp``), so host and
+device frames are identical, and ``scripts/warp_views.py`` (the go/no-go measurement)
+imports it. A served device makes its warps on a thread of its own (:class:`WarpWorker`).
 
 Geometry: the orbit cameras of an eigencast database look at the bounding sphere's centre
 from ``distance = radius / sin(fov / 2)`` (`host.render.camera.orbit_camera`); only relative
@@ -36,6 +42,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
@@ -43,15 +50,40 @@ from typing import Any
 import numpy as np
 
 from device_runtime.standalone import delta_decode, standalone_order
+from device_runtime.warping import (
+    CHUNK,
+    HOLE_NEIGHBOURS,
+    HOLE_PASSES,
+    MAX_WARP_PIXELS,
+    SPLAT_TENT,
+    Z_TOLERANCE,
+    WarpCancelled,
+    Warper,
+    _give_up_if,
+    fill_holes,
+    forward_warp,
+    orbit_pose,
+    upsample2,
+    upsample2_at,
+)
 from protocol.errors import ImageFormatError
 
+# the warp's names (`device_runtime.warping`) are re-exported: the synthesis' callers and
+# the research scripts import them from here
 __all__ = [
     "CACHE_VIEWS",
+    "CHUNK",
     "DEPTH_DELTA_SECTION",
     "DEPTH_SECTIONS",
+    "HOLE_NEIGHBOURS",
+    "HOLE_PASSES",
     "KNOWN_SYNTHESIS",
+    "OBJECT_LEVEL",
+    "ROW_RAMP",
+    "SPLAT_TENT",
     "SYNTHESIS_METHOD",
     "WORKER_SCRATCH_BYTES",
+    "Z_TOLERANCE",
     "DepthEigenspace",
     "ViewSynthesizer",
     "WarpCancelled",
@@ -61,6 +93,7 @@ __all__ = [
     "fill_holes",
     "forward_warp",
     "orbit_pose",
+    "row_weights",
     "synthesis_memory_bytes",
     "upsample2",
     "upsample2_at",
@@ -83,40 +116,52 @@ DEPTH_DELTA_SECTION = "depth_scores_delta"
 #: Training views whose points and colours stay cached (a view at 512: ~1.5 MB): the
 #: neighbours of one frame. While a drag moves they change only every grid step; a cache
 #: of 8 made as many reconstructions (0.58 per frame of an orbit, 1.67 of a 3-degree
-#: drag at 512), for 6 MB more.
+#: drag at 512, with four neighbours a frame; 0.30 and 0.83 since `row_weights`), for
+#: 6 MB more.
 CACHE_VIEWS = 4
 
-#: z-test tolerance as a fraction of the bounding-sphere diameter: samples of one pixel
-#: within this of the nearest one are blended, the rest are hidden.
-Z_TOLERANCE = 0.02
-#: Nearest-pixel splats are spread by a [1/8, 3/4, 1/8] x [1/8, 3/4, 1/8] filter over the
-#: covered pixels (the accumulators are filtered before the blend is normalised): in
-#: expectation over where a point lands, the spread of a bilinear splat. Coverage is the
-#: unfiltered one: a pixel is covered when a splat lands on it.
-SPLAT_TENT = True
-#: The warp indexes its padded grid in float32, exact below 2**24 pixels (4094 x 4094).
-MAX_WARP_PIXELS = 1 << 24
-#: Pixels or points per pass of the work on a view (a cache miss' rays and depth
-#: upsampling, the warp's passes): bounds the temporaries to a few hundred kilobytes
-#: whatever the frame size.
-CHUNK = 1 << 15
-#: Depth components per pass of `DepthEigenspace.reconstruct` (whole cells at a time).
-COMPONENT_CHUNK = 256
+#: A view's neighbours on two theta rows of the grid (12 degrees apart on the paper's
+#: grid): the farther row is dropped while its share of the interpolation weight is below
+#: this, and faded in linearly from here to half (`row_weights`), so away from the rows'
+#: middle one row's two views are warped. Fewer, nearer sources blend fewer misaligned
+#: reconstructions: object SSIM +0.003 to +0.016 on every shared volume against all four
+#: (docs/rate-distortion.md 9.10), and a drag along a row reconstructs half the neighbours.
+ROW_RAMP = 0.4
 #: Scratch of a predicting device's warp worker's own reconstructor (one thread): a third
-#: of the display's, for 1.5x its time per neighbour (a cache miss, ~1.7 per drag frame),
+#: of the display's, for 1.5x its time per neighbour (a cache miss, ~0.8 per drag frame),
 #: on a thread that shares the 2 cores with the display anyway.
 WORKER_SCRATCH_BYTES = 1 << 20
-#: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
-#: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
-HOLE_PASSES = 2
-HOLE_NEIGHBOURS = 4
 #: A reconstructed pixel whose largest channel is above this (0..255) carries the object
 #: (`host.evaluate.masks.OBJECT_LEVEL`; the renderings have a black background).
 OBJECT_LEVEL = 2
 
 
-class WarpCancelled(Exception):
-    """A warp given up because its ``cancel`` callable said so (a newer view was asked)."""
+def row_weights(theta_deg: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The warp's weights of a view's neighbours: the interpolation's, with the farther of
+    two theta rows faded out unless the view is near their middle (`ROW_RAMP`).
+
+    Where the neighbours lie on two rows of the grid (the bilinear interpolation's 2 x 2),
+    the farther row's share ``wm`` of the weight becomes ``0.5 * clip((wm - ROW_RAMP) /
+    (0.5 - ROW_RAMP), 0, 1)`` and the nearer row takes the rest, each row's views keeping
+    their proportions: a continuous function of the view. Any other set of neighbours
+    keeps its weights. ``theta_deg`` holds each neighbour's theta, ``weights`` (> 0) their
+    interpolation weights; float64, a new array.
+    """
+    w = np.array(weights, dtype=np.float64)
+    rows = np.unique(theta_deg)
+    if rows.size != 2 or ROW_RAMP >= 0.5:
+        return w
+    first = theta_deg == rows[0]
+    share = float(w[first].sum()) / float(w.sum())
+    near = share >= 0.5
+    wm = 1.0 - share if near else share
+    if not wm > 0.0:
+        return w
+    keep = 0.5 * min(max((wm - ROW_RAMP) / (0.5 - ROW_RAMP), 0.0), 1.0)
+    minor = ~first if near else first
+    w[minor] *= keep / wm
+    w[~minor] *= (1.0 - keep) / (1.0 - wm)
+    return w
 
 
 # ----------------------------------------------------------------------------- manifest
@@ -182,9 +227,9 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     device that predicts warps its own frames while the host's are on their way (both
     share the image's one standalone table, a section). Per cached view: the object
     pixels' packed points and uint8 colours (9 bytes per pixel at most); on a miss, a
-    view's indices, depths and masks and a pass of depth components (`COMPONENT_CHUNK`
-    whole cells); per frame, the splats' target pixels of 4 views (4 bytes each, all
-    pixels at most: the reused `Warper.splats`), one view's projection temporaries, the
+    view's indices, depths and masks and one depth cell's components as float32; per
+    frame, the splats' target pixels of 4 views (4 bytes each, all pixels at most: the
+    reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
     planes, and the warped frame on show (its own array). A predicting device's worker
     also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`), counted
@@ -199,449 +244,10 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     cache = CACHE_VIEWS * n * 9
     cell = int(record.get("depth_cell") or 1)
     depth = 3 * 4 * (h // 2 + cell) * (w // 2 + cell) + n * (8 + 4 + 3)
-    depth += 4 * max(COMPONENT_CHUNK, cell * cell) * cell * cell
+    depth += 4 * cell * cell * cell * cell  # one cell's components as float32
     warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
     colour = 2 * n * 3 + WORKER_SCRATCH_BYTES
     return int(cache + depth + warp + colour)
-
-
-# ----------------------------------------------------------------------------- geometry
-
-
-def orbit_pose(phi_deg: float, theta_deg: float, distance: float
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The orbit camera of a view with the sphere's centre at the origin.
-
-    Returns
-    -------
-    position : ndarray (3,), float64
-    rotation : ndarray (3, 3), float64
-        Columns right, up, forward (`host.render.camera.Camera.basis`).
-    """
-    phi, theta = math.radians(phi_deg), math.radians(theta_deg)
-    cp, sp, ct, st = math.cos(phi), math.sin(phi), math.cos(theta), math.sin(theta)
-    direction = np.array([ct * cp, ct * sp, st])
-    position = distance * direction
-    f = -direction
-    u = np.array([-st * cp, -st * sp, ct])
-    r = np.cross(f, u)
-    r /= np.linalg.norm(r)
-    return position, np.stack([r, u, f], axis=1)
-
-
-class Warper:
-    """Forward warping between the orbit cameras of one framing, at one image size.
-
-    Every orbit camera has the same intrinsics: a pixel's unit ray in camera coordinates
-    (right, up, forward) follows from its row and column (`unproject_at`). The warper also
-    owns the warp's working set, allocated on the first frame and reused (`forward_warp`):
-    the padded grid's z-buffer (then blend weights), coverage and three colour accumulators
-    (`grid`), and each splat's target pixel (`splats`, grown, never shrunk). One warper
-    serves one thread.
-
-    Parameters
-    ----------
-    fov_deg : float
-        Vertical field of view.
-    distance_mm : float
-        Camera distance from the orbit centre.
-    width, height : int
-    z_tolerance_mm : float
-        Splats within this of a pixel's nearest one are blended (`Z_TOLERANCE` x the
-        bounding-sphere diameter).
-    """
-
-    def __init__(self, fov_deg: float, distance_mm: float, width: int, height: int,
-                 z_tolerance_mm: float) -> None:
-        self.width, self.height = int(width), int(height)
-        self.distance = float(distance_mm)
-        self.half = math.tan(math.radians(fov_deg) / 2.0)
-        # packed points (`unproject_at(packed=True)`): int16 steps from the orbit centre, which
-        # sits at (0, 0, distance) in every orbit camera, over twice the bounding sphere's
-        # radius (distance * sin(fov / 2)); a step is 6e-5 of the radius (1/100 of a pixel at
-        # 1080) and points beyond are clamped (outside the sphere: noise of the depth fit)
-        self.point_step = 2.0 * self.distance * math.sin(math.radians(fov_deg) / 2.0) / 32767
-        # the rays' tangents per column and per row (float64: a ray is normalised from them)
-        self._gx = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * (
-            self.width / self.height) * self.half
-        self._gy = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * self.half
-        self.tol_mm = float(z_tolerance_mm)
-        self._splats: np.ndarray | None = None
-        self._grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-
-    def splats(self, total: int) -> np.ndarray:
-        """The target pixel of each of ``total`` splats (int32), reused between frames
-        (grown with a sixteenth to spare when short, never shrunk)."""
-        if self._splats is None or self._splats.size < total:
-            self._splats = None  # the old one goes before the new one is made
-            self._splats = np.empty(int(total * 1.0625), np.int32)
-        return self._splats[:total]
-
-    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The padded grid's z-buffer (float32; then the blend weights), colour accumulators
-        (3, h + 2, w + 2) float32 and coverage (bool), made once, reused by every frame."""
-        if self._grid is None:
-            shape = (self.height + 2, self.width + 2)
-            self._grid = (np.empty(shape, np.float32), np.empty((3, *shape), np.float32),
-                          np.empty(shape, bool))
-        return self._grid
-
-    def pose(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
-        """`orbit_pose` at this warper's distance."""
-        return orbit_pose(phi_deg, theta_deg, self.distance)
-
-    def unproject(self, colour: np.ndarray, depth: np.ndarray, valid: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-        """A source view's object pixels as points in its camera frame, and their colours.
-
-        Planar (3, n) arrays, so the per-frame projection (`forward_warp`) is one small
-        matrix product and contiguous passes.
-
-        Returns
-        -------
-        points : ndarray (3, n) float32
-            ``ray * depth`` of each valid pixel with a finite depth.
-        rgb : ndarray (3, n)
-            ``colour``'s dtype: uint8 for the device's reconstructions, a quarter of float32
-            in the view cache (the warp converts each splat's colour as it uses it).
-        """
-        src = np.flatnonzero(valid)
-        return self.unproject_at(colour, depth.reshape(-1)[src], src)
-
-    def unproject_at(self, colour: np.ndarray, t: np.ndarray, src: np.ndarray, *,
-                     packed: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """`unproject` of the pixels ``src`` (flat indices) given their depths ``t``.
-
-        The rays are made for these pixels only, `CHUNK` at a time (a frame's worth of
-        rays would be 12 bytes per pixel held for good). With ``packed`` the points are
-        int16 (3, n) in `point_step`s from the orbit centre (half of float32's bytes: the
-        view cache's form, which `forward_warp` takes as well)."""
-        t = np.asarray(t, dtype=np.float32)
-        finite = np.isfinite(t)
-        if not finite.all():
-            src, t = src[finite], t[finite]
-        points = np.empty((3, src.size), np.int16 if packed else np.float32)
-        for a in range(0, src.size, CHUNK):
-            b = min(a + CHUNK, src.size)
-            row, col = np.divmod(src[a:b], self.width)
-            gx, gy = self._gx[col], self._gy[row]
-            norm = gx * gx
-            norm += gy * gy
-            norm += 1.0
-            np.sqrt(norm, out=norm)
-            np.divide(gx, norm, out=gx)
-            np.divide(gy, norm, out=gy)
-            del row, col
-            rays = (gx, gy, np.reciprocal(norm, out=norm))
-            p = np.empty(b - a, np.float32)
-            for r in range(3):
-                p[...] = rays[r]
-                p *= t[a:b]
-                if packed:
-                    if r == 2:
-                        p -= np.float32(self.distance)
-                    p *= np.float32(1.0 / self.point_step)
-                    np.rint(p, out=p)
-                    np.clip(p, -32767, 32767, out=p)
-                points[r, a:b] = p
-            del gx, gy, norm, rays, p
-        rgb = np.empty((3, src.size), colour.dtype)
-        flat = colour.reshape(-1, 3)
-        for c in range(3):
-            rgb[c] = flat[src, c]
-        return points, rgb
-
-    def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
-             valid: list[np.ndarray], sources: list[tuple[np.ndarray, np.ndarray]],
-             weights: np.ndarray, target: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """Unproject each source and `forward_warp` it; uint8 (h, w, 3)."""
-        clouds = [self.unproject(c, d, ok) for c, d, ok in zip(colours, depths, valid)]
-        return forward_warp(self, clouds, sources, weights, target)
-
-
-def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
-                 sources: list[tuple[np.ndarray, np.ndarray]], weights: np.ndarray,
-                 target: tuple[np.ndarray, np.ndarray],
-                 cancel: Callable[[], bool] | None = None) -> np.ndarray:
-    """Forward-warp source views into the target camera, z-test, blend, fill holes.
-
-    Each source point (a pixel unprojected with its depth, `Warper.unproject`) is projected
-    into the target camera and splats onto the one pixel it lands in (nearest-pixel
-    splatting: one splat per point, a quarter of bilinear splatting's). A z-buffer
-    (``np.minimum.at``) keeps, per target pixel, the nearest splat's forward distance;
-    splats within the z tolerance of it are blended with the view's interpolation weight,
-    the rest are hidden. The accumulated weights and weighted colours are filtered by
-    `SPLAT_TENT`'s [1/8, 3/4, 1/8] kernel before the blend is normalised (the spread a
-    bilinear splat has on average). A pixel no splat lands on is a hole (a pixel one view
-    alone sees is covered, however small that view's weight); `fill_holes` closes the
-    cracks among covered pixels. Splats land on a grid one pixel larger on every side
-    (points beyond it are clamped onto that border, which is then emptied), so nothing
-    needs masking.
-
-    Memory: three passes over the sources, `CHUNK` points at a time (the z-buffer; the
-    z-test, which moves a hidden splat to the border pixel; the blend), so a frame's
-    temporaries are a chunk's; what persists is the warper's grid and each splat's target
-    pixel (4 bytes, `Warper.splats`). Accumulation is float32 in place (``np.add.at``),
-    never a float64 copy of the grid.
-
-    Parameters
-    ----------
-    w : Warper
-    clouds : list of (points (3, n) float32, rgb (3, n) uint8 or float32)
-        Each source's object points in its camera frame and their colours.
-    sources, target : (position (3,), rotation (3, 3)) from `Warper.pose`
-    weights : ndarray (m,)
-        Interpolation weights of the sources.
-    cancel : callable, optional
-        Asked before every chunk of the three passes and before the filter; True gives the
-        warp up.
-
-    Returns
-    -------
-    ndarray (h, w, 3) uint8
-
-    Raises
-    ------
-    WarpCancelled
-        ``cancel`` returned True.
-    """
-    h, wd = w.height, w.width
-    w2 = wd + 2
-    p_t, r_t = target
-    f32 = np.float32
-    used = [(pts, rgb, src, float(wv)) for (pts, rgb), src, wv in zip(clouds, sources, weights)
-            if wv > 0.0 and pts.shape[1] > 0]
-    frame = np.zeros((h, wd, 3), dtype=np.uint8)
-    if not used:
-        return frame
-    # target camera -> padded pixel coordinates: col + 1 = x / z * sx + ox, row + 1 = ...
-    sx = 0.5 * h / w.half
-    scale = np.diag([sx, -sx, 1.0])
-    ox, oy = 0.5 * wd + 1.0, 0.5 * h + 1.0
-    idx = w.splats(sum(u[0].shape[1] for u in used))
-    zgrid, acc, covered = w.grid()
-    zbuf = zgrid.reshape(-1)
-    zbuf.fill(np.inf)
-    pieces = []  # (slice of idx, the points and colours there, the view's m, b and weight)
-    o = 0
-    for pts, col, (p_s, r_s), wv in used:
-        m = scale @ (r_t.T @ r_s)
-        b = scale @ (r_t.T @ (p_s - p_t))
-        if pts.dtype == np.int16:  # packed (`Warper.unproject_at`): steps from the centre
-            b = b + m @ np.array([0.0, 0.0, w.distance])
-            m = m * w.point_step
-        m, b = m.astype(f32), b.astype(f32)
-        k = pts.shape[1]
-        for a in range(0, k, CHUNK):  # CHUNK points at a time: small temporaries
-            e = min(a + CHUNK, k)
-            pieces.append((slice(o + a, o + e), pts[:, a:e], col[:, a:e], m, b, f32(wv)))
-        o += k
-    for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
-        _give_up_if(cancel)
-        z = _forward(m, b, pts)
-        # einsum, not matmul: (2, 3) @ (3, n) float32 through BLAS is ~50x slower here
-        cxy = np.einsum("ij,jk->ik", m[:2], pts)
-        cxy += b[:2, None]
-        behind = z <= f32(1e-3)
-        inv = np.maximum(z, f32(1e-3))
-        np.reciprocal(inv, out=inv)
-        cx, cy = cxy[0], cxy[1]
-        cx *= inv
-        cx += f32(ox)
-        cy *= inv
-        cy += f32(oy)
-        if behind.any():
-            cx[behind] = 0.0
-            cy[behind] = 0.0
-        np.clip(cx, 0, w2 - 1, out=cx)
-        np.clip(cy, 0, h + 1, out=cy)
-        # the pixel the point lands in: truncation of values >= 0, row * w2 + col in float32
-        # (exact: the grid has fewer than MAX_WARP_PIXELS, check_synthesis), one cast
-        np.trunc(cx, out=cx)
-        np.trunc(cy, out=cy)
-        cy *= f32(w2)
-        cx += cy
-        idx[s] = cx
-        del cxy, cx, cy, inv, behind
-        np.minimum.at(zbuf, idx[s], z)
-        del z
-    # pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
-    # pixel 0 (the border, emptied below) so the blend needs no per-splat weight
-    tol = f32(w.tol_mm)
-    for s, pts, _, m, b, _ in pieces:
-        _give_up_if(cancel)
-        at = idx[s]
-        zmax = zbuf[at]
-        zmax += tol
-        at[_forward(m, b, pts) > zmax] = 0
-        del zmax
-    np.isfinite(zgrid, out=covered)
-    weight = zgrid  # the z-buffer is done with: it accumulates the blend weights now
-    weight.fill(0.0)
-    acc.fill(0.0)
-    flat_w, flat_acc = weight.reshape(-1), acc.reshape(3, -1)
-    for s, _, col, _, _, wv in pieces:  # pass 3: the blend
-        _give_up_if(cancel)
-        at = idx[s]
-        np.add.at(flat_w, at, wv)
-        for c in range(3):
-            np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
-    # everything from here on the padded grid, its border (clamped strays, hidden splats)
-    # emptied
-    for a_ in (covered, weight, *acc):
-        a_[[0, -1]] = 0
-        a_[:, [0, -1]] = 0
-    _give_up_if(cancel)
-    if SPLAT_TENT:
-        _tent(acc)
-        _tent(weight[None])
-    planes = acc
-    np.divide(f32(1.0), weight, out=weight, where=covered)
-    np.multiply(weight, covered, out=weight)  # 1 / weight where covered, else 0
-    planes *= weight
-    _fill_holes_padded(planes, covered)
-    planes += f32(0.5)
-    np.clip(planes, 0, 255, out=planes)
-    for c in range(3):
-        frame[..., c] = planes[c, 1:-1, 1:-1]
-    return frame
-
-
-def _give_up_if(cancel: Callable[[], bool] | None) -> None:
-    """Raise `WarpCancelled` if ``cancel`` (when given) says the warp is no longer wanted."""
-    if cancel is not None and cancel():
-        raise WarpCancelled
-
-
-def _forward(m: np.ndarray, b: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """The target camera's forward distance of points (``m @ pts + b``, row 2), float32:
-    the same operations in each pass, so equal values."""
-    z = np.einsum("j,jk->k", m[2], pts)
-    z += b[2]
-    return z
-
-
-def _tent(a: np.ndarray) -> np.ndarray:
-    """Separable [1/8, 3/4, 1/8] filter over the last two axes (zero outside), float32, in
-    place, one plane at a time with one plane of scratch.
-
-    Each pass scales its input by 1/8 in place (exact: a power of two) and takes 6 of it for
-    the centre (one rounding, as 3/4 of the unscaled input), so the sums are those of
-    ``0.75 * p + 0.125 * p[-1] + 0.125 * p[+1]`` without a second temporary."""
-    lo, six = np.float32(0.125), np.float32(6.0)
-    t = np.empty(a.shape[1:], a.dtype)
-    for k in range(a.shape[0]):
-        p = a[k]
-        p *= lo
-        np.multiply(p, six, out=t)
-        t[1:] += p[:-1]
-        t[:-1] += p[1:]
-        t *= lo
-        np.multiply(t, six, out=p)
-        p[:, 1:] += t[:, :-1]
-        p[:, :-1] += t[:, 1:]
-    return a
-
-
-def fill_holes(frame: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """Fill uncovered pixels with the mean of their covered 3x3 neighbours where at least
-    `HOLE_NEIGHBOURS` of the 8 are covered, `HOLE_PASSES` times (cracks close, the
-    silhouette does not grow). ``frame`` (h, w, 3) float32 is filled in place and returned."""
-    h, w = covered.shape
-    cov = np.zeros((h + 2, w + 2), bool)
-    cov[1:-1, 1:-1] = covered
-    planes = np.zeros((frame.shape[2], h + 2, w + 2), np.float32)
-    planes[:, 1:-1, 1:-1] = np.moveaxis(frame, 2, 0)
-    planes *= cov
-    _fill_holes_padded(planes, cov)
-    filled = cov[1:-1, 1:-1] & ~covered
-    frame[filled] = np.moveaxis(planes[:, 1:-1, 1:-1], 0, 2)[filled]
-    return frame
-
-
-def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """`fill_holes` on planar channels (c, h + 2, w + 2) float32 with an empty border and 0
-    at every uncovered pixel; ``covered`` (h + 2, w + 2) bool is updated. In place.
-
-    The neighbour counts are uint8 (at most 8): a quarter of float32's temporaries."""
-    c, hp, wp = planes.shape
-    flat = planes.reshape(c, -1)
-    offsets = [dy * wp + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    count = np.zeros((hp, wp), np.uint8)
-    for _ in range(HOLE_PASSES):
-        count[1:-1, 1:-1] = _box8(covered.view(np.uint8), hp - 2, wp - 2)
-        fill = count >= HOLE_NEIGHBOURS
-        fill &= ~covered
-        at = np.flatnonzero(fill)
-        del fill
-        if at.size == 0:
-            break
-        # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
-        acc = flat[:, at + offsets[0]]
-        for off in offsets[1:]:
-            acc += flat[:, at + off]
-        acc *= np.float32(1.0) / count.reshape(-1)[at].astype(np.float32)
-        flat[:, at] = acc
-        covered.reshape(-1)[at] = True
-    return planes
-
-
-def _box8(p: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Sum of the 8 neighbours of every pixel of the padded (h + 2, w + 2) ``p``."""
-    rows = p[:, :-2] + p[:, 1:-1]
-    rows += p[:, 2:]
-    out = rows[:-2] + rows[1:-1]
-    out += rows[2:]
-    out -= p[1:-1, 1:-1]
-    return out
-
-
-def upsample2(d: np.ndarray) -> np.ndarray:
-    """Bilinear x2 upsampling with pixel centres aligned (edges clamped), float32."""
-    d = np.asarray(d, dtype=np.float32)
-
-    def along(a: np.ndarray, axis: int) -> np.ndarray:
-        a = np.moveaxis(a, axis, 0)
-        prev = np.concatenate([a[:1], a[:-1]])
-        nxt = np.concatenate([a[1:], a[-1:]])
-        out = np.empty((2 * a.shape[0], *a.shape[1:]), np.float32)
-        out[0::2] = np.float32(0.75) * a + np.float32(0.25) * prev
-        out[1::2] = np.float32(0.75) * a + np.float32(0.25) * nxt
-        return np.moveaxis(out, 0, axis)
-
-    return along(along(d, 0), 1)
-
-
-def upsample2_at(d: np.ndarray, src: np.ndarray, width: int) -> np.ndarray:
-    """`upsample2` of ``d`` (h, w) at the flat indices ``src`` of the (2h, 2w) result only
-    (the same float32 operations in the same order: equal values), float32 (len(src),).
-
-    `CHUNK` indices at a time: the index temporaries stay small."""
-    d = np.asarray(d, dtype=np.float32)
-    hh, hw = d.shape
-    flat = d.reshape(-1)
-    a, b = np.float32(0.75), np.float32(0.25)
-    out = np.empty(src.size, np.float32)
-    for lo in range(0, src.size, CHUNK):
-        y, x = np.divmod(src[lo:lo + CHUNK], width)
-        iy, ix = y >> 1, x >> 1
-        # even output rows/columns take the previous half-resolution one, odd the next
-        # (clamped)
-        ny = iy + ((y & 1) * 2 - 1)
-        np.clip(ny, 0, hh - 1, out=ny)
-        nx = ix + ((x & 1) * 2 - 1)
-        np.clip(nx, 0, hw - 1, out=nx)
-        r0 = iy * hw
-        r1 = ny * hw
-        del y, x, iy, ny
-        near = a * flat[r0 + ix] + b * flat[r1 + ix]
-        far = a * flat[r0 + nx] + b * flat[r1 + nx]
-        del r0, r1, ix, nx
-        near *= a
-        far *= b
-        np.add(near, far, out=out[lo:lo + CHUNK])
-        del near, far
-    return out
 
 
 # ----------------------------------------------------------------------------- depth
@@ -690,27 +296,15 @@ class DepthEigenspace:
         self.padded = (-(-self.shape[0] // self.cell) * self.cell,
                        -(-self.shape[1] // self.cell) * self.cell)
         self.mean = np.asarray(mean, dtype=np.float32)
-        self.components = components
+        # C order: each cell's rows cast and summed the same way whatever made the array (a
+        # fit's components are Fortran-ordered; a transposed product rounds differently)
+        self.components = np.ascontiguousarray(components)
         self.scales = np.asarray(scales, dtype=np.float32)
         self.counts = np.asarray(counts, dtype=np.int64)
         self.table = table
         self.step = float(step)
         self.offset = float(offset)
-        # the components in passes of whole cells, about COMPONENT_CHUNK at a time: (cells,
-        # first component, last component, each cell's first component within the pass)
-        ends = np.cumsum(self.counts)
-        self._passes: list[tuple[np.ndarray, int, int, np.ndarray]] = []
-        cells = np.flatnonzero(self.counts > 0)
-        i = 0
-        while i < cells.size:
-            first = int(ends[cells[i]] - self.counts[cells[i]])
-            j = i + 1
-            while j < cells.size and ends[cells[j]] - first <= COMPONENT_CHUNK:
-                j += 1
-            group = cells[i:j]
-            starts = (ends[group] - self.counts[group] - first).astype(np.int64)
-            self._passes.append((group, first, int(ends[group[-1]]), starts))
-            i = j
+        self._ends = np.cumsum(self.counts)
 
     @property
     def n_components(self) -> int:
@@ -768,20 +362,45 @@ class DepthEigenspace:
         return cls(cell, shape, mean, comps, scales, counts, table, record["depth_step"],
                    record["depth_offset_mm"])
 
-    def reconstruct(self, view: int) -> np.ndarray:
+    def reconstruct(self, view: int, cells: np.ndarray | None = None) -> np.ndarray:
         """Depth map (h, w) float32 in mm along the rays, of training view ``view``.
 
-        The int8 components are scaled to float32 a pass of whole cells at a time
-        (`COMPONENT_CHUNK`), never all at once."""
+        ``cells`` (bool, one per cell, optional): only these cells are reconstructed, the
+        others hold their mean (a cache miss needs the cells under the view's object only,
+        `needed_cells`). Each cell is one vector-matrix product of its components, scaled
+        to float32 one cell at a time (at most ``cell ** 4`` values), never all at once."""
         y = self.table[view].astype(np.float32) * np.float32(self.step)
         coef = self.scales * y
-        cells = self.mean.copy()
-        for group, a, b, starts in self._passes:
-            w = self.components[a:b].astype(np.float32)
-            w *= coef[a:b, None]
-            cells[group] += np.add.reduceat(w, starts, axis=0)
-        full = merge_cells(cells, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
+        out = self.mean.astype(np.float32)
+        todo = self.counts > 0
+        if cells is not None:
+            todo &= cells
+        for c in np.flatnonzero(todo):
+            a, b = int(self._ends[c] - self.counts[c]), int(self._ends[c])
+            out[c] += coef[a:b] @ self.components[a:b].astype(np.float32)
+        full = merge_cells(out, self.cell, self.padded)[:self.shape[0], :self.shape[1]]
         return full + np.float32(self.offset)
+
+    def needed_cells(self, obj: np.ndarray) -> np.ndarray:
+        """The cells (bool, one each) whose depth the full-resolution object pixels ``obj``
+        (bool (2h, 2w)) need through `upsample2_at`: each pixel's half-resolution pixel and
+        its neighbours (the bilinear taps reach one pixel)."""
+        hh, hw = self.shape
+        need = np.zeros(self.padded, bool)
+        occ = need[:hh, :hw]
+        np.logical_or(obj[0::2, 0::2], obj[1::2, 0::2], out=occ)
+        occ |= obj[0::2, 1::2]
+        occ |= obj[1::2, 1::2]
+        rows = need.copy()
+        rows[1:] |= need[:-1]
+        rows[:-1] |= need[1:]
+        np.copyto(need, rows)
+        need[:, 1:] |= rows[:, :-1]
+        need[:, :-1] |= rows[:, 1:]
+        cy, cx = self.padded[0] // self.cell, self.padded[1] // self.cell
+        # any over each cell: the rows of a cell, then its columns (contiguous reductions)
+        per_row = need.reshape(cy * self.cell, cx, self.cell).any(axis=2)
+        return per_row.reshape(cy, self.cell, cx).any(axis=1).reshape(-1)
 
 
 def _describe(a: np.ndarray) -> str:
@@ -847,14 +466,33 @@ class ViewSynthesizer:
         # (h, w, 3) uint8 costs as much as the reconstruction)
         top = np.maximum(colour[..., 0], colour[..., 1])
         np.maximum(top, colour[..., 2], out=top)
-        src = np.flatnonzero(top > OBJECT_LEVEL).astype(np.int32)
+        obj = top > OBJECT_LEVEL
         del top
-        depth = upsample2_at(self.depth.reconstruct(view), src, self.warper.width)
-        cloud = self.warper.unproject_at(colour, depth, src, packed=True)
+        src = np.flatnonzero(obj).astype(np.int32)
+        cells = self.depth.needed_cells(obj)
+        del obj
+        cloud = self.warper.cloud_at(colour, self.depth.reconstruct(view, cells), src)
         self._cache[view] = cloud
         while len(self._cache) > self.cache_views:
             self._cache.popitem(last=False)
         return cloud
+
+    def neighbours(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """The training views a frame of this view warps and their weights (> 0): the
+        interpolator's neighbours with positive weight, reweighted by `row_weights`.
+
+        Returns
+        -------
+        views : ndarray (m,) int64
+        weights : ndarray (m,) float64
+        """
+        idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
+        idx = np.asarray(idx).ravel().astype(np.int64)
+        wts = np.asarray(wts, dtype=np.float64).ravel()
+        used = wts > 0
+        idx, wts = idx[used], row_weights(self.theta[idx[used]], wts[used])
+        used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
+        return idx[used], wts[used]
 
     def frame(self, phi_deg: float, theta_deg: float,
               cancel: Callable[[], bool] | None = None) -> np.ndarray:
@@ -864,11 +502,7 @@ class ViewSynthesizer:
         neighbour missing from the cache is made (a neighbour made is kept: the next view
         most likely needs it) and inside the warp (`forward_warp`); True raises
         `WarpCancelled`."""
-        idx, wts = self.standalone.interpolator.weights(phi_deg, theta_deg)
-        idx = np.asarray(idx).ravel().astype(np.int64)
-        wts = np.asarray(wts, dtype=np.float64).ravel()
-        used = wts > 0  # a neighbour without weight is neither reconstructed nor warped
-        idx, wts = idx[used], wts[used]
+        idx, wts = self.neighbours(phi_deg, theta_deg)
         views = [int(i) for i in idx]
         self._make_room(views)
         clouds = []
@@ -903,11 +537,20 @@ class WarpWorker:
     reconstruction) and asks for the view's warp here; its display thread keeps taking input
     and host frames while the warp is made (numpy releases the GIL in its array work, and a
     warp costs several blends), and shows the warp only if its view is still the one on show
-    and no host frame for it came first. A request replaces one not started yet, and gives
-    up the warp in flight at its next check (`ViewSynthesizer.frame`'s ``cancel``: a
-    neighbour already made stays cached), so while the view keeps moving faster than a warp
-    takes the worker does not spend a core on warps nobody will see; at most one warp is
-    in flight.
+    and no host frame for it came first. At most one warp is in flight.
+
+    Never a warp whose view will be gone before it is shown: while views are requested
+    faster than a warp takes (a fast drag, a 60 Hz orbit), a requested view waits before
+    its warp starts (`hold_s`: two recent request intervals, at most a warp's time); a
+    newer request in that time replaces it unstarted (``skipped``), and the warp starts
+    once the view rests. A view requested while a warp is in flight gives that warp up at
+    its next check (`ViewSynthesizer.frame`'s ``cancel``: a neighbour already made stays
+    cached). Where warps take less than the request interval every view's warp starts at
+    once, as before.
+
+    Any caller can always get the frame of a view: ``take(view, timeout_s)`` with a timeout
+    asks for the view if it is neither asked nor made, starts it at once (no hold) and
+    waits for it; the frame is `ViewSynthesizer.frame`'s, bit for bit.
 
     Parameters
     ----------
@@ -916,34 +559,86 @@ class WarpWorker:
 
     Attributes
     ----------
-    made, dropped, cancelled, errors : int
+    made, dropped, cancelled, skipped, errors : int
         Warps made; made but superseded by a newer request before anyone took them; given
-        up for a newer request; failed (counted, never raised: the blend stays on show).
+        up for a newer request; requests replaced before their warp started; failed
+        (counted, never raised: the blend stays on show).
+    warp_s : float or None
+        The recent time a warp takes (exponential average of the warps made, raised by a
+        warp given up later than that); None until the first.
     """
 
-    def __init__(self, synthesis: ViewSynthesizer) -> None:
+    #: Request intervals longer than this are a view at rest, not a drag.
+    REST_S = 0.25
+    #: Weight of the newest sample in the averages of warp time and request interval.
+    SMOOTHING = 0.3
+
+    def __init__(self, synthesis: Any) -> None:
         self.synthesis = synthesis
         self._cond = threading.Condition()
         self._pending: tuple[float, float] | None = None
+        self._pending_t = 0.0
+        self._urgent = False  # someone waits for the pending view: start it at once
         self._result: tuple[tuple[float, float], np.ndarray] | None = None
         self._current: tuple[float, float] | None = None  # the view being warped
         self._closed = False
-        self.made = self.dropped = self.cancelled = self.errors = 0
+        self._last_request_t: float | None = None
+        self.interval_s: float | None = None  # recent request interval (None: at rest)
+        self.warp_s: float | None = None
+        self.made = self.dropped = self.cancelled = self.skipped = self.errors = 0
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
         self._thread.start()
 
+    @staticmethod
+    def hold_for(warp_s: float | None, interval_s: float | None) -> float:
+        """How long a requested view waits before its warp starts (`hold_s`): 0 when warps
+        are known to take no longer than the interval between requests (or either is
+        unknown: a view at rest, the first warp), else two intervals (a request that did
+        not come: the drag stopped or slowed; one late request is not a stop), at most one
+        warp's time."""
+        if warp_s is None or interval_s is None or warp_s <= interval_s:
+            return 0.0
+        return min(2.0 * interval_s, warp_s)
+
+    def hold_s(self) -> float:
+        """The hold of a view requested now (`hold_for` of the current averages)."""
+        return self.hold_for(self.warp_s, self.interval_s)
+
     def request(self, view: tuple[float, float]) -> None:
         """Warp ``view`` next (any thread); an older result not taken is forgotten."""
+        now = time.monotonic()
         with self._cond:
-            self._pending = (float(view[0]), float(view[1]))
+            view = (float(view[0]), float(view[1]))
+            if self._last_request_t is not None:
+                gap = now - self._last_request_t
+                if gap > self.REST_S:
+                    self.interval_s = None
+                else:
+                    self.interval_s = gap if self.interval_s is None else (
+                        self.interval_s + self.SMOOTHING * (gap - self.interval_s))
+            self._last_request_t = now
+            if self._pending is not None and self._pending != view:
+                self.skipped += 1
+                self._urgent = False
+            self._pending, self._pending_t = view, now
             self._result = None
             self._cond.notify_all()
 
     def take(self, view: tuple[float, float], timeout_s: float = 0.0) -> np.ndarray | None:
-        """The warp of ``view`` if it is made (waiting up to ``timeout_s``), else None."""
+        """The warp of ``view`` if it is made (waiting up to ``timeout_s``), else None.
+
+        With a timeout, a view neither made, in flight nor asked is asked now, and its warp
+        starts at once (no hold): the caller waits for it."""
         want = (float(view[0]), float(view[1]))
         with self._cond:
             if timeout_s > 0:
+                made = self._result is not None and self._result[0] == want
+                if not made and self._current != want and self._pending != want:
+                    self._pending, self._pending_t = want, time.monotonic()
+                    self._result = None
+                if self._pending == want:
+                    self._urgent = True
+                    self._cond.notify_all()
                 self._cond.wait_for(lambda: self._closed or (
                     self._result is not None and self._result[0] == want), timeout_s)
             if self._result is None or self._result[0] != want:
@@ -965,27 +660,52 @@ class WarpWorker:
         pending = self._pending
         return self._closed or (pending is not None and pending != self._current)
 
+    def _next_view(self) -> tuple[float, float] | None:
+        """The view to warp next, once it has waited its hold (under the lock); None:
+        closing."""
+        while True:
+            self._cond.wait_for(lambda: self._pending is not None or self._closed)
+            if self._closed:
+                return None
+            wait = self._pending_t + self.hold_s() - time.monotonic()
+            if self._urgent or wait <= 0.0:
+                view, self._pending, self._urgent = self._pending, None, False
+                return view
+            self._cond.wait(wait)  # a newer request, a waiting caller, or the hold is over
+
     def _run(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._pending is not None or self._closed)
-                if self._closed:
+                view = self._next_view()
+                if view is None:
                     return
-                view, self._pending = self._pending, None
                 self._current = view
+            t0 = time.monotonic()
             try:
                 frame = self.synthesis.frame(*view, cancel=self._superseded)
             except WarpCancelled:
                 with self._cond:
                     self.cancelled += 1
+                    spent = time.monotonic() - t0
+                    if self.warp_s is None or spent > self.warp_s:
+                        self.warp_s = spent  # a warp takes at least this long
+                    self._current = None
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1
+                    self._current = None
+                    self._cond.notify_all()
                 continue
+            spent = time.monotonic() - t0
             with self._cond:
                 self.made += 1
+                self.warp_s = spent if self.warp_s is None else (
+                    self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                self._current = None
                 if self._pending == view or self._pending is None:
+                    if self._pending == view:
+                        self._pending, self._urgent = None, False
                     self._result = (view, frame)
                     self._cond.notify_all()
                 else:

@@ -112,6 +112,53 @@ def test_semi_transparent_box_depths_follow_beer_lambert():
     assert np.all(rgba_thin[..., 3][hits] > 0.1)
 
 
+def test_depth_layers_cross_a_quarter_and_three_quarters_of_the_opacity():
+    """`render_depth_layers`: the opacity crosses 1/4 at ln(4/3) / sigma and 3/4 at
+    ln(4) / sigma into a homogeneous box (Beer-Lambert), the first two channels and the
+    RGBA are `render_with_depth`'s bit for bit, and a box too faint to reach 3/4 has the
+    first but not the second."""
+    from host.render.raycast_depth import (
+        DEPTH_QUARTER,
+        DEPTH_THREE_QUARTERS,
+        render_depth_layers,
+    )
+
+    volume = Volume(np.full((20, 20, 40), 0.5, dtype=np.float32))
+    alpha = 0.05
+    tf = TransferFunction(
+        name="constant",
+        color_points=np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]),
+        opacity_points=np.array([[0.0, alpha], [1.0, alpha]]),
+        window=(0.0, 1.0),
+    )
+    renderer = Renderer(volume, tf, step=0.25, shading=False)
+    camera = orbit_camera(View(0.0, 0.0), volume.center_mm, volume.radius_mm,
+                          projection="orthographic")
+    rgba, depth = render_depth_layers(renderer, camera, 24, 24)
+    rgba2, depth2 = renderer.render_with_depth(camera, 24, 24)
+    np.testing.assert_array_equal(rgba, rgba2)
+    np.testing.assert_array_equal(depth[..., :2], depth2)
+    origins, _ = camera.rays(24, 24)
+    t_in = origins[..., 0] - 39.0
+    hits = (np.abs(origins[..., 1] - 9.5) < 9.0) & (np.abs(origins[..., 2] - 9.5) < 9.0)
+    sigma = -math.log(1.0 - alpha)
+    for channel, level in ((DEPTH_QUARTER, 0.25), (DEPTH_THREE_QUARTERS, 0.75)):
+        np.testing.assert_allclose(depth[..., channel][hits] - t_in[hits],
+                                   math.log(1.0 / (1.0 - level)) / sigma,
+                                   atol=renderer.step_mm)
+    assert np.all(depth[..., DEPTH_QUARTER][hits] < depth[..., DEPTH_HALF][hits])
+    assert np.all(depth[..., DEPTH_THREE_QUARTERS][hits] > depth[..., DEPTH_HALF][hits])
+    outside = np.isnan(depth2[..., DEPTH_MEAN])
+    assert np.all(np.isnan(depth[..., DEPTH_QUARTER][outside]))
+    faint = Renderer(volume, TransferFunction(
+        name="faint", color_points=tf.color_points,
+        opacity_points=np.array([[0.0, 0.02], [1.0, 0.02]]), window=(0.0, 1.0),
+    ), step=0.25, shading=False)  # 1 - 0.98**39 = 0.55: crosses 1/4 and 1/2, not 3/4
+    _rgba, d = render_depth_layers(faint, camera, 24, 24)
+    assert np.all(np.isfinite(d[..., DEPTH_QUARTER][hits]))
+    assert np.all(np.isnan(d[..., DEPTH_THREE_QUARTERS][hits]))
+
+
 def test_rgba_is_bit_identical_to_render():
     rng = np.random.default_rng(4)
     from scipy.ndimage import gaussian_filter

@@ -262,3 +262,23 @@ def test_bad_arguments_are_refused():
     y[0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         rec.update(y)
+
+
+def test_auto_threads_follow_the_cpus_the_process_may_use(monkeypatch):
+    """A big eigenspace gets 2 threads only where the process may run on 2 CPUs: pinned to
+    one (``taskset -c 0``, a one-core board's measurements) it gets 1, whatever the
+    machine's count."""
+    import os
+
+    from device_runtime import reconstruct
+
+    n_cells, values, k = 16, 16 * 16 * 3, 700  # 8.6 MB of int8 eigenimages
+    args = (np.zeros((n_cells, values), np.uint8), np.zeros((n_cells * k, values), np.int8),
+            np.ones(n_cells * k, np.float32), np.full(n_cells, k), (64, 64), (16, 16))
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert reconstruct.usable_cpus() == 1
+    assert Reconstructor(*args, threads="auto").threads == 1
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    r = Reconstructor(*args, threads="auto")
+    assert r.threads == 2
+    r.close()

@@ -4,6 +4,7 @@ exactly the host's warped frames. The warp itself on synthetic scenes: test_warp
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import time
@@ -212,8 +213,7 @@ def test_the_view_cache_keeps_a_frames_neighbours_and_evicts_only_others(depth_m
     for step in range(60):  # a drag that turns back and forth across grid lines
         view = ((view[0] + rng.uniform(-12.0, 16.0)) % 360.0,
                 float(np.clip(view[1] + rng.uniform(-8.0, 9.0), -75.0, 75.0)))
-        idx, w = synth.standalone.interpolator.weights(*view)
-        need = {int(i) for i, x in zip(np.ravel(idx), np.ravel(w)) if x > 0}
+        need = {int(i) for i in synth.neighbours(*view)[0]}
         cached = set(synth._cache)
         misses = synth.misses
         synth.frame(*view)
@@ -223,17 +223,54 @@ def test_the_view_cache_keeps_a_frames_neighbours_and_evicts_only_others(depth_m
     assert len(seen) > 2 * CACHE_VIEWS  # the drag crossed several grid cells
 
 
-def test_depth_reconstruction_in_passes_of_whole_cells_is_the_one_pass_result(depth_model,
-                                                                               monkeypatch):
-    from device_runtime import synthesis
+def test_depth_reconstruction_is_the_eigenspace_sum_and_only_the_cells_asked(depth_model):
+    """Each depth cell is its mean plus its components times their scores (float64 here),
+    and a miss' reconstruction of the cells under the object only is the full one there."""
+    from device_runtime.synthesis import merge_cells
 
     image = read_image(depth_model, key=KEY)
-    whole = synthesis.DepthEigenspace.from_image(image)
-    monkeypatch.setattr(synthesis, "COMPONENT_CHUNK", 3)
-    passes = synthesis.DepthEigenspace.from_image(read_image(depth_model, key=KEY))
-    assert len(passes._passes) > 3 * len(whole._passes)
+    eig = synthesis_depth(image)
+    ends = np.cumsum(eig.counts)
     for view in (0, 33, 101):
-        np.testing.assert_array_equal(passes.reconstruct(view), whole.reconstruct(view))
+        coef = eig.scales.astype(np.float64) * eig.table[view] * eig.step
+        cells = eig.mean.astype(np.float64)
+        for c in range(eig.counts.size):
+            a, b = ends[c] - eig.counts[c], ends[c]
+            cells[c] += coef[a:b] @ eig.components[a:b].astype(np.float64)
+        want = merge_cells(cells, eig.cell, eig.padded)[:eig.shape[0], :eig.shape[1]]
+        full = eig.reconstruct(view)
+        np.testing.assert_allclose(full, want + eig.offset, rtol=0, atol=1e-3)
+        some = np.zeros(eig.counts.size, bool)
+        some[::3] = True
+        part = eig.reconstruct(view, some)
+        cell_of = merge_cells(np.repeat(np.arange(eig.counts.size)[:, None], eig.cell ** 2, 1),
+                              eig.cell, eig.padded)[:eig.shape[0], :eig.shape[1]]
+        np.testing.assert_array_equal(part[some[cell_of]], full[some[cell_of]])
+        assert not np.array_equal(part, full)  # the others were not reconstructed
+
+
+def test_the_cells_a_miss_needs_cover_every_depth_the_upsampling_reads(depth_model):
+    from device_runtime.synthesis import upsample2, upsample2_at
+
+    image = read_image(depth_model, key=KEY)
+    eig = synthesis_depth(image)
+    h, w = image.image_shape
+    rng = np.random.default_rng(5)
+    obj = np.zeros((h, w), bool)
+    obj[rng.integers(0, h, 12), rng.integers(0, w, 12)] = True
+    obj[h // 3:h // 2, w // 4:w // 3] = True
+    need = eig.needed_cells(obj)
+    assert 0 < need.sum() < need.size
+    src = np.flatnonzero(obj)
+    for view in (4, 77):
+        np.testing.assert_array_equal(upsample2_at(eig.reconstruct(view, need), src, w),
+                                      upsample2(eig.reconstruct(view)).reshape(-1)[src])
+
+
+def synthesis_depth(image):
+    from device_runtime.synthesis import DepthEigenspace
+
+    return DepthEigenspace.from_image(image)
 
 
 def test_a_standalone_device_warps_with_the_displays_reconstructor(depth_model):
@@ -314,6 +351,102 @@ def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
                       "-o", str(tmp_path / "blend.png")]) == 0
     np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "blend.png")),
                                   model.view(100.0, -44.0))
+
+
+def test_a_views_frame_is_the_same_whatever_the_cache_the_reconstructor_and_the_thread(
+        depth_model):
+    """`ViewSynthesizer.frame` is a function of the image and the view: a synthesizer that
+    made other views first (its cache and its reconstructor's last cells differ), a fresh
+    one per view, one with a lean reconstructor (a warp worker's: one thread, little
+    scratch) or one with two threads, on another thread, all give the same bits. A host
+    computes the device's frame this way (evaluate's pca_warp; a correction added to it)."""
+    import threading
+
+    from device_runtime.synthesis import WORKER_SCRATCH_BYTES
+
+    image = read_image(depth_model, key=KEY)
+    views = [(3.0, 14.0), (7.5, 14.5), (12.0, 17.9), (12.0, 18.0), (200.0, -40.0),
+             (201.0, -38.0), (3.0, 14.0)]
+    along = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    drag = [along.frame(*v) for v in views]
+    assert along.misses < 4 * len(views)  # the cache was used
+    for i, view in enumerate(views):
+        fresh = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+        np.testing.assert_array_equal(fresh.frame(*view), drag[i])
+    lean = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(
+        image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
+    two = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(
+        image, threads=2, scratch_bytes=4 << 20))
+    got: dict[str, list] = {}
+
+    def run(name, synth):
+        got[name] = [synth.frame(*v) for v in reversed(views)]
+
+    threads = [threading.Thread(target=run, args=a) for a in (("lean", lean), ("two", two))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    two.reconstructor.close()
+    for name in ("lean", "two"):
+        for a, b in zip(got[name], reversed(drag)):
+            np.testing.assert_array_equal(a, b)
+    assert any(not np.array_equal(a, b) for a, b in itertools.pairwise(drag))
+
+
+def test_row_weights_warp_one_row_away_from_the_middle_and_fade_continuously():
+    from device_runtime.synthesis import ROW_RAMP, row_weights
+
+    theta = np.array([12.0, 12.0, 24.0, 24.0])
+    # the bilinear weights of a view 3 degrees above row 12 (a quarter of the way to 24)
+    w = np.array([0.6, 0.15, 0.2, 0.05])
+    out = row_weights(theta, w)
+    np.testing.assert_allclose(out, [0.8, 0.2, 0.0, 0.0])  # one row, its proportions kept
+    assert row_weights(theta, w * 3.0).sum() == pytest.approx(3.0)  # the total kept
+    # at the middle nothing changes; just past the ramp the far row comes in from 0
+    mid = np.array([0.3, 0.2, 0.3, 0.2])
+    np.testing.assert_allclose(row_weights(theta, mid), mid)
+    prev = None
+    for share in np.linspace(0.0, 0.5, 101):  # the far row's share of the weight
+        out = row_weights(theta, np.array([0.5, 0.5, 0.5, 0.5]) * [1 - share, 1 - share,
+                                                                   share, share])
+        far = out[2:].sum() / out.sum()
+        assert far == 0.0 if share <= ROW_RAMP else 0.0 < far <= share + 1e-12
+        if prev is not None:
+            assert abs(far - prev) <= 0.5 * 0.005 / (0.5 - ROW_RAMP) + 1e-9  # continuous
+        prev = far
+    # neighbours on one row, or on three, keep the interpolation's weights
+    np.testing.assert_array_equal(row_weights(np.array([12.0, 12.0]), np.array([0.7, 0.3])),
+                                  [0.7, 0.3])
+    three = np.array([0.5, 0.3, 0.2])
+    np.testing.assert_array_equal(row_weights(np.array([0.0, 12.0, 24.0]), three), three)
+
+
+def test_a_drags_memory_stays_under_the_synthesis_declaration(depth_model):
+    """tracemalloc over a drag that reconstructs neighbours (misses) and warps: everything
+    the synthesis allocates beyond the image's sections (its view cache, the warp's grid and
+    temporaries, a lean reconstructor's buffers and scratch, the frame) peaks under
+    `synthesis_memory_bytes`, the figure a device checks against its RAM budget."""
+    import tracemalloc
+
+    from device_runtime.synthesis import WORKER_SCRATCH_BYTES, synthesis_memory_bytes
+
+    image = read_image(depth_model, key=KEY)
+    declared = synthesis_memory_bytes(read_manifest(depth_model))
+    standalone = StandaloneScores(image)
+    views = [(3.0 * i, 10.0 + 0.7 * i) for i in range(40)]
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        synth = ViewSynthesizer(image, standalone, Reconstructor.from_image(
+            image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
+        for view in views:
+            frame = synth.frame(*view)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert synth.misses > 10 and frame.any()
+    assert peak <= declared, (peak, declared)
 
 
 # --------------------------------------------------------------------------- served devices
@@ -499,6 +632,84 @@ def test_a_warp_superseded_by_a_newer_view_is_given_up(depth_model):
     np.testing.assert_array_equal(whole, fresh.frame(123.0, 17.0))
     with pytest.raises(WarpCancelled):  # inside the warp: every neighbour is cached now
         synth.frame(123.0, 17.0, cancel=lambda: True)
+
+
+def test_the_warp_worker_holds_a_view_only_while_views_come_faster_than_warps():
+    from device_runtime.synthesis import WarpWorker
+
+    hold = WarpWorker.hold_for
+    assert hold(None, 0.016) == 0.0 and hold(0.04, None) == 0.0  # first warp; at rest
+    assert hold(0.010, 0.016) == 0.0  # a warp fits between two requests: start at once
+    assert hold(0.040, 0.016) == pytest.approx(0.032)  # 2 intervals: has the drag stopped?
+    assert hold(0.020, 0.016) == pytest.approx(0.020)  # never longer than a warp
+
+
+class _Sleepy:
+    """A synthesizer whose warps take ``work_s`` (checking ``cancel``) and record what
+    they were started for; the frame's first pixel holds the view's phi."""
+
+    def __init__(self, work_s):
+        self.work_s, self.started = work_s, []
+
+    def frame(self, phi, theta, cancel=None):
+        from device_runtime.synthesis import WarpCancelled
+
+        self.started.append((phi, theta))
+        end = time.monotonic() + self.work_s
+        while time.monotonic() < end:
+            if cancel is not None and cancel():
+                raise WarpCancelled
+            time.sleep(0.001)  # the work being simulated, not a wait for a race
+        return np.full((2, 2, 3), int(phi) % 256, np.uint8)
+
+
+def test_a_fast_drag_starts_no_warps_nobody_would_see_and_the_last_view_is_made():
+    """Views asked every 2 ms of warps that take 60 ms: after the first warps tell the
+    worker how long a warp takes, the requests are replaced before theirs start; once the
+    drag stops, the last view's warp is made."""
+    from device_runtime.synthesis import WarpWorker
+
+    synth = _Sleepy(0.06)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        assert worker.take((0.0, 10.0), timeout_s=10.0) is not None  # learns a warp's time
+        views = [(float(i), 10.0) for i in range(1, 301)]
+        for view in views:
+            worker.request(view)
+            time.sleep(0.002)  # the drag's pace (the input being simulated)
+        got = worker.take(views[-1], timeout_s=10.0)
+        assert got is not None and got[0, 0, 0] == 300 % 256
+        started = len(synth.started) - 1
+        # the old worker started every one (each given up at the next request)
+        assert worker.skipped > 200 and started < 100, (worker.skipped, started)
+        assert synth.started[-1] == views[-1]
+    finally:
+        worker.close()
+
+
+def test_take_with_a_timeout_gets_a_held_or_unasked_view_at_once():
+    """A caller that needs a view's frame (a host correction for it arrived) does not wait
+    out the hold, and gets a view nobody asked for too."""
+    from device_runtime.synthesis import WarpWorker
+
+    synth = _Sleepy(0.0)
+    worker = WarpWorker(synth)
+    try:
+        worker.warp_s, worker.interval_s = 100.0, 60.0  # a hold of 90 s
+        worker._last_request_t = time.monotonic()
+        worker.request((7.0, 1.0))
+        assert worker.hold_s() > 60.0
+        got = worker.take((7.0, 1.0), timeout_s=30.0)
+        assert got is not None and got[0, 0, 0] == 7
+        got = worker.take((9.0, 2.0), timeout_s=30.0)  # never requested
+        assert got is not None and got[0, 0, 0] == 9
+        assert synth.started == [(7.0, 1.0), (9.0, 2.0)]
+    finally:
+        worker.close()
+
+
+# ----------------------------------------------------------------------------- depth storage
 
 
 def _depth_fit(depth_db, thresholds=(0.99,), score_mse=0.05):

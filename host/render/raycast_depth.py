@@ -1,8 +1,9 @@
 """The ray-caster's depth kernel: `host.render.raycast.Renderer.render_with_depth`.
 
 `_cast_ray_depth` is `host.render.raycast._cast_ray` statement for statement plus the depth
-bookkeeping (where the accumulated opacity crosses 0.5; the opacity-weighted mean distance),
-kept apart so the colour-only kernel carries none of it and stays as fast as it was. A test
+bookkeeping (where the accumulated opacity crosses 0.5; the opacity-weighted mean distance;
+with `render_depth_layers`, also where it crosses 1/4 and 3/4), kept apart so the
+colour-only kernel carries none of it and stays as fast as it was. A test
 (``tests/test_raycast_depth.py``) checks that the RGBA of both is bit-identical, so the two
 cannot drift apart unnoticed. Imported only when depth is asked for.
 """
@@ -14,9 +15,37 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from host.render.raycast import BLOCK_SIZE, _axis_exit, _trilinear
+from host.render.raycast import BLOCK_SIZE, _axis_exit, _check_size, _trilinear
 
-__all__: list[str] = []
+__all__ = ["DEPTH_QUARTER", "DEPTH_THREE_QUARTERS", "render_depth_layers"]
+
+#: Channels `render_depth_layers` adds to `Renderer.render_with_depth`'s two
+#: (``DEPTH_HALF``, ``DEPTH_MEAN``): where the accumulated opacity crosses 1/4 and 3/4.
+DEPTH_QUARTER = 2
+DEPTH_THREE_QUARTERS = 3
+
+
+def render_depth_layers(renderer: object, camera: object, width: int, height: int
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """`Renderer.render_with_depth` with two more depths per pixel: where the accumulated
+    opacity crosses 1/4 (`DEPTH_QUARTER`) and 3/4 (`DEPTH_THREE_QUARTERS`), linear within
+    the crossing sample like the half-opacity depth, NaN where it never does. A
+    translucent pixel's colour comes from the depths between them (a second depth layer
+    for view synthesis: docs/rate-distortion.md 9.10).
+
+    Returns
+    -------
+    rgba : ndarray (height, width, 4) float32
+        Bit-identical to ``renderer.render``'s.
+    depth : ndarray (height, width, 4) float32
+        ``DEPTH_HALF``, ``DEPTH_MEAN`` (`Renderer.render_with_depth`'s), ``DEPTH_QUARTER``,
+        ``DEPTH_THREE_QUARTERS``.
+    """
+    width, height = _check_size(width, height)
+    out = np.zeros((height, width, 4), dtype=np.float32)
+    depth = np.full((height, width, 4), np.nan, dtype=np.float32)
+    renderer._run_kernel(_render_depth_kernel, camera, width, height, out, depth)
+    return out, depth
 
 
 @njit(cache=True, nogil=True)
@@ -48,10 +77,15 @@ def _cast_ray_depth(
     at which the accumulated opacity crosses 0.5, linear within the crossing sample's
     step; ``depth[row, col, 1]``: the opacity-weighted mean distance ``sum(w t) /
     sum(w)`` with ``w`` each sample's contribution to the colour. NaN where the opacity
-    never reaches 0.5 (0) or no sample contributes (1).
+    never reaches 0.5 (0) or no sample contributes (1). With four channels (``depth``
+    (h, w, 4), `render_depth_layers`) also where the opacity crosses 1/4 (2) and 3/4 (3).
     """
+    layers = depth.shape[2] >= 4
     depth[row, col, 0] = np.nan
     depth[row, col, 1] = np.nan
+    if layers:
+        depth[row, col, 2] = np.nan
+        depth[row, col, 3] = np.nan
     nz, ny, nx = u.shape
     isx, isy, isz = inv_spacing[0], inv_spacing[1], inv_spacing[2]
     ox *= isx
@@ -90,6 +124,8 @@ def _cast_ray_depth(
     cb = 0.0
     ca = 0.0
     t_half = np.nan
+    t_q1 = np.nan
+    t_q3 = np.nan
     wt_sum = 0.0
     k = 0
     k_block_end = 0
@@ -152,6 +188,11 @@ def _cast_ray_depth(
             if before < 0.5 and ca >= 0.5:
                 # the sample's opacity is spread over its step [t - step/2, t + step/2]
                 t_half = t - 0.5 * step_mm + (0.5 - before) / w * step_mm
+            if layers:
+                if before < 0.25 and ca >= 0.25:
+                    t_q1 = t - 0.5 * step_mm + (0.25 - before) / w * step_mm
+                if before < 0.75 and ca >= 0.75:
+                    t_q3 = t - 0.5 * step_mm + (0.75 - before) / w * step_mm
             if ca > early_alpha:
                 break
         k += 1
@@ -162,6 +203,9 @@ def _cast_ray_depth(
     depth[row, col, 0] = t_half
     if ca > 0.0:
         depth[row, col, 1] = wt_sum / ca
+    if layers:
+        depth[row, col, 2] = t_q1
+        depth[row, col, 3] = t_q3
 
 
 @njit(parallel=True, cache=True, nogil=True)
