@@ -57,6 +57,11 @@ w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a
    answered by ``serve --scores predict``, each new view shown as the blend and then, if no
    host frame came first, as the warp worker's warp.
 
+x. **Cost of a correction** (issue 23, only with ``--correction-images A.ecs[,B.ecs...]``,
+   standalone images): ``Reconstructor.correct`` of the corrections the host really sends
+   (moving at ``--correction-stride``, complete at rest) against the blend of a new view,
+   interleaved on one reconstructor; `device_correction` (run it pinned to one core).
+
 Models. Real ones where it matters: ``--volume`` (default the shared vismale_head if
 present, else ``builtin:head``) rendered from ``--views`` (default ``grid:36x7``) at each of
 ``--real-sizes`` (default 256 and 512) into ``--work`` (default ``bench-out/device``) and
@@ -935,6 +940,32 @@ def print_warp(r: dict) -> None:
           f"{r['required_ram_bytes'] / MB:.1f} MB)", flush=True)
 
 
+def main_correction(args: argparse.Namespace) -> int:
+    """Section x alone (`device_correction`)."""
+    from device_correction import print_correction, section_correction
+
+    if not args.correction_images:
+        print("bench_device: --sections x needs --correction-images A.ecs[,B.ecs]",
+              file=sys.stderr)
+        return 2
+    paths = [Path(p) for p in args.correction_images.split(",") if p]
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        print(f"bench_device: no such image: {', '.join(missing)}", file=sys.stderr)
+        return 2
+    views = args.frames or (3 if args.quick else 8)
+    print(f"(x) correction vs blend, median of {views} drag views x 3, one reconstructor "
+          f"thread; OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', '-')}, "
+          f"CPUs {sorted(os.sched_getaffinity(0))}, load {os.getloadavg()[0]:.1f}", flush=True)
+    rows = []
+    for path in paths:
+        rows.append(section_correction(path, views, args.correction_stride))
+        print_correction(rows[-1])
+    if args.json:
+        print(json.dumps({"correction": rows}, default=float))
+    return 0
+
+
 def parse_sizes(text: str) -> list[int]:
     return [int(s) for s in text.split(",") if s.strip()]
 
@@ -965,7 +996,13 @@ def main() -> int:
     parser.add_argument("--warp-baseline", type=Path, default=None,
                         help="section w with --rss-frames: the same model without depth, "
                              "whose standalone process is measured beside it")
+    parser.add_argument("--correction-images", default=None,
+                        help="section x: comma-separated standalone images (.ecs with annex)")
+    parser.add_argument("--correction-stride", type=int, default=4,
+                        help="section x: the moving corrections' sample stride")
     args = parser.parse_args()
+    if args.sections == "x":
+        return main_correction(args)
     if args.warp_image is not None and args.sections == "w":
         frames = args.frames or 40
         print(f"(w) standalone frame: synthesized (warp by depth) vs blended, median of "

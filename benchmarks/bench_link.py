@@ -44,26 +44,14 @@ Per tick, what the device shows is compared to a fresh ray-cast of the tick's vi
 SSIM and FLIP (mask: ray-cast alpha). ``fps`` is the number of ticks showing a new frame per
 second of trace (at most ``--fps``).
 
-``real`` (issue 14): the same traces through a *real* session: ``eigencast serve`` (the
-`host.link.serving.serve` function, ray-casting on this machine's CPU) and a real
-`device_runtime.runtime.RuntimeDevice` (its own threads, its display loop at a window's
-60 Hz) over a paced ``mem://`` line at each baud. The trace's view is set on the device at
-each tick (as a drag in the window does); per tick the frame the device shows
-`SAMPLE_DELAY_S` after the tick's view was set (two display ticks; ``--sample-ticks``) is
-compared with a fresh
-ray-cast of the tick's view (object SSIM, FLIP); fps counts ticks showing a frame not shown
-at the previous tick; bytes are wire bytes per score packet received during the trace;
-"view to frame" is the median time from setting a view to the first frame of it on show
-(the device's own or the host's).
-Modes (``--real-modes``): ``predict`` (``serve --scores predict`` to a device that
-predicts: the simulated ``pc``), ``render`` (the simulated ``project``) and ``interpolate``
-(``interp``) to a device that does not, and ``predict-blend`` (the simulated ``pc-blend``:
-``predict`` to a device whose depth warp is switched off, so its interim frame is the score
-blend). The models get the standalone table first (``--predict-cache``: a copy of each
-cached model with `host.fit.model.add_standalone_table` attached, made once; a model that
-has the table, e.g. one fitted with ``--standalone --depth``, is used as it is). The key
-part then also measures the *correction at rest*: the correction packet of a view
-(prediction + RD correction at the link step) against the smallest equal-SSIM WebP/AVIF.
+``real`` (issue 23, `link_real`): the same traces through *real* sessions of the one served
+path: ``eigencast serve`` as it is by default to a `RuntimeDevice` that synthesizes its own
+frames (``served``: the model with depth; ``served-blend``: the same database fitted
+``--no-depth``, from ``--blend-cache``), what an older device gets (``motion``), and
+simulated WebP streams on the same trace and line (``webpN``: each frame at most N line
+ticks), with the verdict "served at least 0.1 object SSIM above the best WebP stream at no
+more frames per second". The key part's ``correction at rest (predict ...)`` rows measure
+issue 14's retired correction of the score blend (version-2 packets), kept for history.
 
 ``cells``: cell sizes (``--cells``) at 128 and 256: ``eigencast fit DB --cell C`` into
 ``--work``, then the ``key`` measurement of each (plus the interpolated frame's SSIM).
@@ -75,12 +63,11 @@ Usage::
         [--traces orbit,drag] [--seconds 4] [--fps 10] [--key-views 8] [--write BENCHMARKS.md]
         [--quick]
 
-The served warp (issue 15; docs/rate-distortion.md section 9.8): depth images (``fit
---standalone --depth``) linked as ``DIR/{vol}-256.ecs``, predict with the warp against the
-score blend, real and simulated::
+The served path on a 115200-baud line, both shared volumes at 256 (issue 23; BENCHMARKS.md,
+"Slow links")::
 
-    .venv/bin/python benchmarks/bench_link.py --cache DIR --predict-cache WORK --sizes 256 \
-        --parts real --real-modes predict,predict-blend
+    .venv/bin/python benchmarks/bench_link.py --cache /work/cache/db \
+        --blend-cache /work/cache/bench23/nodepth --sizes 256 --parts real --bauds 115200
 
 Missing models in ``--cache`` (``VOLUME-SIZE.ecs``) are skipped with one line.
 """
@@ -101,6 +88,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from link_real import DEFAULT_REAL_MODES, SAMPLE_DELAY_S, real_part  # noqa: E402
 
 from host.evaluate.baselines import decode_image, encode_image, encode_within_budget  # noqa: E402
 from host.evaluate.masks import alpha_object_mask  # noqa: E402
@@ -509,246 +498,7 @@ def link_table(title: str, res: dict[int, dict[str, dict]]) -> str:
 # --------------------------------------------------------------------------- real
 
 
-#: Simulated mode each real mode is checked against.
-REAL_MODES = {"predict": "pc", "predict-blend": "pc-blend", "render": "project",
-              "interpolate": "interp"}
-
-
-def standalone_copy(path: Path, folder: Path) -> Path:
-    """``path``'s model with the standalone table attached, in ``folder`` (made once);
-    ``path`` itself when it has the table."""
-    from host.fit.model import add_standalone_table, save_model
-    from protocol.image import read_manifest
-
-    if "table_step" in (read_manifest(path).get("score_quantization") or {}):
-        return path
-    out = folder / path.name
-    if out.exists():
-        return out
-    folder.mkdir(parents=True, exist_ok=True)
-    model = HostModel.load(path)
-    if "table_step" not in model.image.score_quantization:
-        add_standalone_table(model.image, model.training_scores, eigenvalues=model.eigenvalues)
-    tmp = out.with_suffix(".tmp.ecs")
-    save_model(tmp, model.image, model.annex())
-    tmp.replace(out)
-    return out
-
-
-#: When a tick's frame is sampled, after the tick's view was set: two 60 Hz display ticks.
-SAMPLE_DELAY_S = 2.0 / 60.0
-
-
-class _Presenter:
-    """A window-like presenter that shows nothing: the runtime's display loop then runs at a
-    window's 60 Hz (a headless presenter polls at 20 Hz)."""
-
-    headless = False
-    overlay = False
-    zoom = 1.0
-
-    def poll(self) -> list:
-        return []
-
-    def present(self, frame: np.ndarray, info: dict | None = None, *,
-                overlay_lines: list[str] | None = None) -> bool:
-        return True
-
-    def close(self) -> None:
-        pass
-
-
-class _DeviceThreads:
-    """A keyless (``--insecure``) `RuntimeDevice` on ``url``: its link and its headless
-    display loop on threads; ``shown`` records (monotonic time, frame, info) per present.
-    ``warp=False`` drops the depth warp of each model it loads (``predict-blend``)."""
-
-    def __init__(self, flash: Path, url: str, baud: int, *, predict: bool,
-                 view: tuple[float, float], record: bool = True, warp: bool = True) -> None:
-        import threading
-
-        from device_runtime.device import DeviceConfig
-        from device_runtime.runtime import RuntimeDevice
-
-        self.shown: list[tuple[float, np.ndarray, dict]] = []
-        on_frame = ((lambda f, info: self.shown.append((time.monotonic(), f.copy(),
-                                                        dict(info or {}))))
-                    if record else None)
-        # frames as large as the model's key packets (eigencast-device --max-frame 65536)
-        config = DeviceConfig(flash_dir=flash, key=None, insecure=True, max_frame_bytes=65536)
-        self.device = RuntimeDevice(config,
-                                    predict=predict, view=view, on_frame=on_frame,
-                                    presenter=_Presenter(), log=lambda line: None)
-        if not warp:
-            swap = self.device._swap_model
-
-            def blend_only(model: Any) -> None:
-                if model.warp_worker is not None:  # first: it uses the synthesis
-                    model.warp_worker.close()
-                    model.warp_worker = None
-                if model.synthesis is not None:
-                    model.synthesis.reconstructor.close()
-                    model.synthesis = None
-                swap(model)
-
-            self.device._swap_model = blend_only
-        self.stop_event = threading.Event()
-        ready = threading.Event()
-        self.threads = [
-            threading.Thread(target=self.device.run, args=(url,), daemon=True,
-                             kwargs={"baud": baud, "stop": self.stop_event,
-                                     "on_ready": lambda t: ready.set()}),
-            threading.Thread(target=self.device.run_display, args=(self.stop_event,),
-                             daemon=True)]
-        for t in self.threads:
-            t.start()
-        ready.wait(10)
-
-    def stop(self) -> None:
-        self.stop_event.set()
-        for t in self.threads:
-            t.join(10)
-        self.device.close_display()
-
-
-def _wait(predicate: Any, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
-
-
-def provisioned_flash(model_path: Path, work: Path) -> Path:
-    """A flash folder holding ``model_path``'s image (provisioned once, unpaced)."""
-    import uuid
-
-    from host.link.provisioning import provision
-
-    flash = work / f"flash-{model_path.stem}"
-    if (flash / ".done").exists():
-        return flash
-    name = f"bench-prov-{uuid.uuid4().hex[:8]}"
-    dev = _DeviceThreads(flash, f"mem://{name}?end=b&pace=0", 115200, predict=False,
-                         view=(0.0, 0.0), record=False)
-    try:
-        provision(model_path, f"mem://{name}?end=a&pace=0", insecure=True, show_progress=False,
-                  log=lambda line: None)
-    finally:
-        dev.stop()
-    (flash / ".done").write_text("ok")
-    return flash
-
-
-def real_session(case: Case, model_path: Path, flash0: Path, trace: list[tuple[float, float]],
-                 fps: float, baud: int, mode: str, work: Path,
-                 sample_delay_s: float = SAMPLE_DELAY_S) -> dict[str, float]:
-    """One real serve session over a paced mem:// line, driven by ``trace``; each tick's
-    frame is the one on show ``sample_delay_s`` after the tick's view was set."""
-    import shutil
-    import threading
-    import uuid
-
-    from device_runtime.orbit import canonical_view
-    from host.link.serving import serve
-    from host.link.true_views import TrueViewScores
-
-    flash = work / f"flash-run-{uuid.uuid4().hex[:8]}"
-    shutil.copytree(flash0, flash)
-    name = f"bench-real-{uuid.uuid4().hex[:8]}"
-    serve_mode = "predict" if mode == "predict-blend" else mode
-    dev = _DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=serve_mode == "predict",
-                         view=trace[0], warp=mode != "predict-blend")
-    device = dev.device
-    stop = threading.Event()
-    out: dict[str, Any] = {}
-    views = TrueViewScores(case.model, case.renderer)  # a fresh cache: real ray-casts
-
-    def host() -> None:
-        out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
-                             scores=serve_mode, stop=stop, log=lambda line: None, model=case.model,
-                             true_views=views, stats_every_s=0)
-
-    thread = threading.Thread(target=host, daemon=True)
-    thread.start()
-    try:
-        # steady state before the trace: the device shows the host's frame of view 0
-        def settled() -> bool:
-            return any(i.get("sequence") and (i.get("phi_deg"), i.get("theta_deg")) == trace[0]
-                       for _, _, i in dev.shown)
-        if not _wait(settled, 60):
-            raise RuntimeError(f"{mode} at {baud}: no frame for the first view in 60 s")
-        time.sleep(0.2)
-        sent0 = device.link.stats.bytes_received if device.link else 0
-        packets0 = device.runtime_stats.packets
-        dt = 1.0 / fps
-        t0 = time.monotonic()
-        moves: list[tuple[float, tuple[float, float]]] = []  # (when, canonical view) set
-        for i, view in enumerate(trace):
-            target = t0 + i * dt
-            time.sleep(max(0.0, target - time.monotonic()))
-            if canonical_view(*view) != device.view:  # a resting hand sends no event
-                moves.append((time.monotonic(), canonical_view(*view)))
-                device.set_view(*view)
-        time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
-        t_end = time.monotonic()
-        wire = (device.link.stats.bytes_received if device.link else 0) - sent0
-        packets = device.runtime_stats.packets - packets0
-    finally:
-        stop.set()
-        thread.join(30)
-        dev.stop()
-        shutil.rmtree(flash, ignore_errors=True)
-    stats = out.get("stats")
-    shown = dev.shown
-    ssims, flips, new = [], [], 0
-    prev = None
-    for i, view in enumerate(trace):
-        t_tick = min(t0 + i * dt + sample_delay_s, t_end)
-        k = max((j for j, (t, _, _) in enumerate(shown) if t <= t_tick), default=None)
-        if k is None:
-            continue
-        if prev is not None and k != prev:
-            new += 1
-        prev = k
-        rgb, mask = case.render(view)
-        s_, f_ = quality(rgb, shown[k][1], mask)
-        ssims.append(s_)
-        flips.append(f_)
-    seconds = len(trace) * dt
-    rs = device.runtime_stats
-    # from each view change to the first frame of that view on show (own or host's)
-    waits = [next((t - when for t, _, i in shown if t >= when
-                   and (i.get("phi_deg"), i.get("theta_deg")) == v), math.inf)
-             for when, v in moves]
-    return {"fps": new / seconds,
-            "view_ms": 1e3 * float(np.median(waits)) if waits else float("nan"),
-            "ssim_object": float(np.mean(ssims)),
-            "flip_object": float(np.mean(flips)),
-            "bytes_per_frame": wire / packets if packets else float("nan"),
-            "line_use": wire / (baud / 10.0) / seconds,
-            "predicted": rs.predicted_frames, "corrected": rs.corrected_frames,
-            "stale": rs.stale_dropped, "warped": rs.synthesized_frames,
-            "corrections": stats.correction_frames if stats else 0,
-            "host_frames": stats.frames if stats else 0,
-            "render_s": (stats.render_seconds / max(1, stats.rendered_views)) if stats else 0}
-
-
-def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
-    lines = [f"**{title}**", "",
-             "| baud | mode | fps shown | SSIM obj | FLIP obj | bytes/frame | line use | "
-             "predicted / corrected / stale / warped | view to frame ms |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for baud, modes in res.items():
-        for mode, r in modes.items():
-            extra = (f"{r['predicted']} / {r['corrected']} / {r['stale']} / "
-                     f"{r.get('warped', 0)}" if "predicted" in r else "")
-            wait = f"{r['view_ms']:.0f}" if "view_ms" in r else ""
-            lines.append(f"| {baud} | {mode} | {r['fps']:.1f} | {r['ssim_object']:.4f} | "
-                         f"{r['flip_object']:.4f} | {r['bytes_per_frame']:.0f} | "
-                         f"{100 * r['line_use']:.0f} % | {extra} | {wait} |")
-    return "\n".join(lines)
+# the real part lives in link_real.py (imported by main)
 
 
 # --------------------------------------------------------------------------- cells
@@ -823,13 +573,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="key part: step factor:kappa pairs (kappa 0: plain rounding)")
     ap.add_argument("--link-rd", default=f"2:{DEFAULT_RD_KAPPA}",
                     help="link part: step factor:kappa of the rd and pc modes")
-    ap.add_argument("--real-modes", default="predict,render,interpolate",
-                    help="real part: serve modes (each beside its simulated mode)")
+    ap.add_argument("--real-modes", default=DEFAULT_REAL_MODES,
+                    help="real part: served, served-blend, motion, webpN (a WebP stream, "
+                    "each frame at most N line ticks)")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="real part: sessions per real mode (the verdict uses their mean)")
+    ap.add_argument("--blend-cache", type=Path, default=None,
+                    help="real part: VOLUME-SIZE.ecs fitted --no-depth (served-blend)")
     ap.add_argument("--sample-ticks", type=float, default=SAMPLE_DELAY_S * 60.0,
                     help="real part: a tick's frame is the one on show this many 60 Hz "
                     "display ticks after its view was set")
-    ap.add_argument("--predict-cache", type=Path, default=Path("/work/cache/predict"),
-                    help="real part: where the models with the standalone table go")
+    ap.add_argument("--real-work", type=Path, default=Path("/work/cache/link-real"),
+                    help="real part: the devices' flash folders")
     ap.add_argument("--cells", default="8,12,16,24")
     ap.add_argument("--cell-sizes", default="128,256")
     ap.add_argument("--write", type=Path, default=None,
@@ -857,8 +612,6 @@ def main(argv: list[str] | None = None) -> int:
             if not path.exists():
                 print(f"skip {vol}-{size}: no model {path}", flush=True)
                 continue
-            if "real" in parts:  # the device needs the table; the host predicts from it too
-                path = standalone_copy(path, args.predict_cache)
             case = open_case(path)
             m = case.model
             desc = (f"{vol} {size}x{size}, cells {m.image.cell_shape[0]}, K "
@@ -884,34 +637,21 @@ def main(argv: list[str] | None = None) -> int:
                     tables.append(table)
                     record[f"link/{vol}-{size}/{trace}"] = {str(k): v for k, v in res.items()}
             if "real" in parts:
-                flash0 = provisioned_flash(path, args.predict_cache / "work")
-                # warm the ray-caster once, so the first session does not pay for it alone
-                case.renderer.render(*TRACES[args.traces.split(",")[0]](1.0, 1.0)[0])
-                for trace_name in args.traces.split(","):
-                    t0 = time.perf_counter()
-                    trace = TRACES[trace_name](args.seconds, args.fps)
-                    res = {}
-                    for baud in [int(b) for b in args.bauds.split(",")]:
-                        res[baud] = {}
-                        for mode in args.real_modes.split(","):
-                            r = real_session(case, path, flash0, trace, args.fps, baud, mode,
-                                             args.predict_cache / "work",
-                                             sample_delay_s=args.sample_ticks / 60.0)
-                            res[baud][f"real {mode}"] = r
-                            if "link" not in parts:  # the simulated twin, for the check
-                                sim = simulate(case, trace, args.fps, baud, REAL_MODES[mode],
-                                               rd=link_rd)
-                                res[baud][f"sim {REAL_MODES[mode]}"] = sim
-                            print(f"  {trace_name} {baud} {mode}: {r}", flush=True)
-                    sampled = ("" if args.sample_ticks == SAMPLE_DELAY_S * 60.0 else
-                               f", sampled {args.sample_ticks:g} display ticks after the view")
-                    table = real_table(
-                        f"real session: {desc}, {trace_name} {args.seconds:g} s at "
-                        f"{args.fps:g} ticks/s (serve + RuntimeDevice over a paced mem:// line; "
-                        f"host ray-casts on this CPU{sampled})", res)
-                    print(table + f"\n({time.perf_counter() - t0:.0f} s)\n", flush=True)
-                    tables.append(table)
-                    record[f"real/{vol}-{size}/{trace_name}"] = {str(k): v for k, v in res.items()}
+                blend_path = (args.blend_cache / f"{vol}-{size}.ecs" if args.blend_cache
+                              else None)
+                blend_case = None
+                if blend_path is not None and blend_path.exists():
+                    blend_case = open_case(blend_path)
+                    blend_case._renders = case._renders  # same database: same true views
+                tabs, rec = real_part(case, blend_case, path, blend_path, desc,
+                                      args.traces.split(","),
+                                      [int(b) for b in args.bauds.split(",")],
+                                      args.real_modes.split(","), args.seconds, args.fps,
+                                      args.real_work, link_rd, args.sample_ticks,
+                                      args.repeats)
+                tables += tabs
+                for trace_name, r in rec.items():
+                    record[f"real/{vol}-{size}/{trace_name}"] = r
     if "cells" in parts:
         tables += cells_part(args.cache, args.work, volumes,
                              [int(s) for s in args.cell_sizes.split(",")],

@@ -148,6 +148,34 @@ def test_partial_change_inside_one_batch_with_threads():
     rec.close()
 
 
+@pytest.mark.parametrize("share", [0.2, 0.6, 0.95])
+def test_a_correction_of_most_cells_of_a_batch_is_the_cell_by_cell_one(share, monkeypatch):
+    """A batch most of whose cells a correction touches is computed whole (cheaper than cell
+    by cell): the cells it leaves alone keep the synthesized frame's bits, the others get
+    exactly the cell-by-cell result, and only the corrected cells are counted."""
+    from device_runtime import reconstruct
+
+    space = make_space(40, 56, 8, 8, zero_fraction=0.2, seed=11)
+    rng = np.random.default_rng(5)
+    synth = rng.integers(0, 256, (40, 56, 3), dtype=np.uint8)
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    cells = np.flatnonzero((space["n_components"] > 0) & (rng.random(35) < share))
+    d = np.zeros(int(offsets[-1]), np.float32)
+    for c in cells:
+        d[offsets[c]:offsets[c + 1]] = rng.normal(0, 400, offsets[c + 1] - offsets[c])
+    got = build(space, scratch_bytes=60_000)
+    frame = got.correct(d, synth).copy()
+    assert got.cells_recomputed == len(cells)
+    monkeypatch.setattr(reconstruct, "WHOLE_BATCH_SHARE", 2.0)  # never whole: cell by cell
+    want = build(space, scratch_bytes=60_000).correct(d, synth)
+    np.testing.assert_array_equal(frame, want)
+    as_cells = frame.reshape(5, 8, 7, 8, 3).transpose(0, 2, 1, 3, 4).reshape(35, -1)
+    synth_cells = synth.reshape(5, 8, 7, 8, 3).transpose(0, 2, 1, 3, 4).reshape(35, -1)
+    untouched = np.setdiff1d(np.arange(35), cells)
+    np.testing.assert_array_equal(as_cells[untouched], synth_cells[untouched])
+    assert not np.array_equal(as_cells[cells], synth_cells[cells])
+
+
 def test_zero_component_cells_show_their_mean():
     space = make_space(24, 24, 8, 8, zero_fraction=0.5, seed=7)
     counts = space["n_components"]

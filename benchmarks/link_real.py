@@ -1,0 +1,383 @@
+"""``bench_link.py --parts real``: real serve sessions against a WebP stream (issue 23).
+
+A real `host.link.serving.serve` (ray-casting on this machine's CPU) and a real
+`device_runtime.runtime.RuntimeDevice` (its own threads, its display loop at a window's
+60 Hz, its warp worker) talk over a paced ``mem://`` line at each baud, in this process.
+The trace's view is set on the device at each tick (as a drag in the window does). Modes:
+
+* ``served``: the one served path, ``serve()`` as it is by default, to a device that
+  synthesizes its own frames: the model has depth and the standalone table (``fit``'s
+  default), so the device shows its blend at once, then its warp, and the host's
+  corrections of exactly that frame (sparse while the view moves, complete at rest);
+* ``served-blend``: the same with the same database fitted ``--no-depth`` (``--blend-cache``
+  holds ``VOLUME-SIZE.ecs``): the device's own frame is the blend of its predicted scores;
+* ``motion``: what an older device gets: ``serve(..., scores="motion")`` (absolute scores
+  of a sparse ray-cast, key and delta packets) to a device that does not predict;
+* ``webp`` (``webpN``: N line ticks): a stream of WebP files, each the highest quality
+  whose frame takes at most N ticks of the line (``webp`` = ``webp1``: one per tick, so it
+  keeps up with every tick), simulated on the same trace and line
+  (`bench_link.simulate`: the fresh ray-cast of the latest view is encoded the moment the
+  line is free; no host compute time, which favours the stream).
+
+Per tick the frame the device shows ``sample_delay_s`` after the tick's view was set (two
+display ticks) is compared with a fresh ray-cast of the tick's view (object SSIM, FLIP; mask:
+ray-cast alpha); ``fps`` counts ticks showing a frame not shown at the previous tick; bytes
+are wire bytes per score packet received during the trace; "view to frame" is the median
+time from setting a view to the first frame of it on show. The verdict per trace (issue
+23): the served path's object SSIM minus the best WebP stream's whose fps is not above it.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: When a tick's frame is sampled, after the tick's view was set: two 60 Hz display ticks.
+SAMPLE_DELAY_S = 2.0 / 60.0
+#: The real modes: (serve's ``scores``, the device predicts).
+SESSION_MODES = {"served": ("auto", True), "served-blend": ("auto", True),
+                 "motion": ("motion", False)}
+DEFAULT_REAL_MODES = "served,served-blend,motion,webp1,webp2,webp4"
+
+
+class _Presenter:
+    """A window-like presenter that shows nothing: the runtime's display loop then runs at a
+    window's 60 Hz (a headless presenter polls at 20 Hz)."""
+
+    headless = False
+    overlay = False
+    zoom = 1.0
+
+    def poll(self) -> list:
+        return []
+
+    def present(self, frame: np.ndarray, info: dict | None = None, *,
+                overlay_lines: list[str] | None = None) -> bool:
+        return True
+
+    def close(self) -> None:
+        pass
+
+
+class DeviceThreads:
+    """A keyless (``--insecure``) `RuntimeDevice` on ``url``: its link and its display loop
+    on threads; ``shown`` records (monotonic time, frame, info) per present."""
+
+    def __init__(self, flash: Path, url: str, baud: int, *, predict: bool,
+                 view: tuple[float, float], record: bool = True) -> None:
+        from device_runtime.device import DeviceConfig
+        from device_runtime.runtime import RuntimeDevice
+
+        self.shown: list[tuple[float, np.ndarray, dict]] = []
+        on_frame = ((lambda f, info: self.shown.append((time.monotonic(), f.copy(),
+                                                        dict(info or {}))))
+                    if record else None)
+        # frames as large as the model's key packets (eigencast-device --max-frame 65536)
+        config = DeviceConfig(flash_dir=flash, key=None, insecure=True, max_frame_bytes=65536)
+        self.device = RuntimeDevice(config, predict=predict, view=view, on_frame=on_frame,
+                                    presenter=_Presenter(), log=lambda line: None)
+        self.stop_event = threading.Event()
+        ready = threading.Event()
+        self.threads = [
+            threading.Thread(target=self.device.run, args=(url,), daemon=True,
+                             kwargs={"baud": baud, "stop": self.stop_event,
+                                     "on_ready": lambda t: ready.set()}),
+            threading.Thread(target=self.device.run_display, args=(self.stop_event,),
+                             daemon=True)]
+        for t in self.threads:
+            t.start()
+        ready.wait(10)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        for t in self.threads:
+            t.join(10)
+        self.device.close_display()
+
+
+def wait_for(predicate: Any, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def provisioned_flash(model_path: Path, work: Path) -> Path:
+    """A flash folder holding ``model_path``'s image (provisioned once, unpaced)."""
+    from host.link.provisioning import provision
+
+    flash = work / f"flash-{model_path.parent.name}-{model_path.stem}"
+    if (flash / ".done").exists():
+        return flash
+    shutil.rmtree(flash, ignore_errors=True)
+    name = f"bench-prov-{uuid.uuid4().hex[:8]}"
+    dev = DeviceThreads(flash, f"mem://{name}?end=b&pace=0", 115200, predict=False,
+                        view=(0.0, 0.0), record=False)
+    try:
+        provision(model_path, f"mem://{name}?end=a&pace=0", insecure=True, show_progress=False,
+                  log=lambda line: None)
+    finally:
+        dev.stop()
+    (flash / ".done").write_text("ok")
+    return flash
+
+
+def settle(dev: DeviceThreads, view: tuple[float, float], quiet_s: float = 0.6,
+           timeout_s: float = 60.0) -> None:
+    """Wait until the device shows a host frame of ``view`` and then nothing new for
+    ``quiet_s`` (the resting view's corrections are done): the steady state before a trace."""
+    from device_runtime.orbit import canonical_view
+
+    want = canonical_view(*view)
+
+    def hosts() -> bool:
+        return any(i.get("sequence") and (i.get("phi_deg"), i.get("theta_deg")) == want
+                   for _, _, i in dev.shown)
+
+    if not wait_for(hosts, timeout_s):
+        raise RuntimeError(f"no host frame for the first view {view} in {timeout_s:g} s")
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        last = dev.shown[-1][0]
+        if time.monotonic() - last >= quiet_s:
+            return
+        time.sleep(0.05)
+
+
+def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[float, float]],
+                 fps: float, baud: int, mode: str, work: Path,
+                 sample_delay_s: float = SAMPLE_DELAY_S) -> dict[str, Any]:
+    """One real serve session of ``mode`` (`SESSION_MODES`) over a paced mem:// line,
+    driven by ``trace``; each tick's frame is the one on show ``sample_delay_s`` after the
+    tick's view was set, scored against ``case.render`` of the tick's view."""
+    from bench_link import quality
+
+    from device_runtime.orbit import canonical_view
+    from host.link.serving import serve
+
+    scores, predict = SESSION_MODES[mode]
+    flash = work / f"flash-run-{uuid.uuid4().hex[:8]}"
+    shutil.copytree(flash0, flash)
+    name = f"bench-real-{uuid.uuid4().hex[:8]}"
+    dev = DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=predict, view=trace[0])
+    device = dev.device
+    stop = threading.Event()
+    out: dict[str, Any] = {}
+
+    def host() -> None:
+        try:
+            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
+                                 scores=scores, stop=stop, log=lambda line: None,
+                                 model=case.model, renderer=case.renderer, stats_every_s=0)
+        except BaseException as exc:  # reported below
+            out["error"] = exc
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    try:
+        settle(dev, trace[0])
+        if "error" in out:
+            raise RuntimeError(f"serve failed: {out['error']!r}")
+        link = device.link
+        wire0 = link.stats.bytes_received if link else 0
+        rs = device.runtime_stats
+        counts0 = (rs.packets, rs.predicted_frames, rs.corrected_frames, rs.stale_dropped,
+                   rs.synthesized_frames)
+        n_shown0 = len(dev.shown)
+        dt = 1.0 / fps
+        t0 = time.monotonic()
+        moves: list[tuple[float, tuple[float, float]]] = []  # (when, canonical view) set
+        for i, view in enumerate(trace):
+            target = t0 + i * dt
+            time.sleep(max(0.0, target - time.monotonic()))
+            if canonical_view(*view) != device.view:  # a resting hand sends no event
+                moves.append((time.monotonic(), canonical_view(*view)))
+                device.set_view(*view)
+        time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
+        t_end = time.monotonic()
+        wire = (link.stats.bytes_received if link else 0) - wire0
+        counts = [a - b for a, b in zip((rs.packets, rs.predicted_frames, rs.corrected_frames,
+                                         rs.stale_dropped, rs.synthesized_frames), counts0,
+                                        strict=True)]
+    finally:
+        stop.set()
+        thread.join(30)
+        dev.stop()
+        shutil.rmtree(flash, ignore_errors=True)
+    stats = out.get("stats")
+    shown = dev.shown
+    ssims, flips, new = [], [], 0
+    prev = None
+    for i, view in enumerate(trace):
+        t_tick = min(t0 + i * dt + sample_delay_s, t_end)
+        k = max((j for j, (t, _, _) in enumerate(shown) if t <= t_tick), default=None)
+        if k is None:
+            continue
+        if prev is not None and k != prev:
+            new += 1
+        prev = k
+        rgb, mask = case.render(view)
+        s_, f_ = quality(rgb, shown[k][1], mask)
+        ssims.append(s_)
+        flips.append(f_)
+    seconds = len(trace) * dt
+    packets = counts[0]
+    # from each view change to the first frame of that view on show (own or host's)
+    waits = [next((t - when for t, _, i in shown[n_shown0:] if t >= when
+                   and (i.get("phi_deg"), i.get("theta_deg")) == v), math.inf)
+             for when, v in moves]
+    return {"fps": new / seconds,
+            "view_ms": 1e3 * float(np.median(waits)) if waits else float("nan"),
+            "ssim_object": float(np.mean(ssims)), "flip_object": float(np.mean(flips)),
+            "ssim_ticks": [round(s, 4) for s in ssims],
+            "bytes_per_frame": wire / packets if packets else float("nan"),
+            "bytes_per_s": wire / seconds, "line_use": wire / (baud / 10.0) / seconds,
+            "packets": packets, "predicted": counts[1], "corrected": counts[2],
+            "stale": counts[3], "warped": counts[4],
+            "strides": dict(stats.stride_frames) if stats else {},
+            "unchanged": stats.unchanged_frames if stats else 0,
+            "converged": stats.converged_frames if stats else 0}
+
+
+def webp_budget(baud: int, fps: float, ticks: int) -> int:
+    """The largest WebP payload whose frame takes at most ``ticks`` display ticks of the
+    line (95 % of them: a frame lands before the tick that shows it)."""
+    from bench_link import FRAME_OVERHEAD, wire_bytes
+
+    room = 0.95 * ticks * baud / 10.0 / fps
+    payload = int((room - FRAME_OVERHEAD - 1) * 254 / 255)
+    while payload > 64 and wire_bytes(payload) > room:
+        payload -= 1
+    return max(64, payload)
+
+
+def webp_stream(case: Any, trace: list[tuple[float, float]], fps: float, baud: int,
+                ticks: int, rd: tuple[float, float]) -> dict[str, Any]:
+    """The simulated WebP stream whose frames each take at most ``ticks`` line ticks."""
+    from bench_link import simulate
+
+    budget = webp_budget(baud, fps, ticks)
+    r = simulate(case, trace, fps, baud, "webp", rd=rd, budget=budget)
+    r["budget"] = budget
+    r["bytes_per_s"] = r["line_use"] * baud / 10.0
+    return r
+
+
+def verdict(modes: dict[str, dict]) -> str:
+    """Issue 23's check: ``served`` at least 0.1 object SSIM above the best WebP stream
+    whose fps is not above the served path's."""
+    served = modes.get("real served")
+    streams = [(k, r) for k, r in modes.items() if k.startswith("sim webp")]
+    if served is None or not streams:
+        return ""
+    fair = [(k, r) for k, r in streams if r["fps"] <= served["fps"] + 1e-9]
+    if not fair:
+        fastest = min(streams, key=lambda kr: kr[1]["fps"])
+        return (f"served {served['ssim_object']:.4f} at {served['fps']:.1f} fps: every WebP "
+                f"stream shows more frames (slowest {fastest[0]} {fastest[1]['fps']:.1f} fps)")
+    name, best = max(fair, key=lambda kr: kr[1]["ssim_object"])
+    gap = served["ssim_object"] - best["ssim_object"]
+    return (f"served {served['ssim_object']:.4f} at {served['fps']:.1f} fps vs best WebP at "
+            f"no more fps ({name}: {best['ssim_object']:.4f} at {best['fps']:.1f} fps): "
+            f"{gap:+.4f} ({'met' if gap >= 0.1 else 'NOT met'}: >= +0.1)")
+
+
+def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
+    lines = [f"**{title}**", "",
+             "| baud | mode | fps shown | SSIM obj | FLIP obj | bytes/frame | B/s | "
+             "predicted / corrected / stale / warped | strides (host) | view to frame ms |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for baud, modes in res.items():
+        for mode, r in modes.items():
+            if "packets" in r:
+                extra = f"{r['predicted']} / {r['corrected']} / {r['stale']} / {r['warped']}"
+                strides = ", ".join(f"{k}: {v}" for k, v in sorted(
+                    r["strides"].items(), key=lambda kv: int(kv[0]))) or "-"
+                wait = f"{r['view_ms']:.0f}"
+            else:
+                extra, strides, wait = f"budget {r['budget']} B", "", ""
+            lines.append(f"| {baud} | {mode} | {r['fps']:.1f} | {r['ssim_object']:.4f} | "
+                         f"{r['flip_object']:.4f} | {r['bytes_per_frame']:.0f} | "
+                         f"{r['bytes_per_s']:.0f} | {extra} | {strides} | {wait} |")
+        v = verdict(modes)
+        if v:
+            lines.append(f"\n{baud}: {v}")
+    return "\n".join(lines)
+
+
+def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | None,
+              desc: str, traces: list[str], bauds: list[int], modes: list[str],
+              seconds: float, fps: float, work: Path, rd: tuple[float, float],
+              sample_ticks: float, repeats: int = 1) -> tuple[list[str], dict[str, Any]]:
+    """The real part for one model: tables (markdown) and the record."""
+    from bench_link import TRACES
+
+    tables, record = [], {}
+    flashes = {"served": None, "served-blend": None, "motion": None}
+    for mode in modes:
+        if mode not in SESSION_MODES:
+            continue
+        if mode == "served-blend" and blend_case is None:
+            print(f"skip served-blend of {path.name}: no --no-depth model "
+                  "(--blend-cache DIR/VOLUME-SIZE.ecs)", flush=True)
+            continue
+        flashes[mode] = provisioned_flash(blend_path if mode == "served-blend" else path,
+                                          work)
+    # warm the ray-caster once, so the first session does not pay for it alone
+    case.renderer.render(*TRACES[traces[0]](1.0, 1.0)[0])
+    for trace_name in traces:
+        t0 = time.perf_counter()
+        trace = TRACES[trace_name](seconds, fps)
+        res: dict[int, dict[str, dict]] = {}
+        for baud in bauds:
+            res[baud] = {}
+            for mode in modes:
+                if mode.startswith("webp"):
+                    ticks = int(mode[4:] or 1)
+                    r = webp_stream(case, trace, fps, baud, ticks, rd)
+                    res[baud][f"sim {mode}"] = r
+                    print(f"  {trace_name} {baud} {mode}: fps {r['fps']:.1f} SSIM "
+                          f"{r['ssim_object']:.4f} budget {r['budget']} B", flush=True)
+                    continue
+                if flashes.get(mode) is None:
+                    continue
+                blend = mode == "served-blend"
+                for k in range(repeats):
+                    r = real_session(blend_case if blend else case,
+                                     blend_path if blend else path, flashes[mode], trace,
+                                     fps, baud, mode, work, sample_delay_s=sample_ticks / 60.0)
+                    label = f"real {mode}" + (f" #{k + 1}" if repeats > 1 else "")
+                    res[baud][label] = r
+                    print(f"  {trace_name} {baud} {label}: fps {r['fps']:.1f} SSIM "
+                          f"{r['ssim_object']:.4f} B/frame {r['bytes_per_frame']:.0f} "
+                          f"strides {r['strides']} view->frame {r['view_ms']:.0f} ms",
+                          flush=True)
+            if repeats > 1:  # the verdict on the mean of the repeats
+                for mode in SESSION_MODES:
+                    runs = [r for k, r in res[baud].items() if k.startswith(f"real {mode} #")]
+                    if runs:
+                        res[baud][f"real {mode}"] = {
+                            **runs[0], **{key: float(np.mean([r[key] for r in runs]))
+                                          for key in ("fps", "ssim_object", "flip_object",
+                                                      "bytes_per_frame", "bytes_per_s",
+                                                      "view_ms")},
+                            "packets": sum(r["packets"] for r in runs), "mean_of": len(runs)}
+        sampled = ("" if sample_ticks == SAMPLE_DELAY_S * 60.0 else
+                   f", sampled {sample_ticks:g} display ticks after the view")
+        table = real_table(
+            f"real session: {desc}, {trace_name} {seconds:g} s at {fps:g} ticks/s (serve + "
+            f"RuntimeDevice over a paced mem:// line; host ray-casts on this CPU{sampled})",
+            res)
+        print(table + f"\n({time.perf_counter() - t0:.0f} s)\n", flush=True)
+        tables.append(table)
+        record[trace_name] = {str(k): v for k, v in res.items()}
+    return tables, record
