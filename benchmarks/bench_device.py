@@ -53,9 +53,10 @@ w. **Depth-aware view synthesis** (issue 15, only with ``--warp-image IMAGE``, a
    the image's other sections (the standalone table) and its depth sections (the synthesis'
    working set must fit inside it); and against the bare runtime process plus what the
    image declares it needs (`required_ram_bytes`, with the synthesis scratch). With
-   ``--served-rss`` also a served device that predicts: its own orbit's view requests
-   answered by ``serve --scores predict``, each new view shown as the blend and then, if no
-   host frame came first, as the warp worker's warp.
+   ``--served-rss`` also a served device on the one served path: ``serve`` as it is by
+   default, driving one turn of an orbit, sends a correction of the device's own frame of
+   each new view, which the device makes (the warp worker's warp for an image with depth)
+   and corrects (`Reconstructor.correct`).
 
 x. **Cost of a correction** (issue 23, only with ``--correction-images A.ecs[,B.ecs...]``,
    standalone images): ``Reconstructor.correct`` of the corrections the host really sends
@@ -821,10 +822,10 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     the image adds: its extra sections as held in memory (the standalone score table, the
     depth eigenspace); and against the bare runtime process plus what the image declares it
     needs (`required_ram_bytes`, with the synthesis scratch). With ``served`` the device is
-    served and predicts instead: its own ``--orbit`` drives view requests that ``serve
-    --scores predict`` answers, and each new view is shown as the blend, then as its warp
-    (made on the warp worker's thread, with its own reconstructor) unless the host's frame
-    came first."""
+    served on the one served path instead: ``serve`` as it is by default drives one turn of
+    an orbit (12 s) and sends a correction of the device's own frame of each view, which the
+    device makes (its warp worker's warp, with its own reconstructor, for an image with
+    depth; else the blend) and corrects (`Reconstructor.correct`)."""
     from device_runtime.image_receiver import required_ram_bytes
     from device_runtime.synthesis import synthesis_memory_bytes
     from host.link.provisioning import provision
@@ -849,13 +850,17 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     declared = required_ram_bytes(manifest)
     stats_path = work / f"rss-warp-{path.stem}.json"
     stats_path.unlink(missing_ok=True)
-    # served: one turn of the orbit (12 s), however many frames: a predicting device shows a
-    # blend on every refresh whose view moved, until the host is there and after
-    orbit, cap = ("turn:12:15:1", max(frames, 100_000)) if served else ("turn:12:15", frames)
-    run = ["--headless", "--orbit", orbit, "--max-frames", str(cap), "--stats",
-           str(stats_path), "--ram-budget", "1024"]
+    # served: the host drives one turn of an orbit (12 s), however many frames: every packet
+    # is a correction of the device's own frame of a new view, which the device makes (the
+    # warp, on its worker) and corrects; a device-driven orbit's view moves on every display
+    # refresh, so the host's corrections arrive for views already left and none is applied
+    cap = max(frames, 100_000) if served else frames
+    run = ["--headless", *([] if served else ["--orbit", "turn:12:15"]), "--max-frames",
+           str(cap), "--stats", str(stats_path), "--ram-budget", "1024"]
     t0 = time.perf_counter()
+    served_stats: list[Any] = []  # serve's statistics (served)
     if served:
+        from device_runtime.orbit import parse_orbit
         from host.link.serving import serve
 
         device = DeviceProcess(flash, "--insecure", *run)
@@ -865,8 +870,9 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
 
         def host() -> None:
             try:
-                serve(path, device.url, insecure=True, scores="predict", reconnect=False,
-                      stop=stop, stats_every_s=0, log=lambda line: None)
+                served_stats.append(serve(path, device.url, insecure=True, reconnect=False,
+                                          orbit=parse_orbit("turn:12:15:1"), stop=stop,
+                                          stats_every_s=0, log=lambda line: None))
             except BaseException as exc:  # reported below
                 failed.append(exc)
 
@@ -878,13 +884,15 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.PIPE, text=True)
     hwm, cpu = 0, 0.0
-    while proc.poll() is None:
+    while proc.poll() is None and (not served or thread.is_alive()):
         hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
         cpu = proc_cpu_s(proc.pid) or cpu  # the last reading before it exits
         time.sleep(0.05)
-    if served:
+    if served:  # the host's orbit is over: the device stops (SIGTERM writes its stats)
         stop.set()
         thread.join(30)
+        hwm = max(hwm, proc_status(proc.pid).get("VmHWM", 0))
+        device.stop()
         err = "\n".join(device.lines[-3:] + [repr(e) for e in failed])
         if failed:
             print(f"    serve failed: {failed[0]!r}"[:300], flush=True)
@@ -904,6 +912,8 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
             "frames": int(stats.get("frames_presented", 0)), "wall_s": wall,
             "warped_frames": int(stats.get("synthesized_frames", 0)),
             "host_frames": int(stats.get("packets", 0)), "device_cpu_s": cpu,
+            "corrected_frames": int(stats.get("corrected_frames", 0)),
+            "host_corrections": served_stats[0].correction_frames if served_stats else 0,
             "eigenspace_mb": eig / MB, "depth_sections_mb": depth / MB, "table_mb": table / MB,
             "declared_mb": declared / MB, "ratio_peak_declared": peak / (bare + declared),
             "synthesis_scratch_mb": scratch / MB, "peak_rss_mb": peak / MB,
@@ -913,8 +923,9 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
 
 def print_warp_rss(r: dict) -> None:
     ok = "within" if r["ratio_peak_bound"] <= 1 else "OVER"
-    kind = (f"served predicting ({r['warped_frames']} warps shown, {r['host_frames']} host "
-            "frames received)" if r["served"] else "standalone")
+    kind = (f"served ({r['warped_frames']} warps shown, {r['host_frames']} host packets "
+            f"received, {r.get('corrected_frames', 0)} corrected frames shown)"
+            if r["served"] else "standalone")
     print(f"  {r['image']}: {r['frames']} {kind} frames in {r['wall_s']:.0f} s (device CPU "
           f"{r['device_cpu_s']:.1f} s); device peak "
           f"RSS {r['peak_rss_mb']:.1f} MB, {r['ratio_peak_bound']:.2f}x the bound "
@@ -990,8 +1001,8 @@ def main() -> int:
     parser.add_argument("--warp-image", type=Path, default=None,
                         help="section w: a standalone image fitted with --depth")
     parser.add_argument("--served-rss", action="store_true",
-                        help="section w with --rss-frames: also a served device that predicts "
-                             "(its own orbit, serve --scores predict answering; needs the "
+                        help="section w with --rss-frames: also a served device (its own "
+                             "orbit, serve's corrections of its own frames; needs the "
                              "model's volume for the host's ray-casts)")
     parser.add_argument("--warp-baseline", type=Path, default=None,
                         help="section w with --rss-frames: the same model without depth, "
