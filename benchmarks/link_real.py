@@ -29,6 +29,7 @@ time from setting a view to the first frame of it on show. The verdict per trace
 
 from __future__ import annotations
 
+import itertools
 import math
 import shutil
 import threading
@@ -45,6 +46,9 @@ SAMPLE_DELAY_S = 2.0 / 60.0
 SESSION_MODES = {"served": ("auto", True), "served-blend": ("auto", True),
                  "motion": ("motion", False)}
 DEFAULT_REAL_MODES = "served,served-blend,motion,webp1,webp2,webp4"
+#: The verdict counts a WebP stream as "no more frames per second" up to this many more
+#: (a tick or two of a 4 s trace: the sessions' own spread).
+FPS_TOLERANCE = 0.5
 
 
 class _Presenter:
@@ -172,12 +176,14 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
     device = dev.device
     stop = threading.Event()
     out: dict[str, Any] = {}
+    sent: list[float] = []  # when the host queued each packet
 
     def host() -> None:
         try:
             out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
                                  scores=scores, stop=stop, log=lambda line: None,
-                                 model=case.model, renderer=case.renderer, stats_every_s=0)
+                                 model=case.model, renderer=case.renderer, stats_every_s=0,
+                                 on_frame=lambda enc, view: sent.append(time.monotonic()))
         except BaseException as exc:  # reported below
             out["error"] = exc
 
@@ -216,6 +222,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
     stats = out.get("stats")
     shown = dev.shown
     ssims, flips, new = [], [], 0
+    kinds: dict[str, list[float]] = {}  # what was on show at the samples: SSIMs per kind
     prev = None
     for i, view in enumerate(trace):
         t_tick = min(t0 + i * dt + sample_delay_s, t_end)
@@ -229,6 +236,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
         s_, f_ = quality(rgb, shown[k][1], mask)
         ssims.append(s_)
         flips.append(f_)
+        kinds.setdefault(frame_kind(shown[k][2], canonical_view(*view)), []).append(s_)
     seconds = len(trace) * dt
     packets = counts[0]
     # from each view change to the first frame of that view on show (own or host's)
@@ -244,8 +252,37 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
             "packets": packets, "predicted": counts[1], "corrected": counts[2],
             "stale": counts[3], "warped": counts[4],
             "strides": dict(stats.stride_frames) if stats else {},
+            "shown": {k: [len(v), round(float(np.mean(v)), 4)] for k, v in sorted(kinds.items())},
+            "host_packets": sum(t0 <= t <= t_end for t in sent),
+            "host_gap_s": max_gap([t for t in sent if t0 <= t <= t_end], t0, t_end),
             "unchanged": stats.unchanged_frames if stats else 0,
             "converged": stats.converged_frames if stats else 0}
+
+
+def frame_kind(info: dict, view: tuple[float, float]) -> str:
+    """What a shown frame was: the device's ``blend`` or ``warp``, a ``corrected`` own
+    frame, a ``host`` frame (key/delta scores), each of ``view`` or else ``... of another
+    view`` (an older one still on show)."""
+    kind = ("corrected" if info.get("corrected") else "warp" if info.get("synthesized")
+            else "blend" if info.get("predicted") else "host")
+    same = (info.get("phi_deg"), info.get("theta_deg")) == view
+    return kind if same else f"{kind} of another view"
+
+
+def merge_shown(runs: list[dict[str, list]]) -> dict[str, list]:
+    """Sessions' ``shown`` summaries (kind: [ticks, mean SSIM]) as one."""
+    out: dict[str, list] = {}
+    for shown in runs:
+        for kind, (n, mean) in shown.items():
+            m, total = out.get(kind, [0, 0.0])
+            out[kind] = [m + n, total + n * mean]
+    return {k: [n, round(total / n, 4)] for k, (n, total) in sorted(out.items())}
+
+
+def max_gap(times: list[float], t0: float, t1: float) -> float:
+    """The longest time in [t0, t1] without an event of ``times`` (sorted), seconds."""
+    edges = [t0, *times, t1]
+    return float(max(b - a for a, b in itertools.pairwise(edges)))
 
 
 def webp_budget(baud: int, fps: float, ticks: int) -> int:
@@ -279,7 +316,7 @@ def verdict(modes: dict[str, dict]) -> str:
     streams = [(k, r) for k, r in modes.items() if k.startswith("sim webp")]
     if served is None or not streams:
         return ""
-    fair = [(k, r) for k, r in streams if r["fps"] <= served["fps"] + 1e-9]
+    fair = [(k, r) for k, r in streams if r["fps"] <= served["fps"] + FPS_TOLERANCE]
     if not fair:
         fastest = min(streams, key=lambda kr: kr[1]["fps"])
         return (f"served {served['ssim_object']:.4f} at {served['fps']:.1f} fps: every WebP "
@@ -294,8 +331,9 @@ def verdict(modes: dict[str, dict]) -> str:
 def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
     lines = [f"**{title}**", "",
              "| baud | mode | fps shown | SSIM obj | FLIP obj | bytes/frame | B/s | "
-             "predicted / corrected / stale / warped | strides (host) | view to frame ms |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "predicted / corrected / stale / warped | strides (host) | host packets "
+             "(longest gap) | view to frame ms | on show at the samples: ticks (SSIM) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for baud, modes in res.items():
         for mode, r in modes.items():
             if "packets" in r:
@@ -303,11 +341,15 @@ def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
                 strides = ", ".join(f"{k}: {v}" for k, v in sorted(
                     r["strides"].items(), key=lambda kv: int(kv[0]))) or "-"
                 wait = f"{r['view_ms']:.0f}"
+                host = f"{r['host_packets']} ({r['host_gap_s']:.1f} s)"
+                on_show = ", ".join(f"{k} {n} ({m:.2f})" for k, (n, m) in r["shown"].items())
             else:
                 extra, strides, wait = f"budget {r['budget']} B", "", ""
+                host = on_show = ""
             lines.append(f"| {baud} | {mode} | {r['fps']:.1f} | {r['ssim_object']:.4f} | "
                          f"{r['flip_object']:.4f} | {r['bytes_per_frame']:.0f} | "
-                         f"{r['bytes_per_s']:.0f} | {extra} | {strides} | {wait} |")
+                         f"{r['bytes_per_s']:.0f} | {extra} | {strides} | {host} | {wait} | "
+                         f"{on_show} |")
         v = verdict(modes)
         if v:
             lines.append(f"\n{baud}: {v}")
@@ -366,11 +408,14 @@ def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | 
                     runs = [r for k, r in res[baud].items() if k.startswith(f"real {mode} #")]
                     if runs:
                         res[baud][f"real {mode}"] = {
-                            **runs[0], **{key: float(np.mean([r[key] for r in runs]))
+                            **runs[0], **{key: float(np.nanmean([r[key] for r in runs]))
                                           for key in ("fps", "ssim_object", "flip_object",
                                                       "bytes_per_frame", "bytes_per_s",
                                                       "view_ms")},
-                            "packets": sum(r["packets"] for r in runs), "mean_of": len(runs)}
+                            "packets": sum(r["packets"] for r in runs), "mean_of": len(runs),
+                            "host_packets": sum(r["host_packets"] for r in runs),
+                            "host_gap_s": max(r["host_gap_s"] for r in runs),
+                            "shown": merge_shown([r["shown"] for r in runs])}
         sampled = ("" if sample_ticks == SAMPLE_DELAY_S * 60.0 else
                    f", sampled {sample_ticks:g} display ticks after the view")
         table = real_table(
