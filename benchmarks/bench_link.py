@@ -578,6 +578,9 @@ def main(argv: list[str] | None = None) -> int:
                     "each frame at most N line ticks)")
     ap.add_argument("--repeats", type=int, default=1,
                     help="real part: sessions per real mode (the verdict uses their mean)")
+    ap.add_argument("--cold-host", action="store_true",
+                    help="real part: each session's serve computes its recovery factors "
+                    "itself (default: one prepared source per mode, a steady-state host)")
     ap.add_argument("--blend-cache", type=Path, default=None,
                     help="real part: VOLUME-SIZE.ecs fitted --no-depth (served-blend)")
     ap.add_argument("--sample-ticks", type=float, default=SAMPLE_DELAY_S * 60.0,
@@ -648,7 +651,7 @@ def main(argv: list[str] | None = None) -> int:
                                       [int(b) for b in args.bauds.split(",")],
                                       args.real_modes.split(","), args.seconds, args.fps,
                                       args.real_work, link_rd, args.sample_ticks,
-                                      args.repeats)
+                                      args.repeats, prepare=not args.cold_host)
                 tables += tabs
                 for trace_name, r in rec.items():
                     record[f"real/{vol}-{size}/{trace_name}"] = r

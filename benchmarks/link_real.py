@@ -19,6 +19,11 @@ The trace's view is set on the device at each tick (as a drag in the window does
   (`bench_link.simulate`: the fresh ray-cast of the latest view is encoded the moment the
   line is free; no host compute time, which favours the stream).
 
+The host's sparse source of each mode is made once and prepared (its recovery factors
+computed) and shared by that mode's sessions, as a long-running ``serve`` keeps it
+(``--cold-host``: each session's ``serve`` makes its own, whose first rest computes them on
+the serving loop, seconds during which no request is answered).
+
 Per tick the frame the device shows ``sample_delay_s`` after the tick's view was set (two
 display ticks) is compared with a fresh ray-cast of the tick's view (object SSIM, FLIP; mask:
 ray-cast alpha); ``fps`` counts ticks showing a frame not shown at the previous tick; bytes
@@ -157,12 +162,28 @@ def settle(dev: DeviceThreads, view: tuple[float, float], quiet_s: float = 0.6,
         time.sleep(0.05)
 
 
+def prepared_source(case: Any, mode: str) -> Any:
+    """The host's sparse source for ``mode``'s sessions, its recovery factors computed
+    (`MotionScores.prepare`), kept across sessions as one long-running ``serve`` keeps it:
+    the sessions measure a host in its steady state. (A fresh ``serve`` computes a stride's
+    factors on its loop the first time a view rests on it: 0.3-5 s per stride at 256 on
+    this machine, during which it answers no request.)"""
+    from device_runtime.prediction import OwnFrames
+    from host.fit.motion import MotionScores
+
+    own = OwnFrames(case.model.image) if SESSION_MODES[mode][1] else None
+    source = MotionScores(case.model, case.renderer, own=own)
+    source.prepare()
+    return source
+
+
 def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[float, float]],
                  fps: float, baud: int, mode: str, work: Path,
-                 sample_delay_s: float = SAMPLE_DELAY_S) -> dict[str, Any]:
+                 sample_delay_s: float = SAMPLE_DELAY_S, source: Any = None) -> dict[str, Any]:
     """One real serve session of ``mode`` (`SESSION_MODES`) over a paced mem:// line,
     driven by ``trace``; each tick's frame is the one on show ``sample_delay_s`` after the
-    tick's view was set, scored against ``case.render`` of the tick's view."""
+    tick's view was set, scored against ``case.render`` of the tick's view. ``source``:
+    the host's sparse source (`prepared_source`; default: serve builds a fresh one)."""
     from bench_link import quality
 
     from device_runtime.orbit import canonical_view
@@ -183,6 +204,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
             out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
                                  scores=scores, stop=stop, log=lambda line: None,
                                  model=case.model, renderer=case.renderer, stats_every_s=0,
+                                 motion=source,
                                  on_frame=lambda enc, view: sent.append(time.monotonic()))
         except BaseException as exc:  # reported below
             out["error"] = exc
@@ -359,12 +381,16 @@ def real_table(title: str, res: dict[int, dict[str, dict]]) -> str:
 def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | None,
               desc: str, traces: list[str], bauds: list[int], modes: list[str],
               seconds: float, fps: float, work: Path, rd: tuple[float, float],
-              sample_ticks: float, repeats: int = 1) -> tuple[list[str], dict[str, Any]]:
-    """The real part for one model: tables (markdown) and the record."""
+              sample_ticks: float, repeats: int = 1, prepare: bool = True
+              ) -> tuple[list[str], dict[str, Any]]:
+    """The real part for one model: tables (markdown) and the record. ``prepare``: the
+    sessions of each mode share one prepared host source (`prepared_source`); else each
+    ``serve`` builds its own (a cold host)."""
     from bench_link import TRACES
 
     tables, record = [], {}
     flashes = {"served": None, "served-blend": None, "motion": None}
+    sources: dict[str, Any] = {}
     for mode in modes:
         if mode not in SESSION_MODES:
             continue
@@ -374,6 +400,12 @@ def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | 
             continue
         flashes[mode] = provisioned_flash(blend_path if mode == "served-blend" else path,
                                           work)
+        if prepare:
+            t0 = time.perf_counter()
+            sources[mode] = prepared_source(blend_case if mode == "served-blend" else case,
+                                            mode)
+            print(f"  {mode}: host source prepared in {time.perf_counter() - t0:.1f} s",
+                  flush=True)
     # warm the ray-caster once, so the first session does not pay for it alone
     case.renderer.render(*TRACES[traces[0]](1.0, 1.0)[0])
     for trace_name in traces:
@@ -396,7 +428,8 @@ def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | 
                 for k in range(repeats):
                     r = real_session(blend_case if blend else case,
                                      blend_path if blend else path, flashes[mode], trace,
-                                     fps, baud, mode, work, sample_delay_s=sample_ticks / 60.0)
+                                     fps, baud, mode, work, sample_delay_s=sample_ticks / 60.0,
+                                     source=sources.get(mode))
                     label = f"real {mode}" + (f" #{k + 1}" if repeats > 1 else "")
                     res[baud][label] = r
                     print(f"  {trace_name} {baud} {label}: fps {r['fps']:.1f} SSIM "

@@ -309,8 +309,10 @@ def serve(
         The frame budget, seconds; ``fps`` and the link's measured time per packet lengthen
         it when they are slower.
     motion : host.fit.motion.MotionScores, optional
-        The sparse source of absolute scores (for devices that do not correct their own
-        frames; default: built on ``renderer``).
+        The sparse source (default: built on ``renderer`` when a session needs it): built
+        with ``own`` (its frames are corrections) it serves devices that correct their own
+        frames, else those that do not. A caller may pass one already prepared
+        (`MotionScores.prepare`: its recovery factors computed) and keep it across calls.
 
     Returns
     -------
@@ -358,7 +360,8 @@ def serve(
         encoder=encoder,
         pace=pace, on_frame=on_frame, scores=scores, renderer=renderer,
         orbit=orbit.start() if orbit is not None else None,
-        sources={} if motion is None else {"motion": motion},
+        sources={} if motion is None else {
+            "correct" if getattr(motion, "corrects", False) else "motion": motion},
     )
     return run.run()
 
