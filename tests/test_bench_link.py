@@ -1,0 +1,61 @@
+"""The bookkeeping of ``benchmarks/bench_link.py --parts real`` (`link_real`): the WebP
+stream's frame budget, the issue-23 verdict, and how the shown frames are classified."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import link_real
+from bench_link import wire_bytes
+
+
+@pytest.mark.parametrize("baud,fps,ticks", [(115200, 10.0, 1), (115200, 10.0, 4),
+                                             (921600, 30.0, 2)])
+def test_a_webp_frame_fits_its_ticks_of_the_line(baud, fps, ticks):
+    budget = link_real.webp_budget(baud, fps, ticks)
+    seconds = wire_bytes(budget) / (baud / 10.0)
+    assert seconds <= 0.95 * ticks / fps  # lands before the tick that shows it
+    assert wire_bytes(budget + 30) / (baud / 10.0) > 0.95 * ticks / fps  # and is the largest
+
+
+def _row(fps, ssim):
+    return {"fps": fps, "ssim_object": ssim}
+
+
+def test_the_verdict_compares_with_the_best_webp_stream_at_no_more_frames():
+    modes = {"real served": _row(9.5, 0.74), "sim webp1": _row(9.8, 0.72),
+             "sim webp2": _row(5.2, 0.49)}
+    v = link_real.verdict(modes)
+    # webp1 is 0.3 fps faster: within the sessions' spread, so it is the stream compared
+    assert "sim webp1" in v and "+0.0200" in v and "NOT met" in v
+    modes["sim webp1"] = _row(9.5 + link_real.FPS_TOLERANCE + 0.5, 0.9)  # clearly faster
+    v = link_real.verdict(modes)
+    assert "sim webp2" in v and "+0.2500" in v and "(met" in v
+    assert link_real.verdict({"sim webp1": _row(9.8, 0.7)}) == ""
+
+
+def test_shown_frames_are_classified_by_kind_and_view():
+    view = (17.0, 20.0)
+    at = {"phi_deg": 17.0, "theta_deg": 20.0}
+    assert link_real.frame_kind({**at, "predicted": True}, view) == "blend"
+    assert link_real.frame_kind({**at, "predicted": True, "synthesized": True}, view) == "warp"
+    assert link_real.frame_kind({**at, "corrected": True, "sequence": 3}, view) == "corrected"
+    assert link_real.frame_kind({**at, "sequence": 3}, view) == "host"
+    other = {"phi_deg": 14.0, "theta_deg": 20.0, "predicted": True}
+    assert link_real.frame_kind(other, view) == "blend of another view"
+
+
+def test_merged_summaries_weigh_each_session_by_its_ticks():
+    merged = link_real.merge_shown([{"blend": [30, 0.7], "warp": [10, 0.9]},
+                                    {"blend": [10, 0.5]}])
+    assert merged == {"blend": [40, pytest.approx(0.65)], "warp": [10, 0.9]}
+
+
+def test_the_longest_gap_counts_the_trace_edges():
+    assert link_real.max_gap([], 0.0, 4.0) == 4.0
+    assert link_real.max_gap([1.0, 1.5, 3.0], 0.0, 4.0) == 1.5
