@@ -27,11 +27,16 @@ shown):
   ``clip(rint(synth_c + sum_j d_j * scales[j] * E[j]))`` for the cells whose ``d`` is not
   all zero, the device's own synthesized frame corrected by the host (a version-3 score
   packet, `protocol.scores`). It keeps that frame's cells (one frame of memory), so later
-  corrections of the same frame need not pass it again. A batch at least
-  `WHOLE_BATCH_SHARE` of whose cells the correction touches is computed whole, as a blend
-  computes it: a cell whose ``delta`` is zero then gets ``synth_c + 0`` (the same bits), and
-  one cast and one add for the batch cost less than a cast, a product, an add and a
-  rounding per cell (which made a correction of most cells 1.2-1.3x a blend's time).
+  corrections of the same frame need not pass it again. A correction's coefficients end
+  early in each cell (end-of-block: the later, smaller components round to zero), so each
+  corrected cell casts and multiplies only its rows up to its last non-zero coefficient; a
+  batch whose such rows, times `PER_CELL_ROW_COST`, are at least all its rows is cast whole
+  instead; and a batch at least half of whose cells are corrected adds, rounds and writes
+  its cells at once (a cell whose ``delta`` is zero gets ``synth_c + 0``: the same bits).
+  So a correction costs about what its rows cost: a complete one at rest touches the cells
+  a blend of a new view recomputes and nearly all their rows, about a blend; one while
+  moving a fraction of it (cell by cell over all rows, a correction of most cells took
+  1.2-1.3x a blend; BENCHMARKS.md, "Device loop", section x).
 """
 
 from __future__ import annotations
@@ -53,9 +58,11 @@ __all__ = [
 
 #: Default scratch budget (float32 cast buffer + output rows), in bytes.
 DEFAULT_SCRATCH_BYTES = 4 << 20
-#: `Reconstructor.correct` computes a batch whole when at least this share of its cells
-#: (with components) has a non-zero correction (module docstring).
-WHOLE_BATCH_SHARE = 0.5
+#: `Reconstructor.correct` computes a batch whole when its corrected cells' rows (each up to
+#: its last non-zero coefficient) times this are at least the batch's rows: a row cast and
+#: multiplied cell by cell costs about this much more than in a whole batch (module
+#: docstring; measured on the shared volumes' real corrections at 256 and 512).
+PER_CELL_ROW_COST = 1.25
 _FLOAT_BYTES = 4
 
 
@@ -226,7 +233,7 @@ class Reconstructor:
         self._base: np.ndarray | None = None  # `correct`: the corrected frame's cells
         self._zero_cells = np.flatnonzero(self.n_components == 0)
         self._corrected = False  # the buffer holds a corrected frame (0-component cells too)
-        self._whole_share = 1.0  # `_run_batch`: share of changed cells that runs a batch whole
+        self._rows: np.ndarray | None = None  # `correct`: each cell's rows to use (else all)
 
     # ------------------------------------------------------------------ construction
 
@@ -442,11 +449,11 @@ class Reconstructor:
                 0, 2, 1, 3, 4)
         self._last_y[...] = np.nan  # the buffer holds no reconstruction of any scores now
         self._corrected = True
-        np.cumsum(d != 0, out=self._cum[1:])
-        changed = (self._cum[self.offsets[1:]] - self._cum[self.offsets[:-1]]) > 0
+        rows = self._prefix_rows(d)
+        changed = rows > 0
         np.multiply(d, self.scales, out=self._w)
         mean, self.mean = self.mean, self._base
-        self._whole_share = WHOLE_BATCH_SHARE  # unchanged cells: w = 0, base + 0 = base
+        self._rows = rows  # unchanged cells: w = 0, base + 0 = base
         try:
             if self._pool is not None and np.count_nonzero(changed) > 1:
                 future = self._pool.submit(self._run, self._workers[1], changed)
@@ -455,12 +462,22 @@ class Reconstructor:
                 done = sum(self._run(worker, changed) for worker in self._workers)
         finally:
             self.mean = mean
-            self._whole_share = 1.0
+            self._rows = None
         self.cells_recomputed = done
         self.total_cells_recomputed += done
         if self._needs_crop:
             self.frame[...] = self._padded[:height, :width]
         return self.frame
+
+    def _prefix_rows(self, d: np.ndarray) -> np.ndarray:
+        """Per cell, the rows up to its last non-zero coefficient of ``d`` (0: none)."""
+        nz = np.flatnonzero(d)
+        rows = np.zeros(self.n_cells, dtype=np.int64)
+        if nz.size:
+            cell = np.searchsorted(self.offsets, nz, side="right") - 1
+            last = np.flatnonzero(np.diff(cell, append=-1))  # each cell's last non-zero
+            rows[cell[last]] = nz[last] - self.offsets[cell[last]] + 1
+        return rows
 
     def _run(self, worker: _Worker, changed: np.ndarray) -> int:
         """Run a worker's jobs for the changed cells; return how many cells it computed."""
@@ -478,12 +495,27 @@ class Reconstructor:
         n_flag = int(np.count_nonzero(flags))
         if n_flag == 0:
             return 0
-        if n_flag >= self._whole_share * len(job.calls):  # (most) every cell: whole batch
-            np.copyto(
-                job.cast_dst, self.eigenimages[job.row_start : job.row_stop], casting="unsafe"
-            )
-            for _, w, rows, out in job.calls:
-                np.matmul(w, rows, out=out)
+        prefix = self._rows
+        if prefix is None:  # a blend: whole when every cell with components changed
+            whole = n_flag == len(job.calls)
+        else:  # a correction: whole when that is cheaper than its rows cell by cell
+            used = int(prefix[job.start : job.stop].sum())
+            whole = used * PER_CELL_ROW_COST >= job.row_stop - job.row_start
+        if whole or (prefix is not None and n_flag * 2 >= len(job.calls)):
+            if whole:
+                np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
+                          casting="unsafe")
+                for _, w, rows, out in job.calls:
+                    np.matmul(w, rows, out=out)
+            else:  # a correction: each cell's rows up to its last non-zero, the batch's sums
+                for c, w, rows, out in job.calls:
+                    n = int(prefix[c])
+                    if n == 0:
+                        out[...] = 0.0
+                        continue
+                    a = int(self.offsets[c])
+                    np.copyto(rows[:n], self.eigenimages[a : a + n], casting="unsafe")
+                    np.matmul(w[:n], rows[:n], out=out)
             if job.zero_rows.size:
                 job.out[job.zero_rows] = 0.0
             out = job.out
@@ -498,9 +530,10 @@ class Reconstructor:
             if not changed[c]:
                 continue
             done += 1
-            a, b = int(self.offsets[c]), int(self.offsets[c + 1])
-            np.copyto(rows, self.eigenimages[a:b], casting="unsafe")
-            np.matmul(w, rows, out=out)
+            a = int(self.offsets[c])
+            n = int(prefix[c]) if prefix is not None else int(self.offsets[c + 1]) - a
+            np.copyto(rows[:n], self.eigenimages[a : a + n], casting="unsafe")
+            np.matmul(w[:n], rows[:n], out=out)
             np.add(out, self.mean[c], out=out)
             self._finish(out)
             self._cells_view[self._cell_y[c], :, self._cell_x[c]] = out.reshape(

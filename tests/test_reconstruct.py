@@ -149,30 +149,41 @@ def test_partial_change_inside_one_batch_with_threads():
 
 
 @pytest.mark.parametrize("share", [0.2, 0.6, 0.95])
-def test_a_correction_of_most_cells_of_a_batch_is_the_cell_by_cell_one(share, monkeypatch):
-    """A batch most of whose cells a correction touches is computed whole (cheaper than cell
-    by cell): the cells it leaves alone keep the synthesized frame's bits, the others get
-    exactly the cell-by-cell result, and only the corrected cells are counted."""
+@pytest.mark.parametrize("cost", [0.0, 1.5, 1e9])
+def test_a_correction_is_its_cells_residual_fit_whichever_way_a_batch_runs(share, cost,
+                                                                           monkeypatch):
+    """A correction ends early in each cell (end-of-block); a batch runs whole or cell by
+    cell on each cell's rows up to its last non-zero (`PER_CELL_ROW_COST` decides): either
+    way the cells it leaves alone keep the synthesized frame's bits, the others are
+    ``synth + V d`` (to a level of the float64 formula), and only corrected cells count."""
     from device_runtime import reconstruct
 
+    monkeypatch.setattr(reconstruct, "PER_CELL_ROW_COST", cost)
     space = make_space(40, 56, 8, 8, zero_fraction=0.2, seed=11)
     rng = np.random.default_rng(5)
     synth = rng.integers(0, 256, (40, 56, 3), dtype=np.uint8)
-    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
-    cells = np.flatnonzero((space["n_components"] > 0) & (rng.random(35) < share))
+    counts = space["n_components"]
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    cells = np.flatnonzero((counts > 0) & (rng.random(35) < share))
     d = np.zeros(int(offsets[-1]), np.float32)
     for c in cells:
-        d[offsets[c]:offsets[c + 1]] = rng.normal(0, 400, offsets[c + 1] - offsets[c])
-    got = build(space, scratch_bytes=60_000)
-    frame = got.correct(d, synth).copy()
-    assert got.cells_recomputed == len(cells)
-    monkeypatch.setattr(reconstruct, "WHOLE_BATCH_SHARE", 2.0)  # never whole: cell by cell
-    want = build(space, scratch_bytes=60_000).correct(d, synth)
-    np.testing.assert_array_equal(frame, want)
+        n = int(rng.integers(1, counts[c] + 1))  # its coefficients end after n
+        d[offsets[c]:offsets[c] + n] = rng.normal(0, 400, n)
+        d[offsets[c] + n - 1] = 300.0  # the last one sent is not zero
+    rec = build(space, scratch_bytes=60_000)
+    frame = rec.correct(d, synth).copy()
+    assert rec.cells_recomputed == len(cells)
     as_cells = frame.reshape(5, 8, 7, 8, 3).transpose(0, 2, 1, 3, 4).reshape(35, -1)
     synth_cells = synth.reshape(5, 8, 7, 8, 3).transpose(0, 2, 1, 3, 4).reshape(35, -1)
     untouched = np.setdiff1d(np.arange(35), cells)
     np.testing.assert_array_equal(as_cells[untouched], synth_cells[untouched])
+    want = synth_cells.astype(np.float64)
+    for c in cells:
+        a, b = offsets[c], offsets[c + 1]
+        want[c] += (d[a:b].astype(np.float64) * space["scales"][a:b]) @ space[
+            "eigenimages"][a:b].astype(np.float64)
+    want = np.clip(np.rint(want), 0, 255)
+    assert np.abs(as_cells[cells].astype(np.float64) - want[cells]).max() <= 1.0
     assert not np.array_equal(as_cells[cells], synth_cells[cells])
 
 
