@@ -579,8 +579,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=1,
                     help="real part: sessions per real mode (the verdict uses their mean)")
     ap.add_argument("--cold-host", action="store_true",
-                    help="real part: each session's serve computes its recovery factors "
-                    "itself (default: one prepared source per mode, a steady-state host)")
+                    help="real part: each session's serve makes and prepares its own frame "
+                    "source (default: one prepared source per mode, a steady-state host)")
     ap.add_argument("--blend-cache", type=Path, default=None,
                     help="real part: VOLUME-SIZE.ecs fitted --no-depth (served-blend)")
     ap.add_argument("--sample-ticks", type=float, default=SAMPLE_DELAY_S * 60.0,

@@ -19,10 +19,9 @@ The trace's view is set on the device at each tick (as a drag in the window does
   (`bench_link.simulate`: the fresh ray-cast of the latest view is encoded the moment the
   line is free; no host compute time, which favours the stream).
 
-The host's sparse source of each mode is made once and prepared (its recovery factors
-computed) and shared by that mode's sessions, as a long-running ``serve`` keeps it
-(``--cold-host``: each session's ``serve`` makes its own, whose first rest computes them on
-the serving loop, seconds during which no request is answered).
+The host's sparse source of each mode is made and prepared once and shared by that mode's
+sessions, as a long-running ``serve`` keeps it (``--cold-host``: each session's ``serve``
+makes and prepares its own).
 
 Per tick the frame the device shows ``sample_delay_s`` after the tick's view was set (two
 display ticks) is compared with a fresh ray-cast of the tick's view (object SSIM, FLIP; mask:
@@ -163,21 +162,17 @@ def settle(dev: DeviceThreads, view: tuple[float, float], quiet_s: float = 0.6,
 
 
 def prepared_source(case: Any, mode: str) -> Any:
-    """The host's sparse source for ``mode``'s sessions, its recovery factors computed
-    (`MotionScores.prepare`), kept across sessions as one long-running ``serve`` keeps it:
-    the sessions measure a host in its steady state; and the model's projectors
-    (`HostModel.project`'s first call). A fresh ``serve`` computes both on its loop the first
-    time a view rests (a stride's factors 0.3-5 s, the projectors seconds, at 256 on this
-    loaded machine), answering no request meanwhile.)"""
+    """The host's sparse source for ``mode``'s sessions, prepared (`MotionScores.prepare`:
+    every stride's recovery factors and the model's projectors) and kept across sessions as
+    one long-running ``serve`` keeps it: the sessions measure a host in its steady state,
+    its cost model warm. (Before ``serve`` prepared the sources it makes, a fresh one
+    computed them on its loop at the first rest, seconds without answering a request.)"""
     from device_runtime.prediction import OwnFrames
     from host.fit.motion import MotionScores
 
-    model = case.model
-    own = OwnFrames(model.image) if SESSION_MODES[mode][1] else None
-    source = MotionScores(model, case.renderer, own=own)
-    source.prepare()
-    h, w = model.image.image_shape
-    model.project(np.zeros((h, w, 3), np.uint8))  # its per-cell projectors, made once
+    own = OwnFrames(case.model.image) if SESSION_MODES[mode][1] else None
+    source = MotionScores(case.model, case.renderer, own=own)
+    source.prepare()  # the recovery factors of every stride and the model's projectors
     return source
 
 
