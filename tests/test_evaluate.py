@@ -422,8 +422,9 @@ def test_evaluate_reports_the_served_path_for_a_model_with_the_table(model_path,
     report = tmp_path / "report"
     res = _run("evaluate", str(model_path), "--views", "random:3", "--json", "--rd-views", "3",
                "--samples-shown", "1", "--no-nearest", "--motion-stride", "0",
-               "--webp-db-quality", "0", "--report", str(report))
+               "--webp-db-quality", "0", "--report", str(report), "--rd-codecs-only")
     summary = json.loads(res.stdout)
+    assert {p["kind"] for p in summary["rate_distortion"]} == {"jpeg", "webp", "avif"}
     assert summary["pca_warp"]["own_frame"] == "blend" and summary["pca_warp"][
         "bytes_per_view"] == 0
     for v in summary["per_view"]:

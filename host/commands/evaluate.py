@@ -39,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--key", metavar="KEYFILE", help="verify the image's tag with this key")
     parser.add_argument("--rd-views", type=int, default=8, metavar="N",
                         help="views used by the rate-distortion sweep (default 8; 0 skips it)")
+    parser.add_argument("--rd-codecs-only", action="store_true",
+                        help="the rate-distortion sweep codes only JPEG/WebP/AVIF (whose curves "
+                             "give the bytes they need for the served frames' quality), not "
+                             "the model's truncations (much faster)")
     parser.add_argument("--samples-shown", type=int, default=4, metavar="N",
                         help="views shown side by side in the report (default 4)")
     parser.add_argument("--no-nearest", action="store_true",
@@ -156,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
         webp_db_quality=args.webp_db_quality or None,
         motion_deadline_s=args.motion_deadline / 1000.0 or None,
         motion_stride=args.motion_stride, motion_slowdown=args.motion_slowdown,
+        rd_pca=not args.rd_codecs_only,
         info={"view_spec": views.spec},
     )
     if report is not None:

@@ -404,6 +404,7 @@ def evaluate_model(
     motion_deadline_s: float | None = 1.0 / 30.0,
     motion_stride: int | None = None,
     motion_slowdown: float = 1.0,
+    rd_pca: bool = True,
     metric_workers: int | None = None,
     progress: bool = True,
     info: dict | None = None,
@@ -444,6 +445,9 @@ def evaluate_model(
     motion_slowdown : float
         The warm-up drag's ray-casts take this many times longer (`SlowRenderer`): the
         stride a slower host's deadline picks.
+    rd_pca : bool
+        The rate-distortion sweep includes the model's truncations and coarser steps (else
+        only the codecs' curves: what ``equal_quality`` needs, in a fraction of the time).
     metric_workers : int, optional
         Processes computing the metrics (default `default_metric_workers`; 0: inline).
     progress : bool
@@ -620,7 +624,8 @@ def evaluate_model(
         if rd_refs:
             t0 = time.perf_counter()
             evaluation.rd = _rate_distortion(model, rd_refs, thresholds, step_factors,
-                                             qualities, metrics, progress=progress)
+                                             qualities, metrics, progress=progress,
+                                             pca=rd_pca)
             timing["rate_distortion"] = time.perf_counter() - t0
             evaluation.info["rd_views"] = len(rd_refs)
     finally:
@@ -679,8 +684,9 @@ def _rate_distortion(
     metrics: _Metrics,
     *,
     progress: bool,
+    pca: bool = True,
 ) -> list[dict]:
-    settings = _pca_settings(model, thresholds, step_factors)
+    settings = _pca_settings(model, thresholds, step_factors) if pca else []
     jobs: list[tuple[dict, list[tuple[int, Future]]]] = []
     total = len(settings) + len(CODECS) * len(qualities)
     with _progress("rate-distortion", total, unit=" settings", quiet=not progress) as bar:
