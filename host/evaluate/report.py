@@ -192,6 +192,10 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
             ax.plot([corrected["bytes_per_view"]], [corrected[metric]], "*",
                     color=_COLORS["pca_predict"], markersize=13, zorder=5,
                     label="this model, served at rest: own frame + correction (all views)")
+        own_frame = summary.get("pca_warp") or {}
+        if own_frame and own_frame.get(metric) is not None:
+            ax.axhline(own_frame[metric], color=_COLORS["pca_warp"], linestyle=":", linewidth=1.4,
+                       label="the device's own frame (0 B/frame)")
         db = summary.get("webp_db") or {}
         if db and db.get(metric) is not None:
             ax.axhline(db[metric], color=_COLORS["webp_db"], linestyle="--", linewidth=1.2,
