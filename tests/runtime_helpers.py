@@ -1,8 +1,8 @@
 """Helpers of the runtime, display, serve, end-to-end and window tests.
 
 * :func:`tiny_model` renders the built-in tooth at 40 px from 16 x 5 views and fits an
-  adaptive, standalone, signed model once per test session (a few seconds), cached under
-  pytest's base temporary folder.
+  adaptive, standalone, signed model (without depth, or with it) once per test session (a
+  few seconds), cached under pytest's base temporary folder.
 * :class:`RuntimeThread` runs a :class:`~device_runtime.runtime.RuntimeDevice` in this
   process: its link on one thread, its display loop (headless) on another.
 * :func:`read_frames` reads a headless device's ``frames.csv``; :func:`check_frames`
@@ -31,9 +31,10 @@ TINY_SIZE = 40
 TINY_VIEWS = "grid:16x5"
 
 
-def tiny_model(tmp_path_factory, *, name: str = "tiny") -> Path:
+def tiny_model(tmp_path_factory, *, name: str = "tiny", depth: bool = False) -> Path:
     """A signed (``KEY``), standalone adaptive model of the tooth without depth (its device
-    frames are blends, `check_frames`); built once per session."""
+    frames are blends, `check_frames`); built once per session (per ``name``). ``depth``:
+    with depth (the device's own frames are warps; use another ``name``)."""
     root = tmp_path_factory.getbasetemp() / f"runtime-{name}"
     model = root / "tooth.ecs"
     if model.exists():
@@ -45,7 +46,8 @@ def tiny_model(tmp_path_factory, *, name: str = "tiny") -> Path:
 
     write_key(key_file, KEY, force=True)
     assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", TINY_VIEWS,
-                      "--size", str(TINY_SIZE), "--samples", "80", "--no-depth"]) == 0
+                      "--size", str(TINY_SIZE), "--samples", "80",
+                      *(() if depth else ("--no-depth",))]) == 0
     tmp = root / "tooth.tmp.ecs"
     assert eigencast(["fit", str(db), "-o", str(tmp), "--cell", "12", "--threshold", "0.99",
                       "--standalone", "--key", str(key_file)]) == 0

@@ -302,7 +302,7 @@ def test_evaluate_cli_json_and_report(small_model, tmp_path):
     html = (report / "index.html").read_text()
     assert "Table 1" in html and "rd.png" in html and "view_00.png" in html
     assert "ray-cast scores" in html
-    assert "AVIF, equal bytes" in html and "sparse ray-cast while moving" in html
+    assert "AVIF, equal bytes" in html and "served while moving" in html
     assert "Traceback" not in res.stderr and "evaluate" in res.stderr  # progress on stderr
 
 
@@ -413,29 +413,172 @@ def test_pca_motion_ray_casts_at_its_stride_however_slow_the_machine(small_model
         assert record["pca_motion"]["ssim_object"] != record["pca"]["ssim_object"]
 
 
-def test_evaluate_reports_prediction_plus_correction_for_a_standalone_model(model_path,
-                                                                            small_model,
-                                                                            tmp_path):
-    """``pca_predict``: what ``serve --scores predict`` makes a predicting device show at rest
-    (its prediction plus the correction packet), in the JSON, the table and the report; only
-    for models with the standalone table."""
+def test_evaluate_reports_the_served_path_for_a_model_with_the_table(model_path, small_model,
+                                                                     tmp_path):
+    """For a model with the standalone table: its own frame (``pca_warp``, a blend here), that
+    frame served at rest and while moving, against the own frame, the codecs' equal-quality
+    bytes and every method's blockiness, in the JSON, the table and the report; nothing of
+    it for a model without the table."""
     report = tmp_path / "report"
-    res = _run("evaluate", str(model_path), "--views", "random:4", "--json", "--rd-views", "0",
-               "--samples-shown", "1", "--no-nearest", "--motion-deadline", "0",
-               "--webp-db-quality", "0", "--report", str(report))
+    res = _run("evaluate", str(model_path), "--views", "random:3", "--json", "--rd-views", "3",
+               "--samples-shown", "1", "--no-nearest", "--motion-stride", "0",
+               "--webp-db-quality", "0", "--report", str(report), "--rd-codecs-only")
     summary = json.loads(res.stdout)
-    predicted = summary["pca_predict"]
-    for key in ("bytes_per_view", "ssim_object", "flip_object"):
-        assert isinstance(predicted[key], float), key
+    assert {p["kind"] for p in summary["rate_distortion"]} == {"jpeg", "webp", "avif"}
+    assert summary["pca_warp"]["own_frame"] == "blend" and summary["pca_warp"][
+        "bytes_per_view"] == 0
     for v in summary["per_view"]:
-        # the correction lifts the prediction (= the interpolated frame) towards the ray-cast,
-        # for fewer bytes than the ray-cast's own key packet
-        assert v["pca_predict"]["psnr_object"] > v["pca"]["psnr_object"], v
-        assert 0 < v["pca_predict"]["bytes_per_view"] < v["pca_render"]["bytes_per_view"], v
-    assert "device prediction + correction" in (report / "index.html").read_text()
+        # at rest the complete correction lifts the own frame towards the ray-cast
+        assert v["pca_predict"]["psnr_object"] > v["pca_warp"]["psnr_object"], v
+        assert v["pca_predict"]["bytes_per_view"] > 0
+        # stride 0 (no ray-cast fits): while moving the device shows its own frame, 0 bytes
+        assert v["pca_motion"]["bytes_per_view"] == 0 and v["pca_motion"]["stride"] == 0
+        assert v["pca_motion"]["ssim_object"] == v["pca_warp"]["ssim_object"]
+        assert v["raycast_blockiness"] > 0 and all(
+            v[m]["blockiness"] > 0 for m in ("pca", "pca_warp", "pca_predict", "webp"))
+    rest = summary["pca_predict"]
+    assert rest["views_below_own"] == 0 and rest["worst_gain_over_own"] > 0
+    assert summary["pca_motion"]["gain_over_own"] == 0.0
+    eq = rest["equal_quality"]
+    assert eq["views"] == 3 and eq["ssim_object"] == pytest.approx(rest["ssim_object"])
+    for codec in ("webp", "avif"):
+        assert set(eq[codec]) == {"bytes_for_ssim", "ssim_at_bytes", "min_bytes"}
+        assert eq[codec]["min_bytes"] > 0
+    html = (report / "index.html").read_text()
+    assert "served at rest" in html and "blockiness" in html and "WebP bytes for" in html
     table = _run("evaluate", str(model_path), "--views", "random:2", "--rd-views", "0",
                  "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0").stdout
-    assert "pca_predict" in table
+    assert "pca_predict: served, at rest" in table and "score blend" in table
     plain = _run("evaluate", str(small_model), "--views", "random:2", "--json", "--rd-views",
                  "0", "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0")
-    assert "pca_predict" not in json.loads(plain.stdout)
+    plain = json.loads(plain.stdout)
+    assert "pca_predict" not in plain and "pca_warp" not in plain
+    assert plain["pca"]["blockiness"] > 0
+
+
+@pytest.fixture(scope="module", params=["blend", "depth"])
+def served_model(request, model_path, tmp_path_factory):
+    """(path, HostModel) of a standalone model whose own frames are blends, and one with depth
+    (warps)."""
+    from runtime_helpers import tiny_model
+
+    path = (model_path if request.param == "blend" else
+            tiny_model(tmp_path_factory, name="tiny-depth", depth=True))
+    return path, HostModel.load(path)
+
+
+def test_served_frames_are_what_a_correcting_device_shows(served_model):
+    """evaluate's own frame, at-rest and moving frames and their bytes are those of serve's
+    correction packets (`CorrectionEncoder`) decoded and added by the device's own code
+    (`LoadedModel`: its warp worker or blend, decoder and reconstructor), bit for bit."""
+    from provision_helpers import KEY
+
+    from device_runtime.orbit import canonical_view
+    from device_runtime.prediction import OwnFrames
+    from device_runtime.runtime import LoadedModel
+    from host.evaluate import ServedFrames
+    from host.fit.motion import MotionScores
+    from host.link.correction import CorrectionEncoder
+    from protocol.image import read_image
+
+    path, model = served_model
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
+    served = ServedFrames(model, scene)
+    served.set_stride(4)
+    assert served.kind == ("warp" if model.image.synthesis is not None else "blend")
+    rest = MotionScores(model, scene, own=OwnFrames(model.image), strides=(1,), coarse=1.0,
+                        budget_s=3600.0)
+    moving = MotionScores(model, scene, own=OwnFrames(model.image), strides=(4,),
+                          budget_s=3600.0)
+    encoder = CorrectionEncoder(model)
+    device = LoadedModel.build(read_image(path, key=KEY), slot="A", generation=1, test=False,
+                               want_predictor=True)
+    try:
+        for view in ((33.0, 12.0), (250.5, -41.0)):
+            view = canonical_view(*view)
+            if device.warp_worker is not None:
+                device.warp_worker.request(view)
+                theirs = device.warp_worker.take(view, 30.0)
+            else:
+                theirs = device.reconstructor.update(device.predictor(*view)).copy()
+            np.testing.assert_array_equal(served.own_frame(*view), theirs)
+            for source, fine, (frame, size) in ((rest, True, served.at_rest(*view)),
+                                                (moving, False, served.moving(*view))):
+                step = source.frame(view)
+                sent = encoder.encode(view, scores=step.scores, fine=fine, weights=step.weights)
+                if sent is None:  # nothing worth sending: the device keeps its own frame
+                    want, want_size = theirs, 0
+                else:
+                    y = device.decoder.decode(sent.packet).y
+                    want = device.reconstructor.correct(y, theirs).copy()
+                    want_size = len(sent.packet)
+                np.testing.assert_array_equal(frame, want)
+                assert size == want_size
+                if fine:  # at rest the complete correction is always worth its bytes here
+                    assert size > 0 and not np.array_equal(frame, theirs)
+    finally:
+        device.close()
+    served.set_stride(0)
+    frame, size = served.moving(*view)
+    assert size == 0
+    np.testing.assert_array_equal(frame, served.own_frame(*view))
+
+
+def test_the_deadline_picks_the_stride_a_drag_settles_on(model, monkeypatch):
+    """The warm-up drag's usual stride: none when nothing fits the deadline (a host that
+    needs 10 s a frame: its moving frames are the own frames), the densest when everything
+    does; a slower renderer only slows the ray-casts."""
+    import host.fit.motion as motion
+    from host.evaluate import ServedFrames, SlowRenderer
+
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
+    served = ServedFrames(model, scene)
+    monkeypatch.setattr(motion.MotionScores, "estimate", lambda self, stride: 10.0)
+    assert served.pick_stride(1 / 30, (10.0, 5.0), slowdown=2.0) == 0
+    monkeypatch.setattr(motion.MotionScores, "estimate", lambda self, stride: 0.0)
+    assert served.pick_stride(1 / 30, (10.0, 5.0)) == motion.DEFAULT_STRIDES[0]
+    slow = SlowRenderer(scene, 1.5)
+    settings = scene.settings
+    rows, cols = np.array([3, 20]), np.array([7, 30])
+    camera = settings.camera(12.0, 3.0)
+    np.testing.assert_array_equal(
+        slow.renderer.coarser(2.0).render_pixels(camera, settings.width, settings.height,
+                                                 rows, cols),
+        scene.renderer.coarser(2.0).render_pixels(camera, settings.width, settings.height,
+                                                  rows, cols))
+    with pytest.raises(ValueError, match="factor"):
+        SlowRenderer(scene, 0.5)
+
+
+def test_blockiness_is_the_border_to_inside_ratio_of_neighbour_differences():
+    from host.evaluate import blockiness
+
+    y, x = np.mgrid[0:32, 0:32].astype(np.float64)
+    ramp = np.repeat((4 * x + 2 * y)[..., None], 3, axis=2).astype(np.uint8)
+    assert blockiness(ramp, (8, 8)) == pytest.approx(1.0)  # the same step everywhere
+    rng = np.random.default_rng(3)
+    tiles = np.kron(rng.integers(0, 200, (4, 4)), np.ones((8, 8)))  # flat 8x8 tiles ...
+    blocky = np.repeat((tiles + (x % 2))[..., None], 3, axis=2).astype(np.uint8)  # + texture
+    assert blockiness(blocky, (8, 8)) > 10
+    assert blockiness(blocky, (16, 16)) > 10 and blockiness(blocky, (6, 6)) < blockiness(
+        blocky, (8, 8)) / 3  # borders that are not the tiles' see less
+    mask = np.zeros((32, 32), bool)
+    mask[9:15, 9:15] = True  # inside one tile: no pair crosses a border
+    assert math.isnan(blockiness(blocky, (8, 8), mask))
+    mask[9:15, 9:18] = True  # one border crossed: the tile jump against the texture
+    assert blockiness(blocky, (8, 8), mask) > 10
+    with pytest.raises(ValueError, match="mask"):
+        blockiness(blocky, (8, 8), mask[:16])
+
+
+def test_codec_equivalent_interpolates_the_curve_in_quality():
+    from host.evaluate import codec_equivalent
+
+    points = [{"setting": {"quality": q}, "bytes_per_view": b, "ssim_object": s}
+              for q, b, s in ((90, 1600.0, 0.9), (10, 100.0, 0.5), (50, 400.0, 0.7))]
+    eq = codec_equivalent(points, 0.6, 800.0)
+    assert eq["bytes_for_ssim"] == pytest.approx(200.0)  # halfway in SSIM, log bytes
+    assert eq["ssim_at_bytes"] == pytest.approx(0.8)  # halfway in log bytes
+    assert eq["min_bytes"] == 100.0
+    out = codec_equivalent(points, 0.95, 50.0)  # above the best, below the smallest file
+    assert out["bytes_for_ssim"] is None and out["ssim_at_bytes"] is None

@@ -12,8 +12,9 @@ from pathlib import Path
 
 from host.errors import EigencastError
 
-HELP = ("ray-cast novel views with the model's own render settings and compare the device "
-        "reconstruction, equal-bytes JPEG/WebP and the nearest training view (PSNR, SSIM, FLIP)")
+HELP = ("ray-cast novel views with the model's own render settings and compare what the device "
+        "shows (its own frame, served at rest and while moving) with equal-bytes JPEG/WebP/AVIF "
+        "and the nearest training view (PSNR, SSIM, FLIP, blockiness)")
 
 #: Files and folders a report folder holds; an existing folder with anything else is refused.
 REPORT_ENTRIES = {"index.html", "rd.png", "per_view.png", "summary.json", "views"}
@@ -38,13 +39,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--key", metavar="KEYFILE", help="verify the image's tag with this key")
     parser.add_argument("--rd-views", type=int, default=8, metavar="N",
                         help="views used by the rate-distortion sweep (default 8; 0 skips it)")
+    parser.add_argument("--rd-codecs-only", action="store_true",
+                        help="the rate-distortion sweep codes only JPEG/WebP/AVIF (whose curves "
+                             "give the bytes they need for the served frames' quality), not "
+                             "the model's truncations (much faster)")
     parser.add_argument("--samples-shown", type=int, default=4, metavar="N",
                         help="views shown side by side in the report (default 4)")
     parser.add_argument("--no-nearest", action="store_true",
                         help="skip the nearest-training-view comparison")
     parser.add_argument("--motion-deadline", type=float, default=1000.0 / 30.0, metavar="MS",
-                        help="pca_motion: the frame deadline of serve --scores motion, in "
+                        help="pca_motion: serve's frame deadline while the view moves, in "
                         "milliseconds (default 33; 0: skip pca_motion)")
+    parser.add_argument("--motion-stride", type=int, metavar="S",
+                        help="pca_motion: ray-cast every S-th pixel instead of the stride the "
+                             "deadline picks on this machine (0: none, the device's own "
+                             "frame); figures that do not depend on the machine's load")
+    parser.add_argument("--motion-slowdown", type=float, default=1.0, metavar="N",
+                        help="pca_motion: pick the stride as a host whose ray-casts take N "
+                             "times longer would (default 1)")
     parser.add_argument("--webp-db-quality", type=int, default=80, metavar="Q",
                         help="the on-device image database baseline (webp_db): every training "
                              "view stored as WebP at quality Q and blended with the model's "
@@ -125,6 +137,11 @@ def run(args: argparse.Namespace) -> int:
     if not (0 <= args.motion_deadline < 1e6):
         raise EigencastError(f"--motion-deadline {args.motion_deadline}: must be >= 0 "
                              "milliseconds (0: skip pca_motion)")
+    if args.motion_stride is not None and not 0 <= args.motion_stride <= 64:
+        raise EigencastError(f"--motion-stride {args.motion_stride}: must be within 0..64")
+    if not (1.0 <= args.motion_slowdown <= 1e4):
+        raise EigencastError(f"--motion-slowdown {args.motion_slowdown}: must be within "
+                             "1..10000")
     if not 0 <= args.webp_db_quality <= 100:
         raise EigencastError(f"--webp-db-quality {args.webp_db_quality}: must be within 0..100 "
                              "(0 skips the WebP database baseline)")
@@ -142,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
         metric_workers=args.metric_workers,
         webp_db_quality=args.webp_db_quality or None,
         motion_deadline_s=args.motion_deadline / 1000.0 or None,
+        motion_stride=args.motion_stride, motion_slowdown=args.motion_slowdown,
+        rd_pca=not args.rd_codecs_only,
         info={"view_spec": views.spec},
     )
     if report is not None:
@@ -175,6 +194,15 @@ def _write_report_atomically(evaluation, folder: Path) -> None:  # noqa: ANN001
         raise
 
 
+_CODEC_NAMES = {"webp": "WebP", "avif": "AVIF"}
+
+
+def _vs_own(r: dict) -> str:
+    return (f"object SSIM {r['gain_over_own']:+.4f} over the own frame on average, worst view "
+            f"{r['worst_gain_over_own']:+.4f}, {r['views_below_own']} views more than 0.01 "
+            "below it") if r.get("gain_over_own") is not None else "-"
+
+
 def _text_summary(s: dict) -> str:
     from host.evaluate import METHODS
 
@@ -196,26 +224,50 @@ def _text_summary(s: dict) -> str:
             lines.append(f"{m:<11} {r['bytes_per_view']:>10.0f} {f(r['psnr'], 2):>7} "
                          f"{f(r['ssim'], 4):>7} {f(r['flip'], 4):>7} "
                          f"{f(r.get('ssim_object'), 4):>8} {f(r.get('flip_object'), 4):>8}")
+    if "pca_warp" in s:
+        own = "depth warp" if s["pca_warp"].get("own_frame") == "warp" else "score blend"
+        lines.append(f"pca_warp: the device's own frame of every view (its {own} of the "
+                     "neighbouring training views), shown at once, no bytes")
+    if "pca_predict" in s:
+        p = s["pca_predict"]
+        lines.append(f"pca_predict: served, at rest: the own frame plus the complete "
+                     f"correction at the model's step; bytes/view = the correction packet; "
+                     f"{_vs_own(p)}")
     if "pca_motion" in s:
         mo = s["pca_motion"]
-        lines.append(f"pca_motion: the frame serve --scores motion sends during a "
-                     f"{mo['step_deg']:g} deg/frame drag, stride {mo['stride']:.0f} at a "
-                     f"{mo['deadline_ms']:.0f} ms deadline on this machine; bytes/view = its "
-                     "delta packet")
-    if "pca_predict" in s:
-        lines.append("pca_predict: what serve --scores predict makes a predicting device show "
-                     "first at rest (its own prediction + the host's step-x2 correction); "
-                     "bytes/view = the correction packet. After 0.15 s at rest serve sharpens "
-                     "it to pca_render's quality (a second correction at the model's step)")
+        how = ("served, while moving: the own frame plus the sparse correction"
+               if "pca_predict" in s else "the sparse ray-cast's scores as a delta packet")
+        stride = int(mo["stride"])
+        lines.append(f"pca_motion: {how} during a {mo['step_deg']:g} deg/frame drag, "
+                     f"stride {stride if stride else 'none (the own frame)'} "
+                     + ("given" if mo.get("stride_given") else
+                        f"at a {mo['deadline_ms']:.0f} ms deadline on this machine"
+                        + (f", ray-casts {mo['slowdown']:g}x slower"
+                           if mo.get("slowdown", 1) != 1 else ""))
+                     + "; bytes/view = as streamed"
+                     + (f"; {_vs_own(mo)}" if "views_below_own" in mo else ""))
+    for m in ("pca_predict", "pca_motion"):
+        eq = (s.get(m) or {}).get("equal_quality")
+        if eq:
+            parts = []
+            for codec in ("webp", "avif"):
+                c = eq.get(codec) or {}
+                parts.append(f"{_CODEC_NAMES[codec]} needs {f(c.get('bytes_for_ssim'), 0)} B for "
+                             f"its object SSIM and reaches {f(c.get('ssim_at_bytes'), 4)} at "
+                             "its bytes")
+            lines.append(f"{m} on {eq['views']} views (SSIM obj {f(eq['ssim_object'], 4)} at "
+                         f"{f(eq['bytes_per_view'], 0)} B): " + "; ".join(parts))
+    blocks = {m: s[m]["blockiness"] for m in METHODS if m in s and s[m].get("blockiness")}
+    if blocks:
+        lines.append("blockiness (cell borders / inside, object pixels): ray-cast "
+                     f"{f(s.get('raycast_blockiness'))}, "
+                     + ", ".join(f"{m} {f(v)}" for m, v in blocks.items()))
     if "webp_db" in s:
         db = s["webp_db"]
         lines.append(f"webp_db: training views as WebP q{db['quality']:.0f}, device storage "
                      f"{db['storage_bytes'] / 1e6:.2f} MB"
                      f"{' (estimated)' if db.get('storage_estimated') else ''} vs eigenspace "
                      f"image {s['eigenspace_bytes'] / 1e6:.2f} MB")
-    if "pca_warp" in s:
-        lines.append("pca_warp: what eigencast-device --standalone shows with this image's "
-                     "depth (the 4 neighbouring training views warped by depth, no packets)")
     int8 = s.get("int8") or {}
     if int8.get("train_loss_db") is not None:
         lines.append(f"int8 loss vs float (fit, training views): {int8['train_loss_db']:.3f} dB")

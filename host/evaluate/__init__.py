@@ -3,7 +3,8 @@
 Owns the image metrics (``metrics.py``: PSNR, SSIM, FLIP, over the object's pixels),
 object masks (``masks.py``), the baselines the eigenspace is compared with (``baselines.py``:
 equal-bytes JPEG/WebP, nearest training view, the on-device WebP image database), the
-device path (``device_path.py``: scores -> real score packet -> device reconstruction), the
+device path (``device_path.py``: scores -> real score packet -> device reconstruction; the
+one served path's frames, the device's own frame and its corrections), the
 evaluation engine with its rate-distortion sweep (``engine.py``), the HTML report
 (``report.py``) and the quality-target search of ``eigencast fit --target``
 (``target.py``: it picks the cheapest model whose frames, measured through the device path,
@@ -34,6 +35,8 @@ __all__ = [
     "Evaluation",
     "HeldOutViews",
     "ImageComparison",
+    "ServedFrames",
+    "SlowRenderer",
     "Target",
     "TargetError",
     "TargetResult",
@@ -41,6 +44,8 @@ __all__ = [
     "Try",
     "WebPDatabase",
     "alpha_object_mask",
+    "blockiness",
+    "codec_equivalent",
     "compare_images",
     "compose_side_by_side",
     "decode_image",

@@ -1,8 +1,18 @@
 """The device path: the frames a device shows and the bytes each costs on the link.
 
-`DevicePath` is what a device shows: interpolated scores -> a real key score packet
-(`protocol.scores.encode_scores` at the model's step; its length is the bytes per view) ->
-`protocol.scores.ScoreDecoder` -> the device's `Reconstructor` (through `host.fit.model.HostModel`).
+`DevicePath` is what a device shows from score packets: interpolated scores -> a real key
+score packet (`protocol.scores.encode_scores` at the model's step; its length is the bytes per
+view) -> `protocol.scores.ScoreDecoder` -> the device's `Reconstructor` (through
+`host.fit.model.HostModel`).
+
+`ServedFrames` is what the one served path makes a device show (a device whose image has
+the standalone table): its own frame of the view (`device_runtime.prediction.OwnFrames`: the
+depth warp, or the blend of its predicted scores), that frame corrected at rest (the complete
+correction at the model's step) and while moving (the sparse correction at the stride the
+frame deadline allows), each correction a real version-3 packet decoded by
+`protocol.scores.ScoreDecoder` and added by the device's own `Reconstructor.correct`.
+`SlowRenderer` makes a renderer's ray-casts slower, to see what the deadline does on a
+slower host.
 """
 
 from __future__ import annotations
@@ -13,7 +23,17 @@ import numpy as np
 
 __all__ = [
     "DevicePath",
+    "ServedFrames",
+    "SlowRenderer",
 ]
+
+#: ``ServedFrames``: the budget of the frame sources it measures with, seconds: always enough
+#: (the stride is fixed; only the warm-up drag that picks it runs against the deadline).
+UNBOUNDED_S = 3600.0
+#: The drag a moving view is measured in, degrees per frame.
+MOTION_STEP_DEG = 3.0
+#: Frames of the warm-up drag whose last stride is used for every view.
+MOTION_WARMUP = 8
 
 
 class DevicePath:
@@ -94,32 +114,174 @@ class DevicePath:
         decoder.decode(packets[0])
         return self.model.reconstruct(decoder.decode(packets[1]).y), len(packets[1])
 
-    def correction_frame(self, phi_deg: float, theta_deg: float, image: np.ndarray,
-                         mask: np.ndarray | None = None) -> tuple[np.ndarray, int] | None:
-        """What a predicting device shows at rest under ``serve --scores predict``: its own
-        prediction of the view plus the host's correction, and the correction's bytes.
 
-        ``image`` (the view's ray-cast) is projected; the device's prediction
-        (`device_runtime.prediction.Predictor` of the image's standalone table) is subtracted
-        and the difference RD-quantized at ``serve``'s defaults
-        (`host.fit.rate.DEFAULT_CORRECTION_STEP_FACTOR` x the score step,
-        `~host.fit.rate.DEFAULT_CORRECTION_KAPPA`, SSIM cell weights from ``image`` and
-        ``mask``), coded as a version-2 correction packet, decoded and added to the
-        prediction as the device does. None for a model without the standalone table.
-        """
-        from device_runtime.prediction import Predictor, can_predict, corrected, prediction_view
-        from host.fit.rate import encode_correction, ssim_cell_weights
+class _OwnOnce:
+    """`OwnFrames` that makes each view's own frame once (the last view's is kept): the
+    frame sources and evaluate ask for the same view's frame several times."""
 
-        model = self.model
-        if getattr(self, "_predictor", None) is None:
-            if not can_predict(model.image):
-                return None
-            self._predictor = Predictor(model.image)
+    def __init__(self, own: Any) -> None:
+        self.own = own
+        self._view: tuple[float, float] | None = None
+        self._frame: np.ndarray | None = None
+
+    def frame(self, phi_deg: float, theta_deg: float, cancel: Any = None) -> np.ndarray:
+        from device_runtime.prediction import prediction_view
+
         view = prediction_view(phi_deg, theta_deg)
-        prediction = self._predictor(*view)
-        weights = ssim_cell_weights(image, model.image.cell_shape, mask)
-        self._frame = (self._frame + 1) & 0xFFFFFFFF
-        packet = encode_correction(model, model.project(image), prediction, view,
-                                   frame=self._frame, weights=weights).packet
-        d = self.decoder.decode(packet)
-        return model.reconstruct(corrected(prediction, d.y)), len(packet)
+        if view != self._view or self._frame is None:
+            self._frame = self.own.frame(*view)
+            self._view = view
+        return self._frame.copy()
+
+    def corrected(self, synth: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        return self.own.corrected(synth, delta)
+
+
+class ServedFrames:
+    """The frames of the one served path, exactly as a correcting device shows them.
+
+    Parameters
+    ----------
+    model : host.fit.model.HostModel
+        With the standalone table (`host.fit.rate` ... ``can_predict``).
+    scene : host.render.settings.ViewRenderer
+        The model's renderer (the host's ray-caster).
+
+    Attributes
+    ----------
+    own : OwnFrames
+        The device's own frames (`device_runtime.prediction.OwnFrames`, the device's code).
+    kind : {"warp", "blend"}
+        What the own frame is.
+    stride : int or None
+        The moving frames' stride (`set_stride` / `pick_stride`; 0: none fitted the deadline,
+        a moving frame is the own frame).
+    """
+
+    def __init__(self, model: Any, scene: Any) -> None:
+        from device_runtime.prediction import OwnFrames
+        from host.fit.motion import MotionScores
+        from protocol.scores import ScoreDecoder
+
+        self.model = model
+        self.scene = scene
+        self.own = _OwnOnce(OwnFrames(model.image))
+        self.kind = "warp" if self.own.own.warps else "blend"
+        self.decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
+                                    n_components=model.image.n_components)
+        # at rest: every pixel ray-cast exactly, the complete correction (serve's last step)
+        self._rest = MotionScores(model, scene, own=self.own, strides=(1,), coarse=1.0,
+                                  budget_s=UNBOUNDED_S)
+        self._moving: Any = None
+        self.stride: int | None = None
+        self._frame = 0
+
+    def own_frame(self, phi_deg: float, theta_deg: float) -> np.ndarray:
+        """The device's own frame of the view (uint8 (h, w, 3)): no bytes."""
+        return self.own.frame(phi_deg, theta_deg)
+
+    def _shown(self, view: tuple[float, float], step: Any, *, fine: bool
+               ) -> tuple[np.ndarray, int]:
+        from host.fit.rate import encode_correction
+
+        synth = self.own.frame(*view)
+        self._frame = (self._frame % 0xFFFFFFFF) + 1
+        encoded = (None if step.scores is None else
+                   encode_correction(self.model, step.scores, view, frame=self._frame,
+                                     fine=fine, weights=step.weights))
+        if encoded is None:  # nothing worth sending: the device keeps its own frame
+            return synth, 0
+        decoded = self.decoder.decode(encoded.packet)
+        return self.own.corrected(synth, decoded.y), len(encoded.packet)
+
+    def at_rest(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, int]:
+        """The frame a resting view converges to (its own frame plus the complete correction
+        at the model's step), and the correction packet's bytes (0: none sent)."""
+        from device_runtime.prediction import prediction_view
+
+        view = prediction_view(phi_deg, theta_deg)
+        return self._shown(view, self._rest.frame(view), fine=True)
+
+    def pick_stride(self, deadline_s: float, start: tuple[float, float], *,
+                    slowdown: float = 1.0) -> int:
+        """The stride a drag at `MOTION_STEP_DEG` per frame from ``start`` uses most at the
+        ``deadline_s`` budget on this machine (with a renderer ``slowdown`` times slower), after
+        its first frame: serve's frame source, the device's own frames included in its
+        measured cost. 0: none fits (the moving frames are the own frames)."""
+        from device_runtime.prediction import OwnFrames, prediction_view
+        from host.fit.motion import MotionScores
+
+        scene = self.scene if slowdown == 1.0 else SlowRenderer(self.scene, slowdown)
+        probe = MotionScores(self.model, scene, budget_s=deadline_s,
+                             own=OwnFrames(self.model.image))
+        probe.prepare()
+        strides = [probe.frame(prediction_view(start[0] + MOTION_STEP_DEG * i, start[1])).stride
+                   for i in range(MOTION_WARMUP)]
+        # the drag's usual stride once measured (the first frame is the sparsest, unmeasured;
+        # when none fits, every PROBE_EVERY-th frame still ray-casts to measure again)
+        later = strides[1:]
+        self.set_stride(max(reversed(later), key=later.count))
+        assert self.stride is not None
+        return self.stride
+
+    def set_stride(self, stride: int) -> None:
+        """Moving frames at ``stride`` (0: none, the own frame)."""
+        from host.fit.motion import MotionScores
+
+        self.stride = int(stride)
+        self._moving = (None if self.stride == 0 else
+                        MotionScores(self.model, self.scene, own=self.own,
+                                     strides=(self.stride,), budget_s=UNBOUNDED_S))
+
+    def moving(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, int]:
+        """The frame a device shows while the view moves through it (its own frame plus the
+        sparse correction at `stride`, serve's moving quantizer), and the bytes streamed."""
+        from device_runtime.prediction import prediction_view
+
+        if self.stride is None:
+            raise ValueError("ServedFrames.moving: no stride yet (set_stride / pick_stride)")
+        view = prediction_view(phi_deg, theta_deg)
+        if self._moving is None:
+            return self.own.frame(*view), 0
+        return self._shown(view, self._moving.frame(view), fine=False)
+
+
+class _SlowCaster:
+    """A ray-caster whose `render_pixels` takes ``factor`` times as long (it sleeps the
+    difference); everything else is the wrapped caster's."""
+
+    def __init__(self, caster: Any, factor: float) -> None:
+        self._caster = caster
+        self._factor = float(factor)
+
+    def render_pixels(self, *args: Any, **kwargs: Any) -> np.ndarray:
+        import time
+
+        t0 = time.perf_counter()
+        out = self._caster.render_pixels(*args, **kwargs)
+        time.sleep((self._factor - 1.0) * (time.perf_counter() - t0))
+        return out
+
+    def coarser(self, factor: float) -> _SlowCaster:
+        return _SlowCaster(self._caster.coarser(factor), self._factor)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._caster, name)
+
+
+class SlowRenderer:
+    """``scene`` (a `host.render.settings.ViewRenderer`) with every ray-cast ``factor``
+    times slower: a slower host, as the frame deadline sees it.
+
+    Raises
+    ------
+    ValueError
+        ``factor`` below 1 or not finite.
+    """
+
+    def __init__(self, scene: Any, factor: float) -> None:
+        if not (factor >= 1.0 and np.isfinite(factor)):
+            raise ValueError(f"SlowRenderer: factor={factor} must be >= 1")
+        self.settings = scene.settings
+        self.image_shape = scene.image_shape
+        self.renderer = _SlowCaster(scene.renderer, factor)

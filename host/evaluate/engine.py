@@ -1,17 +1,22 @@
 """The evaluation engine: ray-cast novel views, compare every method, sweep rate-distortion.
 
 `evaluate_model` ray-casts novel views with the model's own render settings
-(`host.render.settings.ViewRenderer`) and compares, per view, the device frame (from
-interpolated scores, and from the ray-cast's own scores as ``serve --scores render`` sends
-them), the equal-bytes JPEG and WebP, the angularly nearest training view and the *WebP
-image database* (`WebPDatabase`: every training view stored as WebP on the device, the novel
-view blended from the decoded training images with the model's own interpolation weights;
-zero bytes per frame) with the ray-cast; then a rate-distortion sweep over a subset of the
-views (the model truncated to lower thresholds / fewer components through the annexed
-eigenvalues, coarser score steps, the *projection* of the true views onto the eigenspace --
-what the eigenspace can do without view interpolation -- and JPEG/WebP at several
-qualities). `Evaluation.summary` is the JSON of
-``eigencast evaluate --json``; `host.evaluate.report.write_report` turns an `Evaluation` into HTML.
+(`host.render.settings.ViewRenderer`) and compares, per view, with the ray-cast: the device
+frame from interpolated scores (``pca``) and from the ray-cast's own scores (``pca_render``);
+for a model with the standalone table the one served path (`ServedFrames`: the device's own
+frame ``pca_warp``, that frame corrected at rest ``pca_predict`` and while moving
+``pca_motion``, bit for bit what the device shows, with the bytes of the correction
+packets); the equal-bytes JPEG, WebP and AVIF, the angularly nearest training view and the
+*WebP image database* (`WebPDatabase`: every training view stored as WebP on the device, the
+novel view blended from the decoded training images with the model's own interpolation
+weights; zero bytes per frame). Every frame also gets its cell-border figure
+(`host.evaluate.metrics.blockiness`, beside the ray-cast's own). Then a rate-distortion sweep
+over a subset of the views (the model truncated to lower thresholds / fewer components
+through the annexed eigenvalues, coarser score steps, the *projection* of the true views onto
+the eigenspace -- what the eigenspace can do without view interpolation -- and the codecs at
+several qualities, whose curves give the bytes WebP and AVIF need for the served frames'
+quality: `codec_equivalent`). `Evaluation.summary` is the JSON of ``eigencast evaluate
+--json``; `host.evaluate.report.write_report` turns an `Evaluation` into HTML.
 """
 
 from __future__ import annotations
@@ -36,9 +41,9 @@ from host.evaluate.baselines import (
     encode_within_budget,
     nearest_training_view,
 )
-from host.evaluate.device_path import DevicePath
+from host.evaluate.device_path import MOTION_STEP_DEG, MOTION_WARMUP, DevicePath, ServedFrames
 from host.evaluate.masks import alpha_object_mask
-from host.evaluate.metrics import ImageComparison, compare_images
+from host.evaluate.metrics import ImageComparison, blockiness, compare_images
 from host.progress import progress as _progress
 
 __all__ = [
@@ -48,6 +53,7 @@ __all__ = [
     "DEFAULT_WEBP_DB_QUALITY",
     "METHODS",
     "Evaluation",
+    "codec_equivalent",
     "default_metric_workers",
     "eigenspace_bytes",
     "evaluate_model",
@@ -55,25 +61,26 @@ __all__ = [
 ]
 
 #: Methods an evaluation reports: the device frame from interpolated scores (``pca``), the
-#: device frame from the ray-cast's own scores (``pca_render``: what ``serve --scores
-#: render`` sends, and ``motion``/``refine`` once a view rests), the frame ``serve --scores
-#: motion`` sends while the view moves (``pca_motion``), what a predicting device shows at
-#: rest under ``serve --scores predict`` (``pca_predict``: its own prediction plus the host's
-#: correction; models fitted ``--standalone`` only), what a standalone device synthesizes
-#: from its neighbours' depth (``pca_warp``: models fitted ``--depth`` only), equal-bytes
-#: codecs, the nearest training view and the on-device WebP image database.
+#: device frame from the ray-cast's own scores (``pca_render``: key packets of the true view's
+#: projection), the one served path for a model with the standalone table -- the device's own
+#: frame (``pca_warp``: its depth warp, or the blend of its predicted scores for an image
+#: without depth; 0 bytes), that frame at rest corrected by the complete correction at the
+#: model's step (``pca_predict``, "served, at rest") and while moving by the sparse correction
+#: the frame deadline allows (``pca_motion``, "served, while moving"; for a model without the
+#: table: the sparse ray-cast's absolute scores as a delta packet) -- equal-bytes codecs, the
+#: nearest training view and the on-device WebP image database.
 METHODS = ("pca", "pca_motion", "pca_predict", "pca_render", "jpeg", "webp", "avif", "nearest",
            "webp_db", "pca_warp")
-#: ``pca_motion``: the drag it is measured in, degrees per frame.
-MOTION_STEP_DEG = 3.0
-#: ``pca_motion``: frames of the warm-up drag whose last stride is used for every view.
-_MOTION_WARMUP = 8
+#: Methods whose frames are corrections of ``pca_warp`` (the device's own frame).
+SERVED = ("pca_predict", "pca_motion")
+#: A served view counts as below its own frame when its object SSIM is lower by more than this.
+BELOW_OWN_SSIM = 0.01
 #: Thresholds tried by the rate-distortion sweep of an adaptive model (those below its own T).
 DEFAULT_THRESHOLDS = (0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 0.998, 0.999)
 #: Score-step multiples tried by the rate-distortion sweep at the model's own components.
 DEFAULT_STEP_FACTORS = (2.0, 4.0, 8.0, 16.0)
 #: Codec qualities of the rate-distortion sweep.
-DEFAULT_QUALITIES = (2, 5, 10, 20, 35, 50, 70, 90)
+DEFAULT_QUALITIES = (2, 5, 10, 20, 35, 50, 60, 70, 80, 90, 95)
 #: WebP quality of the on-device image database baseline (``webp_db``).
 DEFAULT_WEBP_DB_QUALITY = 80
 _NOT_AVERAGED = {"index"}  # per-view entries whose mean means nothing
@@ -90,10 +97,10 @@ class Evaluation:
         ``eigenspace_bytes``, ``score_step``, ``image_shape``, ``cell_shape``, ``int8``,
         ``volume`` ...
     views : list of dict
-        One record per novel view: ``phi_deg``, ``theta_deg``, ``object_fraction`` and, per
-        method (``pca``, ``jpeg``, ``webp``, ``nearest``), a dict of ``bytes_per_view`` and
-        the metrics (plus ``quality``/``within_budget`` for codecs, ``index``/``angle_deg``
-        for the nearest view).
+        One record per novel view: ``phi_deg``, ``theta_deg``, ``object_fraction``,
+        ``raycast_blockiness`` and, per method (`METHODS`), a dict of ``bytes_per_view``,
+        ``blockiness`` and the metrics (plus ``quality``/``within_budget`` for codecs,
+        ``index``/``angle_deg`` for the nearest view, ``stride`` for ``pca_motion``).
     rd : list of dict
         Rate-distortion points: ``kind`` (pca/projection/jpeg/webp), ``label``, ``setting``,
         ``bytes_per_view``, ``psnr``, ``ssim``, ``flip``, ``components_per_cell``.
@@ -129,15 +136,49 @@ class Evaluation:
             )
         return out
 
+    def over_own(self, method: str) -> dict[str, float]:
+        """``method``'s object SSIM against the device's own frame (``pca_warp``), per view:
+        the mean and the worst difference, and how many views are more than
+        `BELOW_OWN_SSIM` below their own frame."""
+        diff = np.array([rec[method]["ssim_object"] - rec["pca_warp"]["ssim_object"]
+                         for rec in self.views], dtype=np.float64)
+        diff = diff[np.isfinite(diff)]
+        if not diff.size:
+            return {"gain_over_own": math.nan, "worst_gain_over_own": math.nan,
+                    "views_below_own": 0}
+        return {"gain_over_own": float(diff.mean()), "worst_gain_over_own": float(diff.min()),
+                "views_below_own": int(np.count_nonzero(diff < -BELOW_OWN_SSIM))}
+
+    def equal_quality(self, method: str) -> dict:
+        """What WebP and AVIF need for ``method``'s quality, and reach at its bytes.
+
+        On the rate-distortion sweep's views (the first ``rd_views``): ``method``'s mean
+        object SSIM and bytes there, and per codec (`codec_equivalent` of its sweep curve)
+        ``bytes_for_ssim`` (the bytes per view at which the codec's mean object SSIM equals
+        ``method``'s) and ``ssim_at_bytes`` (its mean object SSIM at ``method``'s bytes); None
+        where that lies outside the swept qualities (``min_bytes``: the codec's smallest mean
+        file, at the lowest quality)."""
+        n = int(self.info.get("rd_views") or 0)
+        recs = [rec[method] for rec in self.views[:n] if method in rec]
+        ssim = float(np.nanmean([r["ssim_object"] for r in recs])) if recs else math.nan
+        size = float(np.mean([r["bytes_per_view"] for r in recs])) if recs else math.nan
+        out: dict[str, Any] = {"views": len(recs), "ssim_object": ssim, "bytes_per_view": size}
+        for codec in ("webp", "avif"):
+            points = [p for p in self.rd if p["kind"] == codec]
+            if points:
+                out[codec] = codec_equivalent(points, ssim, size)
+        return out
+
     def summary(self) -> dict:
         """The ``--json`` object of ``eigencast evaluate``.
 
         Model facts, the per-method means over the views (`METHODS`: ``pca``, ``pca_motion``
-        (with its ``stride``, ``deadline_ms``, ``coarse``, ``step_deg``), ``pca_render``,
-        ``jpeg``, ``webp``, ``avif``, ``nearest``, ``webp_db``, ``pca_warp`` for a model fitted
-        with ``--depth``), the rate-distortion
-        points, the time per phase and the per-view records;
-        non-finite floats are ``None``.
+        (with its ``stride``, ``deadline_ms``, ``coarse``, ``step_deg``, ``slowdown``),
+        ``pca_render``, ``jpeg``, ``webp``, ``avif``, ``nearest``, ``webp_db``, and for a
+        model with the standalone table ``pca_warp`` (with ``own_frame``: ``"warp"`` or
+        ``"blend"``) and ``pca_predict``; the served methods (`SERVED`) also with
+        `over_own` and `equal_quality`), ``raycast_blockiness``, the rate-distortion points,
+        the time per phase and the per-view records; non-finite floats are ``None``.
         """
         info = self.info
         out = {
@@ -157,7 +198,22 @@ class Evaluation:
                 out[method] = self.means(method)
         if "pca_motion" in out and info.get("motion"):
             out["pca_motion"].update({k: info["motion"][k]
-                                      for k in ("deadline_ms", "coarse", "step_deg")})
+                                      for k in ("deadline_ms", "coarse", "step_deg",
+                                                "slowdown", "stride_given")})
+            out["pca_motion"]["stride"] = info["motion"]["stride"]
+        if "pca_warp" in out:
+            out["pca_warp"]["own_frame"] = info.get("own_frame")
+        for method in SERVED:
+            if method in out and "pca_warp" in out:
+                out[method].update(self.over_own(method))
+        if self.views:
+            vals = np.array([rec.get("raycast_blockiness", math.nan) for rec in self.views],
+                            dtype=np.float64)
+            out["raycast_blockiness"] = (float(np.nanmean(vals)) if np.isfinite(vals).any()
+                                         else math.nan)
+        for method in SERVED:
+            if method in out and self.rd:
+                out[method]["equal_quality"] = self.equal_quality(method)
         if "webp_db" in out:
             out["webp_db"]["storage_bytes"] = info.get("webp_db_storage_bytes")
             out["webp_db"]["storage_estimated"] = info.get("webp_db_storage_estimated")
@@ -167,6 +223,34 @@ class Evaluation:
         out["timing_s"] = dict(self.timing_s)
         out["per_view"] = self.views
         return _json_safe(out)
+
+
+def codec_equivalent(points: Sequence[dict], ssim: float, size: float) -> dict:
+    """Interpolate a codec's rate-distortion curve (``points``: the sweep's points of one
+    codec, each with ``setting.quality``, ``bytes_per_view`` and ``ssim_object``) in quality.
+
+    ``bytes_for_ssim``: between the two swept qualities whose object SSIM brackets ``ssim``
+    (the lowest such pair), the fraction ``t`` of the way in SSIM, and the bytes ``t`` of the
+    way in log bytes (SSIM linear, bytes log-linear in quality). ``ssim_at_bytes``: the
+    reverse at ``size`` (``t`` in log bytes). None outside the curve; ``min_bytes`` is the
+    lowest quality's mean file size.
+    """
+    pts = sorted(points, key=lambda p: p["setting"]["quality"])
+    b = np.array([p["bytes_per_view"] for p in pts], dtype=np.float64)
+    q = np.array([p["ssim_object"] for p in pts], dtype=np.float64)
+    out: dict[str, Any] = {"bytes_for_ssim": None, "ssim_at_bytes": None,
+                           "min_bytes": float(b[0]) if b.size else None}
+    lb = np.log(np.maximum(b, 1.0))
+    for i in range(1, b.size):
+        if out["bytes_for_ssim"] is None and math.isfinite(ssim) and q[i - 1] <= ssim <= q[i] \
+                and q[i] > q[i - 1]:
+            t = (ssim - q[i - 1]) / (q[i] - q[i - 1])
+            out["bytes_for_ssim"] = float(np.exp(lb[i - 1] + t * (lb[i] - lb[i - 1])))
+        if out["ssim_at_bytes"] is None and size > 0 and b[i - 1] <= size <= b[i] \
+                and b[i] > b[i - 1]:
+            t = (math.log(size) - lb[i - 1]) / (lb[i] - lb[i - 1])
+            out["ssim_at_bytes"] = float(q[i - 1] + t * (q[i] - q[i - 1]))
+    return out
 
 
 def _json_safe(value: Any) -> Any:
@@ -319,6 +403,8 @@ def evaluate_model(
     webp_db_quality: int | None = DEFAULT_WEBP_DB_QUALITY,
     motion_deadline_s: float | None = 1.0 / 30.0,
     motion_stride: int | None = None,
+    motion_slowdown: float = 1.0,
+    rd_pca: bool = True,
     metric_workers: int | None = None,
     progress: bool = True,
     info: dict | None = None,
@@ -335,7 +421,9 @@ def evaluate_model(
     nearest : bool
         Also score the angularly nearest training view.
     rd_views : int
-        Views (the first ones) used by the rate-distortion sweep; 0 skips it.
+        Views (the first ones) used by the rate-distortion sweep; 0 skips it. The bytes WebP
+        and AVIF need for the served frames' quality (``equal_quality``) come from its codec
+        curves, on these views.
     sample_views : int
         Views whose images are kept for side-by-side figures.
     thresholds, step_factors, qualities
@@ -344,15 +432,22 @@ def evaluate_model(
         WebP quality of the on-device image database baseline (`WebPDatabase`, method
         ``webp_db``); None skips it.
     motion_deadline_s : float or None
-        ``pca_motion``: the frame deadline of `host.fit.MotionScores` (``serve --scores
-        motion``'s default); None skips the method. A warm-up drag at `MOTION_STEP_DEG` per
-        frame picks the stride that fits it on this machine (``info["motion"]``); then each
-        view's frame is recovered from that stride with the interpolated prior (a drag at
-        that speed), and costs the bytes of its delta packet against the frame
-        `MOTION_STEP_DEG` before it (a streamed drag, not independent key packets).
+        ``pca_motion``: serve's frame deadline; None skips the method. A warm-up drag at
+        `MOTION_STEP_DEG` per frame picks the stride that fits it on this machine
+        (``info["motion"]``). With the standalone table each view's frame is then the
+        device's own frame plus the sparse correction at that stride (0: no stride fits, the
+        own frame), costing its correction packet (0 bytes when none is sent); without the
+        table, the sparse ray-cast's scores as a delta packet against the frame
+        `MOTION_STEP_DEG` before it.
     motion_stride : int, optional
         ``pca_motion`` at this stride instead of the one the deadline picks (reproducible
-        across machines).
+        across machines; 0 with the table: the own frames).
+    motion_slowdown : float
+        The warm-up drag's ray-casts take this many times longer (`SlowRenderer`): the
+        stride a slower host's deadline picks.
+    rd_pca : bool
+        The rate-distortion sweep includes the model's truncations and coarser steps (else
+        only the codecs' curves: what ``equal_quality`` needs, in a fraction of the time).
     metric_workers : int, optional
         Processes computing the metrics (default `default_metric_workers`; 0: inline).
     progress : bool
@@ -366,6 +461,8 @@ def evaluate_model(
     -------
     Evaluation
     """
+    from device_runtime.prediction import can_predict
+
     pairs = [(float(v.phi_deg), float(v.theta_deg)) if hasattr(v, "phi_deg") else
              (float(v[0]), float(v[1])) for v in views]
     if not pairs:
@@ -381,6 +478,7 @@ def evaluate_model(
               "metrics_wait": 0.0, "rate_distortion": 0.0}
     evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
     evaluation.info["metric_workers"] = workers
+    cells = tuple(model.image.cell_shape)
     device = DevicePath(model)
     training = TrainingImages(model, scene) if nearest or webp_db_quality is not None else None
     if training is not None:
@@ -391,19 +489,32 @@ def evaluate_model(
         webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
         timing["webp_db"] += time.perf_counter() - t0
         evaluation.info["webp_db_quality"] = webp_db.quality
-    warp = None
-    if model.image.synthesis is not None and "pca_warp" in METHODS:
-        from host.evaluate.warp import WarpFrames  # a model fitted with --depth
-
-        warp = WarpFrames(model)
-        timing["warp"] = 0.0
-        evaluation.info["synthesis"] = model.image.synthesis.get("method")
+    served = ServedFrames(model, scene) if can_predict(model.image) else None
+    if served is not None:
+        timing["served"] = 0.0
+        evaluation.info["own_frame"] = served.kind
+        if model.image.synthesis is not None:
+            evaluation.info["synthesis"] = model.image.synthesis.get("method")
     motion = None
     if motion_deadline_s is not None:
-        motion = _motion_source(model, scene, motion_deadline_s, pairs[0], motion_stride)
+        t0 = time.perf_counter()
+        if served is not None:
+            if motion_stride is None:
+                served.pick_stride(motion_deadline_s, pairs[0], slowdown=motion_slowdown)
+            else:
+                served.set_stride(motion_stride)
+            stride, coarse = served.stride, _moving_coarse()
+        else:
+            motion = _motion_source(model, scene, motion_deadline_s, pairs[0], motion_stride,
+                                    motion_slowdown)
+            stride, coarse = motion.strides[0], motion.coarse
+        timing["motion"] += time.perf_counter() - t0
         evaluation.info["motion"] = {"deadline_ms": motion_deadline_s * 1e3,
-                                     "stride": motion.strides[0], "coarse": motion.coarse,
-                                     "step_deg": MOTION_STEP_DEG}
+                                     "stride": stride, "coarse": coarse,
+                                     "step_deg": MOTION_STEP_DEG,
+                                     "slowdown": float(motion_slowdown),
+                                     "stride_given": motion_stride is not None,
+                                     "corrections": served is not None}
     rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
     metrics = _Metrics(workers)
     hints: dict[str, int | None] = {c: None for c in CODECS}
@@ -418,7 +529,8 @@ def evaluate_model(
             record[name].update(c.values())
         if sample is not None:
             sample.update({f"flip_{name}": results[name].flip_map
-                           for name in ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp")
+                           for name in ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp",
+                                        "pca_predict")
                            if name in results})
             evaluation.samples.append(sample)
         evaluation.views.append(record)
@@ -434,80 +546,74 @@ def evaluate_model(
                 mask = alpha_object_mask(alpha)
                 t1 = time.perf_counter()
                 timing["raycast"] += t1 - t0
-                frame, packet_bytes = device.frame(phi, theta)
-                # what `serve --scores render|refine` sends: the ray-cast's own scores
-                render_frame, render_bytes = device.projection_frame(truth)
-                # what `serve --scores predict` makes a predicting device show at rest
-                predicted = device.correction_frame(phi, theta, truth, mask)
-                t2 = time.perf_counter()
-                timing["device"] += t2 - t1
-                coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=hints[c])
-                         for c in CODECS}
-                hints = {c: coded[c].quality for c in CODECS}
-                decoded = {c: coded[c].decode() for c in CODECS}
-                t3 = time.perf_counter()
-                timing["codecs"] += t3 - t2
                 keep = i < sample_views
+                frames: dict[str, np.ndarray] = {}
                 record: dict[str, Any] = {"phi_deg": phi, "theta_deg": theta,
                                           "object_fraction": float(mask.mean()),
-                                          "pca": {"bytes_per_view": packet_bytes}}
-                futures = {"pca": metrics.submit(truth, frame, mask, keep)}
+                                          "raycast_blockiness": blockiness(truth, cells, mask)}
+                frames["pca"], packet_bytes = device.frame(phi, theta)
+                record["pca"] = {"bytes_per_view": packet_bytes}
+                # key packets of the ray-cast's own scores
+                frames["pca_render"], render_bytes = device.projection_frame(truth)
                 record["pca_render"] = {"bytes_per_view": render_bytes}
-                futures["pca_render"] = metrics.submit(truth, render_frame, mask, False)
-                if predicted is not None:
-                    record["pca_predict"] = {"bytes_per_view": predicted[1]}
-                    futures["pca_predict"] = metrics.submit(truth, predicted[0], mask, False)
-                motion_frame = None
-                if motion is not None:
-                    t4 = time.perf_counter()
+                t2 = time.perf_counter()
+                timing["device"] += t2 - t1
+                if served is not None:  # the one served path
+                    frames["pca_warp"] = served.own_frame(phi, theta)
+                    record["pca_warp"] = {"bytes_per_view": 0}
+                    frames["pca_predict"], size = served.at_rest(phi, theta)
+                    record["pca_predict"] = {"bytes_per_view": size}
+                    t3 = time.perf_counter()
+                    timing["served"] += t3 - t2
+                    if served.stride is not None:
+                        frames["pca_motion"], size = served.moving(phi, theta)
+                        record["pca_motion"] = {"bytes_per_view": size,
+                                                "stride": served.stride}
+                        timing["motion"] += time.perf_counter() - t3
+                elif motion is not None:
+                    t3 = time.perf_counter()
                     from device_runtime.runtime import canonical_view
 
                     before = motion.frame(canonical_view(phi - MOTION_STEP_DEG, theta)).scores
                     now = motion.frame(canonical_view(phi, theta)).scores
-                    motion_frame, motion_bytes = device.motion_frame(before, now)
-                    timing["motion"] = timing.get("motion", 0.0) + time.perf_counter() - t4
-                    record["pca_motion"] = {"bytes_per_view": motion_bytes,
+                    frames["pca_motion"], size = device.motion_frame(before, now)
+                    timing["motion"] += time.perf_counter() - t3
+                    record["pca_motion"] = {"bytes_per_view": size,
                                             "stride": motion.strides[0]}
-                    futures["pca_motion"] = metrics.submit(truth, motion_frame, mask, False)
+                t2 = time.perf_counter()
+                coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=hints[c])
+                         for c in CODECS}
+                hints = {c: coded[c].quality for c in CODECS}
                 for c in CODECS:
+                    frames[c] = coded[c].decode()
                     record[c] = {"bytes_per_view": coded[c].size_bytes,
                                  "quality": coded[c].quality,
                                  "within_budget": coded[c].within_budget}
-                    futures[c] = metrics.submit(truth, decoded[c], mask, keep)
+                t3 = time.perf_counter()
+                timing["codecs"] += t3 - t2
                 if webp_db is not None:
-                    t4 = time.perf_counter()
-                    blended = webp_db.frame(phi, theta)
-                    timing["webp_db"] += time.perf_counter() - t4
+                    frames["webp_db"] = webp_db.frame(phi, theta)
+                    timing["webp_db"] += time.perf_counter() - t3
                     record["webp_db"] = {"bytes_per_view": 0, "quality": webp_db.quality}
-                    futures["webp_db"] = metrics.submit(truth, blended, mask, keep)
-                warped = None
-                if warp is not None:
-                    t4 = time.perf_counter()
-                    warped = warp.frame(phi, theta)
-                    timing["warp"] += time.perf_counter() - t4
-                    record["pca_warp"] = {"bytes_per_view": 0}
-                    futures["pca_warp"] = metrics.submit(truth, warped, mask, keep)
                 t3 = time.perf_counter()
                 if nearest and training is not None:
                     index, angle = nearest_training_view(phi, theta, training.phi,
                                                          training.theta)
-                    near, png_bytes = training.get(index)
+                    frames["nearest"], png_bytes = training.get(index)
                     timing["nearest"] += time.perf_counter() - t3
                     record["nearest"] = {"bytes_per_view": png_bytes, "index": index,
                                          "angle_deg": angle}
-                    futures["nearest"] = metrics.submit(truth, near, mask, False)
+                flip_maps = ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp",
+                             "pca_predict")
+                futures = {}
+                for name, frame in frames.items():
+                    record[name]["blockiness"] = blockiness(frame, cells, mask)
+                    futures[name] = metrics.submit(truth, frame, mask,
+                                                   keep and name in flip_maps)
                 sample = None
                 if keep:
                     sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
-                              "pca": frame, "pca_render": render_frame,
-                              "pca_predict": None if predicted is None else predicted[0],
-                              "pca_motion": motion_frame,
-                              **{c: decoded[c] for c in CODECS},
-                              "record": record}
-                    if webp_db is not None:
-                        sample["webp_db"] = blended
-                    if warped is not None:
-                        sample["pca_warp"] = warped
+                              **frames, "record": record}
                 if i < rd_views:
                     rd_refs.append((truth, mask, phi, theta))
                 in_flight.append((i, record, futures, sample))
@@ -518,7 +624,8 @@ def evaluate_model(
         if rd_refs:
             t0 = time.perf_counter()
             evaluation.rd = _rate_distortion(model, rd_refs, thresholds, step_factors,
-                                             qualities, metrics, progress=progress)
+                                             qualities, metrics, progress=progress,
+                                             pca=rd_pca)
             timing["rate_distortion"] = time.perf_counter() - t0
             evaluation.info["rd_views"] = len(rd_refs)
     finally:
@@ -530,27 +637,32 @@ def evaluate_model(
     return evaluation
 
 
-_MOTION_UNBOUNDED_S = 3600.0
-"""The budget of the fixed-stride `MotionScores` evaluate measures with: always enough."""
+def _moving_coarse() -> float:
+    from host.fit.motion import DEFAULT_COARSE
+
+    return float(DEFAULT_COARSE)
 
 
 def _motion_source(model: Any, scene: Any, deadline_s: float, start: tuple[float, float],
-                   stride: int | None = None) -> Any:
-    """`MotionScores` at ``stride``, or the one a warm-up drag from ``start`` settles on
-    (at least the sparsest: evaluate measures frames that ray-cast)."""
+                   stride: int | None = None, slowdown: float = 1.0) -> Any:
+    """A model without the standalone table: `MotionScores` (absolute scores) at ``stride``,
+    or the one a warm-up drag from ``start`` settles on (at least the sparsest: evaluate
+    measures frames that ray-cast)."""
     from device_runtime.runtime import canonical_view
+    from host.evaluate.device_path import UNBOUNDED_S, SlowRenderer
     from host.fit.motion import MotionScores
 
     if stride is None:
-        probe = MotionScores(model, scene, budget_s=deadline_s)
+        probe = MotionScores(model, scene if slowdown == 1.0 else SlowRenderer(scene, slowdown),
+                             budget_s=deadline_s)
         probe.prepare()
-        for i in range(_MOTION_WARMUP):
+        for i in range(MOTION_WARMUP):
             probe.frame(canonical_view(start[0] + MOTION_STEP_DEG * i, start[1]))
         stride = probe.choose_stride() or probe.strides[-1]
     # Every measured frame ray-casts at that stride, however loaded the machine is now: with
     # the deadline's budget a slow moment would make a frame the prior alone (stride 0), and
     # the figures would depend on the load (and differ between two runs of the same views).
-    return MotionScores(model, scene, budget_s=_MOTION_UNBOUNDED_S, strides=(int(stride),))
+    return MotionScores(model, scene, budget_s=UNBOUNDED_S, strides=(max(1, int(stride)),))
 
 
 def _mean_point(rows: list[dict]) -> dict:
@@ -572,8 +684,9 @@ def _rate_distortion(
     metrics: _Metrics,
     *,
     progress: bool,
+    pca: bool = True,
 ) -> list[dict]:
-    settings = _pca_settings(model, thresholds, step_factors)
+    settings = _pca_settings(model, thresholds, step_factors) if pca else []
     jobs: list[tuple[dict, list[tuple[int, Future]]]] = []
     total = len(settings) + len(CODECS) * len(qualities)
     with _progress("rate-distortion", total, unit=" settings", quiet=not progress) as bar:

@@ -14,6 +14,8 @@ so a view that is mostly black background is not flattered by it.
 * `flip_error`: NVIDIA's FLIP (``flip_evaluator``, LDR, sRGB inputs scaled to [0, 1], the
   default 67 pixels per degree); the mean of the error map, over the mask when given.
   0 is identical, 1 is the largest error.
+* `blockiness`: how much more a frame changes across the borders of the eigenspace's cells
+  than inside them (no reference: the ray-cast's own figure is the floor to compare with).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ __all__ = [
     "HIGHER_IS_BETTER",
     "METRICS",
     "ImageComparison",
+    "blockiness",
     "compare_images",
     "flip_error",
     "flip_error_map",
@@ -290,3 +293,43 @@ def compare_images(
         if keep_flip_map:
             out["flip_map"] = fmap
     return ImageComparison(**out)
+
+
+def blockiness(image: np.ndarray, cell_shape: tuple[int, int],
+               mask: np.ndarray | None = None) -> float:
+    """The cell-border figure of a frame: the mean absolute difference (over RGB) of the
+    pairs of neighbouring pixels that straddle a cell border, divided by that of the pairs
+    inside cells; over pairs whose two pixels are both in ``mask`` when given.
+
+    1 means borders are like anywhere else; a frame made cell by cell with visible tile
+    borders is above the ray-cast of the same view (whose figure is 1 up to the content).
+    NaN when there are no pairs of one kind or the inside pairs do not change at all.
+
+    Parameters
+    ----------
+    image : ndarray of shape (height, width, 3) or (height, width)
+    cell_shape : (int, int)
+        ``(cell_h, cell_w)``; cells start at pixel (0, 0).
+    mask : ndarray of shape (height, width), bool, optional
+    """
+    a = np.asarray(image, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[..., None]
+    ch, cw = (int(v) for v in cell_shape)
+    if min(ch, cw) < 1:
+        raise ValueError(f"blockiness: cell_shape={cell_shape} must be positive")
+    m = np.ones(a.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    if m.shape != a.shape[:2]:
+        raise ValueError(f"blockiness: mask of shape {m.shape} for an image of {a.shape[:2]}")
+    sums = np.zeros(4)  # border sum, border pairs, inside sum, inside pairs
+    for axis, size in ((1, cw), (0, ch)):
+        diff = np.abs(np.diff(a, axis=axis)).mean(axis=2)
+        n = diff.shape[axis]
+        border = (np.arange(n) + 1) % size == 0
+        border = border[None, :] if axis == 1 else border[:, None]
+        both = (m[:, 1:] & m[:, :-1]) if axis == 1 else (m[1:] & m[:-1])
+        b, i = both & border, both & ~border
+        sums += [diff[b].sum(), b.sum(), diff[i].sum(), i.sum()]
+    if sums[1] == 0 or sums[3] == 0 or sums[2] == 0:
+        return math.nan
+    return float((sums[0] / sums[1]) / (sums[2] / sums[3]))

@@ -8,8 +8,10 @@
   several settings (lower thresholds / fewer components, coarser score steps) and JPEG and
   WebP at several qualities, with the model's own point and the equal-bytes codec means marked;
 * ``per_view.png`` -- SSIM and FLIP of every view against its elevation;
-* ``views/view_NN.png`` -- side by side: ray-cast | device reconstruction | equal-bytes JPEG |
-  equal-bytes WebP | FLIP error maps of the reconstruction and the JPEG (magma, 0..1);
+* ``views/view_NN.png`` -- side by side: for a model with the standalone table the device's
+  own frame | that frame served at rest (corrected) | the ray-cast, then the other methods'
+  frames (served while moving, interpolated and ray-cast scores, equal-bytes codecs, ...) and
+  FLIP error maps (magma, 0..1);
 * ``summary.json`` -- `Evaluation.summary`.
 
 Plots use matplotlib's Agg backend (no display needed).
@@ -37,14 +39,14 @@ _COLORS = {"projection": "#000000", "pca": "#1b7837", "jpeg": "#b2182b", "webp":
            "pca_motion": "#7fbc41", "avif": "#c51b7d", "pca_predict": "#543005",
            "pca_warp": "#01665e"}
 _NAMES = {"projection": "PCA, true view's own scores (oracle)", "pca": "PCA (device)",
-          "pca_render": "PCA, ray-cast scores (serve --scores render)",
-          "pca_motion": "PCA, sparse ray-cast while moving (serve --scores motion)",
-          "pca_predict": "PCA, device prediction + correction (serve --scores predict)",
+          "pca_render": "PCA, ray-cast scores (key packets)",
+          "pca_motion": "PCA, served while moving (sparse ray-cast)",
+          "pca_predict": "PCA, served at rest (own frame + complete correction)",
           "jpeg": "JPEG, equal bytes", "webp": "WebP, equal bytes",
           "avif": "AVIF, equal bytes",
           "nearest": "nearest training view",
           "webp_db": "WebP image database on the device",
-          "pca_warp": "PCA, neighbours warped by depth (standalone, fit --depth)"}
+          "pca_warp": "PCA, the device's own frame (depth warp or score blend)"}
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
@@ -181,15 +183,19 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
                     color=_COLORS["pca_render"], markersize=13, zorder=5,
                     label="this model, ray-cast scores (all views)")
         moving = summary.get("pca_motion") or {}
-        if moving:
+        if moving and moving["bytes_per_view"]:
             ax.plot([moving["bytes_per_view"]], [moving[metric]], "*",
                     color=_COLORS["pca_motion"], markersize=13, zorder=5,
-                    label="this model, sparse ray-cast while moving (streamed, all views)")
+                    label="this model, served while moving (streamed, all views)")
         corrected = summary.get("pca_predict") or {}
-        if corrected:
+        if corrected and corrected["bytes_per_view"]:
             ax.plot([corrected["bytes_per_view"]], [corrected[metric]], "*",
                     color=_COLORS["pca_predict"], markersize=13, zorder=5,
-                    label="this model, prediction + correction at rest (all views)")
+                    label="this model, served at rest: own frame + correction (all views)")
+        own_frame = summary.get("pca_warp") or {}
+        if own_frame and own_frame.get(metric) is not None:
+            ax.axhline(own_frame[metric], color=_COLORS["pca_warp"], linestyle=":", linewidth=1.4,
+                       label="the device's own frame (0 B/frame)")
         db = summary.get("webp_db") or {}
         if db and db.get(metric) is not None:
             ax.axhline(db[metric], color=_COLORS["webp_db"], linestyle="--", linewidth=1.2,
@@ -242,52 +248,48 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
     plt.close(fig)
 
 
+def _panel(sample: dict, method: str, title: str) -> tuple[str, np.ndarray] | None:
+    rec = sample["record"].get(method)
+    if sample.get(method) is None or rec is None:
+        return None
+    return (f"{title}, {rec['bytes_per_view']} B\nSSIM {rec['ssim']:.3f}  "
+            f"FLIP {rec['flip']:.3f}", sample[method])
+
+
 def _sample_figure(sample: dict) -> np.ndarray:
     rec = sample["record"]
-    panels = [
-        (f"ray-cast\nphi {sample['phi_deg']:.1f}, theta {sample['theta_deg']:.1f}",
-         sample["raycast"]),
-        (f"PCA (device), {rec['pca']['bytes_per_view']} B\nSSIM {rec['pca']['ssim']:.3f}  "
-         f"FLIP {rec['pca']['flip']:.3f}", sample["pca"]),
-    ]
-    if sample.get("pca_motion") is not None and "pca_motion" in rec:
-        r = rec["pca_motion"]
-        panels.append((f"PCA, moving (s={r['stride']}), {r['bytes_per_view']} B\n"
-                       f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_motion"]))
-    if sample.get("pca_predict") is not None and "pca_predict" in rec:
-        r = rec["pca_predict"]
-        panels.append((f"PCA, predicted + correction, {r['bytes_per_view']} B\n"
-                       f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_predict"]))
-    if sample.get("pca_render") is not None and "pca_render" in rec:
-        r = rec["pca_render"]
-        panels.append((f"PCA, ray-cast scores, {r['bytes_per_view']} B\n"
-                       f"SSIM {r['ssim']:.3f}  FLIP {r['flip']:.3f}", sample["pca_render"]))
-    panels += [
-        (f"JPEG q{rec['jpeg']['quality']}, {rec['jpeg']['bytes_per_view']} B"
-         f"{'' if rec['jpeg']['within_budget'] else ' (over budget)'}\n"
-         f"SSIM {rec['jpeg']['ssim']:.3f}  FLIP {rec['jpeg']['flip']:.3f}", sample["jpeg"]),
-        (f"WebP q{rec['webp']['quality']}, {rec['webp']['bytes_per_view']} B"
-         f"{'' if rec['webp']['within_budget'] else ' (over budget)'}\n"
-         f"SSIM {rec['webp']['ssim']:.3f}  FLIP {rec['webp']['flip']:.3f}", sample["webp"]),
-    ]
-    if sample.get("avif") is not None and "avif" in rec:
-        a = rec["avif"]
-        panels.append((f"AVIF q{a['quality']}, {a['bytes_per_view']} B"
-                       f"{'' if a['within_budget'] else ' (over budget)'}\n"
-                       f"SSIM {a['ssim']:.3f}  FLIP {a['flip']:.3f}", sample["avif"]))
-    if sample.get("webp_db") is not None and "webp_db" in rec:
-        db = rec["webp_db"]
+    truth = (f"ray-cast\nphi {sample['phi_deg']:.1f}, theta {sample['theta_deg']:.1f}",
+             sample["raycast"])
+    panels: list[tuple[str, np.ndarray] | None] = []
+    if sample.get("pca_warp") is not None:  # the served path: own frame | corrected | truth
+        panels += [_panel(sample, "pca_warp", "own frame"),
+                   _panel(sample, "pca_predict", "served at rest"), truth]
+        if "pca_motion" in rec:
+            r = rec["pca_motion"]
+            panels.append(_panel(sample, "pca_motion", f"served moving (s={r['stride']})"))
+        panels.append(_panel(sample, "pca", "PCA, interpolated scores"))
+    else:
+        panels += [truth, _panel(sample, "pca", "PCA (device)")]
+        if "pca_motion" in rec:
+            r = rec["pca_motion"]
+            panels.append(_panel(sample, "pca_motion", f"PCA, moving (s={r['stride']})"))
+    panels.append(_panel(sample, "pca_render", "PCA, ray-cast scores"))
+    for codec in ("jpeg", "webp", "avif"):
+        c = rec.get(codec)
+        if c is not None and sample.get(codec) is not None:
+            panels.append((f"{codec.upper() if codec != 'webp' else 'WebP'} q{c['quality']}, "
+                           f"{c['bytes_per_view']} B"
+                           f"{'' if c['within_budget'] else ' (over budget)'}\n"
+                           f"SSIM {c['ssim']:.3f}  FLIP {c['flip']:.3f}", sample[codec]))
+    db = rec.get("webp_db")
+    if db is not None and sample.get("webp_db") is not None:
         panels.append((f"WebP database q{db['quality']}, 0 B\n"
                        f"SSIM {db['ssim']:.3f}  FLIP {db['flip']:.3f}", sample["webp_db"]))
-    if sample.get("pca_warp") is not None and "pca_warp" in rec:
-        w = rec["pca_warp"]
-        panels.append((f"PCA warped by depth, 0 B\n"
-                       f"SSIM {w['ssim']:.3f}  FLIP {w['flip']:.3f}", sample["pca_warp"]))
-    if sample.get("flip_pca") is not None:
-        panels.append(("FLIP error map\nPCA", _colormap(sample["flip_pca"])))
-    if sample.get("flip_jpeg") is not None:
-        panels.append(("FLIP error map\nJPEG", _colormap(sample["flip_jpeg"])))
-    return compose_side_by_side(panels)
+    for method, title in (("pca_warp", "own frame"), ("pca_predict", "served at rest"),
+                          ("pca", "PCA"), ("jpeg", "JPEG")):
+        if sample.get(f"flip_{method}") is not None:
+            panels.append((f"FLIP error map\n{title}", _colormap(sample[f"flip_{method}"])))
+    return compose_side_by_side([p for p in panels if p is not None])
 
 
 _CSS = """
@@ -324,6 +326,37 @@ def _compare_cell(value: float, reference: float, higher_better: bool, digits: i
         return text
     better = value > reference if higher_better else value < reference
     return f'<span class="{"win" if better else "lose"}">{text}</span>'
+
+
+def _served_note(m: dict) -> str:
+    if m.get("gain_over_own") is None:
+        return ""
+    return (f"; {m['gain_over_own']:+.4f} object SSIM over the own frame, worst view "
+            f"{m['worst_gain_over_own']:+.4f}, {m['views_below_own']} views more than 0.01 "
+            "below it")
+
+
+def _equal_quality_html(summary: dict) -> str:
+    rows = []
+    for method in ("pca_predict", "pca_motion"):
+        eq = (summary.get(method) or {}).get("equal_quality")
+        if not eq:
+            continue
+        row = [_NAMES[method], str(eq["views"]), _fmt(eq["ssim_object"], 4),
+               _bytes(eq["bytes_per_view"])]
+        for codec in ("webp", "avif"):
+            c = eq.get(codec) or {}
+            row += [_bytes(c.get("bytes_for_ssim")), _fmt(c.get("ssim_at_bytes"), 4)]
+        rows.append(row)
+    if not rows:
+        return ""
+    return ("<h2>Served frames against the codecs</h2>"
+            + _table(["method", "views", "SSIM obj.", "bytes/view", "WebP bytes for that SSIM",
+                      "WebP SSIM at those bytes", "AVIF bytes for that SSIM",
+                      "AVIF SSIM at those bytes"], rows)
+            + "<p class='note'>From the codecs' rate-distortion curves on the sweep's views "
+              "(interpolated between swept qualities: SSIM linear, bytes log-linear); – "
+              "outside the swept qualities.</p>")
 
 
 def write_report(evaluation: Any, folder: str | os.PathLike) -> Path:
@@ -389,17 +422,21 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         elif method == "nearest":
             extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
         elif method == "pca_warp":
-            extra = "standalone device: the 4 neighbours warped by their depth, no packets"
+            extra = ("shown at once, no packets: the 4 neighbouring training views "
+                     + ("warped by their depth" if m.get("own_frame") == "warp"
+                        else "blended by the predicted scores (an image without depth)"))
         elif method == "pca_render":
             extra = "key packets of the ray-cast's own scores (no view interpolation)"
         elif method == "pca_predict":
-            extra = ("first frame at rest: the device's own prediction plus the host's "
-                     "correction packet (version 2, step x2, RD kappa 0.15); serve then "
-                     "sharpens a resting view to pca_render's quality")
+            extra = ("what a resting view converges to: the own frame plus the complete "
+                     "correction at the model's step (a version-3 packet; 0 B when nothing "
+                     "is worth sending)" + _served_note(m))
         elif method == "pca_motion":
             extra = (f"stride {m.get('stride', math.nan):.0f} at a "
                      f"{m.get('deadline_ms', math.nan):.0f} ms deadline, "
-                     f"{m.get('step_deg', math.nan):g}°/frame; delta packets of a drag")
+                     f"{m.get('step_deg', math.nan):g}°/frame; "
+                     + ("own frame + sparse correction, bytes as streamed" + _served_note(m)
+                        if "pca_predict" in summary else "delta packets of a drag"))
         rows.append([
             _NAMES[method],
             _bytes(m.get("bytes_per_view")),
@@ -410,7 +447,7 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
             _compare_cell(m.get("flip"), pca.get("flip"), False, 4) if method != "pca"
             else _fmt(m.get("flip"), 4),
             _fmt(m.get("psnr_object"), 2), _fmt(m.get("ssim_object"), 4),
-            _fmt(m.get("flip_object"), 4), extra,
+            _fmt(m.get("flip_object"), 4), _fmt(m.get("blockiness"), 3), extra,
         ])
     int8 = info.get("int8") or {}
     int8_text = "not recorded (model fitted by an older eigencast)"
@@ -462,12 +499,15 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         target_html,
         "<h2>Novel views: means over all views</h2>",
         _table(["method", "bytes/view", "PSNR dB", "SSIM", "FLIP", "PSNR obj.", "SSIM obj.",
-                "FLIP obj.", ""], rows),
+                "FLIP obj.", "blockiness", ""], rows),
         "<p class='note'>Green: better than the PCA reconstruction, red: worse. “obj.”: over "
         "object pixels only (ray-cast alpha ≥ 0.5/255). The nearest training view costs a "
         "lossless PNG download and is what a client would show with no interpolation at all. "
         f"Training images for it came from the {html.escape(str(info.get('nearest_source')))}."
-        "</p>",
+        f"</p><p class='note'>Blockiness: the mean absolute difference of neighbouring object "
+        f"pixels across cell borders over that inside cells (1: no seams); the ray-cast's own "
+        f"is {_fmt(summary.get('raycast_blockiness'), 3)}.</p>",
+        _equal_quality_html(summary),
         f"<p><b>int8 quantization</b>: {int8_text}.</p>",
     ]
     if evaluation.rd:
@@ -486,9 +526,9 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         ]
     parts += ["<h2>Per view</h2>", "<img src='per_view.png' alt='per-view quality'>"]
     if figures:
-        parts.append("<h2>Side by side</h2><p class='note'>ray-cast | device reconstruction | "
-                     "equal-bytes JPEG | equal-bytes WebP | FLIP error maps (black 0, yellow "
-                     "1)</p>")
+        parts.append("<h2>Side by side</h2><p class='note'>the device's own frame | served at "
+                     "rest | ray-cast (a model with the standalone table), then the other "
+                     "methods; FLIP error maps (black 0, yellow 1)</p>")
         parts += [f"<p><a href='{f}'><img src='{f}' alt='view {i}'></a></p>"
                   for i, f in enumerate(figures)]
     parts += [

@@ -39,6 +39,7 @@ __all__ = [
     "DEFAULT_RD_KAPPA",
     "eg_bits",
     "encode_correction",
+    "quantize_correction",
     "rd_delta",
     "rd_lambda",
     "rd_quantize",
@@ -49,10 +50,10 @@ __all__ = [
 #: uniform quantizer of that step (chosen from a sweep of 0.05-0.5 on the tooth at 256;
 #: docs/rate-distortion.md, section 8).
 DEFAULT_RD_KAPPA = 0.15
-#: ``serve --scores predict``: a correction's step in model score steps (bench_link: step x2
-#: with kappa 0.15 gave the best object SSIM over its drag and orbit traces at 115200 baud).
+#: A moving view's correction step in model score steps (bench_link: step x2 with kappa 0.15
+#: gave the best object SSIM over its drag and orbit traces at 115200 baud, issue 14).
 DEFAULT_CORRECTION_STEP_FACTOR = 2.0
-#: ``serve --scores predict``: the RD factor of a correction's quantizer.
+#: The RD factor of a moving view's correction.
 DEFAULT_CORRECTION_KAPPA = DEFAULT_RD_KAPPA
 
 
@@ -146,34 +147,53 @@ def rd_quantize(
     return (out * s).astype(np.float32)
 
 
-def encode_correction(
+def quantize_correction(
     model: Any,
-    scores: np.ndarray,
-    prediction: np.ndarray,
-    view: tuple[float, float],
+    delta: np.ndarray,
     *,
-    frame: int,
+    fine: bool = False,
     step: float | None = None,
     kappa: float = DEFAULT_CORRECTION_KAPPA,
     weights: np.ndarray | None = None,
-    **encode: Any,
-) -> Any:
-    """The correction packet of ``serve --scores predict`` (and evaluate's ``pca_predict``):
-    ``scores - prediction`` RD-quantized (`rd_quantize`) and coded as a version-2 score
-    packet with the PREDICTED base kind for ``view`` (canonical: the prediction's view).
+) -> tuple[np.ndarray, float]:
+    """A correction of the device's own frame as a version-3 packet carries it.
 
-    ``step`` defaults to `DEFAULT_CORRECTION_STEP_FACTOR` x the model's score step;
-    ``encode`` goes to `protocol.scores.encode_scores` (e.g. ``level``). Returns its
+    ``fine`` (a resting view's complete correction): the model's own step, plain rounding
+    (``lam = 0``). Otherwise (a moving view's): ``step`` (default
+    `DEFAULT_CORRECTION_STEP_FACTOR` x the model's score step), RD-quantized with ``kappa``
+    and the cell ``weights``. Returns ``(q * step`` (K,) float32, ``step)``; what
+    ``host.link.correction.CorrectionEncoder`` sends and evaluate's ``pca_predict`` /
+    ``pca_motion`` measure.
+    """
+    if fine:
+        s = float(model.score_step)
+        return rd_quantize(model, delta, step=s, lam=0.0), s
+    s = float(model.score_step * DEFAULT_CORRECTION_STEP_FACTOR if step is None else step)
+    return rd_quantize(model, delta, step=s, kappa=kappa, weights=weights), s
+
+
+def encode_correction(
+    model: Any,
+    delta: np.ndarray,
+    view: tuple[float, float],
+    *,
+    frame: int,
+    always: bool = False,
+    **quantize: Any,
+) -> Any:
+    """The version-3 packet (SYNTHESIZED) of the correction ``delta`` of the device's own
+    frame of ``view`` (canonical), quantized by `quantize_correction` (``fine``, ``step``,
+    ``kappa``, ``weights``); None when every quantized coefficient is zero and not
+    ``always`` (nothing worth sending: the device keeps its own frame). Returns its
     `~protocol.scores.EncodedScores`.
     """
     from protocol.scores import encode_scores
 
-    if step is None:
-        step = model.score_step * DEFAULT_CORRECTION_STEP_FACTOR
-    q = rd_quantize(model, np.asarray(scores) - prediction, step=step, kappa=kappa,
-                    weights=weights)
+    q, step = quantize_correction(model, delta, **quantize)
+    if not (always or np.any(q)):
+        return None
     return encode_scores(q, step=step, frame=frame, view=view, image_digest=model.digest,
-                         predicted=True, n_components=model.image.n_components, **encode)
+                         synthesized=True, n_components=model.image.n_components)
 
 
 def rd_delta(
