@@ -63,6 +63,13 @@ DEFAULT_SCRATCH_BYTES = 4 << 20
 #: multiplied cell by cell costs about this much more than in a whole batch (module
 #: docstring; measured on the shared volumes' real corrections at 256 and 512).
 PER_CELL_ROW_COST = 1.25
+#: `Reconstructor.correct`: the share of a correction's jump across a cell border that is
+#: smoothed away (the pixel either side moves by a third of it towards the other). A
+#: correction is fitted cell by cell, so it steps at cell borders where the device's own
+#: frame does not; at 0.5 the frames' blockiness at borders is back to the uncorrected
+#: frame's, for at most 0.001 of object SSIM (docs/rate-distortion.md section 10). At most
+#: 0.75 (the smoothing's int16 arithmetic).
+SEAM_STRENGTH = 0.5
 _FLOAT_BYTES = 4
 
 
@@ -234,6 +241,8 @@ class Reconstructor:
         self._zero_cells = np.flatnonzero(self.n_components == 0)
         self._corrected = False  # the buffer holds a corrected frame (0-component cells too)
         self._rows: np.ndarray | None = None  # `correct`: each cell's rows to use (else all)
+        self.seam_strength = SEAM_STRENGTH  # `correct`: 0 leaves the borders as computed
+        self._seams: list[_SeamStrips] | None = None  # `correct`: scratch, base jumps held
 
     # ------------------------------------------------------------------ construction
 
@@ -403,7 +412,11 @@ class Reconstructor:
     def correct(self, delta: np.ndarray, synth: np.ndarray | None = None) -> np.ndarray:
         """The frame ``synth`` corrected by ``delta``: per cell ``c`` whose slice of
         ``delta`` is not all zero, ``clip(rint(synth_c + sum_j delta_j * scales[j] *
-        E[j]))``; the other cells show ``synth`` unchanged.
+        E[j]))``; the other cells show ``synth`` unchanged. Then the correction's jump
+        across each cell border is smoothed (`seam_strength`): with ``D = frame - synth``,
+        the pixels ``p | q`` either side of a border move by ``j ~ seam_strength / 3 * (D_q -
+        D_p)`` towards each other (vertical borders, then horizontal; `_SeamStrips` has the
+        exact integer rule), so a frame whose correction is zero is ``synth`` bit for bit.
 
         Parameters
         ----------
@@ -442,6 +455,9 @@ class Reconstructor:
             self._padded[:height, :width] = s
             self._base[...] = self._cells_view.transpose(0, 2, 1, 3, 4).reshape(
                 self.n_cells, self.cell_values)
+            if self._seams is not None:
+                for strips in self._seams:
+                    strips.held = False  # a new frame: its jumps at the borders change
         elif self._base is None:
             raise ValueError("Reconstructor.correct: no synthesized frame to correct yet")
         else:
@@ -465,9 +481,36 @@ class Reconstructor:
             self._rows = None
         self.cells_recomputed = done
         self.total_cells_recomputed += done
+        if self.seam_strength and done:
+            self._smooth_seams()
         if self._needs_crop:
             self.frame[...] = self._padded[:height, :width]
         return self.frame
+
+    def _smooth_seams(self) -> None:
+        """Reduce the correction's jump at every cell border (`correct`); reads and writes
+        only the two pixel strips at each border."""
+        if not 0.0 <= self.seam_strength <= 0.75:
+            raise ValueError(f"Reconstructor: seam_strength={self.seam_strength!r} must be "
+                             "between 0 and 0.75")
+        ny, nx = self.grid_shape
+        cell_h, cell_w = self.cell_shape
+        frame = self._cells_view  # (ny, cell_h, nx, cell_w, 3)
+        base = self._base.reshape(ny, nx, cell_h, cell_w, 3).transpose(0, 2, 1, 3, 4)
+        sides = []
+        if nx > 1:  # vertical borders: a cell's last column | the next cell's first
+            sides.append(((slice(None), slice(None), slice(None, -1), -1),
+                          (slice(None), slice(None), slice(1, None), 0)))
+        if ny > 1:  # horizontal borders: a cell's last row | the next cell's first
+            sides.append(((slice(None, -1), -1), (slice(1, None), 0)))
+        if self._seams is None:
+            self._seams = [_SeamStrips(frame[p].shape) for p, _q in sides]
+        weight = round(256 * self.seam_strength / 3)
+        for strips, (p, q) in zip(self._seams, sides):
+            if not strips.held:
+                np.subtract(base[q], base[p], out=strips.base_jump, dtype=np.int16)
+                strips.held = True
+            strips.soften(frame[p], frame[q], weight)
 
     def _prefix_rows(self, d: np.ndarray) -> np.ndarray:
         """Per cell, the rows up to its last non-zero coefficient of ``d`` (0: none)."""
@@ -618,3 +661,37 @@ def reconstruction_memory_bytes(
 def reconstruct_view(image: Any, y: np.ndarray) -> np.ndarray:
     """One-shot reconstruction of ``y`` with an `EigenspaceImage` (returns a new array)."""
     return Reconstructor.from_image(image).update(y).copy()
+
+
+
+class _SeamStrips:
+    """Scratch for one direction of `Reconstructor._smooth_seams`: the pixel strips either
+    side of its borders (int16, contiguous) and the base frame's jump across them (held
+    until the next frame to correct)."""
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        self.p = np.empty(shape, dtype=np.int16)
+        self.q = np.empty(shape, dtype=np.int16)
+        self.jump = np.empty(shape, dtype=np.int16)
+        self.base_jump = np.empty(shape, dtype=np.int16)
+        self.held = False
+
+    def soften(self, p: np.ndarray, q: np.ndarray, weight: int) -> None:
+        """In place on the uint8 strips ``p | q``: with the correction's jump ``J = (q - p) -
+        base_jump`` and ``j = (J * weight + 128) >> 8`` (``weight / 256`` of it, rounded),
+        ``p += j`` and ``q -= j``, clipped to 0..255. ``|J| * weight`` fits int16 for
+        ``weight <= 64``."""
+        np.copyto(self.p, p)
+        np.copyto(self.q, q)
+        j = self.jump
+        np.subtract(self.q, self.p, out=j)
+        j -= self.base_jump
+        j *= weight
+        j += 128
+        j >>= 8
+        self.p += j
+        self.q -= j
+        np.clip(self.p, 0, 255, out=self.p)
+        np.clip(self.q, 0, 255, out=self.q)
+        np.copyto(p, self.p, casting="unsafe")
+        np.copyto(q, self.q, casting="unsafe")

@@ -50,6 +50,7 @@ from host.errors import EigencastError
 
 __all__ = [
     "DemoSettings",
+    "codec_curves",
     "display_available",
     "equal_object_quality",
     "run_demo",
@@ -88,17 +89,37 @@ def display_available() -> bool:
     return run.returncode == 0 and "ok" in run.stdout
 
 
+def codec_curves(reference: np.ndarray, mask: np.ndarray,
+                 codecs: tuple[str, ...] = ("jpeg", "webp", "avif")
+                 ) -> dict[str, list[tuple[int, int, float]]]:
+    """Per codec, ``(bytes, quality, object SSIM)`` of ``reference`` coded at every quality
+    1..100 (object SSIM: `host.evaluate.structural_similarity` over ``mask``). Computed once
+    per view and shared by every frame compared with it (AVIF's encoder is most of the cost:
+    about 0.1 s a quality at 192 px)."""
+    from host.evaluate import encode_image, structural_similarity
+
+    curves: dict[str, list[tuple[int, int, float]]] = {}
+    for codec in codecs:
+        curves[codec] = []
+        for quality in range(1, 101):
+            coded = encode_image(reference, codec, quality)
+            curves[codec].append((coded.size_bytes, quality,
+                                  structural_similarity(reference, coded.decode(), mask=mask)))
+    return curves
+
+
 def equal_object_quality(reference: np.ndarray, frame: np.ndarray, mask: np.ndarray,
-                         codecs: tuple[str, ...] = ("jpeg", "webp", "avif")
+                         codecs: tuple[str, ...] = ("jpeg", "webp", "avif"), *,
+                         curves: dict[str, list[tuple[int, int, float]]] | None = None
                          ) -> dict[str, float]:
     """The smallest file of each codec whose object SSIM against ``reference`` reaches
     ``frame``'s.
 
     Object SSIM is `host.evaluate.structural_similarity` over ``mask`` (the object's
-    pixels). Every quality 1..100 is tried (skipping those that cannot be smaller than the
-    best so far): at low qualities a codec's SSIM is far from monotone in the quality (on
-    the dark, noisy background of a ray-cast JPEG quality 10 can beat quality 15 by 0.1), so
-    a bisection would miss the smallest file.
+    pixels). Every quality 1..100 is tried (`codec_curves`; pass ``curves`` to share them
+    between frames of one view): at low qualities a codec's SSIM is far from monotone in the
+    quality (on the dark, noisy background of a ray-cast JPEG quality 10 can beat quality 15
+    by 0.1), so a bisection would miss the smallest file.
 
     Returns
     -------
@@ -106,24 +127,17 @@ def equal_object_quality(reference: np.ndarray, frame: np.ndarray, mask: np.ndar
         ``object_ssim`` of ``frame``; per codec ``{codec}_bytes``, ``{codec}_quality`` and
         ``{codec}_object_ssim`` of the smallest file reaching it (the best one if none does).
     """
-    from host.evaluate import encode_image, structural_similarity
+    from host.evaluate import structural_similarity
 
+    if curves is None:
+        curves = codec_curves(reference, mask, codecs)
     target = structural_similarity(reference, frame, mask=mask)
     out = {"object_ssim": target}
     for codec in codecs:
-        best: tuple[int, int, float] | None = None
-        top: tuple[int, int, float] | None = None
-        for quality in range(1, 101):
-            coded = encode_image(reference, codec, quality)
-            if best is not None and coded.size_bytes >= best[0]:
-                continue
-            value = structural_similarity(reference, coded.decode(), mask=mask)
-            if top is None or value > top[2]:
-                top = (coded.size_bytes, quality, value)
-            if value >= target:
-                best = (coded.size_bytes, quality, value)
-        chosen = best or top
-        assert chosen is not None
+        curve = curves[codec]
+        reaching = [c for c in curve if c[2] >= target]
+        chosen = (min(reaching, key=lambda c: (c[0], c[1])) if reaching
+                  else max(curve, key=lambda c: (c[2], -c[0])))
         out.update({f"{codec}_bytes": chosen[0], f"{codec}_quality": chosen[1],
                     f"{codec}_object_ssim": chosen[2]})
     return out
@@ -359,8 +373,7 @@ def _quality(settings: DemoSettings, model: Any, frames: Path) -> dict[str, Any]
     decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
                            n_components=model.image.n_components)
     per_view: list[dict[str, Any]] = []
-    with progress("comparing with JPEG, WebP and AVIF", len(pick) * len(_KINDS),
-                  unit=" frames") as bar:
+    with progress("comparing with JPEG, WebP and AVIF", len(pick), unit=" views") as bar:
         for row in pick:
             view = (float(row["phi_deg"]), float(row["theta_deg"]))
             truth, alpha = renderer.render(*view)
@@ -374,10 +387,11 @@ def _quality(settings: DemoSettings, model: Any, frames: Path) -> dict[str, Any]
                 synth, decoder.decode(packet.packet).y)
             out: dict[str, Any] = {"rest_bytes": 0 if packet is None else len(packet.packet),
                                    "streamed_bytes": int(row["packet_bytes"] or 0)}
+            curves = codec_curves(truth, mask)  # one view's codec files, for all three
             for kind, frame in zip(_KINDS, (synth, streamed, rest)):
-                for k, v in equal_object_quality(truth, frame, mask).items():
+                for k, v in equal_object_quality(truth, frame, mask, curves=curves).items():
                     out[f"{kind}_{k}"] = v
-                bar.advance()
+            bar.advance()
             per_view.append(out)
     return {k: float(np.mean([v[k] for v in per_view])) for k in per_view[0]} | {
         "views": len(per_view)}

@@ -1,15 +1,17 @@
-"""Do corrections of the device's own frame add cell seams, and would a border blend pay?
+"""Do corrections of the device's own frame add cell seams, and what does smoothing them buy?
 
 docs/rate-distortion.md section 10.4 (issue 23 item 6). For each model, on random views, the
 frames of the one served path (`host.evaluate.ServedFrames`: the own frame, at rest, while
-moving at ``--stride``) and the same frames with the correction's jump across every cell
-border reduced on the device (`border_blend`: the correction ``D = frame - own`` at the two
-pixels next to a border moves by ``strength / 3`` of its jump towards the other side, only
-where the jump is below ``edge`` when given), against the ray-cast: object SSIM, FLIP and
+moving at ``--stride``) computed with the device's seam smoothing off
+(`Reconstructor.seam_strength` 0), and the same frames smoothed (`border_blend`, the device's
+rule written out: the correction ``D = frame - own`` at the two pixels next to a border moves
+by ``strength / 3`` of its jump towards the other side, only where the jump is below ``edge``
+when given; the device ships strength `SEAM_STRENGTH`), against the ray-cast: object SSIM, FLIP and
 PSNR, the blockiness figure (`host.evaluate.blockiness`) and the seam gradient error of
 section 3 (the frame's finite differences against the ray-cast's, across borders over
-inside). Then the blend's cost on one core against a blend (`Reconstructor.update`) and a
-correction (`Reconstructor.correct`) of the same image, in the same run:
+inside). Then the cost on one core of a correction (`Reconstructor.correct`) with and without
+the smoothing against a blend (`Reconstructor.update`) of the same image, in the same run,
+and a check that the device's smoothing is `border_blend` bit for bit:
 
     .venv/bin/python scripts/served_seams.py /work/cache/db/tooth-256.ecs --views 12
     OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 taskset -c 0 \\
@@ -32,23 +34,24 @@ BLENDS = ((0.25, None), (0.5, None), (1.0, None), (0.5, 6.0))
 def border_blend(frame: np.ndarray, own: np.ndarray, cell: tuple[int, int],
                  strength: float = 0.5, edge: float | None = None) -> np.ndarray:
     """``frame`` (the own frame ``own`` corrected) with the correction's jump at every cell
-    border reduced: at the pixels ``p0 | q0`` either side of a border, ``j = strength *
-    (D_q0 - D_p0)`` with ``D = frame - own``; ``p0`` gains ``j / 3``, ``q0`` loses it (zero
-    where ``|D_q0 - D_p0| >= edge``). Vertical borders, then horizontal ones; only the two
-    pixel strips at each border are read and written (as a device would); a new array."""
+    border reduced, in the device's arithmetic (`Reconstructor.correct`): at the pixels
+    ``p | q`` either side of a border, with the correction's jump ``J = (q - p) - (own_q -
+    own_p)``, ``j = (J * W + 128) >> 8`` with ``W = round(256 * strength / 3)`` (zero where
+    ``|J| >= edge``); ``p`` gains ``j``, ``q`` loses it (clipped). Vertical borders, then
+    horizontal ones; a new array."""
     out = frame.copy()
+    weight = round(256 * strength / 3)
     for axis, size in ((1, cell[1]), (0, cell[0])):
         b = np.arange(size, out.shape[axis], size)
-        p_own = np.take(own, b - 1, axis=axis).astype(np.float32)
-        q_own = np.take(own, b, axis=axis).astype(np.float32)
-        p0 = np.take(out, b - 1, axis=axis).astype(np.float32) - p_own
-        q0 = np.take(out, b, axis=axis).astype(np.float32) - q_own
-        jump = q0 - p0
-        j = strength * jump if edge is None else np.where(np.abs(jump) < edge,
-                                                          strength * jump, 0.0)
+        p = np.take(out, b - 1, axis=axis).astype(np.int32)
+        q = np.take(out, b, axis=axis).astype(np.int32)
+        jump = (q - p) - (np.take(own, b, axis=axis).astype(np.int32)
+                          - np.take(own, b - 1, axis=axis))
+        j = (jump * weight + 128) >> 8
+        if edge is not None:
+            j = np.where(np.abs(jump) < edge, j, 0)
         index: list = [slice(None)] * 3
-        for at, value in ((b - 1, p_own + np.rint(p0 + j / 3)),
-                          (b, q_own + np.rint(q0 - j / 3))):
+        for at, value in ((b - 1, p + j), (b, q - j)):
             index[axis] = at
             out[tuple(index)] = np.clip(value, 0, 255).astype(np.uint8)
     return out
@@ -79,6 +82,7 @@ def quality(path: str, views: int, stride: int) -> None:
     model = HostModel.load(path)
     scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what=path))
     served = ServedFrames(model, scene)
+    served.own.own.reconstructor.seam_strength = 0.0  # as computed; smoothed below
     served.set_stride(stride)
     cell = tuple(model.image.cell_shape)
     rows: dict[str, list] = {}
@@ -109,7 +113,7 @@ def quality(path: str, views: int, stride: int) -> None:
 
 
 def cost(path: str, repeat: int = 11, rounds: int = 5) -> None:
-    from device_runtime.reconstruct import Reconstructor
+    from device_runtime.reconstruct import SEAM_STRENGTH, Reconstructor
     from protocol.image import read_image
 
     image = read_image(path)
@@ -118,10 +122,18 @@ def cost(path: str, repeat: int = 11, rounds: int = 5) -> None:
     ys = [rng.normal(0, 30, image.n_coefficients).astype(np.float32) for _ in range(4)]
     d = rng.normal(0, 5, image.n_coefficients).astype(np.float32)
     own = rec.update(ys[0]).copy()
-    corrected = rec.correct(d, own).copy()
     cell = tuple(image.cell_shape)
-    ops = {"blend": lambda i: rec.update(ys[i % 4]), "correct": lambda i: rec.correct(d, own),
-           "border blend": lambda i: border_blend(corrected, own, cell)}
+    rec.seam_strength = 0.0
+    sharp = rec.correct(d, own).copy()
+    rec.seam_strength = SEAM_STRENGTH
+    same = np.array_equal(rec.correct(d, own), border_blend(sharp, own, cell, SEAM_STRENGTH))
+
+    def correct(strength: float) -> np.ndarray:
+        rec.seam_strength = strength
+        return rec.correct(d, own)
+
+    ops = {"blend": lambda i: rec.update(ys[i % 4]), "correct": lambda i: correct(0.0),
+           "smoothed": lambda i: correct(SEAM_STRENGTH)}
     times: dict[str, list[float]] = {name: [] for name in ops}
     for _round in range(rounds):  # blocks in turn: a change of load hits all alike
         for name, op in ops.items():
@@ -133,12 +145,10 @@ def cost(path: str, repeat: int = 11, rounds: int = 5) -> None:
             times[name].append(float(np.median(runs)))
     # the least median of the rounds: the shared machine's load only ever adds
     med = {k: min(v) for k, v in times.items()}
-    print(f"{path}: blend {med['blend'] * 1e3:.2f} ms, correct {med['correct'] * 1e3:.2f} ms "
-          f"({med['correct'] / med['blend']:.2f} blends), border blend "
-          f"{med['border blend'] * 1e3:.2f} ms ({med['border blend'] / med['blend']:.2f} "
-          f"blends): correct + border blend "
-          f"{(med['correct'] + med['border blend']) / med['blend']:.2f} "
-          "blends")
+    print(f"{path}: blend {med['blend'] * 1e3:.2f} ms, correct without smoothing "
+          f"{med['correct'] * 1e3:.2f} ms ({med['correct'] / med['blend']:.2f} blends), "
+          f"smoothed {med['smoothed'] * 1e3:.2f} ms ({med['smoothed'] / med['blend']:.2f} "
+          f"blends); the device's smoothing is border_blend bit for bit: {same}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -171,6 +171,7 @@ def test_a_correction_is_its_cells_residual_fit_whichever_way_a_batch_runs(share
         d[offsets[c]:offsets[c] + n] = rng.normal(0, 400, n)
         d[offsets[c] + n - 1] = 300.0  # the last one sent is not zero
     rec = build(space, scratch_bytes=60_000)
+    rec.seam_strength = 0.0  # the cells as computed (the border smoothing: below)
     frame = rec.correct(d, synth).copy()
     assert rec.cells_recomputed == len(cells)
     as_cells = frame.reshape(5, 8, 7, 8, 3).transpose(0, 2, 1, 3, 4).reshape(35, -1)
@@ -321,3 +322,39 @@ def test_auto_threads_follow_the_cpus_the_process_may_use(monkeypatch):
     r = Reconstructor(*args, threads="auto")
     assert r.threads == 2
     r.close()
+
+
+def test_the_border_smoothing_follows_its_integer_rule_and_refuses_a_strength_it_cannot_hold():
+    """``correct`` smooths the correction's jump at cell borders: ``J = (q - p) - (synth_q -
+    synth_p)``, ``j = (J * W + 128) >> 8`` with ``W = round(256 * strength / 3)``, ``p += j``,
+    ``q -= j`` (vertical borders first), checked against that rule written out in int64 for
+    a new frame and for a second correction of the held one; past 0.75 it refuses."""
+    space = make_space(40, 56, 8, 8, zero_fraction=0.0, seed=3)
+    rng = np.random.default_rng(9)
+    rec = build(space)
+    n = int(np.sum(space["n_components"]))
+    base = rng.integers(0, 256, (40, 56, 3), dtype=np.uint8)
+    for synth in (base, None):  # a new frame, then the held one
+        d = rng.normal(0, 300, n).astype(np.float32)
+        rec.seam_strength = 0.0
+        sharp = rec.correct(d, synth).astype(np.int64)
+        rec.seam_strength = 0.5
+        got = rec.correct(d).astype(np.int64)
+        want, w = sharp.copy(), round(256 * 0.5 / 3)
+        for axis, size in ((1, 8), (0, 8)):
+            b = np.arange(size, want.shape[axis], size)
+            p, q = np.take(want, b - 1, axis=axis), np.take(want, b, axis=axis)
+            own = base.astype(np.int64)
+            jump = (q - p) - (np.take(own, b, axis=axis) - np.take(own, b - 1, axis=axis))
+            j = (jump * w + 128) >> 8
+            index: list = [slice(None)] * 3
+            index[axis] = b - 1
+            want[tuple(index)] = np.clip(p + j, 0, 255)
+            index[axis] = b
+            want[tuple(index)] = np.clip(q - j, 0, 255)
+        np.testing.assert_array_equal(got, want)
+        assert not np.array_equal(got, sharp)
+    rec.seam_strength = 1.0
+    with pytest.raises(ValueError, match="seam_strength"):
+        rec.correct(d)
+    rec.close()
