@@ -46,6 +46,8 @@ CASES = [
     ("tooth-256-c30", VAR / "tooth-256-c30.ecs", "cells 30"),
     ("tooth-256-fib300", VAR / "tooth-256-fib300.ecs", "300 views (fibonacci)"),
     ("vismale_head-256-muscle", VAR / "vismale_head-256-muscle.ecs", "ct-muscle (translucent)"),
+    ("vismale_head-256-skin", Path("/work/cache/warp22/tl/head-tl-256.ecs"),
+     "skin-bone (translucent)"),
 ]
 SEED = 23
 

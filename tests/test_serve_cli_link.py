@@ -4,16 +4,19 @@ device lost mid-session while ``--duration`` runs, and ``--provision`` of an old
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import subprocess
 import sys
+import threading
 
 import pytest
 from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import key_file
 
+from device_runtime.runtime import parse_orbit
 from host.cli import main as eigencast
-from host.link import provision
+from host.link import provision, serve
 
 CLI = [sys.executable, "-m", "host.cli"]
 
@@ -102,5 +105,73 @@ def test_serve_provision_of_an_older_image_says_force_and_has_it(tmp_path, model
                                cwd=REPO)
         assert alone.returncode == 1 and "--provision" in alone.stderr, alone.stderr
         assert len(alone.stderr.strip().splitlines()) == 1, alone.stderr
+    finally:
+        assert device.stop() == 0, "\n".join(device.lines[-10:])
+
+
+class _Door:
+    """A TCP port in front of a device that hangs up on the first ``drops`` connections once
+    they have sent something (as a keyed device's lobby does when it gives a slow host's
+    place to another connection) and joins the later ones to the device."""
+
+    def __init__(self, device_port: int, drops: int) -> None:
+        self.device_port, self.drops = device_port, drops
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"socket://127.0.0.1:{self.server.getsockname()[1]}"
+        self.accepted = 0
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                conn, _ = self.server.accept()
+            except OSError:
+                return
+            self.accepted += 1
+            if self.accepted <= self.drops:
+                conn.recv(64)  # the host's HELLO
+                conn.close()
+                continue
+            device = socket.create_connection(("127.0.0.1", self.device_port))
+            for a, b in ((conn, device), (device, conn)):
+                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pipe(src: socket.socket, dst: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := src.recv(65536):
+                dst.sendall(data)
+        with contextlib.suppress(OSError):
+            dst.shutdown(socket.SHUT_WR)
+
+    def close(self) -> None:
+        self.server.close()
+
+
+def test_a_device_that_hangs_up_before_the_session_is_tried_again(tmp_path, model_path):
+    """A keyed device's lobby may give a slow host's place to another connection before it
+    authenticated (all keyless peers on one address): serve tries again a few times, also
+    with reconnect off (that is for a link that was up); past that it is one line, exit 1.
+    A port where nothing listens is still one line at once (above)."""
+    device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
+    try:
+        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        port = int(device.url.rsplit(":", 1)[1])
+        door = _Door(port, drops=2)
+        said: list[str] = []
+        stats = serve(model_path, door.url, key=KEY, orbit=parse_orbit("steps:1:20"), fps=0,
+                      log=said.append, reconnect=False, stats_every_s=0)
+        door.close()
+        assert stats.frames == 1 and door.accepted == 3, said
+        assert sum("hung up before the session began" in line for line in said) == 2, said
+        shut = _Door(port, drops=100)
+        run = subprocess.run([*CLI, "serve", str(model_path), "--port", shut.url, "--key",
+                              str(key_file(model_path)), "--duration", "30"],
+                             capture_output=True, text=True, timeout=60, cwd=REPO)
+        shut.close()
+        assert run.returncode == 1, run.stderr
+        assert shut.accepted == 5, run.stderr  # the first and its four tries again
+        last = run.stderr.strip().splitlines()[-1]
+        assert "eigencast serve: error:" in last and "Traceback" not in run.stderr, run.stderr
     finally:
         assert device.stop() == 0, "\n".join(device.lines[-10:])

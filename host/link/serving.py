@@ -88,6 +88,10 @@ __all__ = [
 ]
 
 _BACKOFF_S = (0.05, 2.0)
+#: Before any session: how many times a device that accepted the connection and then hung
+#: up is tried again (a keyed device's lobby admits unauthenticated connections in turn and
+#: may give a slow host's place to the next one; provision retries likewise).
+_DOOR_TRIES = 4
 _WAIT_S = 0.1
 _LINGER_S = 0.5
 """After an orbit's last packet, key-frame requests are still answered until the device has
@@ -473,6 +477,8 @@ class _Serving:
     link: Link | None = None
     attempt: int = 0
     failures: int = 0
+    reached: bool = False
+    """The latest attempt's transport opened (the device accepted the connection)."""
     warned_insecure: bool = False
     deadline: float | None = None
     """``duration_s`` after the first session began (monotonic): reconnecting counts."""
@@ -540,7 +546,9 @@ class _Serving:
 
     def _open(self) -> _Connection:
         """Open the transport and start the link engine and a host session on it."""
+        self.reached = False
         transport = self.factory(self.attempt)
+        self.reached = True
         self.attempt += 1
         events = _DeviceEvents(self.stats, self.say)
         self.link = Link(transport, handler=events, owns_transport=True).start()
@@ -884,19 +892,29 @@ class _Serving:
         deadline) and reconnect (True), or stop (False).
 
         Raises ``exc`` again when no session ever started: reconnecting is for a link that
-        was up (a device that is not there, or does not answer, is one line for the user)."""
+        was up (a device that is not there, or does not answer, is one line for the user);
+        except that a device that accepted the connection and hung up before the session
+        began is tried again up to `_DOOR_TRIES` times (a keyed device's lobby may have
+        given the place to another connection)."""
         self.failures += 1
         settings = self.settings
-        if self.stats.sessions == 0 and not self.stats.provisioned:
+        at_door = self.stats.sessions == 0 and not self.stats.provisioned
+        if at_door and not (self.reached and isinstance(exc, TransportClosed)
+                            and self.failures <= _DOOR_TRIES):
             raise exc
-        if not settings.reconnect or (settings.max_reconnects is not None
-                                      and self.failures > settings.max_reconnects):
+        if not at_door and (not settings.reconnect or (
+                settings.max_reconnects is not None
+                and self.failures > settings.max_reconnects)):
             self.say(f"link lost ({_short(exc)}); not reconnecting")
             return False
         delay = min(_BACKOFF_S[0] * 2 ** (self.failures - 1), _BACKOFF_S[1])
         if self.deadline is not None:
             delay = min(delay, max(0.0, self.deadline - time.monotonic()))
-        self.say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
+        if at_door:
+            self.say(f"the device hung up before the session began ({_short(exc)}); "
+                     f"trying again in {delay:.2f} s")
+        else:
+            self.say(f"link lost ({_short(exc)}); reconnecting in {delay:.2f} s")
         self.stop.wait(delay)  # reconnect backoff (a protocol timer)
         return True
 
