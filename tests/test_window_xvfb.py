@@ -142,10 +142,18 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
         wait_until(lambda: np.array_equal(read_xwd(screen)[:fh, :fw], first), 30,
                    "the first frame on the X framebuffer")
         np.testing.assert_array_equal(shot(1), first)
+
+        def settled(frame: np.ndarray, what: str) -> None:
+            # a depth image shows its blend at once and its warp when the worker has made
+            # it (under load, a few frames later): wait for the device's own frame
+            wait_until(lambda: np.array_equal(read_xwd(screen)[:fh, :fw], frame), 30, what)
+
         _xdotool(display, "key", "Left")  # phi + 5
+        settled(model.view(35.0, 15.0), "the view after the Left key")
         np.testing.assert_array_equal(shot(2), model.view(35.0, 15.0))
         _drag_right(display, wid)  # phi - 10
         want = model.view(25.0, 15.0)
+        settled(want, "the view after the drag")
         np.testing.assert_array_equal(shot(3), want)
         # what the X server itself shows at the window's place
         h, w = want.shape[:2]
