@@ -525,22 +525,31 @@ def test_serve_sends_ray_cast_scores_to_a_device_that_does_not_synthesize(
     assert stats.frames == 3 and stats.correction_frames == 0 and stats.motion_frames == 3
 
 
+def _orbit_session(tmp_path, model_path, tag: str, orbit: str, log, then=None):
+    """Provision a predicting device over a ``mem://`` line and serve it ``orbit``; run
+    ``then(device)`` before the device stops. Returns serve's statistics and the device."""
+    from device_runtime.orbit import parse_orbit
+
+    name = mem_name(tag)
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", predict=True)
+    with device:
+        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+                  log=_quiet)
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
+                      orbit=parse_orbit(orbit), fps=0, log=log)
+        if then is not None:
+            then(device)
+    return stats, device
+
+
 def test_an_older_device_gets_ray_cast_scores(tmp_path, model_path, monkeypatch):
     """A device that reads packets up to version 2 (the previous release) is never sent a
     version-3 packet: it gets today's full frames, and one line says why."""
     import device_runtime.runtime as runtime
 
     monkeypatch.setattr(runtime, "VERSIONS", (1, 2))
-    name = mem_name("old")
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", predict=True)
     lines: list[str] = []
-    with device:
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=_quiet)
-        from device_runtime.orbit import parse_orbit
-
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      orbit=parse_orbit("steps:3:10"), fps=0, log=lines.append)
+    stats, device = _orbit_session(tmp_path, model_path, "old", "steps:3:10", lines.append)
     assert any("older eigencast-device" in ln for ln in lines), lines
     assert stats.correction_frames == 0 and stats.frames == 3
     assert device.device.runtime_stats.decode_errors == 0
@@ -548,32 +557,19 @@ def test_an_older_device_gets_ray_cast_scores(tmp_path, model_path, monkeypatch)
 
 def test_an_orbit_to_a_device_that_synthesizes_moves_its_view_with_corrections(
         tmp_path, model_path, model):
-    name = mem_name("orbit3")
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", predict=True)
-    with device:
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=_quiet)
-        from device_runtime.orbit import parse_orbit
-
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      orbit=parse_orbit("steps:4:10"), fps=0, log=_quiet)
+    def last_view_shown(device: RuntimeThread) -> None:
         wait_until(lambda: device.device.view == canonical_view(270.0, 10.0), 20,
                    "the orbit's last view on the device")
+
+    stats, _ = _orbit_session(tmp_path, model_path, "orbit3", "steps:4:10", _quiet,
+                              then=last_view_shown)
     assert stats.frames == 4 and stats.correction_frames == 4 and stats.unchanged_frames == 0
 
 
 def test_a_model_without_the_table_serves_ray_cast_scores(tmp_path, plain_model):
     assert not can_correct(HostModel.load(plain_model))
-    name = mem_name("plain")
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", predict=True)
     lines: list[str] = []
-    with device:
-        provision(plain_model, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=_quiet)
-        from device_runtime.orbit import parse_orbit
-
-        stats = serve(plain_model, f"mem://{name}?end=a&pace=0", key=KEY,
-                      orbit=parse_orbit("steps:2:10"), fps=0, log=lines.append)
+    stats, _ = _orbit_session(tmp_path, plain_model, "plain", "steps:2:10", lines.append)
     assert any("fitted --no-standalone" in ln for ln in lines), lines
     assert stats.motion_frames == 2 and stats.correction_frames == 0
 
