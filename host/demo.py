@@ -408,8 +408,8 @@ def _print_summary(summary: dict, frames: Path) -> None:
         "",
         "demo summary",
         f"  frames sent      {serve_stats['frames']} corrections of the device's own frames "
-        f"({strides or 'no ray-cast'}); device presented "
-        f"{device.get('frames_presented', '?')} at {device.get('fps', 0) or 0:.0f} fps",
+        f"({strides or 'no ray-cast'}) at {serve_stats.get('fps', 0) or 0:.0f} frames/s; "
+        f"the device presented {device.get('frames_presented', '?')} frames",
         f"  bytes per frame  {serve_stats['bytes_per_frame']:.0f}; link "
         f"{serve_stats['link_bytes_per_s'] / 1024:.1f} KiB/s while streaming",
     ]
