@@ -192,21 +192,26 @@ class ServeStats:
         return out
 
     def line(self) -> str:
-        """One human line: frames, bytes per frame (key / delta), fps, link rate."""
-        key = self.key_bytes / self.key_frames if self.key_frames else 0.0
-        delta = self.delta_bytes / self.delta_frames if self.delta_frames else 0.0
-        kinds = f"{self.key_frames} key, {self.delta_frames} delta"
-        if self.motion_frames:
-            kinds += f", {self.motion_frames} sparse"
-        if self.refined_frames:
-            kinds += f", {self.refined_frames} refined"
+        """One human line: frames by kind (with their mean bytes), bytes per frame, fps,
+        link rate."""
+        kinds = []
+        if self.key_frames:
+            kinds.append(f"{self.key_frames} key ({self.key_bytes / self.key_frames:.0f} B)")
+        if self.delta_frames:
+            kinds.append(f"{self.delta_frames} delta "
+                         f"({self.delta_bytes / self.delta_frames:.0f} B)")
         if self.correction_frames:
-            kinds += f", {self.correction_frames} corrections ({self.correction_bytes} B)"
+            kinds.append(f"{self.correction_frames} corrections of the device's own frames "
+                         f"({self.correction_bytes / self.correction_frames:.0f} B)")
+        elif self.motion_frames:
+            kinds.append(f"{self.motion_frames} sparse")
+        if self.refined_frames:
+            kinds.append(f"{self.refined_frames} refined")
         if self.unchanged_frames:
-            kinds += f", {self.unchanged_frames} views left as the device made them"
-        return (f"{self.frames} frames ({kinds}), "
-                f"{self.bytes_per_frame:.0f} B/frame (key {key:.0f} B, delta {delta:.0f} B), "
-                f"{self.fps:.1f} fps, link {self.link_bytes_per_s / 1024:.1f} KiB/s")
+            kinds.append(f"{self.unchanged_frames} views left as the device made them")
+        return (f"{self.frames} frames ({', '.join(kinds) or 'none'}), "
+                f"{self.bytes_per_frame:.0f} B/frame, {self.fps:.1f} fps, "
+                f"link {self.link_bytes_per_s / 1024:.1f} KiB/s")
 
 
 # --------------------------------------------------------------------------- score modes
@@ -611,7 +616,7 @@ class _Serving:
         what = self._pick(hello)
         self.say(f"serving {Path(self.settings.model_path).name} to device '{hello.device_id}' "
                  f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
-                 f"{hello.display_width}x{hello.display_height} display; {what})")
+                 f"{_display(hello)}; {what})")
         self.encoder.reset()
         conn.clock = time.monotonic()
 
@@ -945,6 +950,13 @@ def _active_digest(hello: m.HelloReply) -> bytes | None:
         if slot.active and slot.state in (m.SlotState.TEST, m.SlotState.CONFIRMED):
             return bytes(slot.digest)
     return None
+
+
+def _display(hello: m.HelloReply) -> str:
+    """The device's display as its HELLO_REPLY says (0x0: a headless device)."""
+    if not hello.display_width or not hello.display_height:
+        return "headless"
+    return f"{hello.display_width}x{hello.display_height} display"
 
 
 def _short(exc: BaseException) -> str:
