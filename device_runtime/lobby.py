@@ -17,7 +17,8 @@ clients by count and time, and keep state behind authentication):
 * **Bounded by time.** An active peer that has not authenticated ``auth_timeout_s`` after
   it became active is dropped; a waiting one ``auth_timeout_s`` after it was accepted. A
   waiting connection replaces an active peer that has had its place ``GRACE_S`` (a real
-  host needs one round trip after its place: its HELLO is already waiting), unless that
+  host needs one round trip after its place, its HELLO already waiting, and the time to
+  compute its proof), unless that
   peer's input waits for the lobby's budget while its own lasts; peers of the address with
   the most active peers go first, then those served most, then the longest active.
 * **Bounded in work.** What the lobby does for a peer is measured in CPU time (this
@@ -70,17 +71,20 @@ PEERS = 32
 """Unauthenticated connections served side by side."""
 WAITING = 256
 """Accepted connections waiting for a place at most (each costs a descriptor only)."""
-GRACE_S = 0.25
+GRACE_S = 1.0
 """An active peer may be replaced by a waiting connection after this long, seconds (or
 ``auth_timeout_s`` when shorter): a host has its HELLO answered at once (it is already
-waiting in the socket) and needs one more round trip for AUTH_CHALLENGE."""
+waiting in the socket) and needs one more round trip and its proof's computation for
+AUTH_CHALLENGE (at 0.25 s a busy host often lost its place first)."""
 PEER_CPU = (0.05, 0.02)
 """CPU seconds the lobby may spend on one active peer at once, and per second after that."""
 LOBBY_CPU = (0.1, 0.06)
 """CPU seconds the lobby may spend on all its peers at once, and per second after that
 (0.06: 6 % of a core)."""
-READ_BYTES = 16384
-"""Bytes read from a peer at a time."""
+READ_BYTES = 2048
+"""Bytes read from a peer at a time, all decoded before its budget is checked again: so the
+work done past a peer's budget is at most one such read (16 KB of VIEW_REQUESTs was
+measured at up to 38 ms over; a HELLO or AUTH_CHALLENGE is about 100 bytes)."""
 QUANTUM_S = 0.002
 """CPU time a peer is served at a time before the next peer's turn, seconds."""
 MAX_FRAME_BYTES = 1024
