@@ -4,9 +4,8 @@ The frame is made by the device's own code on the image's own data, bit for bit 
 ``eigencast-device --standalone`` shows at that view: for an image with depth (``fit`` stores
 it by default) the neighbouring training views warped by their depth
 (`host.evaluate.warp.WarpFrames`, `device_runtime.synthesis`); otherwise the blend of the
-interpolated, quantized scores (`HostModel.view`), which is also what a served device shows
-under ``serve --scores interpolate``. ``--blend`` asks for the blend of a depth image (what a
-predicting served device shows for an instant before its warp). A served device's other
+interpolated, quantized scores (`HostModel.view`). ``--blend`` asks for the blend of a depth
+image (what a served device shows for an instant before its warp). A served device's other
 frames depend on the host's ray-casts of the volume: ``eigencast evaluate`` scores those.
 """
 

@@ -80,8 +80,8 @@ class DevicePath:
         ``image`` (uint8 (height, width, 3)) is fitted onto the device's eigenimages
         (`host.fit.model.HostModel.project`, least squares per cell), then sent through the same
         packet (water-filled, the model's step), decoder and reconstruction. It separates
-        what the eigenspace can represent from what view interpolation loses, and it is the
-        frame ``eigencast serve --scores render`` streams.
+        what the eigenspace can represent from what view interpolation loses (``serve``
+        streamed it before the device's own frame was corrected instead).
         """
         from protocol.scores import encode_scores
 

@@ -9,7 +9,7 @@ saving the ``.ecs`` image with its annex, loading it back as a `HostModel` that 
 exactly what a device shows (``model.py``), and the recovery of a view's scores from a
 sparse ray-cast with a prior (``recover.py``: `SparseRecovery`, `ProgressiveRecovery`) and
 the frames that fit a deadline while the view moves (``motion.py``: `MotionScores`, used by
-``serve --scores motion`` and evaluate's ``pca_motion``).
+``serve`` and evaluate's ``pca_motion``).
 
 May import: `host.render` (the database and its settings), `host.errors`, `host.progress`,
 `protocol` (the image format) and `device_runtime` (the device's own reconstruction and

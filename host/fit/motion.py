@@ -1,4 +1,5 @@
-"""Frames within a deadline while the view moves: ``serve --scores motion`` (issue 13).
+"""Frames within a deadline while the view moves: what ``serve`` sends (issue 13; with the
+device's own frames, corrections of them, issue 23).
 
 `MotionScores` makes the scores of each frame from a *sparse* ray-cast of the true view, as
 dense as the frame's time budget allows:
@@ -14,9 +15,9 @@ dense as the frame's time budget allows:
   of the missing pixels as fit the budget, towards the next denser stride; once that
   stride's grid is complete its recovered scores are sent (cached factors, ~1 ms), and
   with the last pixel `HostModel.project` of the assembled full ray-cast: the frame is then
-  exactly ``--scores render``'s. (`host.fit.ProgressiveRecovery`'s per-offset accumulation
-  was measured too slow for this: a solve per cell per offset, 13-45 s to the projection
-  from stride 16 at 256.)
+  exactly the projection of the view's ray-cast. (`host.fit.ProgressiveRecovery`'s
+  per-offset accumulation was measured too slow for this: a solve per cell per offset,
+  13-45 s to the projection from stride 16 at 256.)
 
 Corrections of the device's own frame (issue 23): given ``own`` (the device's synthesis,
 `device_runtime.prediction.OwnFrames`, the same code the device runs), a frame is not the

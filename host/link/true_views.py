@@ -1,10 +1,9 @@
-"""The scores of freshly ray-cast views, for ``eigencast serve --scores render|refine|motion``.
+"""The scores of freshly ray-cast views, and the renderer `serve`'s frame sources ray-cast with.
 
 :class:`TrueViewScores` ray-casts a view with the model's recorded render settings and
 projects it on the eigenspace (the frame a device makes from it has no view-interpolation
-error); :func:`open_true_view_scores` builds it from a model. ``_Refiner`` is the worker
-thread of ``--scores refine``: it ray-casts the newest resting view while `serve` goes on
-answering requests. `host.link.serving` streams what they compute.
+error); :func:`open_true_view_scores` builds it from a model (`host.link.serving` takes its
+renderer for the sparse ray-casts of `host.fit.motion.MotionScores`).
 """
 
 from __future__ import annotations
@@ -12,7 +11,6 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -98,68 +96,3 @@ def open_true_view_scores(
     renderer = ViewRenderer.open(settings, volume, workers=workers,
                                  what=str(model.path or "the model"))
     return TrueViewScores(model, renderer)
-
-
-class _Refiner:
-    """A worker thread that ray-casts the newest submitted view (older ones are dropped)."""
-
-    def __init__(self, source: TrueViewScores, notify: Callable[[], None]) -> None:
-        self.source = source
-        self.notify = notify
-        self._cond = threading.Condition()
-        self._pending: tuple[float, float] | None = None
-        self._busy: tuple[float, float] | None = None
-        self._done: tuple[tuple[float, float], np.ndarray] | None = None  # the newest result
-        self.error: BaseException | None = None
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="eigencast-refine", daemon=True)
-        self._thread.start()
-
-    def submit(self, view: tuple[float, float]) -> None:
-        with self._cond:
-            if view != self._busy and not self._holds(view):
-                self._pending = view
-                self._cond.notify_all()
-
-    def wanted(self, view: tuple[float, float]) -> bool:
-        """``view`` is queued, being ray-cast or done."""
-        with self._cond:
-            return view in (self._pending, self._busy) or self._holds(view)
-
-    def take(self, view: tuple[float, float]) -> np.ndarray | None:
-        """The scores of ``view`` once ray-cast (each result is handed out once)."""
-        with self._cond:
-            if not self._holds(view):
-                return None
-            y, self._done = self._done[1], None
-            return y
-
-    def _holds(self, view: tuple[float, float]) -> bool:
-        return self._done is not None and self._done[0] == view
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while self._pending is None and not self._closed:
-                    self._cond.wait()
-                if self._closed:
-                    return
-                view, self._pending = self._pending, None
-                self._busy = view
-            try:
-                y = self.source(view)
-            except BaseException as exc:  # reported by serve, which stops refining
-                with self._cond:
-                    self.error = exc
-                    self._busy = None
-                self.notify()
-                return
-            with self._cond:
-                self._busy = None
-                self._done = (view, y)  # only the newest result is worth sending
-            self.notify()
