@@ -73,23 +73,35 @@ def test_opaque_sphere_depth_is_the_ray_sphere_distance(projection, view):
     assert np.all(rgba[..., 3][outside] == 0.0)
 
 
-def test_semi_transparent_box_depths_follow_beer_lambert():
-    # homogeneous box, orthographic rays along -x through 39 mm of it
+def box_renderer(alpha: float) -> Renderer:
+    """A homogeneous 20 x 20 x 40 box of opacity ``alpha`` per mm, white, unshaded."""
     volume = Volume(np.full((20, 20, 40), 0.5, dtype=np.float32))
-    alpha = 0.05  # per mm: 1 - 0.95**39 = 0.86 in total, below early termination
     tf = TransferFunction(
         name="constant",
         color_points=np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]),
         opacity_points=np.array([[0.0, alpha], [1.0, alpha]]),
         window=(0.0, 1.0),
     )
-    renderer = Renderer(volume, tf, step=0.25, shading=False)
+    return Renderer(volume, tf, step=0.25, shading=False)
+
+
+def box_rays(renderer: Renderer):
+    """Orthographic rays along -x through the box: the camera, each ray's distance to the
+    face x = 39 mm, and the rays that cross the box (39 mm of it)."""
+    volume = renderer.volume
     camera = orbit_camera(View(0.0, 0.0), volume.center_mm, volume.radius_mm,
                           projection="orthographic")
-    _rgba, depth = renderer.render_with_depth(camera, 24, 24)
     origins, _ = camera.rays(24, 24)
-    t_in = origins[..., 0] - 39.0  # the box face x = 39 mm
+    t_in = origins[..., 0] - 39.0
     hits = (np.abs(origins[..., 1] - 9.5) < 9.0) & (np.abs(origins[..., 2] - 9.5) < 9.0)
+    return camera, t_in, hits
+
+
+def test_semi_transparent_box_depths_follow_beer_lambert():
+    alpha = 0.05  # per mm: 1 - 0.95**39 = 0.86 in total, below early termination
+    renderer = box_renderer(alpha)
+    camera, t_in, hits = box_rays(renderer)
+    _rgba, depth = renderer.render_with_depth(camera, 24, 24)
     assert hits.sum() > 50
     sigma = -math.log(1.0 - alpha)
     length = 39.0
@@ -102,10 +114,7 @@ def test_semi_transparent_box_depths_follow_beer_lambert():
                                atol=renderer.step_mm)
     assert min(half, mean) > 40 * renderer.step_mm  # deep inside, not at the entry face
     # a box too thin to reach 0.5 has a mean depth but no half-opacity depth
-    thin = Renderer(volume, TransferFunction(
-        name="faint", color_points=tf.color_points,
-        opacity_points=np.array([[0.0, 0.005], [1.0, 0.005]]), window=(0.0, 1.0),
-    ), step=0.25, shading=False)
+    thin = box_renderer(0.005)
     rgba_thin, depth_thin = thin.render_with_depth(camera, 24, 24)
     assert np.all(np.isnan(depth_thin[..., DEPTH_HALF][hits]))
     assert np.all(np.isfinite(depth_thin[..., DEPTH_MEAN][hits]))
@@ -123,24 +132,13 @@ def test_depth_layers_cross_a_quarter_and_three_quarters_of_the_opacity():
         render_depth_layers,
     )
 
-    volume = Volume(np.full((20, 20, 40), 0.5, dtype=np.float32))
     alpha = 0.05
-    tf = TransferFunction(
-        name="constant",
-        color_points=np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]),
-        opacity_points=np.array([[0.0, alpha], [1.0, alpha]]),
-        window=(0.0, 1.0),
-    )
-    renderer = Renderer(volume, tf, step=0.25, shading=False)
-    camera = orbit_camera(View(0.0, 0.0), volume.center_mm, volume.radius_mm,
-                          projection="orthographic")
+    renderer = box_renderer(alpha)
+    camera, t_in, hits = box_rays(renderer)
     rgba, depth = render_depth_layers(renderer, camera, 24, 24)
     rgba2, depth2 = renderer.render_with_depth(camera, 24, 24)
     np.testing.assert_array_equal(rgba, rgba2)
     np.testing.assert_array_equal(depth[..., :2], depth2)
-    origins, _ = camera.rays(24, 24)
-    t_in = origins[..., 0] - 39.0
-    hits = (np.abs(origins[..., 1] - 9.5) < 9.0) & (np.abs(origins[..., 2] - 9.5) < 9.0)
     sigma = -math.log(1.0 - alpha)
     for channel, level in ((DEPTH_QUARTER, 0.25), (DEPTH_THREE_QUARTERS, 0.75)):
         np.testing.assert_allclose(depth[..., channel][hits] - t_in[hits],
@@ -150,10 +148,7 @@ def test_depth_layers_cross_a_quarter_and_three_quarters_of_the_opacity():
     assert np.all(depth[..., DEPTH_THREE_QUARTERS][hits] > depth[..., DEPTH_HALF][hits])
     outside = np.isnan(depth2[..., DEPTH_MEAN])
     assert np.all(np.isnan(depth[..., DEPTH_QUARTER][outside]))
-    faint = Renderer(volume, TransferFunction(
-        name="faint", color_points=tf.color_points,
-        opacity_points=np.array([[0.0, 0.02], [1.0, 0.02]]), window=(0.0, 1.0),
-    ), step=0.25, shading=False)  # 1 - 0.98**39 = 0.55: crosses 1/4 and 1/2, not 3/4
+    faint = box_renderer(0.02)  # 1 - 0.98**39 = 0.55: crosses 1/4 and 1/2, not 3/4
     _rgba, d = render_depth_layers(faint, camera, 24, 24)
     assert np.all(np.isfinite(d[..., DEPTH_QUARTER][hits]))
     assert np.all(np.isnan(d[..., DEPTH_THREE_QUARTERS][hits]))
