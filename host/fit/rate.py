@@ -179,21 +179,25 @@ def encode_correction(
     *,
     frame: int,
     always: bool = False,
+    level: int | None = None,
     **quantize: Any,
 ) -> Any:
     """The version-3 packet (SYNTHESIZED) of the correction ``delta`` of the device's own
     frame of ``view`` (canonical), quantized by `quantize_correction` (``fine``, ``step``,
     ``kappa``, ``weights``); None when every quantized coefficient is zero and not
-    ``always`` (nothing worth sending: the device keeps its own frame). Returns its
-    `~protocol.scores.EncodedScores`.
+    ``always`` (nothing worth sending: the device keeps its own frame). ``level``: the
+    packet's zstd level (default `protocol.scores.DEFAULT_LEVEL`). Returns its
+    `~protocol.scores.EncodedScores`; what ``serve`` sends (`CorrectionEncoder`) and
+    evaluate measures.
     """
-    from protocol.scores import encode_scores
+    from protocol.scores import DEFAULT_LEVEL, encode_scores
 
     q, step = quantize_correction(model, delta, **quantize)
     if not (always or np.any(q)):
         return None
     return encode_scores(q, step=step, frame=frame, view=view, image_digest=model.digest,
-                         synthesized=True, n_components=model.image.n_components)
+                         synthesized=True, n_components=model.image.n_components,
+                         level=DEFAULT_LEVEL if level is None else level)
 
 
 def rd_delta(

@@ -34,10 +34,15 @@ import numpy as np
 
 from device_runtime.prediction import SYNTHESIS_PACKET_VERSION, can_predict
 from host.fit.model import HostModel
-from host.fit.rate import DEFAULT_RD_KAPPA, rd_quantize
+from host.fit.rate import (
+    DEFAULT_CORRECTION_KAPPA,
+    DEFAULT_CORRECTION_STEP_FACTOR,
+    encode_correction,
+    quantize_correction,
+)
 from host.link.encoding import SCORE_LEVEL, FrameEncoder
 from protocol import messages as m
-from protocol.scores import EncodedScores, encode_scores
+from protocol.scores import EncodedScores
 
 __all__ = [
     "DEFAULT_CORRECTION_KAPPA",
@@ -46,13 +51,6 @@ __all__ = [
     "can_correct",
     "cannot_correct",
 ]
-
-#: A moving view's correction step, in model score steps (the finer step of a resting
-#: view's complete correction is the model's own).
-DEFAULT_CORRECTION_STEP_FACTOR = 2.0
-#: The RD factor of a moving view's correction (`host.fit.rate.rd_lambda`).
-DEFAULT_CORRECTION_KAPPA = DEFAULT_RD_KAPPA
-
 
 def can_correct(model: HostModel) -> bool:
     """Whether a device can synthesize ``model``'s views itself (its image has the table)."""
@@ -112,12 +110,10 @@ class CorrectionEncoder(FrameEncoder):
 
     def quantize(self, delta: np.ndarray, *, fine: bool = False,
                  weights: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-        """The correction as a packet carries it (K,) float32, and its step."""
-        if fine:
-            step = float(self.model.score_step)
-            return rd_quantize(self.model, delta, step=step, lam=0.0), step
-        return rd_quantize(self.model, delta, step=self.step, kappa=self.kappa,
-                           weights=weights), self.step
+        """The correction as a packet carries it (K,) float32, and its step
+        (`host.fit.rate.quantize_correction` at this encoder's moving step and kappa)."""
+        return quantize_correction(self.model, delta, fine=fine, step=self.step,
+                                   kappa=self.kappa, weights=weights)
 
     def encode(self, view: tuple[float, float], *, key: bool = False,
                scores: np.ndarray | None = None, fine: bool = False,
@@ -131,19 +127,15 @@ class CorrectionEncoder(FrameEncoder):
             encoded = super().encode(view, key=key, scores=scores)
             self.last_kind = "key" if self.last_was_key else "delta"
             return encoded
-        if scores is None:
-            q, step = np.zeros(self.model.image.n_coefficients, np.float32), self.step
-        else:
-            q, step = self.quantize(scores, fine=fine, weights=weights)
-        if not (always or np.any(q)):
+        if scores is None:  # no ray-cast: an empty correction at the moving step
+            scores, fine = np.zeros(self.model.image.n_coefficients, np.float32), False
+        frame = self.next_frame if self.next_frame <= 0xFFFFFFFF else 1
+        encoded = encode_correction(self.model, scores, view, frame=frame, always=always,
+                                    level=self.level, fine=fine, step=self.step,
+                                    kappa=self.kappa, weights=weights)
+        if encoded is None:
             return None
-        frame = self.next_frame
-        if frame > 0xFFFFFFFF:
-            frame = 1
         self.next_frame = frame + 1
-        model = self.model
         self.last_was_key = False
         self.last_kind = "correction"
-        return encode_scores(q, step=step, frame=frame, view=view, image_digest=model.digest,
-                             synthesized=True, n_components=model.image.n_components,
-                             level=self.level)
+        return encoded
