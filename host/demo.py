@@ -348,12 +348,9 @@ def _quality(settings: DemoSettings, model: Any, frames: Path) -> dict[str, Any]
 
     from PIL import Image
 
-    from device_runtime.prediction import OwnFrames
-    from host.fit.motion import MotionScores
-    from host.link.correction import CorrectionEncoder
+    from host.evaluate import ServedFrames
     from host.progress import progress
     from host.render.settings import OBJECT_ALPHA_MIN, RenderSettings, ViewRenderer
-    from protocol.scores import ScoreDecoder
 
     index = frames / "frames.csv"
     if not index.exists():
@@ -366,26 +363,18 @@ def _quality(settings: DemoSettings, model: Any, frames: Path) -> dict[str, Any]
     renderer = ViewRenderer.open(RenderSettings.from_record(model.render_settings,
                                                             what="demo model"),
                                  what="demo model")
-    own = OwnFrames(model.image)
-    complete = MotionScores(model, renderer, own=own, strides=(1,), coarse=1.0,
-                            budget_s=3600.0)
-    encoder = CorrectionEncoder(model)
-    decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
-                           n_components=model.image.n_components)
+    served = ServedFrames(model, renderer)  # the device's frames, as evaluate measures them
     per_view: list[dict[str, Any]] = []
     with progress("comparing with JPEG, WebP and AVIF", len(pick), unit=" views") as bar:
         for row in pick:
             view = (float(row["phi_deg"]), float(row["theta_deg"]))
             truth, alpha = renderer.render(*view)
             mask = alpha >= OBJECT_ALPHA_MIN
-            synth = own.frame(*view)
+            synth = served.own_frame(*view)
             with Image.open(frames / row["file"]) as im:
                 streamed = np.asarray(im.convert("RGB"))
-            step = complete.frame(view)
-            packet = encoder.encode(view, scores=step.scores, fine=True, weights=step.weights)
-            rest = synth if packet is None else own.corrected(
-                synth, decoder.decode(packet.packet).y)
-            out: dict[str, Any] = {"rest_bytes": 0 if packet is None else len(packet.packet),
+            rest, rest_bytes = served.at_rest(*view)
+            out: dict[str, Any] = {"rest_bytes": rest_bytes,
                                    "streamed_bytes": int(row["packet_bytes"] or 0)}
             curves = codec_curves(truth, mask)  # one view's codec files, for all three
             for kind, frame in zip(_KINDS, (synth, streamed, rest)):
