@@ -92,10 +92,12 @@ def read_xwd(path: Path) -> np.ndarray:
 
 def _drag_right(display: str, wid: str) -> None:
     """Drag 20 px to the right with the left button (the device turns phi by -10)."""
-    _xdotool(display, "mousemove", "--window", wid, "10", "20")
+    # --sync: each xdotool is a client of its own, so without it the X server may take the
+    # button press before the pointer reached the start (under load: a shorter drag)
+    _xdotool(display, "mousemove", "--sync", "--window", wid, "10", "20")
     _xdotool(display, "mousedown", "1")
     for x in (15, 20, 25, 30):
-        _xdotool(display, "mousemove", "--window", wid, str(x), "20")
+        _xdotool(display, "mousemove", "--sync", "--window", wid, str(x), "20")
         time.sleep(0.05)  # pointer motion spread over time, as a hand drags
     _xdotool(display, "mouseup", "1")
 
@@ -142,6 +144,10 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
         wait_until(lambda: np.array_equal(read_xwd(screen)[:fh, :fw], first), 30,
                    "the first frame on the X framebuffer")
         np.testing.assert_array_equal(shot(1), first)
+        # the pointer enters the window now, long before the drag: SDL takes a button press
+        # that comes with the pointer's entry before it knows the window has the mouse
+        # (then the whole drag was lost, 1 run in 3)
+        _xdotool(display, "mousemove", "--sync", "--window", wid, "10", "20")
 
         def settled(frame: np.ndarray, what: str) -> None:
             # a depth image shows its blend at once and its warp when the worker has made
