@@ -58,22 +58,40 @@ def xvfb(tmp_path):
         proc.wait(timeout=10)
 
 
-def _xdotool(display, *args) -> str:
+def _xdotool(display, *args, check: bool = True) -> str:
+    """Run xdotool; a command that fails fails the test (a window id gone stale must not
+    send the input nowhere in silence)."""
     run = subprocess.run(["xdotool", *args], capture_output=True, text=True, timeout=20,
                          env=dict(os.environ, DISPLAY=display))
+    assert run.returncode == 0 or not check, f"xdotool {' '.join(args)}: {run.stderr.strip()}"
     return run.stdout.strip()
 
 
-def _find_window(display: str, title: str) -> str:
-    """Id of a window whose name starts with ``title`` ("" if none yet).
+def _image_window(display: str, title: str, shape: tuple[int, int]) -> str:
+    """Id of the mapped window whose name starts with ``title`` and whose size is the
+    image's ``(height, width)``, waiting for it.
 
-    (``xdotool search --name`` misses windows that no window manager has managed; a search by
-    class finds every window, and its name is then checked.)
+    The device opens its window before it knows the image, then makes it again at the
+    image's size: an id taken before that names a window that is gone, and input sent there
+    is lost. (``xdotool search --name`` misses windows that no window manager has managed;
+    a search by class finds every window, and its name and size are then checked.)
     """
-    for wid in _xdotool(display, "search", "--class", ".").split():
-        if _xdotool(display, "getwindowname", wid).startswith(title):
-            return wid
-    return ""
+    height, width = shape
+    found: list[str] = []
+
+    def look() -> bool:
+        for wid in _xdotool(display, "search", "--onlyvisible", "--class", ".",
+                            check=False).split():
+            geometry = _xdotool(display, "getwindowgeometry", "--shell", wid,
+                                check=False).split()
+            if (f"WIDTH={width}" in geometry and f"HEIGHT={height}" in geometry
+                    and _xdotool(display, "getwindowname", wid, check=False).startswith(title)):
+                found.append(wid)
+                return True
+        return False
+
+    wait_until(look, 30, f"a {width}x{height} window named {title!r}")
+    return found[0]
 
 
 def read_xwd(path: Path) -> np.ndarray:
@@ -120,12 +138,16 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
          "--screenshots", str(shots)],
         cwd=REPO, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     try:
-        wid = ""
-        deadline = time.monotonic() + 30
-        while not wid and time.monotonic() < deadline and proc.poll() is None:
-            wid = _find_window(display, "eigencast")
-            time.sleep(0.1)
-        assert wid, f"no window appeared: {proc.poll()} {proc.stderr.read() if proc.poll() else ''}"
+        # input is only meaningful once the first frame is up (under load the model may
+        # still be loading when a window appears, and a screenshot of nothing is no file);
+        # the window that shows it is the one to send input to
+        first = model.view(30.0, 15.0)
+        fh, fw = first.shape[:2]
+        wait_until(lambda: proc.poll() is not None
+                   or np.array_equal(read_xwd(screen)[:fh, :fw], first), 30,
+                   "the first frame on the X framebuffer")
+        assert proc.poll() is None, f"the device exited: {proc.poll()}"
+        wid = _image_window(display, "eigencast", (fh, fw))
         _xdotool(display, "windowfocus", "--sync", wid)
 
         def shot(n: int) -> np.ndarray:
@@ -137,16 +159,8 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
             wait_until(path.exists, 30, f"{path.name}")
             return np.asarray(Image.open(path))
 
-        # input is only meaningful once the first frame is up (under load the model may
-        # still be loading when the window appears, and a screenshot of nothing is no file)
-        first = model.view(30.0, 15.0)
-        fh, fw = first.shape[:2]
-        wait_until(lambda: np.array_equal(read_xwd(screen)[:fh, :fw], first), 30,
-                   "the first frame on the X framebuffer")
         np.testing.assert_array_equal(shot(1), first)
-        # the pointer enters the window now, long before the drag: SDL takes a button press
-        # that comes with the pointer's entry before it knows the window has the mouse
-        # (then the whole drag was lost, 1 run in 3)
+        # the pointer rests in the window before the drag, as a user's hand does
         _xdotool(display, "mousemove", "--sync", "--window", wid, "10", "20")
 
         def settled(frame: np.ndarray, what: str) -> None:
@@ -216,16 +230,12 @@ def test_window_drag_then_rest_shows_the_hosts_correction_of_its_own_frame(
         return np.array_equal(read_xwd(screen)[:h, :w], want)
 
     try:
-        wid = ""
-        deadline = time.monotonic() + 60
-        while not wid and time.monotonic() < deadline and device.proc.poll() is None:
-            wid = _find_window(display, "eigencast")
-            time.sleep(0.1)
-        assert wid, "no window appeared:\n" + "\n".join(device.lines[-5:])
-        wait_until(complete, 60, "the first view, corrected, on the X framebuffer")
+        wait_until(lambda: device.proc.poll() is not None or complete(), 60,
+                   "the first view, corrected, on the X framebuffer")
+        assert device.proc.poll() is None, "the device exited:\n" + "\n".join(device.lines[-5:])
         first = sent[-1][1]
-        # the window is made again at the image's size once the image is loaded
-        wid = _find_window(display, "eigencast")
+        # the window is made again at the image's size once the image is loaded: that one
+        wid = _image_window(display, "eigencast", (h, w))
         _xdotool(display, "windowfocus", "--sync", wid)
         _drag_right(display, wid)
         wait_until(lambda: sent and sent[-1][1] != first and complete(), 60,
