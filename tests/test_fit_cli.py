@@ -96,9 +96,12 @@ def test_fit_and_view_errors_are_one_line(tmp_path):
 
 def _interrupted_render(db, views: str) -> subprocess.CompletedProcess:
     """Start the real render and Ctrl-C it once 10 views are written (the user's case)."""
+    # Ctrl-C as at a terminal, also when the suite runs where SIGINT is ignored (a shell's
+    # background job): an ignored SIGINT is inherited, and Python then never interrupts
     proc = subprocess.Popen([*CLI, "render", "builtin:tooth", "-o", str(db), "--views", views,
                              "--size", "40", "--samples", "150"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while sum(1 for _ in db.glob("images/view_*.png")) < 10:
         assert proc.poll() is None, "render finished before it could be interrupted"
