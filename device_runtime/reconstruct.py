@@ -27,16 +27,17 @@ shown):
   ``clip(rint(synth_c + sum_j d_j * scales[j] * E[j]))`` for the cells whose ``d`` is not
   all zero, the device's own synthesized frame corrected by the host (a version-3 score
   packet, `protocol.scores`). It keeps that frame's cells (one frame of memory), so later
-  corrections of the same frame need not pass it again. A correction's coefficients end
-  early in each cell (end-of-block: the later, smaller components round to zero), so each
-  corrected cell casts and multiplies only its rows up to its last non-zero coefficient; a
-  batch whose such rows, times `PER_CELL_ROW_COST`, are at least all its rows is cast whole
-  instead; and a batch at least half of whose cells are corrected adds, rounds and writes
-  its cells at once (a cell whose ``delta`` is zero gets ``synth_c + 0``: the same bits).
-  So a correction costs about what its rows cost: a complete one at rest touches the cells
-  a blend of a new view recomputes and nearly all their rows, about a blend; one while
-  moving a fraction of it (cell by cell over all rows, a correction of most cells took
-  1.2-1.3x a blend; BENCHMARKS.md, "Device loop", section x).
+  corrections of the same frame need not pass it again. A correction's coefficients are
+  sparse (the RD quantizer zeroes most of the later, smaller ones), so a batch gathers the
+  int8 rows of its non-zero coefficients only (`numpy.take` into the scratch, then one cast)
+  and multiplies each corrected cell's gathered rows; a batch with so many non-zero rows that
+  gathering them (`GATHER_ROW_COST` each) costs at least a contiguous cast of all its rows is
+  cast whole instead (``w`` is zero elsewhere: the same sums, to float rounding; host and
+  device choose alike). Only corrected cells are added,
+  rounded and written (a cell whose ``delta`` is zero keeps ``synth``'s bits). So a
+  correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
+  cells' rows, one while moving a few rows in a fraction of the cells (BENCHMARKS.md,
+  "Device loop", section x).
 """
 
 from __future__ import annotations
@@ -58,11 +59,11 @@ __all__ = [
 
 #: Default scratch budget (float32 cast buffer + output rows), in bytes.
 DEFAULT_SCRATCH_BYTES = 4 << 20
-#: `Reconstructor.correct` computes a batch whole when its corrected cells' rows (each up to
-#: its last non-zero coefficient) times this are at least the batch's rows: a row cast and
-#: multiplied cell by cell costs about this much more than in a whole batch (module
-#: docstring; measured on the shared volumes' real corrections at 256 and 512).
-PER_CELL_ROW_COST = 1.25
+#: `Reconstructor.correct` gathers the rows of a batch's non-zero coefficients unless they,
+#: times this, are at least the batch's rows (then it casts the batch whole): a gathered row
+#: costs about this much more than one of a contiguous cast (module docstring; measured on
+#: the shared volumes' real corrections at 256 and 512). At least 1.25 (scratch room).
+GATHER_ROW_COST = 1.5
 #: `Reconstructor.correct`: the share of a correction's jump across a cell border that is
 #: smoothed away (the pixel either side moves by a third of it towards the other). A
 #: correction is fitted cell by cell, so it steps at cell borders where the device's own
@@ -108,6 +109,36 @@ class _BigCell:
     tiles: list[_Tile]
     scratch: np.ndarray  # flat float32
     tile_values: int
+
+
+@dataclass
+class _Sparse:
+    """A correction's non-zero coefficients, laid out once per `Reconstructor.correct` so
+    that each batch finds its own by slicing."""
+
+    nz: np.ndarray  # the non-zero coefficients' indices (ascending)
+    w: np.ndarray  # their weights
+    changed: np.ndarray  # bool (n_cells,): cells with a non-zero coefficient
+    cum_nz: list[int]  # non-zero coefficients before each cell (n_cells + 1)
+    cum_cells: list[int]  # changed cells before each cell (n_cells + 1)
+    counts: list[int]  # per changed cell, its non-zero coefficients
+    cell_y: np.ndarray  # per changed cell, its grid row
+    cell_x: np.ndarray  # and column
+
+    @classmethod
+    def of(cls, w: np.ndarray, offsets: np.ndarray, nx: int) -> _Sparse:
+        nz = np.flatnonzero(w)
+        n_cells = offsets.size - 1
+        per_cell = np.bincount(np.searchsorted(offsets, nz, side="right") - 1,
+                               minlength=n_cells)
+        changed = per_cell > 0
+        cells = np.flatnonzero(changed)
+        cum_nz = np.zeros(n_cells + 1, np.int64)
+        np.cumsum(per_cell, out=cum_nz[1:])
+        cum_cells = np.zeros(n_cells + 1, np.int64)
+        np.cumsum(changed, out=cum_cells[1:])
+        return cls(nz, w[nz], changed, cum_nz.tolist(), cum_cells.tolist(),
+                   per_cell[cells].tolist(), cells // nx, cells % nx)
 
 
 @dataclass
@@ -237,10 +268,10 @@ class Reconstructor:
         self.total_cells_recomputed = 0
         self._workers = self._plan(self.scratch_bytes // self.threads)
         self._pool = ThreadPoolExecutor(1) if self.threads == 2 else None
-        self._base: np.ndarray | None = None  # `correct`: the corrected frame's cells
+        self._held: np.ndarray | None = None  # `correct`: the frame to correct (as _padded)
         self._zero_cells = np.flatnonzero(self.n_components == 0)
         self._corrected = False  # the buffer holds a corrected frame (0-component cells too)
-        self._rows: np.ndarray | None = None  # `correct`: each cell's rows to use (else all)
+        self._nz: _Sparse | None = None  # `correct`: its non-zero coefficients (else None)
         self.seam_strength = SEAM_STRENGTH  # `correct`: 0 leaves the borders as computed
         self._seams: list[_SeamStrips] | None = None  # `correct`: scratch, base jumps held
 
@@ -443,33 +474,27 @@ class Reconstructor:
         if not np.all(np.isfinite(d)):
             raise ValueError("Reconstructor.correct: delta has NaN or infinite entries")
         height, width = self.image_shape
-        ny, nx = self.grid_shape
-        cell_h, cell_w = self.cell_shape
         if synth is not None:
             s = np.asarray(synth)
             if s.shape != (height, width, 3) or s.dtype != np.uint8:
                 raise ValueError(f"Reconstructor.correct: synth must be uint8 of shape "
                                  f"{(height, width, 3)}, got {s.dtype} {s.shape}")
-            if self._base is None:
-                self._base = np.empty_like(self.mean)
+            if self._held is None:
+                self._held = np.empty_like(self._padded)
             self._padded[:height, :width] = s
-            self._base[...] = self._cells_view.transpose(0, 2, 1, 3, 4).reshape(
-                self.n_cells, self.cell_values)
+            np.copyto(self._held, self._padded)
             if self._seams is not None:
                 for strips in self._seams:
                     strips.held = False  # a new frame: its jumps at the borders change
-        elif self._base is None:
+        elif self._held is None:
             raise ValueError("Reconstructor.correct: no synthesized frame to correct yet")
         else:
-            self._cells_view[...] = self._base.reshape(ny, nx, cell_h, cell_w, 3).transpose(
-                0, 2, 1, 3, 4)
+            np.copyto(self._padded, self._held)
         self._last_y[...] = np.nan  # the buffer holds no reconstruction of any scores now
         self._corrected = True
-        rows = self._prefix_rows(d)
-        changed = rows > 0
         np.multiply(d, self.scales, out=self._w)
-        mean, self.mean = self.mean, self._base
-        self._rows = rows  # unchanged cells: w = 0, base + 0 = base
+        self._nz = sparse = _Sparse.of(self._w, self.offsets, self.grid_shape[1])
+        changed = sparse.changed  # the other cells: w = 0, base + 0 = base
         try:
             if self._pool is not None and np.count_nonzero(changed) > 1:
                 future = self._pool.submit(self._run, self._workers[1], changed)
@@ -477,50 +502,46 @@ class Reconstructor:
             else:
                 done = sum(self._run(worker, changed) for worker in self._workers)
         finally:
-            self.mean = mean
-            self._rows = None
+            self._nz = None
         self.cells_recomputed = done
         self.total_cells_recomputed += done
         if self.seam_strength and done:
-            self._smooth_seams()
+            self._smooth_seams(changed)
         if self._needs_crop:
             self.frame[...] = self._padded[:height, :width]
         return self.frame
 
-    def _smooth_seams(self) -> None:
+    def _smooth_seams(self, changed: np.ndarray) -> None:
         """Reduce the correction's jump at every cell border (`correct`); reads and writes
-        only the two pixel strips at each border."""
+        only the two pixel strips at each border, and only within the box of cells the
+        correction changed (plus the neighbours the first direction touched): elsewhere the
+        jump is the frame's own and nothing moves."""
         if not 0.0 <= self.seam_strength <= 0.75:
             raise ValueError(f"Reconstructor: seam_strength={self.seam_strength!r} must be "
                              "between 0 and 0.75")
         ny, nx = self.grid_shape
-        cell_h, cell_w = self.cell_shape
         frame = self._cells_view  # (ny, cell_h, nx, cell_w, 3)
-        base = self._base.reshape(ny, nx, cell_h, cell_w, 3).transpose(0, 2, 1, 3, 4)
+        base = self._held.reshape(frame.shape)
+        grid = changed.reshape(ny, nx)
+        rows, cols = np.flatnonzero(grid.any(axis=1)), np.flatnonzero(grid.any(axis=0))
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
         sides = []
         if nx > 1:  # vertical borders: a cell's last column | the next cell's first
             sides.append(((slice(None), slice(None), slice(None, -1), -1),
-                          (slice(None), slice(None), slice(1, None), 0)))
+                          (slice(None), slice(None), slice(1, None), 0),
+                          (slice(r0, r1), slice(None), slice(max(c0 - 1, 0), min(c1, nx - 1)))))
         if ny > 1:  # horizontal borders: a cell's last row | the next cell's first
-            sides.append(((slice(None, -1), -1), (slice(1, None), 0)))
+            sides.append(((slice(None, -1), -1), (slice(1, None), 0),
+                          (slice(max(r0 - 1, 0), min(r1, ny - 1)),
+                           slice(max(c0 - 1, 0), min(c1 + 1, nx)))))
         if self._seams is None:
-            self._seams = [_SeamStrips(frame[p].shape) for p, _q in sides]
+            self._seams = [_SeamStrips(frame[p].shape) for p, _q, _box in sides]
         weight = round(256 * self.seam_strength / 3)
-        for strips, (p, q) in zip(self._seams, sides):
+        for strips, (p, q, box) in zip(self._seams, sides):
             if not strips.held:
                 np.subtract(base[q], base[p], out=strips.base_jump, dtype=np.int16)
                 strips.held = True
-            strips.soften(frame[p], frame[q], weight)
-
-    def _prefix_rows(self, d: np.ndarray) -> np.ndarray:
-        """Per cell, the rows up to its last non-zero coefficient of ``d`` (0: none)."""
-        nz = np.flatnonzero(d)
-        rows = np.zeros(self.n_cells, dtype=np.int64)
-        if nz.size:
-            cell = np.searchsorted(self.offsets, nz, side="right") - 1
-            last = np.flatnonzero(np.diff(cell, append=-1))  # each cell's last non-zero
-            rows[cell[last]] = nz[last] - self.offsets[cell[last]] + 1
-        return rows
+            strips.soften(frame[p][box], frame[q][box], strips.base_jump[box], weight)
 
     def _run(self, worker: _Worker, changed: np.ndarray) -> int:
         """Run a worker's jobs for the changed cells; return how many cells it computed."""
@@ -538,51 +559,82 @@ class Reconstructor:
         n_flag = int(np.count_nonzero(flags))
         if n_flag == 0:
             return 0
-        prefix = self._rows
-        if prefix is None:  # a blend: whole when every cell with components changed
-            whole = n_flag == len(job.calls)
-        else:  # a correction: whole when that is cheaper than its rows cell by cell
-            used = int(prefix[job.start : job.stop].sum())
-            whole = used * PER_CELL_ROW_COST >= job.row_stop - job.row_start
-        if whole or (prefix is not None and n_flag * 2 >= len(job.calls)):
-            if whole:
-                np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
-                          casting="unsafe")
-                for _, w, rows, out in job.calls:
-                    np.matmul(w, rows, out=out)
-            else:  # a correction: each cell's rows up to its last non-zero, the batch's sums
-                for c, w, rows, out in job.calls:
-                    n = int(prefix[c])
-                    if n == 0:
-                        out[...] = 0.0
-                        continue
-                    a = int(self.offsets[c])
-                    np.copyto(rows[:n], self.eigenimages[a : a + n], casting="unsafe")
-                    np.matmul(w[:n], rows[:n], out=out)
+        if self._nz is not None:
+            return self._correct_batch(job, n_flag)
+        if n_flag == len(job.calls):  # every cell with components changed: the batch at once
+            np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
+                      casting="unsafe")
+            for _, w, rows, out in job.calls:
+                np.matmul(w, rows, out=out)
             if job.zero_rows.size:
                 job.out[job.zero_rows] = 0.0
-            out = job.out
-            np.add(out, self.mean[job.start : job.stop], out=out)
-            self._finish(out)
-            self._cells_view[job.cell_y, :, job.cell_x] = out.reshape(
-                -1, self.cell_shape[0], self.cell_shape[1], 3
-            )
+            self._write_cells(job, job.out, slice(job.start, job.stop),
+                              (job.cell_y, job.cell_x))
             return n_flag
         done = 0
         for c, w, rows, out in job.calls:  # only some cells changed: one by one
             if not changed[c]:
                 continue
             done += 1
-            a = int(self.offsets[c])
-            n = int(prefix[c]) if prefix is not None else int(self.offsets[c + 1]) - a
-            np.copyto(rows[:n], self.eigenimages[a : a + n], casting="unsafe")
-            np.matmul(w[:n], rows[:n], out=out)
-            np.add(out, self.mean[c], out=out)
-            self._finish(out)
-            self._cells_view[self._cell_y[c], :, self._cell_x[c]] = out.reshape(
-                self.cell_shape[0], self.cell_shape[1], 3
-            )
+            np.copyto(rows, self.eigenimages[self.offsets[c] : self.offsets[c + 1]],
+                      casting="unsafe")
+            np.matmul(w, rows, out=out)
+            self._write_cells(job, out[None], slice(c, c + 1),
+                              (self._cell_y[c : c + 1], self._cell_x[c : c + 1]))
         return done
+
+    def _correct_batch(self, job: _Batch, n_flag: int) -> int:
+        """`correct` on one batch: the cells whose ``delta`` is not all zero get ``base +
+        sum_j w_j E_j`` over their non-zero coefficients only. Those rows are gathered
+        (`GATHER_ROW_COST` each) unless casting the batch's rows whole costs less."""
+        sp = self._nz
+        lo, hi = sp.cum_nz[job.start], sp.cum_nz[job.stop]
+        n = hi - lo
+        if n * GATHER_ROW_COST >= job.row_stop - job.row_start:  # whole: w is 0 elsewhere
+            np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
+                      casting="unsafe")
+            for _, w, rows, out in job.calls:
+                np.matmul(w, rows, out=out)
+            if job.zero_rows.size:
+                job.out[job.zero_rows] = 0.0
+            self._write_cells(job, job.out, slice(job.start, job.stop),
+                              (job.cell_y, job.cell_x))
+            return n_flag
+        values = self.cell_values
+        flat = job.cast_dst.reshape(-1)
+        rows = flat[: n * values].reshape(n, values)
+        # the int8 rows land just past the float32 ones (n <= rows / GATHER_ROW_COST: room)
+        raw = flat[n * values : n * values + -(-n * values // _FLOAT_BYTES)].view(np.int8)
+        raw = raw[: n * values].reshape(n, values)
+        # mode="clip": the indices are valid, and "raise" buffers ``out`` (twice the time)
+        np.take(self.eigenimages, sp.nz[lo:hi], axis=0, out=raw, mode="clip")
+        np.copyto(rows, raw, casting="unsafe")
+        w = sp.w[lo:hi]
+        a, b = sp.cum_cells[job.start], sp.cum_cells[job.stop]
+        out = job.out[: b - a]
+        pos = 0
+        for i, k in enumerate(sp.counts[a:b]):
+            if k == 1:
+                np.multiply(rows[pos], w[pos], out=out[i])
+            else:
+                np.matmul(w[pos : pos + k], rows[pos : pos + k], out=out[i])
+            pos += k
+        self._write_cells(job, out, None, (sp.cell_y[a:b], sp.cell_x[a:b]))
+        return n_flag
+
+    def _write_cells(self, job: _Batch, out: np.ndarray, cells: Any,
+                     where: tuple[np.ndarray, np.ndarray]) -> None:
+        """``out`` (one row per cell) plus those cells' means (`correct`: the pixels they
+        hold, the frame to correct), rounded and clipped, into the frame buffer at grid
+        positions ``where``."""
+        if self._nz is None:
+            np.add(out, self.mean[cells], out=out)
+        else:
+            base = self._cells_view[where[0], :, where[1]]
+            np.add(out, base.reshape(out.shape), out=out)
+        self._finish(out)
+        self._cells_view[where[0], :, where[1]] = out.reshape(
+            -1, self.cell_shape[0], self.cell_shape[1], 3)
 
     def _run_big(self, job: _BigCell) -> None:
         c = job.cell
@@ -605,7 +657,10 @@ class Reconstructor:
                 else:
                     np.matmul(self._w[r0:r1], dst, out=acc)
                     out += acc
-            np.add(out, self.mean[c, tile.col_start : tile.col_stop], out=out)
+            if self._nz is None:
+                np.add(out, self.mean[c, tile.col_start : tile.col_stop], out=out)
+            else:  # `correct`: the pixels the cell holds
+                np.add(out, cell[tile.y0 : tile.y1].reshape(-1), out=out)
             self._finish(out)
             cell[tile.y0 : tile.y1] = out.reshape(tile.y1 - tile.y0, self.cell_shape[1], 3)
 
@@ -670,28 +725,30 @@ class _SeamStrips:
     until the next frame to correct)."""
 
     def __init__(self, shape: tuple[int, ...]) -> None:
-        self.p = np.empty(shape, dtype=np.int16)
-        self.q = np.empty(shape, dtype=np.int16)
-        self.jump = np.empty(shape, dtype=np.int16)
+        size = int(np.prod(shape))
+        self.p = np.empty(size, dtype=np.int16)
+        self.q = np.empty(size, dtype=np.int16)
+        self.jump = np.empty(size, dtype=np.int16)
         self.base_jump = np.empty(shape, dtype=np.int16)
         self.held = False
 
-    def soften(self, p: np.ndarray, q: np.ndarray, weight: int) -> None:
-        """In place on the uint8 strips ``p | q``: with the correction's jump ``J = (q - p) -
-        base_jump`` and ``j = (J * weight + 128) >> 8`` (``weight / 256`` of it, rounded),
-        ``p += j`` and ``q -= j``, clipped to 0..255. ``|J| * weight`` fits int16 for
-        ``weight <= 64``."""
-        np.copyto(self.p, p)
-        np.copyto(self.q, q)
-        j = self.jump
-        np.subtract(self.q, self.p, out=j)
-        j -= self.base_jump
+    def soften(self, p: np.ndarray, q: np.ndarray, base_jump: np.ndarray, weight: int) -> None:
+        """In place on the uint8 strips ``p | q`` (a box of them): with the correction's
+        jump ``J = (q - p) - base_jump`` and ``j = (J * weight + 128) >> 8`` (``weight / 256``
+        of it, rounded), ``p += j`` and ``q -= j``, clipped to 0..255. ``|J| * weight`` fits
+        int16 for ``weight <= 64``."""
+        size = p.size
+        sp, sq, j = (a[:size].reshape(p.shape) for a in (self.p, self.q, self.jump))
+        np.copyto(sp, p)
+        np.copyto(sq, q)
+        np.subtract(sq, sp, out=j)
+        j -= base_jump
         j *= weight
         j += 128
         j >>= 8
-        self.p += j
-        self.q -= j
-        np.clip(self.p, 0, 255, out=self.p)
-        np.clip(self.q, 0, 255, out=self.q)
-        np.copyto(p, self.p, casting="unsafe")
-        np.copyto(q, self.q, casting="unsafe")
+        sp += j
+        sq -= j
+        np.clip(sp, 0, 255, out=sp)
+        np.clip(sq, 0, 255, out=sq)
+        np.copyto(p, sp, casting="unsafe")
+        np.copyto(q, sq, casting="unsafe")

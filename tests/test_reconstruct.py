@@ -149,16 +149,16 @@ def test_partial_change_inside_one_batch_with_threads():
 
 
 @pytest.mark.parametrize("share", [0.2, 0.6, 0.95])
-@pytest.mark.parametrize("cost", [0.0, 1.5, 1e9])
+@pytest.mark.parametrize("cost", [1.25, 3.0, 1e9])
 def test_a_correction_is_its_cells_residual_fit_whichever_way_a_batch_runs(share, cost,
                                                                            monkeypatch):
-    """A correction ends early in each cell (end-of-block); a batch runs whole or cell by
-    cell on each cell's rows up to its last non-zero (`PER_CELL_ROW_COST` decides): either
-    way the cells it leaves alone keep the synthesized frame's bits, the others are
-    ``synth + V d`` (to a level of the float64 formula), and only corrected cells count."""
+    """A correction's coefficients are sparse; a batch gathers its non-zero rows or casts
+    all its rows (`GATHER_ROW_COST` decides): either way the cells it leaves alone keep the
+    synthesized frame's bits, the others are ``synth + V d`` (to a level of the float64
+    formula), and only corrected cells count."""
     from device_runtime import reconstruct
 
-    monkeypatch.setattr(reconstruct, "PER_CELL_ROW_COST", cost)
+    monkeypatch.setattr(reconstruct, "GATHER_ROW_COST", cost)
     space = make_space(40, 56, 8, 8, zero_fraction=0.2, seed=11)
     rng = np.random.default_rng(5)
     synth = rng.integers(0, 256, (40, 56, 3), dtype=np.uint8)
@@ -168,7 +168,7 @@ def test_a_correction_is_its_cells_residual_fit_whichever_way_a_batch_runs(share
     d = np.zeros(int(offsets[-1]), np.float32)
     for c in cells:
         n = int(rng.integers(1, counts[c] + 1))  # its coefficients end after n
-        d[offsets[c]:offsets[c] + n] = rng.normal(0, 400, n)
+        d[offsets[c]:offsets[c] + n] = rng.normal(0, 400, n) * (rng.random(n) < 0.5)
         d[offsets[c] + n - 1] = 300.0  # the last one sent is not zero
     rec = build(space, scratch_bytes=60_000)
     rec.seam_strength = 0.0  # the cells as computed (the border smoothing: below)
@@ -358,3 +358,46 @@ def test_the_border_smoothing_follows_its_integer_rule_and_refuses_a_strength_it
     with pytest.raises(ValueError, match="seam_strength"):
         rec.correct(d)
     rec.close()
+
+
+def _seams_whole_frame(frame, own, cell, strength):
+    """The seam rule of `Reconstructor.correct` applied to every border of the frame
+    (vertical borders, then horizontal): at ``p | q`` with ``J = (q - p) - (own_q - own_p)``,
+    ``j = (J * W + 128) >> 8``, ``W = round(256 * strength / 3)``; ``p += j``, ``q -= j``."""
+    out = frame.astype(np.int32)
+    weight = round(256 * strength / 3)
+    for axis, size in ((1, cell[1]), (0, cell[0])):
+        b = np.arange(size, out.shape[axis], size)
+        p, q = np.take(out, b - 1, axis=axis), np.take(out, b, axis=axis)
+        jump = (q - p) - (np.take(own, b, axis=axis).astype(np.int32)
+                          - np.take(own, b - 1, axis=axis))
+        j = (jump * weight + 128) >> 8
+        index: list = [slice(None)] * 3
+        for at, value in ((b - 1, p + j), (b, q - j)):
+            index[axis] = at
+            out[tuple(index)] = np.clip(value, 0, 255)
+    return out.astype(np.uint8)
+
+
+@pytest.mark.parametrize("cells", [[(2, 3), (3, 4)], [(0, 0)], [(5, 7), (0, 7)], [(3, 1)]])
+def test_seam_smoothing_of_the_changed_cells_box_is_the_whole_frames(cells):
+    """The device smooths only the borders in the box of corrected cells (and the cells next
+    to it that the vertical pass touches): the frame is the rule applied to every border,
+    bit for bit, whichever cells (diagonal neighbours, corners, edges of a cropped frame)."""
+    space = make_space(44, 61, 8, 8, k_max=6, zero_fraction=0.0, seed=3)
+    rng = np.random.default_rng(8)
+    synth = rng.integers(0, 256, (44, 61, 3), dtype=np.uint8)
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    d = np.zeros(int(offsets[-1]), np.float32)
+    for r, c in cells:
+        cell = r * 8 + c
+        d[offsets[cell]:offsets[cell + 1]] = rng.normal(0, 3000, offsets[cell + 1] - offsets[cell])
+    rec = build(space)
+    rec.seam_strength = 0.0
+    sharp = rec.correct(d, synth).copy()
+    rec.seam_strength = 0.5
+    smooth = rec.correct(d, synth).copy()
+    assert not np.array_equal(sharp, smooth)
+    np.testing.assert_array_equal(smooth, _seams_whole_frame(sharp, synth, (8, 8), 0.5))
+    # again on the frame held (a later correction of the same frame)
+    np.testing.assert_array_equal(rec.correct(d), smooth)
