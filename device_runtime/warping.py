@@ -261,10 +261,12 @@ class Warper:
             np.clip(nx, 0, hw - 1, out=nx)
             iy *= hw
             ny *= hw
-            near = qa * flat[iy + ix]
-            near += qb * flat[ny + ix]
-            far = qa * flat[iy + nx]
-            far += qb * flat[ny + nx]
+            # np.take with mode="clip" (the indices are in range): a third faster than
+            # indexing, and "raise" would buffer its output
+            near = qa * np.take(flat, iy + ix, mode="clip")
+            near += qb * np.take(flat, ny + ix, mode="clip")
+            far = qa * np.take(flat, iy + nx, mode="clip")
+            far += qb * np.take(flat, ny + nx, mode="clip")
             del iy, ix, ny, nx
             near *= qa
             far *= qb
@@ -276,7 +278,7 @@ class Warper:
                 keep[lo:hi] = ok
                 t[~ok] = 0.0
             # the ray's tangents; the point's forward coordinate is t / |(gx, gy, 1)|
-            gx, gy = gx32[x], gy32[y]
+            gx, gy = np.take(gx32, x, mode="clip"), np.take(gy32, y, mode="clip")
             del x, y
             inv = gx * gx
             inv += gy * gy
@@ -301,7 +303,7 @@ class Warper:
         cflat = np.ascontiguousarray(colour).reshape(-1)
         at = src * 3
         for c in range(3):
-            np.take(cflat, at + c if c else at, out=rgb[c])
+            np.take(cflat, at + c if c else at, out=rgb[c], mode="clip")
         return points, rgb
 
     def warp(self, colours: list[np.ndarray], depths: list[np.ndarray],
@@ -443,7 +445,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     for s, pts, _, m, b, _ in pieces:
         _give_up_if(cancel)
         at = idx[s]
-        zmax = zbuf[at]
+        zmax = np.take(zbuf, at, mode="clip")
         zmax += tol
         hidden = _forward(m, b, pts) > zmax
         del zmax
@@ -585,9 +587,9 @@ def _fill_holes_padded(planes: np.ndarray, covered: np.ndarray, width: int) -> n
         k = count[at].astype(np.float32)
         at += wp + 1
         # the mean of the covered neighbours (uncovered ones are 0) at the filled pixels only
-        acc = np.take(planes, at + offsets[0], axis=1)
+        acc = np.take(planes, at + offsets[0], axis=1, mode="clip")
         for off in offsets[1:]:
-            acc += np.take(planes, at + off, axis=1)
+            acc += np.take(planes, at + off, axis=1, mode="clip")
         acc *= np.float32(1.0) / k
         for p in range(c):
             planes[p, at] = acc[p]
