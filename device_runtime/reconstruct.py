@@ -562,14 +562,7 @@ class Reconstructor:
         if self._nz is not None:
             return self._correct_batch(job, n_flag)
         if n_flag == len(job.calls):  # every cell with components changed: the batch at once
-            np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
-                      casting="unsafe")
-            for _, w, rows, out in job.calls:
-                np.matmul(w, rows, out=out)
-            if job.zero_rows.size:
-                job.out[job.zero_rows] = 0.0
-            self._write_cells(job, job.out, slice(job.start, job.stop),
-                              (job.cell_y, job.cell_x))
+            self._whole_batch(job)
             return n_flag
         done = 0
         for c, w, rows, out in job.calls:  # only some cells changed: one by one
@@ -579,9 +572,19 @@ class Reconstructor:
             np.copyto(rows, self.eigenimages[self.offsets[c] : self.offsets[c + 1]],
                       casting="unsafe")
             np.matmul(w, rows, out=out)
-            self._write_cells(job, out[None], slice(c, c + 1),
+            self._write_cells(out[None], slice(c, c + 1),
                               (self._cell_y[c : c + 1], self._cell_x[c : c + 1]))
         return done
+
+    def _whole_batch(self, job: _Batch) -> None:
+        """Every cell of a batch: one cast of all its rows, one product per cell."""
+        np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
+                  casting="unsafe")
+        for _, w, rows, out in job.calls:
+            np.matmul(w, rows, out=out)
+        if job.zero_rows.size:
+            job.out[job.zero_rows] = 0.0
+        self._write_cells(job.out, slice(job.start, job.stop), (job.cell_y, job.cell_x))
 
     def _correct_batch(self, job: _Batch, n_flag: int) -> int:
         """`correct` on one batch: the cells whose ``delta`` is not all zero get ``base +
@@ -591,14 +594,7 @@ class Reconstructor:
         lo, hi = sp.cum_nz[job.start], sp.cum_nz[job.stop]
         n = hi - lo
         if n * GATHER_ROW_COST >= job.row_stop - job.row_start:  # whole: w is 0 elsewhere
-            np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
-                      casting="unsafe")
-            for _, w, rows, out in job.calls:
-                np.matmul(w, rows, out=out)
-            if job.zero_rows.size:
-                job.out[job.zero_rows] = 0.0
-            self._write_cells(job, job.out, slice(job.start, job.stop),
-                              (job.cell_y, job.cell_x))
+            self._whole_batch(job)
             return n_flag
         values = self.cell_values
         flat = job.cast_dst.reshape(-1)
@@ -619,10 +615,10 @@ class Reconstructor:
             else:
                 np.matmul(w[pos : pos + k], rows[pos : pos + k], out=out[i])
             pos += k
-        self._write_cells(job, out, None, (sp.cell_y[a:b], sp.cell_x[a:b]))
+        self._write_cells(out, None, (sp.cell_y[a:b], sp.cell_x[a:b]))
         return n_flag
 
-    def _write_cells(self, job: _Batch, out: np.ndarray, cells: Any,
+    def _write_cells(self, out: np.ndarray, cells: Any,
                      where: tuple[np.ndarray, np.ndarray]) -> None:
         """``out`` (one row per cell) plus those cells' means (`correct`: the pixels they
         hold, the frame to correct), rounded and clipped, into the frame buffer at grid
