@@ -222,13 +222,16 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
         n_shown0 = len(dev.shown)
         dt = 1.0 / fps
         t0 = time.monotonic()
-        moves: list[tuple[float, tuple[float, float]]] = []  # (when, canonical view) set
+        moves: list[tuple[float, tuple[float, float]]] = []  # (when, the device's view) set
+        views_set: list[tuple[float, float]] = []  # per tick, the device's view
         for i, view in enumerate(trace):
             target = t0 + i * dt
             time.sleep(max(0.0, target - time.monotonic()))
-            if canonical_view(*view) != device.view:  # a resting hand sends no event
-                moves.append((time.monotonic(), canonical_view(*view)))
-                device.set_view(*view)
+            if not _same_view(canonical_view(*view), device.view):  # a resting hand: no event
+                when = time.monotonic()
+                device.set_view(*view)  # (a view made ahead a float32 step away is taken)
+                moves.append((when, device.view))
+            views_set.append(device.view)
         time.sleep(max(0.0, t0 + len(trace) * dt - time.monotonic()))
         t_end = time.monotonic()
         wire = (link.stats.bytes_received if link else 0) - wire0
@@ -257,7 +260,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
         s_, f_ = quality(rgb, shown[k][1], mask)
         ssims.append(s_)
         flips.append(f_)
-        kinds.setdefault(frame_kind(shown[k][2], canonical_view(*view)), []).append(s_)
+        kinds.setdefault(frame_kind(shown[k][2], views_set[i]), []).append(s_)
     seconds = len(trace) * dt
     packets = counts[0]
     # from each view change to the first frame of that view on show (own or host's)
@@ -284,6 +287,14 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
             "host_gap_s": max_gap([t for t in sent if t0 <= t <= t_end], t0, t_end),
             "unchanged": stats.unchanged_frames if stats else 0,
             "converged": stats.converged_frames if stats else 0}
+
+
+def _same_view(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """The same view to the device (`WarpWorker.snap`'s tolerance: float32 steps)."""
+    from device_runtime.synthesis import WarpWorker
+
+    return all(abs((x - y + 180.0) % 360.0 - 180.0) <= WarpWorker.AHEAD_SNAP_DEG
+               for x, y in zip(a, b))
 
 
 def frame_kind(info: dict, view: tuple[float, float]) -> str:

@@ -504,8 +504,14 @@ class RuntimeDevice(Device):
 
     # ------------------------------------------------------------------ display loop
     def set_view(self, phi_deg: float, theta_deg: float) -> None:
-        """Change the view (display thread): standalone shows it, otherwise it is requested."""
-        self.view = canonical_view(phi_deg, theta_deg)
+        """Change the view (display thread): standalone shows it, otherwise it is requested.
+        A view a float32 step or two from the one the warp worker made ahead is that view
+        (`WarpWorker.snap`: its frame is ready)."""
+        view = canonical_view(phi_deg, theta_deg)
+        model = self._model
+        if model is not None and model.warp_worker is not None:
+            view = model.warp_worker.snap(view)
+        self.view = view
         self._view_dirty = True
 
     def apply(self, action: Action) -> None:
@@ -723,16 +729,25 @@ class RuntimeDevice(Device):
 
     def _predict_view(self, model: LoadedModel) -> None:
         """A predicting device's new view: its score blend at once, the view request, and
-        (an image with depth) the warp asked of the worker, shown by `_show_due_warp`."""
-        self._present_prediction(model)
-        self.limiter.offer(self.view)
+        (an image with depth) the warp asked of the worker, shown by `_show_due_warp`; or,
+        when the worker made that view's warp ahead (steady motion), the warp at once."""
         self._warp_due = None
         if self._correction_due is not None:  # its view was left before its warp was made
             self.runtime_stats.stale_dropped += 1
             self._correction_due = None
-        if model.warp_worker is not None:
-            model.warp_worker.request(self.view)
-            self._warp_due = self.view
+        made = None
+        worker = model.warp_worker
+        if worker is not None:
+            worker.request(self.view)
+            made = worker.take(self.view)
+        if made is not None:
+            self._own_warp = (self.view, made)
+            self._present_prediction(model, warped=made)
+        else:
+            self._present_prediction(model)
+            if worker is not None:
+                self._warp_due = self.view
+        self.limiter.offer(self.view)
 
     def _show_due_warp(self, model: LoadedModel | None, timeout_s: float = 0.0) -> None:
         """Replace the blend on show by the warp of its view once the worker has made it,

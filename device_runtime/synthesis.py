@@ -232,8 +232,8 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
     planes, and the warped frame on show (its own array). A predicting device's worker
-    also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`), counted
-    here; a standalone device shares the display's.
+    also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`) and a frame
+    made ahead (`WarpWorker`), counted here; a standalone device shares the display's.
     """
     record = manifest.get("synthesis")
     if record is None:
@@ -246,7 +246,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     depth = 3 * 4 * (h // 2 + cell) * (w // 2 + cell) + n * (8 + 4 + 3)
     depth += 4 * cell * cell * cell * cell  # one cell's components as float32
     warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
-    colour = 2 * n * 3 + WORKER_SCRATCH_BYTES
+    colour = 2 * n * 3 + WORKER_SCRATCH_BYTES + n * 3  # + the frame made ahead
     return int(cache + depth + warp + colour)
 
 
@@ -552,6 +552,15 @@ class WarpWorker:
     asks for the view if it is neither asked nor made, starts it at once (no hold) and
     waits for it; the frame is `ViewSynthesizer.frame`'s, bit for bit.
 
+    A view made ahead: while views come at a steady step and pace (an orbit, a steady drag:
+    the last `AHEAD_VIEWS` requests a straight line in time and angle) and the next one is
+    not due yet, an idle worker warps the view that line predicts (`predicted_view`,
+    canonical as the device's views are). When that exact view is asked, its frame is
+    there at once; another view asked gives it up (a wrong guess costs at most the warp
+    time that was idle anyway). The frame is the view's, bit for bit: only an exact match
+    is used; the display snaps a view asked within `AHEAD_SNAP_DEG` of it to it (`snap`:
+    float32 views of the same motion differ by a step or two).
+
     Parameters
     ----------
     synthesis : ViewSynthesizer
@@ -563,6 +572,9 @@ class WarpWorker:
         Warps made; made but superseded by a newer request before anyone took them; given
         up for a newer request; requests replaced before their warp started; failed
         (counted, never raised: the blend stays on show).
+    ahead_made, ahead_used : int
+        Views warped ahead (made or begun; counted in ``made`` / ``cancelled`` too), and
+        those asked for after all.
     warp_s : float or None
         The recent time a warp takes (exponential average of the warps made, raised by a
         warp given up later than that); None until the first.
@@ -572,6 +584,16 @@ class WarpWorker:
     REST_S = 0.25
     #: Weight of the newest sample in the averages of warp time and request interval.
     SMOOTHING = 0.3
+    #: Requests that predict the next view (`predicted_view`): at least three.
+    AHEAD_VIEWS = 3
+    #: A view asked this close (degrees, each angle) to the view made ahead is that view:
+    #: a few float32 steps of an angle, far below what a pixel shows.
+    AHEAD_SNAP_DEG = 1e-4
+    #: How far (degrees) a request may be from the line through the last ones and still be
+    #: steady motion (the float32 rounding of constant steps: a hand's drag is not; a guess
+    #: that will not be asked costs a warp); how far apart in time (of the interval).
+    AHEAD_ANGLE_TOL = AHEAD_SNAP_DEG
+    AHEAD_TIME_TOL = 0.5
 
     def __init__(self, synthesis: Any) -> None:
         self.synthesis = synthesis
@@ -586,6 +608,11 @@ class WarpWorker:
         self.interval_s: float | None = None  # recent request interval (None: at rest)
         self.warp_s: float | None = None
         self.made = self.dropped = self.cancelled = self.skipped = self.errors = 0
+        self.ahead_made = self.ahead_used = 0
+        self._history: list[tuple[float, float, float]] = []  # (time, phi, theta) requested
+        self._ahead: tuple[tuple[float, float], np.ndarray] | None = None  # made ahead
+        self._guessed: tuple[float, float] | None = None  # the last view warped ahead
+        self._speculative = False  # the warp in flight is a view made ahead
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
         self._thread.start()
 
@@ -617,9 +644,19 @@ class WarpWorker:
                     self.interval_s = gap if self.interval_s is None else (
                         self.interval_s + self.SMOOTHING * (gap - self.interval_s))
             self._last_request_t = now
+            self._history = [*self._history[1 - self.AHEAD_VIEWS:], (now, *view)]
+            ahead, self._ahead = self._ahead, None
+            if ahead is not None and ahead[0] == view:  # made ahead: there at once
+                self.ahead_used += 1
+                self._pending, self._urgent = None, False
+                self._result = ahead
+                self._cond.notify_all()
+                return
             if self._pending is not None and self._pending != view:
                 self.skipped += 1
                 self._urgent = False
+            if self._speculative and self._current == view:  # being made ahead: keep it
+                self.ahead_used += 1
             self._pending, self._pending_t = view, now
             self._result = None
             self._cond.notify_all()
@@ -644,6 +681,7 @@ class WarpWorker:
             if self._result is None or self._result[0] != want:
                 return None
             frame, self._result = self._result[1], None
+            self._cond.notify_all()  # the worker may warp ahead now
             return frame
 
     def close(self) -> None:
@@ -653,6 +691,61 @@ class WarpWorker:
             self._cond.notify_all()
         self._thread.join(timeout=10.0)
 
+    @classmethod
+    def predicted_view(cls, history: list[tuple[float, float, float]]
+                       ) -> tuple[float, float] | None:
+        """The next view of steady motion: ``history`` holds the last requests as (time,
+        phi, theta), oldest first; when at least `AHEAD_VIEWS` of them lie on a straight
+        line in angle (within `AHEAD_ANGLE_TOL`) with one step between each and evenly in
+        time (within `AHEAD_TIME_TOL` of the interval), the view one more step on, by the
+        least-squares line through them (its rounding averaged out: the device's views are
+        float32), canonical. None: no steady motion."""
+        from device_runtime.orbit import canonical_view
+
+        if len(history) < cls.AHEAD_VIEWS:
+            return None
+        t, phi, theta = (np.asarray(a, dtype=np.float64) for a in zip(*history))
+        phi = phi[0] + np.concatenate([[0.0], np.cumsum((np.diff(phi) + 180.0) % 360.0
+                                                        - 180.0)])  # unwrapped
+        gaps = np.diff(t)
+        if gaps.min() <= 0 or gaps.max() - gaps.min() > cls.AHEAD_TIME_TOL * gaps.mean():
+            return None
+        k = np.arange(len(phi), dtype=np.float64)
+        out = []
+        for a in (phi, theta):
+            slope, icpt = np.polyfit(k, a, 1)
+            if np.abs(icpt + slope * k - a).max() > cls.AHEAD_ANGLE_TOL:
+                return None
+            out.append(icpt + slope * len(a))
+        if abs(out[0] - phi[-1]) + abs(out[1] - theta[-1]) < 1e-6:
+            return None  # not moving
+        return canonical_view(out[0], out[1])
+
+    def snap(self, view: tuple[float, float]) -> tuple[float, float]:
+        """``view``, or the view made (or being made) ahead when each angle is within
+        `AHEAD_SNAP_DEG` of it (any thread)."""
+        with self._cond:
+            ahead = self._ahead[0] if self._ahead is not None else (
+                self._current if self._speculative else None)
+        if ahead is None or ahead == view:
+            return view
+        near = all(abs((a - b + 180.0) % 360.0 - 180.0) <= self.AHEAD_SNAP_DEG
+                   for a, b in zip(ahead, view))
+        return ahead if near else view
+
+    def _ahead_view(self, now: float) -> tuple[float, float] | None:
+        """The view to warp ahead now (under the lock), or None: only while the next request
+        of steady motion is not due yet, once per predicted view, with no frame made or
+        waiting to be taken."""
+        if (self.interval_s is None or self._last_request_t is None or self._result is not None
+                or self._ahead is not None
+                or now >= self._last_request_t + self.interval_s):
+            return None
+        view = self.predicted_view(self._history)
+        if view is None or view == self._guessed or view == self._history[-1][1:]:
+            return None
+        return view
+
     def _superseded(self) -> bool:
         """Another view was asked (or the worker is closing): the warp in flight is moot.
         Read without the lock: attribute reads, and a stale answer only delays the give-up
@@ -660,26 +753,35 @@ class WarpWorker:
         pending = self._pending
         return self._closed or (pending is not None and pending != self._current)
 
-    def _next_view(self) -> tuple[float, float] | None:
-        """The view to warp next, once it has waited its hold (under the lock); None:
-        closing."""
+    def _next_view(self) -> tuple[tuple[float, float], bool] | None:
+        """The view to warp next, once it has waited its hold, and whether it is made ahead
+        (nothing asked: `_ahead_view`); under the lock. None: closing."""
         while True:
-            self._cond.wait_for(lambda: self._pending is not None or self._closed)
             if self._closed:
                 return None
-            wait = self._pending_t + self.hold_s() - time.monotonic()
+            now = time.monotonic()
+            if self._pending is None:
+                ahead = self._ahead_view(now)
+                if ahead is not None:
+                    self._guessed = ahead
+                    return ahead, True
+                self._cond.wait()  # a request, a frame taken, or closing
+                continue
+            wait = self._pending_t + self.hold_s() - now
             if self._urgent or wait <= 0.0:
                 view, self._pending, self._urgent = self._pending, None, False
-                return view
+                return view, False
             self._cond.wait(wait)  # a newer request, a waiting caller, or the hold is over
 
     def _run(self) -> None:
         while True:
             with self._cond:
-                view = self._next_view()
-                if view is None:
+                got = self._next_view()
+                if got is None:
                     return
-                self._current = view
+                view, ahead = got
+                self._current, self._speculative = view, ahead
+                self.ahead_made += ahead
             t0 = time.monotonic()
             try:
                 frame = self.synthesis.frame(*view, cancel=self._superseded)
@@ -687,14 +789,14 @@ class WarpWorker:
                 with self._cond:
                     self.cancelled += 1
                     spent = time.monotonic() - t0
-                    if self.warp_s is None or spent > self.warp_s:
+                    if not self._speculative and (self.warp_s is None or spent > self.warp_s):
                         self.warp_s = spent  # a warp takes at least this long
-                    self._current = None
+                    self._current, self._speculative = None, False
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1
-                    self._current = None
+                    self._current, self._speculative = None, False
                     self._cond.notify_all()
                 continue
             spent = time.monotonic() - t0
@@ -703,10 +805,16 @@ class WarpWorker:
                 self.warp_s = spent if self.warp_s is None else (
                     self.warp_s + self.SMOOTHING * (spent - self.warp_s))
                 self._current = None
-                if self._pending == view or self._pending is None:
-                    if self._pending == view:
-                        self._pending, self._urgent = None, False
+                ahead, self._speculative = self._speculative, False
+                if self._pending == view:
+                    self._pending, self._urgent = None, False
                     self._result = (view, frame)
                     self._cond.notify_all()
+                elif self._pending is None:
+                    if ahead:
+                        self._ahead = (view, frame)  # until its view is asked
+                    else:
+                        self._result = (view, frame)
+                        self._cond.notify_all()
                 else:
                     self.dropped += 1

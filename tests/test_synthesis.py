@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from provision_helpers import KEY, REPO, DeviceProcess
-from runtime_helpers import read_frames
+from runtime_helpers import read_frames, wait_until
 
 from device_runtime.image_receiver import image_problem, required_ram_bytes
 from device_runtime.reconstruct import Reconstructor
@@ -705,6 +705,81 @@ def test_take_with_a_timeout_gets_a_held_or_unasked_view_at_once():
         got = worker.take((9.0, 2.0), timeout_s=30.0)  # never requested
         assert got is not None and got[0, 0, 0] == 9
         assert synth.started == [(7.0, 1.0), (9.0, 2.0)]
+    finally:
+        worker.close()
+
+
+def test_the_next_view_of_steady_motion_is_predicted_exactly():
+    """Evenly paced requests on a line in angle predict the next canonical view (also
+    across 360 and at steps float32 cannot hold); a hand's uneven drag, a pause or a view
+    at rest predict nothing."""
+    from device_runtime.orbit import canonical_view
+    from device_runtime.synthesis import WarpWorker
+
+    predict = WarpWorker.predicted_view
+
+    def steady(start, step, theta=15.0, n=3):
+        return [(0.1 * i, *canonical_view(start + step * i, theta)) for i in range(n)]
+
+    assert predict(steady(10.0, 3.0)) == canonical_view(19.0, 15.0)
+    assert predict(steady(355.0, 3.0)) == canonical_view(364.0, 15.0)  # across 360
+    assert predict(steady(300.0, -2.5)) == canonical_view(292.5, 15.0)
+    hits = sum(predict(steady(17.3 + 3.0 * k, 3.0)) == canonical_view(17.3 + 3.0 * (k + 3), 15.0)
+               for k in range(100))
+    assert hits >= 90  # float32 rounding of the views: the least-squares line averages it
+    assert predict(steady(10.0, 3.0)[:2]) is None  # too few
+    assert predict([(0.0, 10.0, 15.0), (0.1, 13.0, 15.0), (0.2, 19.0, 15.0)]) is None  # uneven
+    assert predict([(0.0, 10.0, 15.0), (0.1, 13.0, 15.0), (0.5, 16.0, 15.0)]) is None  # pause
+    assert predict([(0.0, 10.0, 15.0), (0.1, 10.0, 15.0), (0.2, 10.0, 15.0)]) is None  # at rest
+
+
+def _steady_history(worker, views, interval_s=60.0):
+    """Make the worker's recent requests ``views`` at an even pace, the next one not due
+    for ``interval_s`` (the pace of the motion is set here, not raced with)."""
+    now = time.monotonic()
+    with worker._cond:
+        worker._history = [(now - 0.1 * (len(views) - i), *v) for i, v in enumerate(views)]
+        worker._last_request_t, worker.interval_s = now, interval_s
+        worker._cond.notify_all()
+
+
+def test_an_idle_worker_warps_the_next_view_of_steady_motion_ahead(depth_model):
+    """During an orbit the worker warps the predicted next view while the current one is on
+    show: asked for, it is there at once, bit for bit the view's frame; a view asked that
+    was not predicted gives the guess up and is made as before."""
+    from device_runtime.orbit import canonical_view
+    from device_runtime.synthesis import WarpWorker
+
+    image = read_image(depth_model, key=KEY)
+    fresh = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    worker = WarpWorker(ViewSynthesizer(image, StandaloneScores(image),
+                                        Reconstructor.from_image(image)))
+    views = [canonical_view(40.0 + 3.0 * i, 12.0) for i in range(5)]
+    try:
+        for v in views[:3]:
+            worker.request(v)
+            assert worker.take(v, timeout_s=30.0) is not None
+        _steady_history(worker, views[:3])
+        wait_until(lambda: worker._ahead is not None, 30, "the warp made ahead")
+        assert worker._ahead[0] == views[3] and worker.ahead_made == 1
+        # the same motion's view a float32 step off is that view; one a degree off is not
+        step = float(np.spacing(np.float32(views[3][0])))
+        assert worker.snap((views[3][0] + step, views[3][1])) == views[3]
+        assert worker.snap((views[3][0] + 1.0, views[3][1])) != views[3]
+        worker.request(views[3])
+        got = worker.take(views[3])  # no timeout: made already
+        assert got is not None and worker.ahead_used == 1
+        np.testing.assert_array_equal(got, fresh.frame(*views[3]))
+        # a guess nobody asks for: another view is made, the guess is given up
+        _steady_history(worker, views[1:4])
+        wait_until(lambda: worker._ahead is not None, 30, "the second warp made ahead")
+        assert worker._ahead[0] == views[4]
+        other = canonical_view(200.0, -30.0)
+        worker.request(other)
+        assert worker._ahead is None
+        got = worker.take(other, timeout_s=30.0)
+        np.testing.assert_array_equal(got, fresh.frame(*other))
+        assert worker.ahead_used == 1 and worker.errors == 0
     finally:
         worker.close()
 
