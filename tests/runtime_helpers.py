@@ -98,6 +98,16 @@ def wait_until(predicate, timeout_s: float, what: str = "condition") -> None:
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
+def steady_requests(worker, views, interval_s: float = 60.0) -> None:
+    """Make a `WarpWorker`'s recent requests ``views`` at an even pace, the next one not due
+    for ``interval_s``: steady motion whose pace is set, not raced with."""
+    now = time.monotonic()
+    with worker._cond:
+        worker._history = [(now - 0.1 * (len(views) - i), *v) for i, v in enumerate(views)]
+        worker._last_request_t, worker.interval_s = now, interval_s
+        worker._cond.notify_all()
+
+
 class RuntimeThread:
     """A RuntimeDevice serving ``url`` (if any) with its display loop on a thread."""
 

@@ -18,7 +18,7 @@ import threading
 import numpy as np
 import pytest
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, serve_cli, wait_until
+from runtime_helpers import RuntimeThread, serve_cli, steady_requests, wait_until
 
 from device_runtime.orbit import canonical_view
 from device_runtime.prediction import OwnFrames, Predictor
@@ -502,6 +502,46 @@ def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
         return float(np.mean((a.astype(float) - truth.astype(float)) ** 2))
 
     assert err(corrected[-1][0]) < err(synth)
+
+
+def test_a_served_device_in_steady_motion_shows_the_view_warped_ahead_at_once(
+        tmp_path, depth_model_path, depth_model):
+    """In steady motion the device's warp worker makes the next view ahead; when the user
+    gets there (a float32 step off, as the same motion's views are) the device takes that
+    view and shows its warp as its first frame of it, no blend first, bit for bit the
+    device's own frame of the view."""
+    name = mem_name("ahead")
+    frames: list = []
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
+    provision(depth_model_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
+              log=_quiet)
+    views = [canonical_view(60.0 + 3.0 * i, 20.0) for i in range(4)]
+
+    def shown_warp(view) -> bool:
+        return any(i.get("synthesized") and (i.get("phi_deg"), i.get("theta_deg")) == view
+                   for _, i in frames)
+
+    with device:
+        runtime = device.device
+        wait_until(lambda: runtime._model is not None and runtime._model.warp_worker
+                   is not None, 60, "the image with depth loaded")
+        worker = runtime._model.warp_worker
+        for view in views[:3]:
+            runtime.set_view(*view)
+            wait_until(lambda view=view: shown_warp(view), 60, f"the warp of {view}")
+        steady_requests(worker, views[:3])
+        wait_until(lambda: worker._ahead is not None, 60, "the next view warped ahead")
+        assert worker._ahead[0] == views[3]
+        n = len(frames)
+        runtime.set_view(views[3][0] + float(np.spacing(np.float32(views[3][0]))), views[3][1])
+        assert runtime.view == views[3]  # the view made ahead, not one a float32 step off
+        wait_until(lambda: len(frames) > n, 30, "the next frame")
+    frame, info = frames[n]
+    assert (info["phi_deg"], info["theta_deg"]) == views[3]
+    assert info.get("synthesized") and not info.get("corrected")
+    np.testing.assert_array_equal(frame, OwnFrames(depth_model.image).frame(*views[3]))
+    assert worker.ahead_used == 1
 
 
 def _fine(encoded, model) -> bool:

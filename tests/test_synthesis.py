@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from provision_helpers import KEY, REPO, DeviceProcess
-from runtime_helpers import read_frames, wait_until
+from runtime_helpers import read_frames, steady_requests, wait_until
 
 from device_runtime.image_receiver import image_problem, required_ram_bytes
 from device_runtime.reconstruct import Reconstructor
@@ -733,16 +733,6 @@ def test_the_next_view_of_steady_motion_is_predicted_exactly():
     assert predict([(0.0, 10.0, 15.0), (0.1, 10.0, 15.0), (0.2, 10.0, 15.0)]) is None  # at rest
 
 
-def _steady_history(worker, views, interval_s=60.0):
-    """Make the worker's recent requests ``views`` at an even pace, the next one not due
-    for ``interval_s`` (the pace of the motion is set here, not raced with)."""
-    now = time.monotonic()
-    with worker._cond:
-        worker._history = [(now - 0.1 * (len(views) - i), *v) for i, v in enumerate(views)]
-        worker._last_request_t, worker.interval_s = now, interval_s
-        worker._cond.notify_all()
-
-
 def test_an_idle_worker_warps_the_next_view_of_steady_motion_ahead(depth_model):
     """During an orbit the worker warps the predicted next view while the current one is on
     show: asked for, it is there at once, bit for bit the view's frame; a view asked that
@@ -759,7 +749,7 @@ def test_an_idle_worker_warps_the_next_view_of_steady_motion_ahead(depth_model):
         for v in views[:3]:
             worker.request(v)
             assert worker.take(v, timeout_s=30.0) is not None
-        _steady_history(worker, views[:3])
+        steady_requests(worker, views[:3])
         wait_until(lambda: worker._ahead is not None, 30, "the warp made ahead")
         assert worker._ahead[0] == views[3] and worker.ahead_made == 1
         # the same motion's view a float32 step off is that view; one a degree off is not
@@ -771,7 +761,7 @@ def test_an_idle_worker_warps_the_next_view_of_steady_motion_ahead(depth_model):
         assert got is not None and worker.ahead_used == 1
         np.testing.assert_array_equal(got, fresh.frame(*views[3]))
         # a guess nobody asks for: another view is made, the guess is given up
-        _steady_history(worker, views[1:4])
+        steady_requests(worker, views[1:4])
         wait_until(lambda: worker._ahead is not None, 30, "the second warp made ahead")
         assert worker._ahead[0] == views[4]
         other = canonical_view(200.0, -30.0)
