@@ -430,6 +430,15 @@ def test_hello_says_the_device_reads_version_3_and_whether_it_predicts(tmp_path,
 # --------------------------------------------------------------------------- sessions
 
 
+def _provisioned_device(tmp_path, name: str, image_path, frames: list) -> RuntimeThread:
+    """A predicting device on the mem:// line ``name`` (end b), provisioned with
+    ``image_path``, appending each frame it shows and its info to ``frames``."""
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
+    provision(image_path, f"mem://{name}?end=a", key=KEY, show_progress=False, log=_quiet)
+    return device
+
+
 def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
         tmp_path, depth_model_path, depth_model):
     """A real session over a paced 115200-baud mem:// line with an image with depth: a new
@@ -440,10 +449,7 @@ def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
     model = depth_model
     name = mem_name("served")
     frames: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
-    provision(depth_model_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
-              log=_quiet)
+    device = _provisioned_device(tmp_path, name, depth_model_path, frames)
     arrivals: list = []
     original = device.device.on_scores
 
@@ -510,12 +516,8 @@ def test_a_served_device_in_steady_motion_shows_the_view_warped_ahead_at_once(
     gets there (a float32 step off, as the same motion's views are) the device takes that
     view and shows its warp as its first frame of it, no blend first, bit for bit the
     device's own frame of the view."""
-    name = mem_name("ahead")
     frames: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
-    provision(depth_model_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
-              log=_quiet)
+    device = _provisioned_device(tmp_path, mem_name("ahead"), depth_model_path, frames)
     views = [canonical_view(60.0 + 3.0 * i, 20.0) for i in range(4)]
 
     def shown_warp(view) -> bool:
