@@ -186,6 +186,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
     from bench_link import quality
 
     from device_runtime.orbit import canonical_view
+    from device_runtime.synthesis import WarpWorker
     from host.link.serving import serve
 
     scores, predict = SESSION_MODES[mode]
@@ -227,7 +228,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
         for i, view in enumerate(trace):
             target = t0 + i * dt
             time.sleep(max(0.0, target - time.monotonic()))
-            if not _same_view(canonical_view(*view), device.view):  # a resting hand: no event
+            if not WarpWorker.same_view(canonical_view(*view), device.view):  # a resting hand
                 when = time.monotonic()
                 device.set_view(*view)  # (a view made ahead a float32 step away is taken)
                 moves.append((when, device.view))
@@ -287,14 +288,6 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
             "host_gap_s": max_gap([t for t in sent if t0 <= t <= t_end], t0, t_end),
             "unchanged": stats.unchanged_frames if stats else 0,
             "converged": stats.converged_frames if stats else 0}
-
-
-def _same_view(a: tuple[float, float], b: tuple[float, float]) -> bool:
-    """The same view to the device (`WarpWorker.snap`'s tolerance: float32 steps)."""
-    from device_runtime.synthesis import WarpWorker
-
-    return all(abs((x - y + 180.0) % 360.0 - 180.0) <= WarpWorker.AHEAD_SNAP_DEG
-               for x, y in zip(a, b))
 
 
 def frame_kind(info: dict, view: tuple[float, float]) -> str:

@@ -33,9 +33,9 @@ shown):
   and multiplies each corrected cell's gathered rows; a batch with so many non-zero rows that
   gathering them (`GATHER_ROW_COST` each) costs at least a contiguous cast of all its rows is
   cast whole instead (``w`` is zero elsewhere: the same sums, to float rounding; host and
-  device choose alike). Only corrected cells are added,
-  rounded and written (a cell whose ``delta`` is zero keeps ``synth``'s bits). So a
-  correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
+  device choose alike). A gathering batch adds, rounds and writes only its corrected cells;
+  a whole one writes every cell (``synth_c + 0``: the same bits where ``delta`` is zero).
+  So a correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
   cells' rows, one while moving a few rows in a fraction of the cells (BENCHMARKS.md,
   "Device loop", section x).
 """

@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from device_runtime.orbit import canonical_view
 from device_runtime.standalone import delta_decode, standalone_order
 from device_runtime.warping import (
     CHUNK,
@@ -700,8 +701,6 @@ class WarpWorker:
         time (within `AHEAD_TIME_TOL` of the interval), the view one more step on, by the
         least-squares line through them (its rounding averaged out: the device's views are
         float32), canonical. None: no steady motion."""
-        from device_runtime.orbit import canonical_view
-
         if len(history) < cls.AHEAD_VIEWS:
             return None
         t, phi, theta = (np.asarray(a, dtype=np.float64) for a in zip(*history))
@@ -727,11 +726,14 @@ class WarpWorker:
         with self._cond:
             ahead = self._ahead[0] if self._ahead is not None else (
                 self._current if self._speculative else None)
-        if ahead is None or ahead == view:
-            return view
-        near = all(abs((a - b + 180.0) % 360.0 - 180.0) <= self.AHEAD_SNAP_DEG
-                   for a, b in zip(ahead, view))
-        return ahead if near else view
+        return ahead if ahead is not None and self.same_view(ahead, view) else view
+
+    @classmethod
+    def same_view(cls, a: tuple[float, float], b: tuple[float, float]) -> bool:
+        """Whether views ``a`` and ``b`` are the same to the device: each angle within
+        `AHEAD_SNAP_DEG` (phi across 360)."""
+        return all(abs((x - y + 180.0) % 360.0 - 180.0) <= cls.AHEAD_SNAP_DEG
+                   for x, y in zip(a, b))
 
     def _ahead_view(self, now: float) -> tuple[float, float] | None:
         """The view to warp ahead now (under the lock), or None: only while the next request
