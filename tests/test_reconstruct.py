@@ -148,6 +148,30 @@ def test_partial_change_inside_one_batch_with_threads():
     rec.close()
 
 
+def test_a_batch_whose_cells_partly_changed_writes_each_to_its_own_place():
+    # every other cell with components changes: each batch holds changed and unchanged
+    # cells, and the changed ones are written together
+    space = make_space(64, 64, 8, 8, zero_fraction=0.2, seed=6)
+    rec = build(space, scratch_bytes=60_000)
+    rng = np.random.default_rng(4)
+    y = (rng.standard_normal(rec.n_coefficients) * 300).astype(np.float32)
+    before = rec.update(y).copy()
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    cells = np.flatnonzero(space["n_components"])[::2]
+    batches = [job for job in rec._workers[0].jobs if np.isin(cells, range(job.start, job.stop)
+                                                              ).sum() >= 2]
+    assert batches and all(len(job.calls) > np.isin(cells, range(job.start, job.stop)).sum()
+                           for job in batches)
+    for c in cells:
+        y[offsets[c + 1] - 1] += 321.0
+    frame = rec.update(y)
+    assert rec.cells_recomputed == cells.size
+    assert_matches_reference(frame, reference(space, y))
+    moved = np.any(frame != before, axis=2)
+    rows, cols = np.nonzero(moved)
+    assert set((rows // 8 * 8 + cols // 8).tolist()) <= set(cells.tolist())
+
+
 @pytest.mark.parametrize("share", [0.2, 0.6, 0.95])
 @pytest.mark.parametrize("cost", [1.25, 3.0, 1e9])
 def test_a_correction_is_its_cells_residual_fit_whichever_way_a_batch_runs(share, cost,
