@@ -427,9 +427,10 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         np.trunc(cy, out=cy)
         cy *= f32(w2)
         cx += cy
-        idx[s] = cx
-        np.minimum.at(zbuf, idx[s], z)
-        del xyz, cx, cy, z
+        at = cx.astype(np.intp)  # ufunc.at converts other indices to intp on every call
+        idx[s] = at
+        np.minimum.at(zbuf, at, z)
+        del xyz, cx, cy, z, at
     # from here on the rectangle the splats landed in, 3 pixels to spare on every side (what
     # the filter and hole filling reach), as a compact grid of its own: each plane one
     # contiguous run (rows of a rectangle inside the grid are strided: 4x slower per pixel)
@@ -466,7 +467,7 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     flat_acc[...] = 0.0
     for s, _, col, _, _, wv in pieces:  # pass 3: the blend
         _give_up_if(cancel)
-        at = idx[s]
+        at = idx[s].astype(np.intp)  # converted once, not by each of the four calls
         np.add.at(flat_w, at, wv)
         for c in range(3):
             np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
