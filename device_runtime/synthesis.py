@@ -608,7 +608,7 @@ class WarpWorker:
         those asked for after all.
     warp_s : float or None
         The recent time a warp takes (exponential average of the warps made, raised by a
-        warp given up later than that); None until the first.
+        warp given up later than that that made no neighbour); None until the first.
     """
 
     #: Request intervals longer than this are a view at rest, not a drag.
@@ -815,14 +815,20 @@ class WarpWorker:
                 self._current, self._speculative = view, ahead
                 self.ahead_made += ahead
             t0 = time.monotonic()
+            misses = getattr(self.synthesis, "misses", 0)
             try:
                 frame = self.synthesis.frame(*view, cancel=self._superseded)
             except WarpCancelled:
                 with self._cond:
                     self.cancelled += 1
                     spent = time.monotonic() - t0
-                    if not self._speculative and (self.warp_s is None or spent > self.warp_s):
-                        self.warp_s = spent  # a warp takes at least this long
+                    # a warp takes at least this long, unless it was making neighbours: they
+                    # stay cached, so the next warp is shorter (a drag that began before any
+                    # warp was made would otherwise hold every view until it stopped)
+                    warm = getattr(self.synthesis, "misses", 0) == misses
+                    if warm and not self._speculative and (self.warp_s is None
+                                                           or spent > self.warp_s):
+                        self.warp_s = spent
                     self._current, self._speculative = None, False
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it

@@ -688,6 +688,40 @@ def test_a_fast_drag_starts_no_warps_nobody_would_see_and_the_last_view_is_made(
         worker.close()
 
 
+def test_a_drag_that_begins_while_the_neighbours_are_made_is_warped_once_they_are():
+    """The first warp of a drag makes neighbours and is given up late for the next view:
+    that is no warp's time (the neighbours stay cached), so the views after it are not
+    held but warped (the worker used to hold every view of the drag until it stopped)."""
+    from device_runtime.synthesis import WarpCancelled, WarpWorker
+
+    class Cold(_Sleepy):
+        misses = 0
+
+        def frame(self, phi, theta, cancel=None):
+            if self.misses:
+                return super().frame(phi, theta, cancel)
+            self.started.append((phi, theta))
+            self.misses += 1  # a neighbour made, then the warp goes on until given up
+            while not cancel():
+                time.sleep(0.001)  # the work being simulated, not a wait for a race
+            raise WarpCancelled
+
+    synth = Cold(0.0)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        time.sleep(0.05)  # the cold warp's work before the drag's next view
+        views = [(float(i), 10.0) for i in range(1, 41)]
+        for view in views:
+            worker.request(view)
+            time.sleep(0.005)  # the drag's pace (the input being simulated)
+        assert worker.take(views[-1], timeout_s=10.0) is not None
+        assert worker.cancelled == 1 and worker.warp_s is not None and worker.warp_s < 0.05
+        assert len(synth.started) > 30 and worker.skipped < 10, (synth.started, worker.skipped)
+    finally:
+        worker.close()
+
+
 def test_take_with_a_timeout_gets_a_held_or_unasked_view_at_once():
     """A caller that needs a view's frame (a host correction for it arrived) does not wait
     out the hold, and gets a view nobody asked for too."""
