@@ -127,17 +127,17 @@ class _Sparse:
     cell_x: np.ndarray  # and column
 
     @classmethod
-    def of(cls, w: np.ndarray, offsets: np.ndarray, nx: int) -> _Sparse:
-        nz = np.flatnonzero(w)
-        n_cells = offsets.size - 1
-        per_cell = np.bincount(np.searchsorted(offsets, nz, side="right") - 1,
-                               minlength=n_cells)
+    def of(cls, w: np.ndarray, offsets: np.ndarray, nx: int, cum: np.ndarray) -> _Sparse:
+        """``cum``: scratch of ``w.size + 1`` int64 whose first value is 0."""
+        mask = w != 0
+        np.cumsum(mask, out=cum[1:])
+        cum_nz = cum[offsets]  # non-zero coefficients before each cell
+        per_cell = np.diff(cum_nz)
         changed = per_cell > 0
         cells = np.flatnonzero(changed)
-        cum_nz = np.zeros(n_cells + 1, np.int64)
-        np.cumsum(per_cell, out=cum_nz[1:])
-        cum_cells = np.zeros(n_cells + 1, np.int64)
+        cum_cells = np.zeros(offsets.size, np.int64)
         np.cumsum(changed, out=cum_cells[1:])
+        nz = np.flatnonzero(mask)
         return cls(nz, w[nz], changed, cum_nz.tolist(), cum_cells.tolist(),
                    per_cell[cells].tolist(), cells // nx, cells % nx)
 
@@ -494,7 +494,7 @@ class Reconstructor:
         self._last_y[...] = np.nan  # the buffer holds no reconstruction of any scores now
         self._corrected = True
         np.multiply(d, self.scales, out=self._w)
-        self._nz = sparse = _Sparse.of(self._w, self.offsets, self.grid_shape[1])
+        self._nz = sparse = _Sparse.of(self._w, self.offsets, self.grid_shape[1], self._cum)
         changed = sparse.changed  # the other cells: w = 0, base + 0 = base
         try:
             if self._pool is not None and np.count_nonzero(changed) > 1:
@@ -604,9 +604,12 @@ class Reconstructor:
         sp = self._nz
         lo, hi = sp.cum_nz[job.start], sp.cum_nz[job.stop]
         n = hi - lo
-        if n * GATHER_ROW_COST >= job.row_stop - job.row_start:  # whole: w is 0 elsewhere
-            self._whole_batch(job)
-            return n_flag
+        if n * GATHER_ROW_COST >= job.row_stop - job.row_start:
+            # the changed cells' rows whole (w is 0 elsewhere); the others keep their pixels
+            if n_flag == len(job.calls):
+                self._whole_batch(job)
+                return n_flag
+            return self._partial_batch(job, self._nz.changed[job.start : job.stop], n_flag)
         values = self.cell_values
         flat = job.cast_dst.reshape(-1)
         rows = flat[: n * values].reshape(n, values)
