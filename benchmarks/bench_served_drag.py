@@ -15,7 +15,8 @@ for the view's warp (`WarpWorker.request`) and looks for it until the next tick.
 warps with its own lean reconstructor, as a served device's does. Each image is run with
 the worker as shipped (``ahead``) and with warping ahead off (``baseline``: the worker before
 it), alternately, so both see the same load; each starts at rest on the first view, its warp
-made (the worker's estimate of a warp's time is then a warm one).
+made (the worker's first estimate of a warp's time includes making its neighbours; while it
+holds views the worker measures a warp again every `WarpWorker.PROBE_S`).
 
 Printed per image and step: CPU cores used (process CPU seconds per wall second), display
 ticks whose frame was a warp of the view, warps made / made ahead / used, and the ratio of

@@ -574,7 +574,9 @@ class WarpWorker:
     faster than a warp takes (a fast drag, a 60 Hz orbit), a requested view waits before
     its warp starts (`hold_s`: two recent request intervals, at most a warp's time); a
     newer request in that time replaces it unstarted (``skipped``), and the warp starts
-    once the view rests. A view requested while a warp is in flight gives that warp up at
+    once the view rests; every `PROBE_S` of holding one view's warp starts anyway and
+    measures a warp's time again (an estimate is not left stale by a motion that holds
+    every view). A view requested while a warp is in flight gives that warp up at
     its next check (`ViewSynthesizer.frame`'s ``cancel``: a neighbour already made stays
     cached). Where warps take less than the request interval every view's warp starts at
     once, as before.
@@ -608,11 +610,16 @@ class WarpWorker:
         those asked for after all.
     warp_s : float or None
         The recent time a warp takes (exponential average of the warps made, raised by a
-        warp given up later than that that made no neighbour); None until the first.
+        warp given up later than that that made no neighbour, replaced by a probe's);
+        None until the first.
     """
 
     #: Request intervals longer than this are a view at rest, not a drag.
     REST_S = 0.25
+    #: While views are held (`hold_s`), one starts anyway once no warp has started for this
+    #: long: a probe that measures a warp again (the estimate may come from a warp that made
+    #: its neighbours, or from another motion), at most one warp's CPU per this period.
+    PROBE_S = 0.5
     #: Weight of the newest sample in the averages of warp time and request interval.
     SMOOTHING = 0.3
     #: Requests that predict the next view (`predicted_view`): at least three.
@@ -631,6 +638,8 @@ class WarpWorker:
         self._cond = threading.Condition()
         self._pending: tuple[float, float] | None = None
         self._pending_t = 0.0
+        self._started_t = time.monotonic()  # when the last warp started
+        self._probe = False  # the warp in flight re-measures a held worker's warp time
         self._urgent = False  # someone waits for the pending view: start it at once
         self._result: tuple[tuple[float, float], np.ndarray] | None = None
         self._current: tuple[float, float] | None = None  # the view being warped
@@ -799,11 +808,15 @@ class WarpWorker:
                     return ahead, True
                 self._cond.wait()  # a request, a frame taken, or closing
                 continue
-            wait = self._pending_t + self.hold_s() - now
-            if self._urgent or wait <= 0.0:
+            hold = self.hold_s()
+            wait = self._pending_t + hold - now
+            probe = hold > 0.0 and now - self._started_t >= self.PROBE_S
+            if self._urgent or wait <= 0.0 or probe:
                 view, self._pending, self._urgent = self._pending, None, False
+                self._probe = probe and wait > 0.0
                 return view, False
-            self._cond.wait(wait)  # a newer request, a waiting caller, or the hold is over
+            # a newer request, a waiting caller, the hold or the probe's time is over
+            self._cond.wait(min(wait, self._started_t + self.PROBE_S - now))
 
     def _run(self) -> None:
         while True:
@@ -814,7 +827,7 @@ class WarpWorker:
                 view, ahead = got
                 self._current, self._speculative = view, ahead
                 self.ahead_made += ahead
-            t0 = time.monotonic()
+                self._started_t = t0 = time.monotonic()
             misses = getattr(self.synthesis, "misses", 0)
             try:
                 frame = self.synthesis.frame(*view, cancel=self._superseded)
@@ -829,19 +842,21 @@ class WarpWorker:
                     if warm and not self._speculative and (self.warp_s is None
                                                            or spent > self.warp_s):
                         self.warp_s = spent
-                    self._current, self._speculative = None, False
+                    self._current, self._speculative, self._probe = None, False, False
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1
-                    self._current, self._speculative = None, False
+                    self._current, self._speculative, self._probe = None, False, False
                     self._cond.notify_all()
                 continue
             spent = time.monotonic() - t0
             with self._cond:
                 self.made += 1
-                self.warp_s = spent if self.warp_s is None else (
+                # a probe's time replaces the estimate it was started to check
+                self.warp_s = spent if self.warp_s is None or self._probe else (
                     self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                self._probe = False
                 self._current = None
                 ahead, self._speculative = self._speculative, False
                 if self._pending == view:

@@ -722,6 +722,30 @@ def test_a_drag_that_begins_while_the_neighbours_are_made_is_warped_once_they_ar
         worker.close()
 
 
+def test_a_held_drag_measures_a_warp_again_and_warps_once_warps_are_quick():
+    """The worker's estimate came from a slow warp (its neighbours made, another motion);
+    views then come every 5 ms and each warp takes 1 ms. Held views are replaced unstarted,
+    but a probe starts every `PROBE_S`, measures a quick warp, and the views after it are
+    warped (the worker used to hold every view until the motion stopped)."""
+    from device_runtime.synthesis import WarpWorker
+
+    synth = _Sleepy(0.001)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        assert worker.take((0.0, 10.0), timeout_s=10.0) is not None
+        worker.warp_s = 0.06  # as if that warp had made its neighbours
+        views = [(float(i), 10.0) for i in range(1, 301)]
+        for view in views:
+            worker.request(view)
+            time.sleep(0.005)  # the drag's pace (the input being simulated)
+        assert worker.take(views[-1], timeout_s=10.0) is not None
+        started = len(synth.started) - 1
+        assert started > 150 and worker.warp_s < 0.005, (worker.warp_s, started)
+    finally:
+        worker.close()
+
+
 def test_take_with_a_timeout_gets_a_held_or_unasked_view_at_once():
     """A caller that needs a view's frame (a host correction for it arrived) does not wait
     out the hold, and gets a view nobody asked for too."""
