@@ -32,10 +32,10 @@ shown):
   sparse (the RD quantizer zeroes most of the later, smaller ones), so a batch gathers the
   int8 rows of its non-zero coefficients only (`numpy.take` into the scratch, then one cast)
   and multiplies each corrected cell's gathered rows; a batch with so many non-zero rows that
-  gathering them (`GATHER_ROW_COST` each) costs at least a contiguous cast of all its rows is
-  cast whole instead (``w`` is zero elsewhere: the same sums, to float rounding; host and
-  device choose alike). A gathering batch adds, rounds and writes only its corrected cells;
-  a whole one writes every cell (``synth_c + 0``: the same bits where ``delta`` is zero).
+  gathering them (`GATHER_ROW_COST` each) costs at least a contiguous cast of all its rows
+  casts its corrected cells' rows whole instead (``w`` is zero elsewhere: the same sums, to
+  float rounding; host and device choose alike). Either way a batch adds, rounds and writes
+  only its corrected cells (a batch whose every cell is corrected: all of them at once).
   So a correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
   cells' rows, one while moving a few rows in a fraction of the cells (BENCHMARKS.md,
   "Device loop", section x).
@@ -569,7 +569,8 @@ class Reconstructor:
 
     def _partial_batch(self, job: _Batch, flags: np.ndarray, n_flag: int) -> int:
         """Some cells of a batch changed (cells whose scores are all zero, in a training
-        view or every neighbour of a blend, stay as they were): each one's rows cast and
+        view or every neighbour of a blend, stay as they were; `correct`: the cells of a
+        dense batch that it corrects): each one's rows cast and
         multiplied into consecutive output rows, then all written at once (written one by
         one, a 256 frame's update took 1.6x as long; casting the batch whole instead
         measured no faster)."""
@@ -600,7 +601,8 @@ class Reconstructor:
     def _correct_batch(self, job: _Batch, n_flag: int) -> int:
         """`correct` on one batch: the cells whose ``delta`` is not all zero get ``base +
         sum_j w_j E_j`` over their non-zero coefficients only. Those rows are gathered
-        (`GATHER_ROW_COST` each) unless casting the batch's rows whole costs less."""
+        (`GATHER_ROW_COST` each) unless casting the corrected cells' rows whole costs less
+        (`_partial_batch`, or `_whole_batch` when every cell is corrected)."""
         sp = self._nz
         lo, hi = sp.cum_nz[job.start], sp.cum_nz[job.stop]
         n = hi - lo
