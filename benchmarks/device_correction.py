@@ -4,8 +4,8 @@ On the served path (issue 23) a device shows its own frame ``S`` of every new vi
 warp, or the blend of its predicted scores) and the host sends a version-3 correction of
 that frame; the device shows ``Reconstructor.correct(delta, S)``. This section times that
 call against the blend (``Reconstructor.update(y)`` of a new view's predicted scores: every
-cell recomputed), on the same reconstructor, interleaved view by view in one run, so the
-ratio holds under any load.
+cell whose scores changed recomputed), on the same reconstructor, interleaved view by view
+in one run, so the ratio holds under any load.
 
 The deltas are the ones the host really sends: per view of a 3 degree/frame drag the host
 (`host.fit.motion.MotionScores` with the device's own frames, `device_runtime.prediction.
@@ -22,7 +22,8 @@ quantize to zero is not sent, so it costs the device nothing and is left out (co
 
 Timed per view (median over views, wall and thread CPU time, one thread):
 
-* ``blend``: ``update(predictor(view))`` after a frame of another view (all cells change);
+* ``blend``: ``update(predictor(view))`` after a frame of another view (every cell changes
+  but those whose scores are all zero in both);
 * ``moving``: ``correct(moving delta, S)`` (the first correction of a frame passes it);
 * ``rest``: ``correct(complete delta)`` of the frame already held (how the device applies
   the correction of a view whose moving correction it showed: ``synth=None``);
@@ -113,7 +114,7 @@ def section_correction(path: Path, n_views: int, stride: int, repeat: int = 3) -
     setup_s = time.perf_counter() - t0
     predictor = Predictor(image)
     rec = Reconstructor.from_image(image, threads=1)
-    other = predictor(*drag_views(1, start=200.0)[0])  # a far view: the blend changes all
+    other = predictor(*drag_views(1, start=200.0)[0])  # a far view: the blend changes most
     wall: dict[str, list[float]] = {k: [] for k in MODES}
     cpu: dict[str, list[float]] = {k: [] for k in MODES}
 
