@@ -570,10 +570,9 @@ class Reconstructor:
     def _partial_batch(self, job: _Batch, flags: np.ndarray, n_flag: int) -> int:
         """Some cells of a batch changed (cells whose scores are all zero, in a training
         view or every neighbour of a blend, stay as they were; `correct`: the cells of a
-        dense batch that it corrects): each one's rows cast and
-        multiplied into consecutive output rows, then all written at once (written one by
-        one, a 256 frame's update took 1.6x as long; casting the batch whole instead
-        measured no faster)."""
+        dense batch that it corrects): each one's rows cast and multiplied into consecutive
+        output rows, then all written at once (written one by one, a 256 frame's update took
+        1.6x as long; casting the batch whole instead measured no faster)."""
         offsets = self.offsets
         out = job.out
         i = 0
@@ -611,7 +610,7 @@ class Reconstructor:
             if n_flag == len(job.calls):
                 self._whole_batch(job)
                 return n_flag
-            return self._partial_batch(job, self._nz.changed[job.start : job.stop], n_flag)
+            return self._partial_batch(job, sp.changed[job.start : job.stop], n_flag)
         values = self.cell_values
         flat = job.cast_dst.reshape(-1)
         rows = flat[: n * values].reshape(n, values)

@@ -305,7 +305,9 @@ class DepthEigenspace:
         self.table = table
         self.step = float(step)
         self.offset = float(offset)
-        self._ends = np.cumsum(self.counts)
+        ends = np.cumsum(self.counts)
+        # each cell's component rows [start, end), as Python ints (a miss walks them)
+        self._rows = list(zip((ends - self.counts).tolist(), ends.tolist(), strict=True))
 
     @property
     def n_components(self) -> int:
@@ -390,7 +392,6 @@ class DepthEigenspace:
         values = self.cell * self.cell
         scratch = np.empty((values, values), np.float32)
         prod = np.empty((todo.size, values), np.float32)
-        ends, counts = self._ends.tolist(), self.counts.tolist()
 
         def flush(run: list[tuple[int, int, int]], r0: int, r1: int) -> None:
             rows = scratch[:r1 - r0]
@@ -401,7 +402,7 @@ class DepthEigenspace:
         run: list[tuple[int, int, int]] = []
         r0 = r1 = 0
         for i, c in enumerate(todo.tolist()):
-            a, b = ends[c] - counts[c], ends[c]
+            a, b = self._rows[c]
             if run and (a != r1 or b - r0 > values):
                 flush(run, r0, r1)
                 run = []
