@@ -6,7 +6,8 @@ apart, which shows every edge twice (docs/rate-distortion.md, section 9). An ima
 ``eigencast fit --depth`` also carries a cell eigenspace of every training view's depth (the
 distance along each pixel's ray where the opacity crosses one half, at half resolution) and
 names the synthesis method in its manifest (``"synthesis": {"method": "warp-depth-1", ...}``,
-:data:`SYNTHESIS_METHOD`). For a novel view the device then
+:data:`SYNTHESIS_METHOD`; :data:`SYNTHESIS_METHOD_TENT` with the splat filter the fit chose
+for the volume). For a novel view the device then
 
 1. takes the interpolator's neighbours and weights (:class:`StandaloneScores`' interpolator)
    and, where they lie on two theta rows, fades the farther row out unless the view is
@@ -57,6 +58,7 @@ from device_runtime.warping import (
     HOLE_PASSES,
     MAX_WARP_PIXELS,
     SPLAT_TENT,
+    SPLAT_TENTS,
     Z_TOLERANCE,
     WarpCancelled,
     Warper,
@@ -82,7 +84,9 @@ __all__ = [
     "OBJECT_LEVEL",
     "ROW_RAMP",
     "SPLAT_TENT",
+    "SPLAT_TENTS",
     "SYNTHESIS_METHOD",
+    "SYNTHESIS_METHOD_TENT",
     "WORKER_SCRATCH_BYTES",
     "Z_TOLERANCE",
     "DepthEigenspace",
@@ -95,14 +99,20 @@ __all__ = [
     "forward_warp",
     "orbit_pose",
     "row_weights",
+    "splat_tent",
     "synthesis_memory_bytes",
     "upsample2",
     "upsample2_at",
 ]
 
-#: The one synthesis method this device knows: forward warp by half-opacity depth.
+#: Forward warp by half-opacity depth, splats spread by the [1/8, 3/4, 1/8] filter.
 SYNTHESIS_METHOD = "warp-depth-1"
-KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD})
+#: The same warp with the splat filter the image names (``synthesis.splat_tent``, one of
+#: `SPLAT_TENTS`), which ``fit --depth`` chooses for the volume: a device that predates it
+#: refuses such an image in one line instead of showing (and being corrected against) frames
+#: other than the host's.
+SYNTHESIS_METHOD_TENT = "warp-depth-2"
+KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD, SYNTHESIS_METHOD_TENT})
 #: Image sections of the depth eigenspace (``fit --depth``), in this order. The score table
 #: is either the plain int16 ``depth_scores`` (the first images) or, smaller,
 #: :data:`DEPTH_DELTA_SECTION` in its place.
@@ -208,6 +218,14 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
     if not isinstance(offset, (int, float)) or isinstance(offset, bool) or not math.isfinite(
             offset):
         raise ImageFormatError("image manifest: synthesis.depth_offset_mm must be a number")
+    tent = record.get("splat_tent")
+    if method == SYNTHESIS_METHOD_TENT:
+        if isinstance(tent, bool) or tent not in SPLAT_TENTS:
+            raise ImageFormatError(f"image manifest: synthesis.splat_tent={tent!r} must be one of "
+                                   f"{', '.join(map(str, SPLAT_TENTS))}")
+    elif tent is not None:
+        raise ImageFormatError(f"image manifest: synthesis.splat_tent belongs to method "
+                               f"{SYNTHESIS_METHOD_TENT!r}, not {method!r}")
     if image_shape is not None and [2 * v for v in record["depth_shape"]] != list(image_shape):
         raise ImageFormatError(
             f"image manifest: synthesis.depth_shape {record['depth_shape']} is not half the "
@@ -219,6 +237,12 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
             f"image manifest: synthesis of {w}x{h} frames is beyond this device's warp "
             f"(frames up to {MAX_WARP_PIXELS} padded pixels)")
     return record
+
+
+def splat_tent(record: dict) -> int:
+    """The splat filter's centre weight a (checked) ``synthesis`` record names: its
+    ``splat_tent`` for `SYNTHESIS_METHOD_TENT`, else 6."""
+    return int(record.get("splat_tent", SPLAT_TENTS[0]))
 
 
 def synthesis_memory_bytes(manifest: dict) -> int:
@@ -472,7 +496,7 @@ class ViewSynthesizer:
         self.reconstructor = reconstructor
         h, w = image.image_shape
         self.warper = Warper(record["fov_deg"], record["distance_mm"], w, h,
-                             record["z_tolerance_mm"])
+                             record["z_tolerance_mm"], splat_tent(record))
         views = image.views or {}
         try:
             self.phi = np.asarray(views["phi_deg"], dtype=np.float64)

@@ -23,6 +23,7 @@ __all__ = [
     "HOLE_PASSES",
     "MAX_WARP_PIXELS",
     "SPLAT_TENT",
+    "SPLAT_TENTS",
     "Z_TOLERANCE",
     "WarpCancelled",
     "Warper",
@@ -38,9 +39,15 @@ __all__ = [
 Z_TOLERANCE = 0.02
 #: Nearest-pixel splats are spread by a [1/8, 3/4, 1/8] x [1/8, 3/4, 1/8] filter over the
 #: covered pixels (the accumulators are filtered before the blend is normalised): in
-#: expectation over where a point lands, the spread of a bilinear splat. Coverage is the
-#: unfiltered one: a pixel is covered when a splat lands on it.
+#: expectation over where a point lands, the spread of a bilinear splat; an image may name a
+#: weaker one (`SPLAT_TENTS`). Coverage is the unfiltered one: a pixel is covered when a
+#: splat lands on it.
 SPLAT_TENT = True
+#: The filter's centre weights c of [1, c, 1] a warper may use (`Warper.tent`): c + 2 a power
+#: of two, so the filter's scale ((c + 2) ** 2) is one the blend's normalisation cancels bit
+#: for bit. 6 ([1/8, 3/4, 1/8]) unless the image names another (``synthesis.splat_tent``,
+#: chosen by ``fit --depth``); the larger, the less the splats are spread.
+SPLAT_TENTS = (6, 14, 30, 62)
 #: The warp indexes its padded grid in float32, exact below 2**24 pixels (4094 x 4094).
 MAX_WARP_PIXELS = 1 << 24
 #: Pixels or points per pass of the work on a view (a cache miss' rays and depth
@@ -101,10 +108,15 @@ class Warper:
     z_tolerance_mm : float
         Splats within this of a pixel's nearest one are blended (`Z_TOLERANCE` x the
         bounding-sphere diameter).
+    tent : int
+        Centre weight c of the splat filter [1, c, 1] (one of `SPLAT_TENTS`).
     """
 
     def __init__(self, fov_deg: float, distance_mm: float, width: int, height: int,
-                 z_tolerance_mm: float) -> None:
+                 z_tolerance_mm: float, tent: int = SPLAT_TENTS[0]) -> None:
+        if tent not in SPLAT_TENTS:
+            raise ValueError(f"splat filter centre {tent!r} is not one of {SPLAT_TENTS}")
+        self.tent = int(tent)
         self.width, self.height = int(width), int(height)
         self.distance = float(distance_mm)
         self.half = math.tan(math.radians(fov_deg) / 2.0)
@@ -326,12 +338,12 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     (``np.minimum.at``) keeps, per target pixel, the nearest splat's forward distance;
     splats within the z tolerance of it are blended with the view's interpolation weight,
     the rest are hidden. The accumulated weights and weighted colours are filtered by
-    `SPLAT_TENT`'s [1/8, 3/4, 1/8] kernel before the blend is normalised (the spread a
-    bilinear splat has on average). A pixel no splat lands on is a hole (a pixel one view
-    alone sees is covered, however small that view's weight); `fill_holes` closes the
-    cracks among covered pixels. Splats land on a grid one pixel larger on every side
-    (points beyond it are clamped onto that border, which is then emptied), so nothing
-    needs masking.
+    the warper's [1, c, 1] / (c + 2) kernel (`Warper.tent`; c = 6: the spread a bilinear
+    splat has on average) before the blend is normalised. A pixel no splat lands on is a
+    hole (a pixel one view alone sees is covered, however small that view's weight);
+    `fill_holes` closes the cracks among covered pixels. Splats land on a grid one pixel
+    larger on every side (points beyond it are clamped onto that border, which is then
+    emptied), so nothing needs masking.
 
     Memory and time: three passes over the sources, `CHUNK` points at a time (the z-buffer
     and the rectangle the splats land in; the z-test, which moves each splat to its pixel
@@ -485,8 +497,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
             a2[:, -1] = 0
     _give_up_if(cancel)
     if SPLAT_TENT:
-        _tent(pb, rw)
-        _tent(wb[None], rw)
+        _tent(pb, rw, w.tent)
+        _tent(wb[None], rw, w.tent)
     np.divide(f32(1.0), wb, out=wb, where=cov)
     np.multiply(wb, cov, out=wb)  # 1 / weight where covered, else 0
     pb *= wb
@@ -517,22 +529,24 @@ def _forward(m: np.ndarray, b: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return z
 
 
-def _tent(a: np.ndarray, width: int) -> np.ndarray:
-    """Separable [1, 6, 1] filter of rows ``width`` long, times 64 (zero outside), float32,
-    in place: ``a`` (planes, n) holds each plane's rows end to end (contiguous), with a
-    zero first and last column (the grid's border), so a shift by one pixel along the run
-    never carries a value from one row into the next. One plane of scratch.
+def _tent(a: np.ndarray, width: int, centre: int = SPLAT_TENTS[0]) -> np.ndarray:
+    """Separable [1, c, 1] filter (c = ``centre``) of rows ``width`` long, times (c + 2) ** 2
+    (zero outside), float32, in place: ``a`` (planes, n) holds each plane's rows end to end
+    (contiguous), with a zero first and last column (the grid's border), so a shift by one
+    pixel along the run never carries a value from one row into the next. One plane of
+    scratch.
 
-    64 times the [1/8, 3/4, 1/8] filter exactly (a power of two), which the blend's
-    normalisation cancels bit for bit: weights and weighted colours are both filtered."""
-    six = np.float32(6.0)
+    For c in `SPLAT_TENTS` the scale is a power of two (64 for the [1/8, 3/4, 1/8] filter),
+    which the blend's normalisation cancels bit for bit: weights and weighted colours are
+    both filtered."""
+    c = np.float32(centre)
     t = np.empty(a.shape[1:], a.dtype)
     for k in range(a.shape[0]):
         p = a[k]
-        np.multiply(p, six, out=t)
+        np.multiply(p, c, out=t)
         t[width:] += p[:-width]
         t[:-width] += p[width:]
-        np.multiply(t, six, out=p)
+        np.multiply(t, c, out=p)
         p[1:] += t[:-1]
         p[:-1] += t[1:]
     return a

@@ -157,6 +157,7 @@ def test_fit_stores_depth_and_the_standalone_table_by_default(small_db, tmp_path
         images[name] = read_image(out)
     assert images["default"].synthesis["method"] == "warp-depth-1"
     assert "standalone table" in runs["default"].stdout and "depth:" in runs["default"].stdout
+    assert "splat filter [1, " in runs["default"].stdout
     assert images["old"].synthesis == images["default"].synthesis  # old scripts still work
     assert images["nodepth"].synthesis is None and standalone_table(images["nodepth"])
     assert images["notable"].synthesis is None and standalone_table(images["notable"]) is None

@@ -292,9 +292,10 @@ def test_a_standalone_device_warps_with_the_displays_reconstructor(depth_model):
         served.close()
 
 
-def _tent_normalised(img, covered):
-    """[1/8, 3/4, 1/8] in y and x over the covered pixels (zero outside), normalised."""
-    k = np.array([0.125, 0.75, 0.125])
+def _tent_normalised(img, covered, centre=6):
+    """[1, c, 1] / (c + 2) in y and x over the covered pixels (zero outside), normalised
+    (c = 6: [1/8, 3/4, 1/8])."""
+    k = np.array([1.0, centre, 1.0]) / (centre + 2)
     h, w = covered.shape
 
     def filt(a):
@@ -303,6 +304,99 @@ def _tent_normalised(img, covered):
 
     num = filt(np.pad(img * covered[..., None], ((1, 1), (1, 1), (0, 0))))
     return num / np.maximum(filt(np.pad(covered.astype(float), 1)), 1e-12)[..., None]
+
+
+def _with_splat_tent(depth_model, tmp_path, tent):
+    """depth_model rewritten as if its fit had chosen the splat filter ``tent``."""
+    image = read_image(depth_model, key=KEY)
+    image.synthesis = {**image.synthesis, "method": "warp-depth-2", "splat_tent": tent}
+    out = tmp_path / f"tent{tent}.ecs"
+    write_image(out, image, key=KEY)
+    return out
+
+
+def test_the_splat_filter_an_image_names_is_checked_and_warps_its_frames(depth_model, depth_db,
+                                                                         tmp_path):
+    """An image whose fit chose another splat filter (``warp-depth-2``, ``splat_tent``):
+    the device warps with it, the host's frames are the device's, a training view warped to
+    its own camera is its reconstruction through [1, c, 1] / (c + 2), and a record naming a
+    filter the device does not know, or one without its method, is refused in one line."""
+    from device_runtime.synthesis import check_synthesis
+    from host.evaluate.warp import WarpFrames
+
+    path = _with_splat_tent(depth_model, tmp_path, 30)
+    image = read_image(path, key=KEY)
+    loaded = LoadedModel.build(image, slot="A", generation=1, test=False, want_standalone=True)
+    plain = ViewSynthesizer(read_image(depth_model, key=KEY),
+                            StandaloneScores(read_image(depth_model, key=KEY)),
+                            Reconstructor.from_image(read_image(depth_model, key=KEY)))
+    try:
+        assert loaded.synthesis.warper.tent == 30 and plain.warper.tent == 6
+        host = WarpFrames(HostModel.load(path))
+        for view in ((12.5, 3.0), (100.0, -44.0)):
+            frame = loaded.synthesis.frame(*view)
+            np.testing.assert_array_equal(frame, host.frame(*view))
+            assert np.abs(frame.astype(int) - plain.frame(*view)).max() > 0
+        db = CinemaDB.open(depth_db)
+        for i in (7, 60):
+            frame = loaded.synthesis.frame(float(db.phi_deg[i]), float(db.theta_deg[i]))
+            own = Reconstructor.from_image(image).update(
+                loaded.synthesis.standalone.training_scores(i))
+            obj = own.max(axis=2) > 2
+            diff = np.abs(frame.astype(float) - _tent_normalised(own.astype(float), obj, 30))
+            assert diff[obj].mean() < 1.0, diff[obj].mean()
+    finally:
+        loaded.close()
+    record = image.synthesis
+    for bad, why in (({**record, "splat_tent": 7}, "must be one of 6, 14, 30, 62"),
+                     ({**record, "splat_tent": True}, "must be one of"),
+                     ({k: v for k, v in record.items() if k != "splat_tent"}, "must be one of"),
+                     ({**record, "method": "warp-depth-1"}, "belongs to method 'warp-depth-2'")):
+        with pytest.raises(ImageFormatError, match=why) as err:
+            check_synthesis(bad)
+        assert "\n" not in str(err.value)
+
+
+def test_fit_chooses_the_splat_filter_on_its_training_views_and_leaves_the_image_whole(
+        depth_model, depth_db, monkeypatch):
+    """`choose_splat_tent` warps training views from their row neighbours with each filter,
+    keeps the default unless another beats it by the margin (the most spreading of filters
+    tied with the best), and leaves every section as it was; a chosen filter is written as
+    ``warp-depth-2``."""
+    import host.evaluate.splat_filter as splat
+    from device_runtime.synthesis import SPLAT_TENTS
+
+    pick = splat.pick_splat_tent
+    assert pick({6: 0.80, 14: 0.81, 30: 0.8105, 62: 0.811}) == 14  # tied: the most spread
+    assert pick({6: 0.80, 14: 0.801, 30: 0.8015, 62: 0.80}) == 6  # not by the margin
+    assert pick({6: 0.80, 14: 0.79, 30: 0.78, 62: 0.77}) == 6
+    assert pick({6: 0.80, 14: 0.80, 30: 0.81, 62: 0.83}) == 62
+    image = read_image(depth_model, key=KEY)
+    before = {k: v.copy() for k, v in image.sections.items()}
+    db = CinemaDB.open(depth_db)
+    found = splat.choose_splat_tent(image, db, views=12, quiet=True)
+    assert found["views"] == 12 and set(found["ssim"]) == set(SPLAT_TENTS)
+    assert all(0.0 < v <= 1.0 for v in found["ssim"].values())
+    assert found["tent"] == pick(found["ssim"])
+    assert image.synthesis["method"] == ("warp-depth-1" if found["tent"] == 6
+                                         else "warp-depth-2")
+    assert set(image.sections) == set(before)
+    for k, v in before.items():
+        np.testing.assert_array_equal(image.sections[k], v)
+    monkeypatch.setattr(splat, "pick_splat_tent", lambda means, margin: 14)
+    assert splat.choose_splat_tent(image, db, views=4, quiet=True)["tent"] == 14
+    assert image.synthesis["method"] == "warp-depth-2" and image.synthesis["splat_tent"] == 14
+    monkeypatch.setattr(splat, "pick_splat_tent", lambda means, margin: 6)
+    splat.choose_splat_tent(image, db, views=4, quiet=True)  # chosen again: the default
+    assert image.synthesis["method"] == "warp-depth-1" and "splat_tent" not in image.synthesis
+    # row neighbours: each view between its previous and next in phi on its theta row
+    phi = np.array([0.0, 90.0, 180.0, 270.0, 45.0, 10.0])
+    theta = np.array([0.0, 0.0, 0.0, 0.0, 30.0, 60.0])
+    triples = splat._row_triples(phi, theta, 10)
+    assert [(v, pair) for v, pair, _ in triples] == [(0, (3, 1)), (1, (0, 2)), (2, (1, 3)),
+                                                     (3, (2, 0))]
+    assert all(np.allclose(w, 0.5) for _, _, w in triples)
+    assert splat._row_triples(phi[4:], theta[4:], 10) == []  # no row of three: no choice
 
 
 def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):

@@ -194,9 +194,11 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
                                           eigenvalues=annex.get(ANNEX_EIGENVALUES))
     depth = None
     if args.depth:
+        from host.evaluate.splat_filter import choose_splat_tent
         from host.fit.depth import add_depth
 
         depth = add_depth(image, db, depth_threshold)
+        depth["splat"] = choose_splat_tent(image, db)
     save_model(out, image, annex, key=key)
     if standalone is not None:
         print(_standalone_line(out, standalone))
@@ -205,6 +207,7 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
               f"cell at T={depth['threshold']}), table noise {depth['score_mse']:.3g} mm², "
               f"{depth['raw_bytes'] / 1e6:.2f} MB raw ({depth['section']}); "
               f"synthesis {image.synthesis['method']}")
+        print(_splat_line(depth["splat"]))
     device_bytes = image_device_bytes(out)
     annex_bytes = out.stat().st_size - device_bytes
     int8 = image.provenance["int8"]
@@ -218,6 +221,15 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
         f"step {image.score_quantization['step']:.3g}; int8 loss {int8['train_loss_db']:.3f} dB"
     )
     return 0
+
+
+def _splat_line(splat: dict) -> str:
+    """What `choose_splat_tent` found, in one line."""
+    if not splat["views"]:
+        return ("splat filter [1, 6, 1] (no theta row of three views to choose another on)")
+    found = ", ".join(f"{t}: {s:.4f}" for t, s in splat["ssim"].items())
+    return (f"splat filter [1, {splat['tent']}, 1], chosen on {splat['views']} training views "
+            f"warped from their row neighbours (object SSIM by centre weight: {found})")
 
 
 def _choose_depth(args: argparse.Namespace, db: CinemaDB) -> None:

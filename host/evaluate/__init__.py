@@ -8,7 +8,8 @@ one served path's frames, the device's own frame and its corrections), the
 evaluation engine with its rate-distortion sweep (``engine.py``), the HTML report
 (``report.py``) and the quality-target search of ``eigencast fit --target``
 (``target.py``: it picks the cheapest model whose frames, measured through the device path,
-reach a target, so it needs this stage and lives here rather than in `host.fit`).
+reach a target, so it needs this stage and lives here rather than in `host.fit`), and, for
+the same reason, ``fit --depth``'s choice of the warp's splat filter (``splat_filter.py``).
 
 May import: `host.volume`, `host.render`, `host.fit`, `host.errors`, `host.progress`,
 `protocol`, `device_runtime`; never link. ``eigencast evaluate`` starts here
@@ -30,6 +31,9 @@ __all__ = [
     "OBJECT_LEVEL",
     "TARGET_METRICS",
     "TARGET_STEP_FACTORS",
+    "TENT_MARGIN",
+    "TENT_TIE",
+    "TENT_VIEWS",
     "CodedImage",
     "DevicePath",
     "Evaluation",
@@ -45,6 +49,7 @@ __all__ = [
     "WebPDatabase",
     "alpha_object_mask",
     "blockiness",
+    "choose_splat_tent",
     "codec_equivalent",
     "compare_images",
     "compose_side_by_side",
@@ -63,6 +68,7 @@ __all__ = [
     "object_mask",
     "parse_target",
     "peak_signal_noise_ratio",
+    "pick_splat_tent",
     "search_target",
     "structural_similarity",
     "webp_database_frames",
