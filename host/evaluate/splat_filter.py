@@ -83,7 +83,8 @@ def choose_splat_tent(image: Any, db: Any, *, views: int = TENT_VIEWS,
     reconstructor = Reconstructor.from_image(work)
     synth = ViewSynthesizer(work, StandaloneScores(work), reconstructor)
     warper = synth.warper
-    poses = [warper.pose(float(p), float(t)) for p, t in zip(synth.phi, synth.theta)]
+    poses = {v: warper.pose(float(synth.phi[v]), float(synth.theta[v]))
+             for view, pair, _ in cases for v in (view, *pair)}
     scores: dict[int, list[float]] = {t: [] for t in SPLAT_TENTS}
     try:
         with progress("choosing the splat filter", len(cases), unit=" views",
@@ -143,8 +144,7 @@ def _row_triples(phi: np.ndarray, theta: np.ndarray, views: int
                      .astype(int))
     out = []
     for v, left, right in (eligible[i] for i in pick):
-        d = np.array([abs((phi[v] - phi[left] + 180.0) % 360.0 - 180.0),
-                      abs((phi[right] - phi[v] + 180.0) % 360.0 - 180.0)])
+        d = np.abs((phi[[left, right]] - phi[v] + 180.0) % 360.0 - 180.0)
         w = d[::-1] / d.sum() if d.sum() > 0 else np.array([0.5, 0.5])
         out.append((v, (left, right), w))
     return out
