@@ -131,7 +131,7 @@ class Warper:
         self._gy = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * self.half
         self.tol_mm = float(z_tolerance_mm)
         self._splats: np.ndarray | None = None
-        self._grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         #: What the last frame wrote in the z-buffer: its rectangle (rows r0:r1, columns
         #: c0:c1) and its first ``run`` pixels, (r0, r1, c0, c1, run); None: clean.
         self.dirty: tuple[int, int, int, int, int] | None = None
@@ -144,26 +144,33 @@ class Warper:
             self._splats = np.empty(int(total * 1.0625), np.int32)
         return self._splats[:total]
 
-    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The warp's working set, made once, reused by every frame: the padded grid's
-        z-buffer (h + 2, w + 2) float32, returned clean (inf), and scratch for the compact
-        grid of the splats' rectangle: three colour accumulators (one flat float32 run of
-        3 x (grid + 1)) and coverage (bool, grid size).
+        z-buffer (h + 2, w + 2) float32, returned clean (inf), the same buffer as one flat
+        run with a spare last entry, and scratch for the compact grid of the splats'
+        rectangle: three colour accumulators (one flat float32 run of 3 x (grid + 1)) and
+        coverage (bool, grid size).
 
-        A frame dirties the z-buffer's rectangle its splats land in and the z-buffer's
-        first pixels, where it accumulates the blend weights (`dirty`, set by
+        The flat run is the z-buffer's pixels and one more: once the z-test is done it
+        accumulates the blend weights of a compact grid of up to every pixel of the padded
+        grid plus the spare entry hidden splats go to (a frame whose splats reach every
+        border uses all of it).
+
+        A frame dirties the z-buffer's rectangle its splats land in and the flat run's
+        first entries, where it accumulates the blend weights (`dirty`, set by
         `forward_warp`); only those are cleaned here."""
         shape = (self.height + 2, self.width + 2)
         if self._grid is None:
             size = shape[0] * shape[1]
-            self._grid = (np.full(shape, np.inf, np.float32),
+            zflat = np.full(size + 1, np.inf, np.float32)
+            self._grid = (zflat[:size].reshape(shape), zflat,
                           np.empty(3 * (size + 1), np.float32), np.empty(size, bool))
             self.dirty = None
-        zgrid = self._grid[0]
+        zgrid, zflat = self._grid[0], self._grid[1]
         if self.dirty is not None:
             r0, r1, c0, c1, run = self.dirty
             zgrid[r0:r1, c0:c1] = np.inf
-            zgrid.reshape(-1)[:run] = np.inf
+            zflat[:run] = np.inf
             self.dirty = None
         return self._grid
 
@@ -390,9 +397,8 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
     sx = 0.5 * h / w.half
     scale = np.array([[sx, 0.0, 0.5 * wd + 1.0], [0.0, -sx, 0.5 * h + 1.0], [0.0, 0.0, 1.0]])
     idx = w.splats(sum(u[0].shape[1] for u in used))
-    zgrid, acc, cover = w.grid()  # the z-buffer clean (inf); scratch
-    w.dirty = (0, h + 2, 0, w2, zgrid.size)  # until pass 2 ends (a cancelled warp: all)
-    zbuf = zgrid.reshape(-1)
+    zgrid, zbuf, acc, cover = w.grid()  # the z-buffer clean (inf), flat; scratch
+    w.dirty = (0, h + 2, 0, w2, zbuf.size)  # until pass 2 ends (a cancelled warp: all)
     pieces = []  # (slice of idx, the points and colours there, the view's m, b and weight)
     o = 0
     for pts, col, (p_s, r_s), wv in used:
