@@ -20,10 +20,11 @@ and the ``overlay`` / ``zoom`` state) that :mod:`device_runtime.runtime` drives:
     (the score packet's frame number as the host counts it, from a random start; empty for
     the device's own frames), ``phi_deg``, ``theta_deg``, ``key`` (1: a key frame or a
     frame of the device's own), ``packet_bytes`` (0: the device's own frame),
-    ``sequence`` (the view request the frame answers, 0: none) and ``kind`` (``own``: the
-    device's own frame of the view, a warp or a blend; ``corrected``: that frame corrected
-    by the host; ``key`` / ``delta``: a host frame of absolute scores; ``mean``: the
-    image's first frame). Without a folder it presents nothing.
+    ``sequence`` (the view request the frame answers, 0: none) and ``kind`` (the device's
+    own frame of the view: ``warp``, the depth warp of its neighbours, or ``blend``, the
+    blend of its own scores, shown while the warp is made or when the image has no depth;
+    ``corrected``: the own frame corrected by the host; ``key`` / ``delta``: a host frame of
+    absolute scores; ``mean``: the image's first frame). Without a folder it presents nothing.
 
 PNGs are written by :func:`encode_png` (zlib + struct: no imaging library on the device),
 atomically (temporary file, then rename), so a reader never sees half a file.
@@ -81,9 +82,11 @@ def frame_kind(info: dict) -> str:
     """What a presented frame is (``frames.csv``'s ``kind``) from its info."""
     if info.get("corrected"):
         return "corrected"
-    if info.get("predicted") or info.get("synthesized") or (
+    if info.get("synthesized"):
+        return "warp"
+    if info.get("predicted") or (
             info.get("phi_deg") is not None and not info.get("packet_bytes")):
-        return "own"
+        return "blend"
     if info.get("phi_deg") is None:
         return "mean"
     return "key" if info.get("key") else "delta"

@@ -8,9 +8,12 @@ HELLO, provisioning and every other request) that also shows frames. Threads::
                                                               |
                                                 latest-wins slot (one ScoreItem)
                                                               v
-    main thread: display loop (~60 Hz)  <-- input (window) / orbit / scripted views
-        take the newest scores -> Reconstructor.update (changed cells only) -> present
+    main thread: display loop, one turn per tick (--fps) or sooner when a packet or a warp
+        comes  <-- input (window) / orbit / scripted views
+        the frame the policy picks (device_runtime.scheduler) -> present
         view changes -> VIEW_REQUEST through a rate limiter (latest wins) -> link writer
+    warp worker thread: the depth warp of the view on show, or of the next view of steady
+        motion (device_runtime.synthesis.WarpWorker)
 
 * The display never waits for the link: the dispatcher decodes every packet (so delta
   chains stay intact) and leaves only the newest in a one-item slot; the display loop
@@ -28,25 +31,28 @@ HELLO, provisioning and every other request) that also shows frames. Threads::
   (serial) the port with backoff, and the new session starts with a key frame.
 * Memory is flat: one frame buffer, one slot, bounded rings for statistics.
 
-Served (``predict=True``): when the active image carries the standalone table, the device
-shows its *own frame* of every new view at once (no bytes, no latency): the score blend of
-its predicted scores (:mod:`device_runtime.prediction`), then, for an image fitted with
-depth, the depth warp of its neighbouring training views (:mod:`device_runtime.synthesis`,
-made on a thread of its own, `WarpWorker`, and shown when ready if the view is still on
-show: made on the display thread it made every frame of a drag late, docs/rate-distortion.md
-9.8). The view request goes out as before, and the host answers with a *correction of that
-frame* (a version-3 packet, `protocol.scores`): the device shows its own frame plus the
-correction's eigenimages (`Reconstructor.correct`), at once when the frame is at hand, else
-as soon as the warp is made. A correction for a view the user has already left is dropped as
-stale (counted); a host-driven one (``serve --orbit``) moves the view. HELLO_REPLY lists the
-packet versions this device reads and says whether it predicts (``predicts``). Version-2
-corrections (of the predicted scores: an older host) and full key/delta frames are still
-shown as before; a full frame for a view no longer on show is dropped the same way (its
-delta base is still kept).
+Frames (`device_runtime.scheduler.FrameScheduler`, one policy for every device): when the
+active image carries the standalone table, the device shows its *own frame* of every new
+view at once (no bytes, no latency): the warp of the view if its worker made it ahead, else
+the blend of its own scores (at most one blend per tick), then, for an image fitted with
+depth, the depth warp of its neighbouring training views once the worker has made it (the
+display never waits on a warp). Everything the display has made of an image lives in its
+`LoadedModel` (`device_runtime.loaded`), replaced whole when another image is activated.
+
+Served (``predict=True``): the view request goes out as well, and the host answers with a
+*correction of the own frame* (a version-3 packet, `protocol.scores`): the device shows its
+own frame plus the correction's eigenimages (`Reconstructor.correct`), at once when the
+frame is at hand, else as soon as the warp is made. A correction for a view the user has
+already left is dropped as stale (counted); a host-driven one (``serve --orbit``) moves the
+view. HELLO_REPLY lists the packet versions this device reads and says whether it predicts
+(``predicts``). Version-2 corrections (of the predicted scores: an older host) and full
+key/delta frames are still shown as before; a full frame for a view no longer on show is
+dropped the same way (its delta base is still kept).
 
 Standalone (``standalone=True``): the image carries a quantized table of the training
-views' scores and the runtime interpolates scores locally, needing no host:
-:mod:`device_runtime.standalone`. Orbits and view lists (``--orbit``, ``--views``) are
+views' scores and the runtime interpolates scores locally, needing no host
+(:mod:`device_runtime.standalone`); at rest it shows the view's warp, bit for bit
+``eigencast view``'s frame. Orbits and view lists (``--orbit``, ``--views``) are
 :mod:`device_runtime.orbit`. Their names are still importable from here.
 """
 
@@ -59,7 +65,6 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -75,9 +80,9 @@ from device_runtime.display import (
     Zoom,
 )
 from device_runtime.errors import DeviceError, FlashError
+from device_runtime.loaded import LoadedModel, ScoreItem
 from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
-from device_runtime.prediction import Predictor, can_predict, corrected
-from device_runtime.reconstruct import Reconstructor
+from device_runtime.scheduler import FrameScheduler
 from device_runtime.slots import LatestSlot, RequestLimiter
 from device_runtime.standalone import (
     STANDALONE_DELTA_SECTION,
@@ -87,22 +92,15 @@ from device_runtime.standalone import (
     standalone_table,
 )
 from device_runtime.stats import RuntimeStats, peak_rss_bytes
-from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
-from protocol.image import EigenspaceImage
-from protocol.scores import (
-    VERSIONS,
-    DecodedScores,
-    ImageMismatch,
-    MissingBase,
-    ScoreDecoder,
-    score_bound,
-)
+from protocol.scores import VERSIONS, ImageMismatch, MissingBase
 
 __all__ = [
+    "DEFAULT_FPS",
     "DEFAULT_VIEW",
+    "HEADLESS_FPS",
     "KEYFRAME_RETRY_S",
     "STANDALONE_DELTA_SECTION",
     "STANDALONE_SECTION",
@@ -126,95 +124,17 @@ DEFAULT_VIEW = (30.0, 15.0)
 """(phi_deg, theta_deg) shown first when nothing else says which view."""
 KEYFRAME_RETRY_S = 0.1
 """Shortest time between two KEYFRAME_REQUESTs while a delta base is missing, seconds."""
-_TICK_S = 1.0 / 60.0
-_HEADLESS_TICK_S = 0.05
-_WARP_POLL_S = 0.004
-"""How often the display loop looks for a finished warp while one is due, seconds."""
-
-
-# --------------------------------------------------------------------------- model
-
-
-@dataclass
-class LoadedModel:
-    """An active eigenspace ready to show: reconstruction, score decoder, standalone data."""
-
-    image: EigenspaceImage
-    reconstructor: Reconstructor
-    decoder: ScoreDecoder
-    slot: str
-    generation: int
-    test: bool
-    standalone: StandaloneScores | None = None
-    confirmed: bool = False
-    predictor: Predictor | None = None
-    #: Depth-aware view synthesis (image fitted with ``--depth``): every standalone frame,
-    #: and a predicting device's own frames while the host's are on their way.
-    synthesis: ViewSynthesizer | None = None
-    #: A predicting device's warps, made off the display thread (`WarpWorker`).
-    warp_worker: WarpWorker | None = None
-
-    @classmethod
-    def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
-              max_packet_bytes: int | None = None, want_standalone: bool = False,
-              want_predictor: bool = False) -> LoadedModel:
-        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data
-        and (``want_predictor``, when the image has a table) the predictor; with either and
-        an image with depth, the view synthesis (sharing the predictor's table).
-
-        The reconstructor runs on two threads when the machine has two CPUs and the
-        eigenspace is large (``threads="auto"``); its frames are the same bit for bit.
-        """
-        standalone = StandaloneScores(image) if want_standalone else None
-        decoder = ScoreDecoder(
-            image.n_coefficients,
-            image.digest or bytes(32),
-            n_components=image.n_components,
-            max_packet_bytes=max_packet_bytes,
-            max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
-        )
-        predictor = (Predictor(image) if want_predictor and not want_standalone
-                     and can_predict(image) else None)
-        synthesis = None
-        table = standalone if standalone is not None else (
-            predictor.standalone if predictor is not None else None)
-        reconstructor = Reconstructor.from_image(image, threads="auto")
-        if table is not None and image.synthesis is not None:
-            # A standalone device shows warps only (each a new array), so the neighbours'
-            # colours may use the display's reconstructor: one set of buffers. A predicting
-            # device warps on its worker thread while the display shows the host's frames
-            # from the display's reconstructor: the worker needs one of its own.
-            synthesis = ViewSynthesizer(
-                image, table, reconstructor if standalone is not None
-                else Reconstructor.from_image(image, threads=1,
-                                              scratch_bytes=WORKER_SCRATCH_BYTES))
-        worker = WarpWorker(synthesis) if synthesis is not None and standalone is None else None
-        return cls(image, reconstructor, decoder, slot, generation, test, standalone,
-                   predictor=predictor, synthesis=synthesis, warp_worker=worker)
-
-    def close(self) -> None:
-        if self.warp_worker is not None:  # before the reconstructor its warps use
-            self.warp_worker.close()
-        self.reconstructor.close()
-        if self.synthesis is not None and self.synthesis.reconstructor is not self.reconstructor:
-            self.synthesis.reconstructor.close()  # a predicting device's worker's own
-
-
-@dataclass(frozen=True)
-class ScoreItem:
-    """One decoded packet handed from the dispatcher to the display loop."""
-
-    model: LoadedModel
-    scores: DecodedScores
-    sequence: int
-    received_s: float
+DEFAULT_FPS = 60.0
+"""Display ticks per second of a window."""
+HEADLESS_FPS = 30.0
+"""Display ticks per second without a screen (a board's display rate)."""
 
 
 # --------------------------------------------------------------------------- runtime
 
 
-class RuntimeDevice(Device):
-    """A device that shows frames: the issue-5 runtime around :class:`Device`.
+class RuntimeDevice(FrameScheduler, Device):
+    """A device that shows frames: the runtime around :class:`Device`.
 
     Parameters
     ----------
@@ -226,18 +146,25 @@ class RuntimeDevice(Device):
         host are then ignored.
     predict : bool
         With a host: show the device's own prediction of every new view at once when the
-        image has a standalone table, and accept corrections to it (issue 14).
+        image has a standalone table, and accept corrections to it.
     view : (float, float)
         Initial ``(phi_deg, theta_deg)``.
     orbit : OrbitSpec, optional
         Drive the view by itself (standalone: locally; otherwise by VIEW_REQUESTs); the
-        runtime stops when a finite orbit is done and its last frame is presented.
+        runtime stops when a finite orbit is done and its last frame is presented. A
+        ``turn`` orbit moves once per display tick.
     views : list of (float, float), optional
-        Scripted views, shown one after another (each once its frame was presented).
+        Scripted views, shown one after another (each once its best frame is on show: the
+        warp, when the image warps).
     request_rate_hz : float
         VIEW_REQUESTs per second at most (latest wins in between).
     max_frames : int, optional
         Stop after presenting this many frames.
+    fps : float, optional
+        Display ticks per second: at most one blend per tick while the view moves, and a
+        ``turn`` orbit's step. Default `DEFAULT_FPS` with a window, `HEADLESS_FPS` without.
+    clock : callable, optional
+        Monotonic seconds (tests pass a fake one).
     on_frame : callable, optional
         ``on_frame(frame, info)`` after each present (tests, benchmarks).
     log : callable, optional
@@ -255,6 +182,8 @@ class RuntimeDevice(Device):
         views: Iterable[tuple[float, float]] | None = None,
         request_rate_hz: float = 60.0,
         max_frames: int | None = None,
+        fps: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
         on_frame: Callable[[np.ndarray, dict], None] | None = None,
         log: Callable[[str], None] | None = None,
     ) -> None:
@@ -266,6 +195,12 @@ class RuntimeDevice(Device):
         self._script = collections.deque(canonical_view(*v) for v in (views or ()))
         self.limiter = RequestLimiter(request_rate_hz)
         self.max_frames = max_frames
+        if fps is None:
+            fps = HEADLESS_FPS if getattr(self.presenter, "headless", True) else DEFAULT_FPS
+        if not fps > 0:
+            raise ValueError(f"RuntimeDevice: fps={fps!r} must be > 0")
+        self.tick_s = 1.0 / float(fps)
+        self.clock = clock
         self.on_frame = on_frame
         self.runtime_stats = RuntimeStats()
         self._scores = LatestSlot()
@@ -281,19 +216,12 @@ class RuntimeDevice(Device):
         self._view_dirty = False
         self._redraw = False
         self._overlay_s = 0.0
-        self._last_y: np.ndarray | None = None
         self._shown_frame: np.ndarray | None = None  # what the presenter shows (redraws)
-        self._warp_due: tuple[float, float] | None = None  # served: the blend shown, warp next
-        # served: a correction waiting for the warp of its view; the last warp made (the
-        # frame a correction of its view corrects); the view whose own frame the display
-        # reconstructor holds for `Reconstructor.correct`
-        self._correction_due: ScoreItem | None = None
-        self._own_warp: tuple[tuple[float, float], np.ndarray] | None = None
-        self._synth_view: tuple[float, float] | None = None
         self._superseded = 0  # corrections replaced by newer ones while waiting for a warp
-        self._blend_s = -1.0  # when a predicting device last showed a moved view's blend
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
+        self._orbit: Any = None  # the running orbit (display loop)
+        self._waiting_for: tuple[float, float] | None = None  # a scripted view not shown yet
         super().__init__(config, log=log)
 
     # ------------------------------------------------------------------ boot / images
@@ -333,6 +261,7 @@ class RuntimeDevice(Device):
                 max_packet_bytes=None,
                 want_standalone=self.standalone,
                 want_predictor=self.predict,
+                on_warp=self._scores.wake,
             )
         except (ProtocolError, DeviceError, OSError, ValueError) as exc:
             # this run's mode cannot use it (e.g. --standalone without a table): a test
@@ -557,30 +486,19 @@ class RuntimeDevice(Device):
         ]
 
     def _present(self, model: LoadedModel, y: np.ndarray, info: dict, *,
-                 warp: bool = False, warped: np.ndarray | None = None,
-                 frame: np.ndarray | None = None) -> None:
-        """Show a frame: ``y`` reconstructed, or with ``warp`` (the device's own frame of
-        the view ``info`` names: standalone, or a prediction) and an image with depth, the
-        neighbours warped into the view (`ViewSynthesizer`). A host's frame never warps."""
+                 frame: np.ndarray | None = None, settled: bool = False) -> None:
+        """Show a frame: ``frame`` as made (an own frame, a corrected frame), else ``y``
+        reconstructed (a host's frame). ``settled``: it is the best frame of its view (a
+        scripted view moves on)."""
         stats = self.runtime_stats
         t0 = time.perf_counter()
-        if frame is not None:  # made already (a corrected frame)
-            pass
-        elif warped is not None or (warp and model.synthesis is not None):
-            # a frame of its own, not the reconstructor's buffer: the reconstructor only
-            # recomputes the cells whose scores changed, so the next host frame needs its
-            # buffer to still hold the last reconstruction
-            frame = warped if warped is not None else model.synthesis.frame(
-                info["phi_deg"], info["theta_deg"])
-            info = {**info, "synthesized": True}
-            stats.synthesized_frames += 1
-        else:
+        if frame is None:
             frame = model.reconstructor.update(y)
         t1 = time.perf_counter()
         overlay = self.overlay_lines() if self.presenter.overlay else None
         self.presenter.present(frame, info, overlay_lines=overlay)
         t2 = time.perf_counter()
-        now = time.monotonic()
+        now = self.clock()
         stats.reconstruct_s.add(t1 - t0)
         stats.present_s.add(t2 - t1)
         stats.stage_samples.append((info.get("decode_s", 0.0), t1 - t0, t2 - t1))
@@ -591,271 +509,119 @@ class RuntimeDevice(Device):
             stats.latencies_s.append(now - self._request_times[seq])
             while self._request_times and next(iter(self._request_times)) <= seq:
                 self._request_times.popitem(last=False)
-        self._shown_view = (info.get("phi_deg"), info.get("theta_deg"))
+        view = (info.get("phi_deg"), info.get("theta_deg"))
+        self._shown_view = view
+        if settled or not model.own_frames:
+            model.shown.settled = view
         self._shown_frame = frame
-        self._last_y = y
+        model.shown.last_y = y
         self._confirm(model)
         if self.on_frame is not None:
             self.on_frame(frame, info)
         if self.max_frames is not None and stats.frames_presented >= self.max_frames:
             self.stop_event.set()
 
-    def _swap_model(self, model: LoadedModel) -> None:
-        old = self._model
-        self._model = model
-        if old is not None and old is not model:
-            old.close()
-        resize = getattr(self.presenter, "set_image_shape", None)
-        if resize is not None:
-            resize(model.image.image_shape)
-        self._last_y = None
-        if model.standalone is not None:
-            y = model.standalone.scores(*self.view)
-            self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
-                                     "key": True, "frame": 0}, warp=True)
-        elif model.predictor is not None:  # its own prediction, while the host is asked
-            self._predict_view(model)
-        else:  # the image's own first frame (the mean), while the host is asked for the view
-            y = np.zeros(model.image.n_coefficients, dtype=np.float32)
-            self._present(model, y, {"frame": 0})
-            self.limiter.offer(self.view)
-
     def run_display(self, stop: threading.Event | None = None) -> None:
         """The display loop (call on the main thread); returns when stopped or finished.
 
-        Stops on ``stop`` / :attr:`stop_event`, Esc or a closed window, ``max_frames``, or
-        when a finite orbit or view script has shown its last view.
+        One `display_turn` after another, waiting in between for a host packet, a warp
+        made, or the next tick. Stops on ``stop`` / :attr:`stop_event`, Esc or a closed
+        window, ``max_frames``, or when a finite orbit or view script has shown its last
+        view.
         """
         stop_events = [self.stop_event] + ([stop] if stop is not None else [])
-        headless = getattr(self.presenter, "headless", True)
-        tick = _HEADLESS_TICK_S if headless else _TICK_S
-        orbit = self.orbit_spec.start(phi0_deg=0.0) if self.orbit_spec else None
-        waiting_for: tuple[float, float] | None = None  # steps/script: view not shown yet
+        self._orbit = (self.orbit_spec.start(self.clock(), phi0_deg=0.0)
+                       if self.orbit_spec else None)
+        self._waiting_for = None
+        item = None
         try:
             while not any(e.is_set() for e in stop_events):
-                now = time.monotonic()
-                for action in self.presenter.poll():
-                    self.apply(action)
-                model = self._models.take(0.0)
-                if model is not None:
-                    self._swap_model(model)
-                model = self._model
-                # orbit / scripted views: "steps" and scripts advance once the previous
-                # view was presented, "turn" follows the clock
-                if model is not None and (orbit is not None or self._script or waiting_for):
-                    shown = waiting_for is None or self._shown_view == waiting_for
-                    if orbit is not None and orbit.spec.kind == "turn":
-                        view = orbit.next_view(now)
-                        if view is None:
-                            break
-                        if view != self.view:
-                            self.set_view(*view)
-                    elif shown:
-                        view = (orbit.next_view(now) if orbit is not None
-                                else self._script.popleft() if self._script else None)
-                        if view is None:
-                            break
-                        self.set_view(*view)
-                        waiting_for = view
-                # A predicting device shows at most one blend per display refresh (_TICK_S,
-                # headless too: its benchmarks stand for a window) while its view moves: with
-                # a warp due the loop turns every _WARP_POLL_S, and a blend on every turn (a
-                # drag's or a clock-driven orbit's view moves on each) took the cores from the
-                # warp worker and the link (at 512 headless: 70 blends a second)
-                blend_in = 0.0
-                if self._view_dirty and model is not None:
-                    if (model.standalone is None and model.predictor is not None
-                            and now - self._blend_s < _TICK_S):
-                        blend_in = _TICK_S - (now - self._blend_s)
-                    else:
-                        self._view_dirty = False
-                        if model.standalone is not None:
-                            y = model.standalone.scores(*self.view)
-                            self._present(model, y, {"phi_deg": self.view[0],
-                                                     "theta_deg": self.view[1], "key": True},
-                                          warp=True)
-                        elif model.predictor is not None:
-                            self._blend_s = now
-                            self._predict_view(model)
-                        else:
-                            self.limiter.offer(self.view)
-                if not self.standalone:
-                    view = self.limiter.due(now)
-                    if view is not None:
-                        self._send_view_request(view, now)
-                    if self._need_key:
-                        self._request_keyframe()
-                wait = tick if not self.limiter.pending else min(tick,
-                                                                 self.limiter.min_interval_s)
-                if self._warp_due is not None:  # look for the warp often, input comes first
-                    wait = min(wait, _WARP_POLL_S)
-                if blend_in > 0.0:
-                    wait = min(wait, blend_in)
-                item = self._scores.take(wait if model is not None else tick)
-                if item is not None and item.model is self._model:
-                    d = item.scores
-                    try:
-                        if d.synthesized:
-                            self._correct(item)
-                            continue
-                        y = self._shown_scores(item)
-                        if y is not None:
-                            self._present(item.model, y, {
-                                "frame": d.frame, "phi_deg": d.phi_deg,
-                                "theta_deg": d.theta_deg, "key": d.is_key,
-                                "packet_bytes": d.packet_bytes, "sequence": item.sequence,
-                                "decode_s": 0.0, "corrected": d.predicted,
-                            })
-                            if (d.phi_deg, d.theta_deg) == self.view:
-                                self._warp_due = None  # the host's frame is the newer one
-                    except Exception as exc:
-                        # A frame that cannot be shown must not stop the device: skip it.
-                        self._frame_failed(d.frame, exc)
-                elif self._warp_due is not None:
-                    self._show_due_warp(model)
-                elif self._redraw and self._model is not None and self._last_y is not None:
-                    self._redraw = False
-                    overlay = self.overlay_lines() if self.presenter.overlay else None
-                    self.presenter.present(self._shown_frame, None, overlay_lines=overlay)
-                elif (not headless and self.presenter.overlay and self._model is not None
-                      and now - self._overlay_s > 0.25):
-                    # keep the overlay's numbers fresh a few times a second
-                    self._overlay_s = now
-                    self.presenter.present(self._shown_frame if self._last_y is not None
-                                           else self._model.reconstructor.frame, None,
-                                           overlay_lines=self.overlay_lines())
+                wait = self.display_turn(item)
+                if wait is None:
+                    break
+                item = self._scores.take(wait)
         finally:
             self.stop_event.set()
 
-    def _predict_view(self, model: LoadedModel) -> None:
-        """A predicting device's new view: its score blend at once, the view request, and
-        (an image with depth) the warp asked of the worker, shown by `_show_due_warp`; or,
-        when the worker made that view's warp ahead (steady motion), the warp at once."""
-        self._warp_due = None
-        if self._correction_due is not None:  # its view was left before its warp was made
-            self.runtime_stats.stale_dropped += 1
-            self._correction_due = None
-        made = None
-        worker = model.warp_worker
-        if worker is not None:
-            worker.request(self.view)
-            made = worker.take(self.view)
-        if made is not None:
-            self._own_warp = (self.view, made)
-            self._present_prediction(model, warped=made)
-        else:
-            self._present_prediction(model)
-            if worker is not None:
-                self._warp_due = self.view
-        self.limiter.offer(self.view)
-
-    def _show_due_warp(self, model: LoadedModel | None, timeout_s: float = 0.0) -> None:
-        """Replace the blend on show by the warp of its view once the worker has made it,
-        unless the view moved on (or a host frame for it came) since the blend was shown."""
-        due = self._warp_due
-        if due is None or model is None or model.warp_worker is None:
-            self._warp_due = None
-            return
-        if due != self.view or self._view_dirty:
-            self._warp_due = None  # the user has moved on: a newer blend comes first
-            return
-        frame = model.warp_worker.take(due, timeout_s)
-        if frame is None:
-            return  # not made yet: look again on the next turn
-        self._warp_due = None
-        self._own_warp = (due, frame)
-        item = self._correction_due
-        if item is not None and (item.scores.phi_deg, item.scores.theta_deg) == due:
-            self._correction_due = None
-            self._show_corrected(item, frame)  # the host's correction came first
-            return
-        self._present_prediction(model, warped=frame)
-
-    def _correct(self, item: ScoreItem) -> None:
-        """A correction of the device's own frame of the packet's view (version 3): show
-        that frame corrected, at once when the frame is at hand (a blend, or the warp made
-        already), else once the warp worker has made it (`_show_due_warp`). A correction for
-        a view the user has left is dropped; a host-driven one (sequence 0: ``serve
-        --orbit``) moves the view."""
-        d, model = item.scores, item.model
-        view = (d.phi_deg, d.theta_deg)
-        stats = self.runtime_stats
-        if model.predictor is None:  # checked on decode; kept for safety
-            stats.corrections_without_table += 1
-            return
-        if item.sequence and view != self.view:
-            stats.stale_dropped += 1
-            return
-        if not item.sequence and view != self.view:
-            self.view = view  # the host drives the view
-        if model.warp_worker is None:  # the device's own frame is the blend
-            synth = (None if self._synth_view == view
-                     else model.reconstructor.update(model.predictor(*view)))
-            self._show_corrected(item, synth)
-        elif self._synth_view == view:
-            self._show_corrected(item, None)
-        elif self._own_warp is not None and self._own_warp[0] == view:
-            self._show_corrected(item, self._own_warp[1])
-        else:  # the warp of the view is not made yet: show it corrected once it is
-            if self._correction_due is not None:  # a newer one replaces it, never shown
-                self._superseded += 1
-            self._correction_due = item
-            if self._warp_due != view:
-                model.warp_worker.request(view)
-                self._warp_due = view
-
-    def _show_corrected(self, item: ScoreItem, synth: np.ndarray | None) -> None:
-        """Present ``synth`` (None: the one the display reconstructor holds) corrected by
-        the packet's scores (`Reconstructor.correct`)."""
-        d, model = item.scores, item.model
-        view = (d.phi_deg, d.theta_deg)
-        t0 = time.perf_counter()
-        frame = model.reconstructor.correct(d.y, synth)
-        self.runtime_stats.correct_s.add(time.perf_counter() - t0)
-        self._synth_view = view
-        self.runtime_stats.corrected_frames += 1
-        if self._warp_due == view:
-            self._warp_due = None  # the corrected frame is the newer one
-        self._present(model, d.y, {
-            "frame": d.frame, "phi_deg": d.phi_deg, "theta_deg": d.theta_deg, "key": False,
-            "packet_bytes": d.packet_bytes, "sequence": item.sequence, "decode_s": 0.0,
-            "corrected": True}, frame=frame)
-
-    def _present_prediction(self, model: LoadedModel, *,
-                            warped: np.ndarray | None = None) -> None:
-        """Show the device's own prediction of the current view (no bytes, no latency).
-
-        ``warped`` (an image with depth, once the blend is on show): the picture is this
-        warp of the neighbours (`WarpWorker`), as a standalone device shows; the scores kept
-        (a correction adds to them) are still the score prediction, the same on both sides
-        (`device_runtime.prediction`)."""
-        assert model.predictor is not None
-        y = model.predictor(*self.view)
-        if warped is None:
-            self.runtime_stats.predicted_frames += 1
-        self._present(model, y, {"phi_deg": self.view[0], "theta_deg": self.view[1],
-                                 "key": False, "predicted": True}, warped=warped)
-
-    def _shown_scores(self, item: ScoreItem) -> np.ndarray | None:
-        """The scores to show for a decoded packet, or None when it is stale.
-
-        A device that predicts shows a packet answering a view request (sequence > 0) only
-        while its view is still the one on show (else the prediction already shows a newer
-        view); a correction is added to the prediction of the packet's view. Host-driven
-        packets (sequence 0: ``serve --orbit``) are shown whatever the current view.
-        """
-        d, model = item.scores, item.model
-        view = (d.phi_deg, d.theta_deg)
-        if model.predictor is not None and item.sequence and view != self.view:
-            self.runtime_stats.stale_dropped += 1
+    def display_turn(self, item: ScoreItem | None = None) -> float | None:
+        """One turn of the display loop, without waiting: input, a new image, the orbit or
+        script, the host packet ``item`` (taken from the slot), the frame the policy picks
+        (`FrameScheduler`), the requests due. Returns how long the loop may wait for the
+        next packet or warp before the next turn, seconds; None: a finite orbit or script
+        is over."""
+        now = self.clock()
+        for action in self.presenter.poll():
+            self.apply(action)
+        new = self._models.take(0.0)
+        if new is not None:
+            self._swap_model(new)
+        model = self._model
+        if model is not None and not self._drive_view(model, now):
             return None
-        if not d.predicted:
-            return d.y
-        if model.predictor is None:  # checked on decode; kept for safety
-            self.runtime_stats.corrections_without_table += 1
-            return None
-        self.runtime_stats.corrected_frames += 1
-        return corrected(model.predictor(*view), d.y)
+        if item is not None and item.model is model:
+            self._show_item(item)
+        wait = self.tick_s
+        if self._view_dirty and model is not None:
+            blend_in = self._blend_wait(model, now)
+            if blend_in > 0.0:
+                wait = blend_in
+            else:
+                self._view_dirty = False
+                self._show_view(model, now)
+        elif model is not None and model.shown.warp_due is not None:
+            self._show_due_warp(model)
+        elif self._redraw and model is not None and model.shown.last_y is not None:
+            self._redraw = False
+            overlay = self.overlay_lines() if self.presenter.overlay else None
+            self.presenter.present(self._shown_frame, None, overlay_lines=overlay)
+        elif (self.presenter.overlay and not getattr(self.presenter, "headless", True)
+              and model is not None and now - self._overlay_s > 0.25):
+            # keep the overlay's numbers fresh a few times a second
+            self._overlay_s = now
+            self.presenter.present(self._shown_frame if model.shown.last_y is not None
+                                   else model.reconstructor.frame, None,
+                                   overlay_lines=self.overlay_lines())
+        if not self.standalone:
+            view = self.limiter.due(now)
+            if view is not None:
+                self._send_view_request(view, now)
+            if self._need_key:
+                self._request_keyframe()
+            if self.limiter.pending:
+                wait = min(wait, self.limiter.min_interval_s)
+        if self._orbit is not None and self._orbit.spec.kind == "turn":
+            wait = min(wait, self._next_tick(now) - now)
+        return max(0.0, wait)
+
+    def _next_tick(self, now: float) -> float:
+        """The first display tick after ``now`` (ticks counted from the orbit's start)."""
+        start = self._orbit.start_s if self._orbit is not None else 0.0
+        return start + (math.floor((now - start) / self.tick_s) + 1) * self.tick_s
+
+    def _drive_view(self, model: LoadedModel, now: float) -> bool:
+        """Move the view along the orbit or script: a ``turn`` follows the clock one tick at
+        a time, ``steps`` and scripted views advance once the previous view's best frame is
+        on show (`ShownState.settled`). False: the orbit or script is over."""
+        orbit = self._orbit
+        if orbit is None and not self._script and self._waiting_for is None:
+            return True
+        if orbit is not None and orbit.spec.kind == "turn":
+            # the orbit's view at the last tick: steady steps the warp worker can predict
+            tick = self._next_tick(now) - self.tick_s
+            view = orbit.next_view(max(tick, orbit.start_s))
+            if view is None:
+                return False
+            if view != self.view:
+                self.set_view(*view)
+            return True
+        if self._waiting_for is None or model.shown.settled == self._waiting_for:
+            view = (orbit.next_view(now) if orbit is not None
+                    else self._script.popleft() if self._script else None)
+            if view is None:
+                return False
+            self.set_view(*view)
+            self._waiting_for = self.view
+        return True
 
     def _frame_failed(self, frame: int, exc: BaseException) -> None:
         """Count a frame the display could not show; log the first one of a run of them."""

@@ -28,6 +28,7 @@ class LatestSlot:
         self._cond = threading.Condition()
         self._item: Any = None
         self._full = False
+        self._woken = False
         self.replaced = 0
 
     def put(self, item: Any) -> None:
@@ -40,18 +41,22 @@ class LatestSlot:
             self._cond.notify_all()
 
     def take(self, timeout_s: float = 0.0) -> Any:
-        """Return the item and empty the slot; None if nothing arrives within ``timeout_s``."""
+        """Return the item and empty the slot; None if nothing arrives within ``timeout_s``
+        or `wake` is called meanwhile."""
         with self._cond:
-            if not self._full and timeout_s > 0:
-                self._cond.wait_for(lambda: self._full, timeout_s)
+            if not self._full and not self._woken and timeout_s > 0:
+                self._cond.wait_for(lambda: self._full or self._woken, timeout_s)
+            self._woken = False
             if not self._full:
                 return None
             item, self._item, self._full = self._item, None, False
             return item
 
     def wake(self) -> None:
-        """Wake a waiting :meth:`take` (it returns None)."""
+        """Make the current or next waiting :meth:`take` return at once (None when the slot
+        is empty): something else is ready for the taker."""
         with self._cond:
+            self._woken = True
             self._cond.notify_all()
 
 

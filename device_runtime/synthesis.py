@@ -623,6 +623,9 @@ class WarpWorker:
     ----------
     synthesis : ViewSynthesizer
         Used by this worker's thread only (it has its own reconstructor and cache).
+    on_made : callable, optional
+        Called (on the worker's thread, without arguments) when the warp of a requested
+        view is made and waits to be taken: the display wakes for it instead of polling.
 
     Attributes
     ----------
@@ -658,8 +661,9 @@ class WarpWorker:
     AHEAD_ANGLE_TOL = AHEAD_SNAP_DEG
     AHEAD_TIME_TOL = 0.5
 
-    def __init__(self, synthesis: Any) -> None:
+    def __init__(self, synthesis: Any, on_made: Callable[[], None] | None = None) -> None:
         self.synthesis = synthesis
+        self._on_made = on_made
         self._cond = threading.Condition()
         self._pending: tuple[float, float] | None = None
         self._pending_t = 0.0
@@ -884,15 +888,18 @@ class WarpWorker:
                 self._probe = False
                 self._current = None
                 ahead, self._speculative = self._speculative, False
+                made = False
                 if self._pending == view:
                     self._pending, self._urgent = None, False
-                    self._result = (view, frame)
+                    self._result, made = (view, frame), True
                     self._cond.notify_all()
                 elif self._pending is None:
                     if ahead:
                         self._ahead = (view, frame)  # until its view is asked
                     else:
-                        self._result = (view, frame)
+                        self._result, made = (view, frame), True
                         self._cond.notify_all()
                 else:
                     self.dropped += 1
+            if made and self._on_made is not None:
+                self._on_made()

@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 
 import numpy as np
 import pytest
 from provision_helpers import KEY, mem_name
 from runtime_helpers import RuntimeThread, serve_cli, steady_requests, wait_until
 
+from device_runtime.device import DeviceConfig
 from device_runtime.orbit import canonical_view
 from device_runtime.prediction import OwnFrames, Predictor
 from device_runtime.reconstruct import Reconstructor
@@ -646,3 +648,163 @@ def test_a_device_image_without_depth_or_table_still_loads(model_path):
     finally:
         built.close()
     assert isinstance(Predictor(image), Predictor)
+
+
+# --------------------------------------------------------------------------- image swaps
+
+
+@pytest.fixture(scope="module")
+def second_depth_model_path(depth_model_path):
+    """Another image of the same database (another threshold: another eigenspace, another
+    digest), signed with the same key."""
+    root = depth_model_path.parent
+    out = root / "tooth-b.ecs"
+    assert eigencast(["fit", str(root / "tooth.cdb"), "-o", str(out), "--cell", "12",
+                      "--threshold", "0.95", "--key", str(root / "device.key")]) == 0
+    return out
+
+
+def _serve_until_rest(url: str, image_path, target, frames: list) -> list:
+    """Serve ``image_path`` to the device on ``url`` until the complete correction of
+    ``target`` is shown; the (packet, view) pairs the host sent."""
+    model = HostModel.load(image_path)
+    sent: list = []
+    stop = threading.Event()
+    thread = threading.Thread(target=lambda: serve(
+        image_path, url, key=KEY, stop=stop, log=_quiet,
+        on_frame=lambda enc, view: sent.append((enc, view))), daemon=True)
+    thread.start()
+    try:
+        wait_until(lambda: any(v == target and _fine(e, model) for e, v in sent), 60,
+                   "the complete correction at rest")
+        last = [e for e, v in sent if v == target][-1].frame
+        wait_until(lambda: any(i.get("frame") == last and i.get("corrected")
+                               for _, i in frames[-3:]), 30, "it shown")
+    finally:
+        stop.set()
+        thread.join(20)
+    return sent
+
+
+def test_a_live_image_swap_at_rest_shows_the_new_images_corrected_frame(
+        tmp_path, depth_model_path, second_depth_model_path):
+    """Serve image A to a device resting on a view, provision image B, serve B: the device's
+    frame at rest is B's own frame of the view corrected by B's packets, bit for bit what the
+    host believes is on screen (a swap that kept A's warp or A's frame in the reconstructor
+    dropped every correction, or corrected A's frame with B's scores)."""
+    name = mem_name("swap")
+    frames: list = []
+    device = _provisioned_device(tmp_path, name, depth_model_path, frames)
+    target = canonical_view(47.0, 23.0)
+    url = f"mem://{name}?end=a"
+    with device:
+        device.device.set_view(*target)
+        _serve_until_rest(url, depth_model_path, target, frames)
+        dropped = device.device.runtime_stats.stale_dropped
+        provision(second_depth_model_path, url, key=KEY, show_progress=False, log=_quiet)
+        wait_until(lambda: device.device._model is not None
+                   and device.device._model.image.digest == read_image(
+                       second_depth_model_path, key=KEY).digest, 30, "image B on show")
+        swapped = len(frames)
+        sent = _serve_until_rest(url, second_depth_model_path, target, frames)
+        assert device.device.view == target  # the device rested on the view throughout
+    b = HostModel.load(second_depth_model_path)
+    own = OwnFrames(b.image)
+    decoder = _decoder(b)
+    by_frame = {e.frame: decoder.decode(e.packet).y for e, v in sent if v == target}
+    corrected = [(f, i) for f, i in frames[swapped:] if i.get("corrected")]
+    assert corrected and device.device.runtime_stats.stale_dropped == dropped
+    for f, i in corrected:
+        np.testing.assert_array_equal(f, own.corrected(own.frame(*target), by_frame[i["frame"]]))
+
+
+def _reachable(root, depth: int = 3) -> list:
+    """The objects reachable from ``root``'s attributes within ``depth`` steps (containers
+    and dataclasses followed; arrays, images and threads are leaves)."""
+    seen, out, todo = set(), [], [(v, 0) for v in vars(root).values()]
+    while todo:
+        obj, d = todo.pop()
+        if id(obj) in seen or obj is None or isinstance(obj, (int, float, str, bytes, bool)):
+            continue
+        seen.add(id(obj))
+        out.append(obj)
+        if d >= depth or isinstance(obj, np.ndarray):
+            continue
+        if isinstance(obj, dict):
+            todo += [(v, d + 1) for v in obj.values()]
+        elif isinstance(obj, (list, tuple, set, frozenset)) or type(obj).__name__ == "deque":
+            todo += [(v, d + 1) for v in obj]
+        elif dataclasses.is_dataclass(obj):
+            todo += [(getattr(obj, f.name), d + 1) for f in dataclasses.fields(obj)]
+    return out
+
+
+@pytest.mark.parametrize("state", ["resting", "moving", "warping ahead", "correcting"])
+def test_an_image_swap_in_any_display_state_keeps_nothing_of_the_old_image(
+        tmp_path, depth_model_path, second_depth_model_path, state):
+    """Whatever the display was doing with image A (resting on a corrected warp, moving with
+    a blend on show and its warp due, a view warped ahead, a correction waiting for its
+    warp), activating image B replaces all of it: nothing of A is reachable from the device,
+    A's worker is stopped, and B's first frame is B's own frame of the view."""
+    image_a = read_image(depth_model_path, key=KEY)
+    image_b = read_image(second_depth_model_path, key=KEY)
+    shown: list = []
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY), predict=True,
+                           view=(47.0, 23.0), log=_quiet,
+                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
+    a = LoadedModel.build(image_a, slot="A", generation=1, test=False, want_predictor=True)
+    b = LoadedModel.build(image_b, slot="B", generation=2, test=False, want_predictor=True)
+    try:
+        device._swap_model(a)
+        view = device.view
+        model_a = HostModel.load(depth_model_path)
+        delta = np.random.default_rng(5).normal(0, 3 * model_a.score_step,
+                                                image_a.n_coefficients)
+        decoded = _decoder(model_a).decode(
+            CorrectionEncoder(model_a).encode(view, scores=delta, fine=True).packet)
+        item = ScoreItem(a, decoded, 1, 0.0)
+        if state == "resting":  # the warp, then its correction
+            device._show_due_warp(a, timeout_s=30)
+            device._show_item(item)
+            assert shown[-1][1].get("corrected")
+        elif state == "moving":  # a new view's blend on show, its warp due
+            device.set_view(120.0, -10.0)
+            device._view_dirty = False
+            device._show_view(a, time.monotonic())
+            assert a.shown.warp_due == device.view
+        elif state == "warping ahead":
+            views = [canonical_view(60.0 + 3.0 * i, 20.0) for i in range(3)]
+            for v in views:
+                a.warp_worker.request(v)
+                assert a.warp_worker.take(v, timeout_s=30) is not None
+            steady_requests(a.warp_worker, views)
+            wait_until(lambda: a.warp_worker._ahead is not None, 30, "a view warped ahead")
+        else:  # a correction that came before its warp
+            device.set_view(200.0, 5.0)
+            device._view_dirty = False
+            device._show_view(a, time.monotonic())
+            moved = device.view
+            item = ScoreItem(a, dataclasses.replace(decoded, phi_deg=moved[0],
+                                                    theta_deg=moved[1]), 2, 0.0)
+            a.shown.own_warp = None
+            device._correct(item)
+            assert a.shown.correction_due is item
+        old = {id(x) for x in (a, a.shown, a.reconstructor, a.warp_worker, a.synthesis,
+                               a.decoder, *(f for f, _ in shown))}
+        # (views are plain tuples of floats, the same values whatever the image)
+        kept = [getattr(a.shown, f.name) for f in dataclasses.fields(a.shown)]
+        old |= {id(x) for x in kept if x is not None and not isinstance(x, tuple)}
+        if a.shown.own_warp is not None:
+            old.add(id(a.shown.own_warp[1]))
+        device._swap_model(b)
+        assert not a.warp_worker._thread.is_alive()
+        leaked = [type(x).__name__ for x in _reachable(device) if id(x) in old]
+        assert not leaked, leaked
+        np.testing.assert_array_equal(shown[-1][0], Reconstructor.from_image(image_b).update(
+            b.own_scores(device.view)))  # B's own frame: its blend, then its warp
+        device._show_due_warp(b, timeout_s=30)
+        np.testing.assert_array_equal(shown[-1][0], OwnFrames(image_b).frame(*device.view))
+    finally:
+        device.close()
+        a.close()
+        b.close()

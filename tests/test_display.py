@@ -20,6 +20,7 @@ from device_runtime.display import (
     Window,
     Zoom,
     encode_png,
+    frame_kind,
 )
 
 pygame = pytest.importorskip("pygame")
@@ -148,7 +149,9 @@ def test_headless_presenter_writes_every_nth_frame_and_a_log(tmp_path):
     assert [r["shown"] for r in rows] == ["0", "3", "6"]  # the display's frame counter
     assert [r["host_frame"] for r in rows] == ["100", "", "106"]
     assert rows[1]["phi_deg"] == "4.5" and rows[0]["key"] == "1"
-    assert [r["kind"] for r in rows] == ["key", "own", "corrected"]
+    assert [r["kind"] for r in rows] == ["key", "blend", "corrected"]
+    assert frame_kind({"phi_deg": 1.0, "theta_deg": 2.0, "predicted": True,
+                       "synthesized": True}) == "warp"
     for row in rows:
         index = int(row["shown"])
         got = np.asarray(Image.open(tmp_path / "out" / row["file"]))

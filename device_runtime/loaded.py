@@ -1,0 +1,174 @@
+"""The active image on a device, and everything the device holds of it, in one object.
+
+`LoadedModel` is built when an image is activated (at boot, or when a new image is
+committed) and replaced whole on the next activation: its reconstruction, its score decoder
+(delta bases), its standalone table or predictor, its view synthesis and warp worker, and
+what the display has made of it (the own frame on show, the warp due, a correction waiting
+for its warp, the scores of the frame on show). Nothing about an image lives in a loose
+attribute of the runtime, so a live image swap cannot leave a frame of the old image to be
+corrected with the new image's scores. `ScoreItem` is a decoded packet bound to the model
+that decoded it: the display drops one whose model is no longer on show.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from device_runtime.prediction import Predictor, can_predict
+from device_runtime.reconstruct import Reconstructor
+from device_runtime.standalone import StandaloneScores
+from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
+from protocol.image import EigenspaceImage
+from protocol.scores import DecodedScores, ScoreDecoder, score_bound
+
+__all__ = ["LoadedModel", "ScoreItem", "ShownState"]
+
+View = tuple[float, float]
+
+
+@dataclass
+class ShownState:
+    """What the display has made of one image (display thread only; replaced with it).
+
+    Attributes
+    ----------
+    synth_view : (float, float) or None
+        The view whose own frame the display reconstructor holds for corrections (the frame
+        last handed to `Reconstructor.correct`): another correction of it needs no frame.
+    own_warp : ((float, float), ndarray) or None
+        The newest warp the worker made for the display: a correction of its view corrects
+        it.
+    warp_due : (float, float) or None
+        The view whose warp the display waits for (its blend is on show).
+    correction_due : ScoreItem or None
+        A correction that came before the warp of its view.
+    last_y : ndarray or None
+        The scores of the frame on show.
+    blend_s : float
+        When the display last made a blend of a moved view (one per tick at most).
+    settled : (float, float) or None
+        The view whose best own frame is on show (its warp, its blend when the image does
+        not warp, or a host's frame of it): a scripted view moves on once it is.
+    """
+
+    synth_view: View | None = None
+    own_warp: tuple[View, np.ndarray] | None = None
+    warp_due: View | None = None
+    correction_due: ScoreItem | None = None
+    last_y: np.ndarray | None = None
+    blend_s: float = -math.inf
+    settled: View | None = None
+
+
+@dataclass
+class LoadedModel:
+    """An active eigenspace ready to show, and what the display has made of it.
+
+    Attributes
+    ----------
+    image : EigenspaceImage
+    reconstructor : Reconstructor
+        The display's (blends, host frames, corrected frames).
+    decoder : ScoreDecoder
+        Bounded by the image's K; keeps this image's delta bases.
+    slot, generation, test, confirmed
+        Where the image lives in flash and whether its TEST boot is confirmed yet.
+    standalone : StandaloneScores or None
+        A standalone device's scores of any view (its table).
+    predictor : Predictor or None
+        A served device's own prediction of any view (the same table), which the host's
+        corrections add to.
+    synthesis : ViewSynthesizer or None
+        The depth warp (an image fitted with depth and a table), on the worker's own
+        reconstructor.
+    warp_worker : WarpWorker or None
+        Makes the warps off the display thread (standalone and served alike).
+    shown : ShownState
+        What the display has made of this image.
+    """
+
+    image: EigenspaceImage
+    reconstructor: Reconstructor
+    decoder: ScoreDecoder
+    slot: str
+    generation: int
+    test: bool
+    standalone: StandaloneScores | None = None
+    confirmed: bool = False
+    predictor: Predictor | None = None
+    synthesis: ViewSynthesizer | None = None
+    warp_worker: WarpWorker | None = None
+    shown: ShownState = field(default_factory=ShownState)
+
+    @classmethod
+    def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
+              max_packet_bytes: int | None = None, want_standalone: bool = False,
+              want_predictor: bool = False,
+              on_warp: Callable[[], None] | None = None) -> LoadedModel:
+        """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data
+        and (``want_predictor``, when the image has a table) the predictor; with either and
+        an image with depth, the view synthesis (sharing the table) and its warp worker
+        (``on_warp`` is called when a warp the display asked for is made).
+
+        The display's reconstructor runs on two threads when the machine has two CPUs and
+        the eigenspace is large (``threads="auto"``); its frames are the same bit for bit.
+        The warp worker reconstructs the neighbours with a single-threaded one of its own.
+        """
+        standalone = StandaloneScores(image) if want_standalone else None
+        decoder = ScoreDecoder(
+            image.n_coefficients,
+            image.digest or bytes(32),
+            n_components=image.n_components,
+            max_packet_bytes=max_packet_bytes,
+            max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
+        )
+        predictor = (Predictor(image) if want_predictor and not want_standalone
+                     and can_predict(image) else None)
+        table = standalone if standalone is not None else (
+            predictor.standalone if predictor is not None else None)
+        reconstructor = Reconstructor.from_image(image, threads="auto")
+        synthesis = worker = None
+        try:
+            if table is not None and image.synthesis is not None:
+                synthesis = ViewSynthesizer(image, table, Reconstructor.from_image(
+                    image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
+                worker = WarpWorker(synthesis, on_made=on_warp)
+        except BaseException:
+            reconstructor.close()
+            raise
+        return cls(image, reconstructor, decoder, slot, generation, test, standalone,
+                   predictor=predictor, synthesis=synthesis, warp_worker=worker)
+
+    @property
+    def own_frames(self) -> bool:
+        """The device makes its own frames of any view (standalone, or a predicting device)."""
+        return self.standalone is not None or self.predictor is not None
+
+    def own_scores(self, view: View) -> np.ndarray:
+        """The device's own scores (K,) float32 of a canonical view: the table interpolated."""
+        if self.standalone is not None:
+            return self.standalone.scores(*view)
+        assert self.predictor is not None
+        return self.predictor(*view)
+
+    def close(self) -> None:
+        """Stop the warp worker, then free the reconstructors its warps and the display use."""
+        if self.warp_worker is not None:  # before the reconstructor its warps use
+            self.warp_worker.close()
+        self.reconstructor.close()
+        if self.synthesis is not None:
+            self.synthesis.reconstructor.close()
+
+
+@dataclass(frozen=True)
+class ScoreItem:
+    """One decoded packet handed from the dispatcher to the display loop."""
+
+    model: LoadedModel
+    scores: DecodedScores
+    sequence: int
+    received_s: float
