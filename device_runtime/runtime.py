@@ -62,6 +62,7 @@ import collections
 import contextlib
 import dataclasses
 import math
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -128,6 +129,8 @@ DEFAULT_FPS = 60.0
 """Display ticks per second of a window."""
 HEADLESS_FPS = 30.0
 """Display ticks per second without a screen (a board's display rate)."""
+SWITCH_INTERVAL_S = 0.001
+"""The interpreter's thread switch interval while the display loop runs, seconds."""
 
 
 # --------------------------------------------------------------------------- runtime
@@ -221,6 +224,7 @@ class RuntimeDevice(FrameScheduler, Device):
         self._shown_view: tuple[Any, Any] = (None, None)
         self._link_bytes: collections.deque = collections.deque(maxlen=64)
         self._orbit: Any = None  # the running orbit (display loop)
+        self._tick0 = clock()  # when the display's tick 0 began (reset by run_display)
         self._waiting_for: tuple[float, float] | None = None  # a scripted view not shown yet
         super().__init__(config, log=log)
 
@@ -525,15 +529,21 @@ class RuntimeDevice(FrameScheduler, Device):
         """The display loop (call on the main thread); returns when stopped or finished.
 
         One `display_turn` after another, waiting in between for a host packet, a warp
-        made, or the next tick. Stops on ``stop`` / :attr:`stop_event`, Esc or a closed
-        window, ``max_frames``, or when a finite orbit or view script has shown its last
-        view.
+        made, or the next tick (ticks of ``1 / fps`` seconds from the loop's start: input is
+        read and a moved view's frame made at the start of each). Stops on ``stop`` /
+        :attr:`stop_event`, Esc or a closed window, ``max_frames``, or when a finite orbit
+        or view script has shown its last view.
         """
         stop_events = [self.stop_event] + ([stop] if stop is not None else [])
-        self._orbit = (self.orbit_spec.start(self.clock(), phi0_deg=0.0)
+        self._tick0 = self.clock()
+        self._orbit = (self.orbit_spec.start(self._tick0, phi0_deg=0.0)
                        if self.orbit_spec else None)
         self._waiting_for = None
         item = None
+        switch = sys.getswitchinterval()
+        # the display's thread takes the interpreter back from the warp worker within a
+        # millisecond, not Python's default 5 ms (a third of a board's tick at 3x)
+        sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
         try:
             while not any(e.is_set() for e in stop_events):
                 wait = self.display_turn(item)
@@ -541,6 +551,7 @@ class RuntimeDevice(FrameScheduler, Device):
                     break
                 item = self._scores.take(wait)
         finally:
+            sys.setswitchinterval(switch)
             self.stop_event.set()
 
     def display_turn(self, item: ScoreItem | None = None) -> float | None:
@@ -549,6 +560,12 @@ class RuntimeDevice(FrameScheduler, Device):
         (`FrameScheduler`), the requests due. Returns how long the loop may wait for the
         next packet or warp before the next turn, seconds; None: a finite orbit or script
         is over."""
+        worker = self._model.warp_worker if self._model is not None else None
+        with worker.display_first() if worker is not None else contextlib.nullcontext():
+            return self._turn(item)
+
+    def _turn(self, item: ScoreItem | None) -> float | None:
+        """`display_turn`'s work."""
         now = self.clock()
         for action in self.presenter.poll():
             self.apply(action)
@@ -589,14 +606,18 @@ class RuntimeDevice(FrameScheduler, Device):
                 self._request_keyframe()
             if self.limiter.pending:
                 wait = min(wait, self.limiter.min_interval_s)
-        if self._orbit is not None and self._orbit.spec.kind == "turn":
-            wait = min(wait, self._next_tick(now) - now)
-        return max(0.0, wait)
+        return max(0.0, min(wait, self._next_tick(now) - now))
+
+    def _tick_of(self, t: float) -> int:
+        """The display tick ``t`` falls in (ticks counted from the loop's start; -inf: before
+        any)."""
+        if not math.isfinite(t):
+            return -(1 << 62)
+        return math.floor((t - self._tick0) / self.tick_s)
 
     def _next_tick(self, now: float) -> float:
-        """The first display tick after ``now`` (ticks counted from the orbit's start)."""
-        start = self._orbit.start_s if self._orbit is not None else 0.0
-        return start + (math.floor((now - start) / self.tick_s) + 1) * self.tick_s
+        """When the display tick after ``now`` begins."""
+        return self._tick0 + (self._tick_of(now) + 1) * self.tick_s
 
     def _drive_view(self, model: LoadedModel, now: float) -> bool:
         """Move the view along the orbit or script: a ``turn`` follows the clock one tick at
@@ -606,9 +627,8 @@ class RuntimeDevice(FrameScheduler, Device):
         if orbit is None and not self._script and self._waiting_for is None:
             return True
         if orbit is not None and orbit.spec.kind == "turn":
-            # the orbit's view at the last tick: steady steps the warp worker can predict
-            tick = self._next_tick(now) - self.tick_s
-            view = orbit.next_view(max(tick, orbit.start_s))
+            # the orbit's view at this tick: steady steps the warp worker can predict
+            view = orbit.next_view(self._next_tick(now) - self.tick_s)
             if view is None:
                 return False
             if view != self.view:

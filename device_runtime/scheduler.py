@@ -48,11 +48,11 @@ class FrameScheduler:
     # ------------------------------------------------------------------ the view moved
     def _blend_wait(self, model: LoadedModel, now: float) -> float:
         """Seconds until the display may make the next blend of a moved view (0: now): one
-        per tick, so a view that moves on every turn of the loop (a drag, a clock-driven
-        orbit) leaves the core to the warp worker and the link."""
-        if not model.own_frames:
+        per display tick, so a view that moves on every turn of the loop (a drag, a
+        clock-driven orbit) leaves the core to the warp worker and the link."""
+        if not model.own_frames or self._tick_of(model.shown.blend_s) < self._tick_of(now):
             return 0.0
-        return max(0.0, model.shown.blend_s + self.tick_s - now)
+        return max(0.0, self._next_tick(now) - now)
 
     def _show_view(self, model: LoadedModel, now: float) -> None:
         """The view moved: its warp when the worker made it ahead, else its blend (the warp
@@ -257,4 +257,10 @@ class FrameScheduler:
     _superseded: int
 
     def clock(self) -> float:  # RuntimeDevice's (monotonic seconds)
+        raise NotImplementedError
+
+    def _tick_of(self, t: float) -> int:  # RuntimeDevice's
+        raise NotImplementedError
+
+    def _next_tick(self, now: float) -> float:  # RuntimeDevice's
         raise NotImplementedError

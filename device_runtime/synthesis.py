@@ -41,11 +41,12 @@ Perspective databases only (``fit --depth`` refuses the others).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -659,7 +660,9 @@ class WarpWorker:
     #: steady motion (the float32 rounding of constant steps: a hand's drag is not; a guess
     #: that will not be asked costs a warp); how far apart in time (of the interval).
     AHEAD_ANGLE_TOL = AHEAD_SNAP_DEG
-    AHEAD_TIME_TOL = 0.5
+    AHEAD_TIME_TOL = 1.0
+    #: The longest a warp waits at one check for the display to finish its frame, seconds.
+    YIELD_S = 0.1
 
     def __init__(self, synthesis: Any, on_made: Callable[[], None] | None = None) -> None:
         self.synthesis = synthesis
@@ -673,6 +676,8 @@ class WarpWorker:
         self._result: tuple[tuple[float, float], np.ndarray] | None = None
         self._current: tuple[float, float] | None = None  # the view being warped
         self._closed = False
+        self._display_idle = threading.Event()  # cleared while the display makes a frame
+        self._display_idle.set()
         self._last_request_t: float | None = None
         self.interval_s: float | None = None  # recent request interval (None: at rest)
         self.warp_s: float | None = None
@@ -816,10 +821,24 @@ class WarpWorker:
             return None
         return view
 
+    @contextlib.contextmanager
+    def display_first(self) -> Iterator[None]:
+        """While the display thread makes and presents a frame, the warp in flight pauses at
+        its next check (`YIELD_S` at most): on one core the display's tick comes first, and
+        two threads sharing the interpreter lock would otherwise hand it over at every numpy
+        call of the blend."""
+        self._display_idle.clear()
+        try:
+            yield
+        finally:
+            self._display_idle.set()
+
     def _superseded(self) -> bool:
         """Another view was asked (or the worker is closing): the warp in flight is moot.
-        Read without the lock: attribute reads, and a stale answer only delays the give-up
-        to the next check."""
+        Waits first while the display makes a frame (`display_first`). Read without the
+        lock: attribute reads, and a stale answer only delays the give-up to the next
+        check."""
+        self._display_idle.wait(self.YIELD_S)
         pending = self._pending
         return self._closed or (pending is not None and pending != self._current)
 
