@@ -259,7 +259,7 @@ def measure(shown: list, inputs: list, trace: str, t0: float, t_rest: float, t_e
     from device_runtime.orbit import canonical_view
 
     times = np.array([t for t, _, _ in shown])
-    n_ticks = int(round((t_end - t0) / tick))
+    n_ticks = round((t_end - t0) / tick)
     on_time, warp, late_run, worst = 0, 0, 0, 0
     in_times = np.array([t for t, _ in inputs])
     for k in range(n_ticks):

@@ -18,14 +18,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from device_runtime.layers import RestFrame
 from device_runtime.prediction import Predictor, can_predict
 from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import StandaloneScores
 from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
 from protocol.image import EigenspaceImage
+from protocol.layers import LayerPacket
 from protocol.scores import DecodedScores, ScoreDecoder, score_bound
 
-__all__ = ["LoadedModel", "ScoreItem", "ShownState"]
+__all__ = ["LayerItem", "LoadedModel", "ScoreItem", "ShownState"]
 
 View = tuple[float, float]
 
@@ -53,6 +55,13 @@ class ShownState:
     settled : (float, float) or None
         The view whose best own frame is on show (its warp, its blend when the image does
         not warp, or a host's frame of it): a scripted view moves on once it is.
+    base : ((float, float), int) or None
+        What refinement layers may refine on show now: a view and the frame number of its
+        correction (0: the device's own frame of it, uncorrected); None: nothing (a blend
+        while the warp is made, a host's full frame).
+    rest : RestFrame or None
+        The resting view's frame that layers refine (made from the frame on show at the
+        first layer; gone when the view or its correction changes).
     """
 
     synth_view: View | None = None
@@ -62,6 +71,8 @@ class ShownState:
     last_y: np.ndarray | None = None
     blend_s: float = -math.inf
     settled: View | None = None
+    base: tuple[View, int] | None = None
+    rest: RestFrame | None = None
 
 
 @dataclass
@@ -162,6 +173,14 @@ class LoadedModel:
         self.reconstructor.close()
         if self.synthesis is not None:
             self.synthesis.reconstructor.close()
+
+
+@dataclass(frozen=True)
+class LayerItem:
+    """A refinement layer (header checked) handed from the dispatcher to the display."""
+
+    model: LoadedModel
+    packet: LayerPacket
 
 
 @dataclass(frozen=True)

@@ -81,7 +81,7 @@ from device_runtime.display import (
     Zoom,
 )
 from device_runtime.errors import DeviceError, FlashError
-from device_runtime.loaded import LoadedModel, ScoreItem
+from device_runtime.loaded import LayerItem, LoadedModel, ScoreItem
 from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
 from device_runtime.scheduler import FrameScheduler
 from device_runtime.slots import LatestSlot, RequestLimiter
@@ -96,6 +96,7 @@ from device_runtime.stats import RuntimeStats, peak_rss_bytes
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
+from protocol.layers import LAYER_VERSION, decode_layer, is_layer
 from protocol.scores import VERSIONS, ImageMismatch, MissingBase
 
 __all__ = [
@@ -129,6 +130,8 @@ DEFAULT_FPS = 60.0
 """Display ticks per second of a window."""
 HEADLESS_FPS = 30.0
 """Display ticks per second without a screen (a board's display rate)."""
+LAYER_QUEUE = 64
+"""Refinement layers held for the display at most (each one strip of a frame)."""
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while the display loop runs, seconds."""
 
@@ -226,6 +229,9 @@ class RuntimeDevice(FrameScheduler, Device):
         self._orbit: Any = None  # the running orbit (display loop)
         self._tick0 = clock()  # when the display's tick 0 began (reset by run_display)
         self._waiting_for: tuple[float, float] | None = None  # a scripted view not shown yet
+        # refinement layers in arrival order (dispatcher -> display), bounded
+        self._layers: collections.deque[LayerItem] = collections.deque(maxlen=LAYER_QUEUE)
+        self._layers_lock = threading.Lock()
         super().__init__(config, log=log)
 
     # ------------------------------------------------------------------ boot / images
@@ -332,7 +338,7 @@ class RuntimeDevice(FrameScheduler, Device):
         HELLO_REPLY also says which score packet versions this device reads and whether it
         predicts (a keyed device says the latter only in AUTH_RESPONSE)."""
         reply = super().handle_hello(msg, frame)
-        reply = dataclasses.replace(reply, score_versions=VERSIONS, predicts=(
+        reply = dataclasses.replace(reply, score_versions=(*VERSIONS, LAYER_VERSION), predicts=(
             None if self.config.key is not None else self.predicts))
         self.runtime_stats.sessions += 1
         model = self._decoder_model
@@ -360,6 +366,9 @@ class RuntimeDevice(FrameScheduler, Device):
         model = self._decoder_model
         if model is None or self.standalone:
             stats.dropped_no_image += 1
+            return
+        if is_layer(msg.packet):
+            self._on_layer(model, msg.packet)
             return
         t0 = time.perf_counter()
         try:
@@ -397,6 +406,30 @@ class RuntimeDevice(FrameScheduler, Device):
             stats.delta_frames += 1
         stats._bytes_ring.append(decoded.packet_bytes)
         self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
+
+    def _on_layer(self, model: LoadedModel, packet: bytes) -> None:
+        """A refinement layer (`protocol.layers`): its header and declared size checked here,
+        queued for the display (in order, bounded: the oldest goes when it is full), which
+        decodes and applies it to the resting view's frame it belongs to."""
+        stats = self.runtime_stats
+        stats.layer_packets += 1
+        try:
+            layer = decode_layer(packet, image_digest=model.image.digest or bytes(32),
+                                 image_shape=model.image.image_shape,
+                                 max_packet_bytes=self.config.max_frame_bytes)
+        except ImageMismatch:
+            stats.wrong_image += 1
+            return
+        except ProtocolError as exc:
+            stats.layers_bad += 1
+            self._log_limited("bad-layer", f"bad layer dropped: "
+                              f"{' '.join(str(exc).split())[:160]} ({stats.layers_bad} so far)")
+            return
+        with self._layers_lock:
+            if len(self._layers) == self._layers.maxlen:
+                stats.layers_dropped += 1
+            self._layers.append(LayerItem(model, layer))
+        self._scores.wake()
 
     def _session_link(self) -> Any:
         """The link when a host session is up (HELLO done; a keyed device: AUTH done), else
@@ -515,8 +548,17 @@ class RuntimeDevice(FrameScheduler, Device):
                 self._request_times.popitem(last=False)
         view = (info.get("phi_deg"), info.get("theta_deg"))
         self._shown_view = view
+        shown = model.shown
         if settled or not model.own_frames:
-            model.shown.settled = view
+            shown.settled = view
+        if "layer" not in info:  # what layers may refine now (a layer keeps its frame's)
+            own = info.get("synthesized") or (info.get("predicted")
+                                               and model.warp_worker is None)
+            shown.base = ((view, int(info.get("frame", 0))) if info.get("corrected")
+                          else (view, 0) if own else None)
+            if shown.rest is not None and (shown.base is None or shown.rest.view != view
+                                           or shown.rest.base_frame != shown.base[1]):
+                shown.rest = None
         self._shown_frame = frame
         model.shown.last_y = y
         self._confirm(model)
@@ -578,6 +620,9 @@ class RuntimeDevice(FrameScheduler, Device):
         if item is not None and item.model is model:
             self._show_item(item)
         wait = self.tick_s
+        if (model is not None and self._layers and not self._view_dirty
+                and self._apply_layer(model)):
+            wait = 0.0  # one strip per turn: the next at once, input first
         if self._view_dirty and model is not None:
             blend_in = self._blend_wait(model, now)
             if blend_in > 0.0:

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from device_runtime.layers import LayerError, RestFrame, decode_strip
 from device_runtime.loaded import LoadedModel, ScoreItem
 from device_runtime.prediction import corrected
 
@@ -133,6 +134,8 @@ class FrameScheduler:
         frame (`_correct`) or a full frame, unless stale. A frame that cannot be shown is
         skipped and counted; the device goes on."""
         d = item.scores
+        if self._keeps_exact(item.model, (d.phi_deg, d.theta_deg)):
+            return
         try:
             if d.synthesized:
                 self._correct(item)
@@ -223,6 +226,79 @@ class FrameScheduler:
         self.runtime_stats.corrected_frames += 1
         return corrected(model.predictor(*view), d.y)
 
+    # ------------------------------------------------------------------ layers at rest
+    def _apply_layer(self, model: LoadedModel) -> bool:
+        """Apply the next refinement layer that belongs to the frame on show (one strip per
+        turn: a strip's decode costs about a blend); drop those of another view or frame,
+        keep those whose correction waits for its warp. True: one was applied."""
+        while True:
+            with self._layers_lock:
+                if not self._layers:
+                    return False
+                item = self._layers[0]
+                layer = item.packet
+                view = (layer.phi_deg, layer.theta_deg)
+                rest = self._rest_for(model, item)
+                if rest is None:
+                    due = model.shown.correction_due
+                    if (item.model is model and view == self.view and due is not None
+                            and due.scores.frame == layer.base_frame):
+                        return False  # its correction waits for the warp: so does it
+                    self._layers.popleft()
+                    self.runtime_stats.layers_dropped += 1
+                    continue
+                self._layers.popleft()
+            if not rest.accepts(layer):  # a layer before it was lost or dropped
+                self.runtime_stats.layers_dropped += 1
+                continue
+            t0 = time.perf_counter()
+            try:
+                pixels = decode_strip(layer, rest.frame.shape[1])
+            except LayerError as exc:
+                self.runtime_stats.layers_bad += 1
+                self._frame_failed(layer.frame, exc)
+                continue
+            rest.apply(layer, pixels)
+            self.runtime_stats.layer_s.add(time.perf_counter() - t0)
+            self.runtime_stats.layers_applied += 1
+            exact = rest.is_exact
+            self.runtime_stats.exact_frames += exact
+            self._present(model, model.shown.last_y, {
+                "frame": layer.frame, "phi_deg": view[0], "theta_deg": view[1],
+                "key": False, "packet_bytes": layer.packet_bytes, "sequence": 0,
+                "layer": layer.layer, "exact": exact, "base_frame": layer.base_frame},
+                frame=rest.frame, settled=True)
+            return True
+
+    def _rest_for(self, model: LoadedModel, item: Any) -> RestFrame | None:
+        """The resting frame ``item``'s layer refines: the one being refined, or a new one
+        of the frame on show when that is the layer's base (its view and correction; an
+        absolute layer with base 0: any frame of its view). None: it belongs to no frame
+        on show."""
+        layer = item.packet
+        view = (layer.phi_deg, layer.theta_deg)
+        shown = model.shown
+        if item.model is not model or view != self.view or self._view_dirty:
+            return None
+        rest = shown.rest
+        if rest is not None and rest.view == view and rest.base_frame == layer.base_frame:
+            return rest
+        base = shown.base
+        fits = base is not None and base[0] == view and (
+            base[1] == layer.base_frame or (layer.base_frame == 0 and not layer.residual))
+        if not fits or self._shown_frame is None:
+            return None
+        shown.rest = RestFrame(view, layer.base_frame, self._shown_frame)
+        return shown.rest
+
+    def _keeps_exact(self, model: LoadedModel, view: tuple[float, float]) -> bool:
+        """The view's exact frame is on show: a host frame of it must not replace it."""
+        rest = model.shown.rest
+        if rest is not None and rest.view == view and rest.is_exact:
+            self.runtime_stats.kept_exact += 1
+            return True
+        return False
+
     # ------------------------------------------------------------------ a new image
     def _swap_model(self, model: LoadedModel) -> None:
         """Show another image: the old one (and all the display made of it) is closed and
@@ -250,6 +326,9 @@ class FrameScheduler:
         raise NotImplementedError  # RuntimeDevice's
 
     # attributes RuntimeDevice provides
+    _layers: Any
+    _layers_lock: Any
+    _shown_frame: Any
     presenter: Any
     runtime_stats: Any
     limiter: Any

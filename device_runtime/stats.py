@@ -83,8 +83,15 @@ class RuntimeStats:
     stale_dropped: int = 0
     corrections_without_table: int = 0
     synthesized_frames: int = 0
+    layer_packets: int = 0
+    layers_applied: int = 0
+    layers_dropped: int = 0
+    layers_bad: int = 0
+    exact_frames: int = 0
+    kept_exact: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     correct_s: _Ema = field(default_factory=_Ema)
+    layer_s: _Ema = field(default_factory=_Ema)
     reconstruct_s: _Ema = field(default_factory=_Ema)
     present_s: _Ema = field(default_factory=_Ema)
     latencies_s: collections.deque = field(
@@ -136,11 +143,18 @@ class RuntimeStats:
             "corrected_frames": self.corrected_frames,  # prediction + correction shown
             "stale_dropped": self.stale_dropped,  # packets for a view no longer on show
             "corrections_without_table": self.corrections_without_table,
-            "synthesized_frames": self.synthesized_frames,  # warped by depth (issue 15)
+            "synthesized_frames": self.synthesized_frames,  # warped by depth
+            "layer_packets": self.layer_packets,  # refinement layers received
+            "layers_applied": self.layers_applied,
+            "layers_dropped": self.layers_dropped,  # for a frame no longer on show
+            "layers_bad": self.layers_bad,  # malformed, or not decodable to their strip
+            "exact_frames": self.exact_frames,  # resting views shown exactly
+            "kept_exact": self.kept_exact,  # host frames of an exact view not shown
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
             "decode_ms": ms(self.decode_s),
             "correct_ms": ms(self.correct_s),  # a correction added to the own frame
+            "layer_ms": ms(self.layer_s),  # a layer decoded and applied
             "reconstruct_ms": ms(self.reconstruct_s),
             "present_ms": ms(self.present_s),
             "latency_ms_p50": pct(0.5),

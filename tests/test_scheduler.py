@@ -95,7 +95,7 @@ def test_a_warp_that_takes_three_ticks_never_holds_the_display(depth_image, tmp_
             wait = device.display_turn(None)
             assert wait is not None and wait <= TICK_S + 1e-9
             assert time.perf_counter() - t0 < 5.0  # (a hang guard, not a timing)
-            frame_t, frame, info = shown[-1]
+            _, _, info = shown[-1]
             on_screen.append(((info["phi_deg"], info["theta_deg"]),
                               "warp" if info.get("synthesized") else "blend"))
             clock.now += TICK_S
@@ -103,7 +103,7 @@ def test_a_warp_that_takes_three_ticks_never_holds_the_display(depth_image, tmp_
         # the first frame, then each view of the drag on its own tick, as a blend
         assert [k for _, k in on_screen[:6]] == ["blend"] * 6
         assert len(set(views[:6])) == 6
-        for t, (view, kind) in enumerate(on_screen[:6]):
+        for view, _ in on_screen[:6]:
             frames = [f for ft, f, i in shown if (i["phi_deg"], i["theta_deg"]) == view]
             np.testing.assert_array_equal(frames[0], blend.update(model.own_scores(view)))
         # at rest: the blend stays for two more ticks, then the warp of the last view
