@@ -1,0 +1,331 @@
+"""Refinement layers at rest, host side: from a resting view's corrected frame to the exact
+ray-cast, in as few bytes as each step's quality allows (`protocol.layers` is the format,
+`device_runtime.layers` the device's side).
+
+Once a view rests, ``serve`` has the view's full ray-cast ``R`` and knows the frame ``F``
+the device shows (its own frame plus the complete correction: the same code the device
+runs). `RestPlanner.plan` then lays out the layers:
+
+1. **Lossy layers**, one per target quality (object SSIM, `DEFAULT_TARGETS`): for each, the
+   cheaper of two codings that reach the target, each a WebP at the lowest quality setting
+   that reaches it (a bisection over libwebp's quality, `method` 6): the *residual* of the
+   ray-cast against the device's frame (``(R - F) >> 1`` offset by 128) or the ray-cast
+   *itself*. Where the eigenspace is good the device's frame predicts the ray-cast and the
+   residual is cheaper; where it is weak the ray-cast is.
+2. **The exact layer**: the ray-cast itself, lossless (WebP lossless or PNG, whichever is
+   smaller), never coded against the device's frame: on a CPU whose float32 arithmetic
+   differs from the host's in a level here and there (docs/protocol.md) the frame still
+   ends exactly the ray-cast.
+
+Each layer is sent as strips of whole rows (`max_strip_pixels`: a strip's decode costs the
+device about a blend or less, and a layer can stop between strips when the view moves) in
+packets no larger than the device's frames. The planner also says whether the complete
+correction pays for itself (`Plan.skip_correction`): when the first layer alone, coded from
+the ray-cast, reaches its target in fewer bytes than the correction and the residual layer
+together, the correction is not sent and the layers refine the device's own frame. What the
+device will show after each layer (its frame, as pygame decodes the strips) is in the plan,
+so its quality and cumulative bytes are known before anything is sent.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from device_runtime.layers import RestFrame, decode_strip
+from protocol.layers import CODEC_PNG, CODEC_WEBP, decode_layer, encode_layer
+
+__all__ = [
+    "DEFAULT_TARGETS",
+    "MAX_STRIP_PIXELS",
+    "Plan",
+    "PlannedLayer",
+    "RestPlanner",
+    "object_ssim",
+]
+
+#: Object SSIM each lossy layer reaches, before the exact layer.
+DEFAULT_TARGETS = (0.95,)
+#: Pixels per strip at most: pygame decodes a WebP or PNG strip of this size in about half
+#: a blend's time or less of a 256 x 256 image on one core (BENCHMARKS.md), so a strip costs
+#: the device less than a blend.
+MAX_STRIP_PIXELS = 256 * 256
+#: A pixel whose largest channel is above this shows the object (black background).
+OBJECT_LEVEL = 2
+_SSIM_WIN = 7
+#: The residual's shift: (R - F) >> 1 fits a byte around 128 for any frame.
+RESIDUAL_SHIFT = 1
+_WEBP_METHOD = 6
+
+
+@dataclass
+class PlannedLayer:
+    """One layer of a plan.
+
+    Attributes
+    ----------
+    packets : list of bytes
+        Its strips' packets, top to bottom.
+    frame : ndarray (height, width, 3) uint8
+        The device's frame once they are applied (decoded as the device decodes them).
+    quality : float
+        Object SSIM of ``frame`` against the ray-cast (1.0 exact).
+    residual, exact : bool
+        Coded against the device's frame; the ray-cast's pixels losslessly.
+    codec : str
+        ``"webp"``, ``"webp-lossless"`` or ``"png"``.
+    """
+
+    packets: list[bytes]
+    frame: np.ndarray
+    quality: float
+    residual: bool
+    exact: bool
+    codec: str
+
+    @property
+    def size_bytes(self) -> int:
+        return sum(len(p) for p in self.packets)
+
+
+@dataclass
+class Plan:
+    """The layers of one resting view and whether its complete correction is sent first."""
+
+    skip_correction: bool
+    layers: list[PlannedLayer] = field(default_factory=list)
+
+
+class RestPlanner:
+    """Plans the refinement layers of resting views (module docstring).
+
+    Parameters
+    ----------
+    image_digest : bytes
+        The model's digest (each packet carries its first 4 bytes).
+    quality : callable, optional
+        ``quality(truth, frame) -> float``; default `object_ssim`.
+    targets : sequence of float
+        Object SSIM of each lossy layer, increasing; layers whose target the frame already
+        reaches are skipped.
+    exact : bool
+        End with the exact layer (else stop after the last target).
+    max_strip_pixels : int
+    max_packet_bytes : int
+        The device's largest frame's worth of packet (strips are split to fit).
+    """
+
+    def __init__(self, image_digest: bytes,
+                 quality: Callable[[np.ndarray, np.ndarray], float] | None = None,
+                 *, targets: tuple[float, ...] = DEFAULT_TARGETS, exact: bool = True,
+                 max_strip_pixels: int = MAX_STRIP_PIXELS,
+                 max_packet_bytes: int = 1 << 16) -> None:
+        targets = tuple(float(t) for t in targets)
+        if any(not 0.0 < t < 1.0 for t in targets) or list(targets) != sorted(targets):
+            raise ValueError(f"targets={targets}: increasing object SSIMs in (0, 1) expected")
+        if max_strip_pixels < 1 or max_packet_bytes < 256:
+            raise ValueError("max_strip_pixels must be >= 1 and max_packet_bytes >= 256")
+        self.digest = bytes(image_digest)
+        self.quality = quality if quality is not None else object_ssim
+        self.targets = targets
+        self.exact = bool(exact)
+        self.max_strip_pixels = int(max_strip_pixels)
+        self.max_packet_bytes = int(max_packet_bytes)
+        self._settings: dict[tuple[bool, float], int] = {}  # last WebP quality per choice
+
+    # ------------------------------------------------------------------ the plan
+    def plan(self, view: tuple[float, float], truth: np.ndarray, corrected: np.ndarray,
+             own: np.ndarray, correction_bytes: int, *, base_frame: int,
+             first_frame: int) -> Plan:
+        """The layers after the complete correction (``corrected``, ``correction_bytes``;
+        its packet's frame number ``base_frame``), or after the device's ``own`` frame
+        when the correction does not pay. Packets are numbered from ``first_frame``."""
+        truth = np.asarray(truth, dtype=np.uint8)
+        corrected = np.asarray(corrected, dtype=np.uint8)
+        reached = self.quality(truth, corrected)
+        target = next((t for t in self.targets if t > reached), None)
+        skip = False
+        first = None
+        if target is not None:
+            first = self._lossy(view, truth, corrected, target, base_frame, first_frame, 0,
+                                residual=True)
+            alone = self._lossy(view, truth, np.asarray(own, dtype=np.uint8), target, 0,
+                                first_frame, 0, residual=False)
+            if alone is not None and (first is None or alone.size_bytes
+                                      < correction_bytes + first.size_bytes):
+                skip, first = True, alone
+        start, base = (own, 0) if skip else (corrected, base_frame)
+        return Plan(skip, self._layers(view, truth, np.asarray(start, dtype=np.uint8), base,
+                                       first_frame, first=first))
+
+    def _layers(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
+                base_frame: int, frame: int, *,
+                first: PlannedLayer | None = None) -> list[PlannedLayer]:
+        """The lossy layers from ``current`` (the first one given, when planned already),
+        then the exact one."""
+        layers: list[PlannedLayer] = []
+        reached = self.quality(truth, current)
+        for target in self.targets:
+            if reached >= target:
+                continue
+            layer = first if first is not None and not layers else self._lossy(
+                view, truth, current, target, base_frame, frame, len(layers),
+                residual=base_frame != 0)
+            if layer is None:
+                break
+            layers.append(layer)
+            frame += len(layer.packets)
+            current, reached = layer.frame, layer.quality
+        if self.exact:
+            layers.append(self._exact(view, truth, current, base_frame, frame, len(layers)))
+        return layers
+
+    def _lossy(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
+               target: float, base_frame: int, frame: int, index: int, *,
+               residual: bool) -> PlannedLayer | None:
+        """The cheaper of the residual and the absolute WebP layer reaching ``target``
+        (None: neither does, even at the best setting)."""
+        best = None
+        for as_residual in ((True, False) if residual else (False,)):
+            layer = self._search(view, truth, current, target, base_frame, frame, index,
+                                 as_residual)
+            if layer is not None and (best is None or layer.size_bytes < best.size_bytes):
+                best = layer
+        return best
+
+    def _search(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
+                target: float, base_frame: int, frame: int, index: int,
+                residual: bool) -> PlannedLayer | None:
+        """The WebP layer at the lowest quality setting that reaches ``target``: a bisection
+        from the setting the last view needed."""
+        source = _residual(truth, current) if residual else truth
+        memo: dict[int, PlannedLayer] = {}
+
+        def at(q: int) -> PlannedLayer:
+            if q not in memo:
+                memo[q] = self._layer(view, source, truth, current, base_frame, frame, index,
+                                      residual=residual, codec=CODEC_WEBP,
+                                      encode=lambda px, q=q: _webp(px, quality=q))
+            return memo[q]
+
+        lo, hi = 0, 100
+        if at(hi).quality < target:
+            return None
+        guess = self._settings.get((residual, target))
+        if guess is not None:  # narrow the bracket around last view's setting
+            if at(guess).quality >= target:
+                hi = guess
+                lo = max(0, guess - 16)
+                if at(lo).quality >= target:
+                    lo, hi = 0, lo
+            else:
+                lo = guess
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if at(mid).quality >= target:
+                hi = mid
+            else:
+                lo = mid
+        if at(lo).quality >= target:
+            hi = lo
+        self._settings[(residual, target)] = hi
+        return at(hi)
+
+    def _exact(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
+               base_frame: int, frame: int, index: int) -> PlannedLayer:
+        """The ray-cast, lossless, each strip as the smaller of WebP lossless and PNG."""
+        return self._layer(view, truth, truth, current, base_frame, frame, index,
+                           residual=False, codec=None, encode=None)
+
+    # ------------------------------------------------------------------ strips
+    def _layer(self, view: tuple[float, float], source: np.ndarray, truth: np.ndarray,
+               current: np.ndarray, base_frame: int, frame: int, index: int, *,
+               residual: bool, codec: int | None,
+               encode: Callable[[np.ndarray], bytes] | None) -> PlannedLayer:
+        """``source`` coded as strips (``codec`` None: the exact layer, lossless), and the
+        device's frame after them."""
+        height, width = source.shape[:2]
+        rows = max(1, min(height, self.max_strip_pixels // width))
+        packets: list[bytes] = []
+        names = set()
+        rest = RestFrame(view, base_frame, current)
+        todo = [(y0, min(rows, height - y0)) for y0 in range(0, height, rows)]
+        while todo:
+            y0, n = todo.pop(0)
+            strip = np.ascontiguousarray(source[y0:y0 + n])
+            if codec is None:
+                options = [(CODEC_WEBP, "webp-lossless", _webp(strip, lossless=True)),
+                           (CODEC_PNG, "png", _png(strip))]
+                strip_codec, name, data = min(options, key=lambda o: len(o[2]))
+            else:
+                strip_codec, name, data = codec, "webp", encode(strip)
+            packet = encode_layer(data, codec=strip_codec, frame=(frame + len(packets) - 1)
+                                  % 0xFFFFFFFF + 1, base_frame=base_frame, view=view,
+                                  image_digest=self.digest, layer=index, y0=y0, rows=n,
+                                  residual=residual, shift=RESIDUAL_SHIFT if residual else 0,
+                                  exact=codec is None)
+            if len(packet) > self.max_packet_bytes and n > 1:  # too large for a frame: halve
+                todo[:0] = [(y0, n // 2), (y0 + n // 2, n - n // 2)]
+                continue
+            layer = decode_layer(packet, image_digest=self.digest,
+                                 image_shape=(height, width),
+                                 max_packet_bytes=max(len(packet), self.max_packet_bytes))
+            rest.apply(layer, decode_strip(layer, width))
+            packets.append(packet)
+            names.add(name)
+        exact = codec is None
+        quality = 1.0 if exact else self.quality(truth, rest.frame)
+        return PlannedLayer(packets, rest.frame, quality, residual, exact,
+                            "+".join(sorted(names)))
+
+
+def object_ssim(truth: np.ndarray, frame: np.ndarray) -> float:
+    """Object SSIM of ``frame`` against the ray-cast ``truth`` (uint8 (h, w, 3)): scikit-
+    image's SSIM map (7 x 7 window, ``data_range=255``, averaged over the channels) averaged
+    over the pixels where ``truth`` shows the object (a channel above `OBJECT_LEVEL`), the
+    image's 3-pixel border left out as scikit-image's mean does; evaluate's
+    ``structural_similarity`` with its ``object_mask`` (a test checks they agree)."""
+    from skimage.metrics import structural_similarity as sk_ssim
+
+    _, full = sk_ssim(truth.astype(np.float64), frame.astype(np.float64), data_range=255,
+                      channel_axis=-1, full=True)
+    ssim = full.mean(axis=2)
+    mask = truth.max(axis=2) > OBJECT_LEVEL
+    pad = (_SSIM_WIN - 1) // 2
+    inner, m = ssim[pad:-pad, pad:-pad], mask[pad:-pad, pad:-pad]
+    if not m.any():
+        return float(ssim[mask].mean(dtype=np.float64)) if mask.any() else 1.0
+    return float(inner[m].mean(dtype=np.float64))
+
+
+def _residual(truth: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """``(truth - frame) >> RESIDUAL_SHIFT`` offset by 128, uint8 (floor division, as the
+    device's shift back)."""
+    d = truth.astype(np.int16) - frame.astype(np.int16)
+    d >>= RESIDUAL_SHIFT
+    d += 128
+    return np.clip(d, 0, 255).astype(np.uint8)
+
+
+def _webp(pixels: np.ndarray, *, quality: int = 100, lossless: bool = False) -> bytes:
+    """A WebP file: lossy at ``quality`` (method 6), or lossless (libwebp's default effort:
+    method 4, quality 80; the highest effort is 5x slower for 0.2 % fewer bytes)."""
+    from PIL import Image
+
+    out = io.BytesIO()
+    if lossless:
+        Image.fromarray(pixels).save(out, "WEBP", lossless=True, exact=True)
+    else:
+        Image.fromarray(pixels).save(out, "WEBP", quality=quality, method=_WEBP_METHOD)
+    return out.getvalue()
+
+
+def _png(pixels: np.ndarray) -> bytes:
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(pixels).save(out, "PNG", optimize=True)
+    return out.getvalue()
