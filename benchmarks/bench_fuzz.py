@@ -36,7 +36,8 @@ Three more sections (issue 21; ``--sections fuzz,lockout,flood,rest``, all by de
   the attack's connections, the device's log lines during the attack.
 * ``flood``: a keyed device process on one core drives its own orbit (``--standalone
   --orbit``); its frame rate idle, then while an unauthenticated peer (another core) floods
-  PINGs, VIEW_REQUESTs or zero bytes (and while 32 peers flood PINGs), as a ratio of idle
+  PINGs, VIEW_REQUESTs, zero bytes or bytes with no frame delimiter (and while 32 peers
+  flood PINGs or such bytes), as a ratio of idle
   in the same run (>= 0.8 asked).
   The device shows ``--flood-model`` (default: the tooth rendered at 256 px from 144 views
   with depth and fitted ``--depth --key``, built in the run, about 2 minutes; ``--quick``:
@@ -404,9 +405,10 @@ def report_lockout(results: list[dict[str, Any]], args: argparse.Namespace) -> N
 
 # --------------------------------------------------------------------------- flood
 
-FLOODS = (("ping", 1), ("view", 1), ("zeros", 1), ("ping", 32))
-"""(what, peers): one unauthenticated peer flooding each kind, and 32 flooding PINGs (every
-place in the lobby)."""
+FLOODS = (("ping", 1), ("view", 1), ("zeros", 1), ("garbage", 1), ("ping", 32),
+          ("garbage", 32))
+"""(what, peers): one unauthenticated peer flooding each kind (``garbage``: bytes with no frame
+delimiter), and 32 flooding PINGs or such bytes (every place in the lobby)."""
 
 
 def _presented(stats_file: Path) -> tuple[float, int]:

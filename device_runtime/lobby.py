@@ -22,13 +22,15 @@ clients by count and time, and keep state behind authentication):
   peer's input waits for the lobby's budget while its own lasts; peers of the address with
   the most active peers go first, then those served most, then the longest active.
 * **Bounded in work.** What the lobby does for a peer is measured in CPU time (this
-  thread's: reading, decoding, answering): each active peer may use ``PEER_CPU`` (a burst,
-  then seconds per second), all of them together ``LOBBY_CPU``, so a flood of PINGs,
-  requests or zero bytes costs the device's display at most that share of a core. A peer
-  over its budget is not read (TCP pushes back) and its frames already read wait. Peers
-  with work are served a quantum (``QUANTUM_S``) at a time, the least served first
-  (start-time fair queuing), so a host's two frames wait for at most one quantum of each
-  other peer, however much those send. Frames are at most ``MAX_FRAME_BYTES``; replies
+  thread's: reading, decoding, answering, and the turn that waited for its bytes, split
+  among the peers served in it): each active peer may use ``PEER_CPU`` (a burst, then
+  seconds per second), all of them together ``LOBBY_CPU``, so a flood of PINGs, requests,
+  zero bytes or bytes that never complete a frame costs the device's display at most that
+  share of a core. A peer over its budget is not read (TCP pushes back) until its budget
+  holds a quantum again, and its frames already read wait. Peers with work are served a
+  quantum (``QUANTUM_S``) at a time, the least served first (start-time fair queuing), so
+  a host's two frames wait for at most one quantum of each other peer, however much those
+  send. Frames are at most ``MAX_FRAME_BYTES``; replies
   the peer does not read end its connection.
 * **Leaving.** An AUTH_CHALLENGE whose proof verifies (:meth:`Device.proves_key`) ends the
   lobby's turn: the connection is handed to the transport (``TcpListenTransport.adopt``),
@@ -151,6 +153,7 @@ class _Peer:
     used: float = 0.0  # CPU seconds spent on it
     pending: collections.deque = field(default_factory=collections.deque)
     out: bytearray = field(default_factory=bytearray)
+    starved: bool = False  # it went over its budget: it waits for a quantum of budget
 
     def activate(self, now: float) -> None:
         self.active_since = now
@@ -221,6 +224,20 @@ class Lobby:
 
     # ------------------------------------------------------------------ one turn
     def _turn(self, now: float) -> Admitted | None:
+        """One turn; its whole CPU time is charged to the peers served in it (a read that
+        completes no frame costs a turn, not only the read)."""
+        start = time.thread_time()
+        served: list[_Peer] = []
+        charged = self.stats.cpu_s
+        try:
+            return self._turn_body(now, served)
+        finally:
+            if served:
+                overhead = (time.thread_time() - start) - (self.stats.cpu_s - charged)
+                if overhead > 0:
+                    self._charge_all(served, overhead)
+
+    def _turn_body(self, now: float, served: list[_Peer]) -> Admitted | None:
         self._accept(now)
         self._expire(now)
         self._fill(now)
@@ -230,8 +247,12 @@ class Lobby:
         readers, busy = [], False
         wake = _TICK_S if lobby_ok else self._cpu.until(QUANTUM_S)
         for peer in self._active:
-            if peer.cpu.refill(now) <= 0:
-                wake = min(wake, peer.cpu.until(0.0))
+            # a peer over its budget waits for a quantum of it (a wake-up per read would
+            # cost as much as the read, and serve no one)
+            floor = QUANTUM_S if peer.starved else 0.0
+            peer.starved = peer.cpu.refill(now) <= floor
+            if peer.starved:
+                wake = min(wake, peer.cpu.until(QUANTUM_S))
             elif not lobby_ok:
                 continue
             elif peer.pending:
@@ -256,7 +277,7 @@ class Lobby:
         # start-time fair queuing: a peer with work starts no earlier than the virtual time,
         # the least served goes first (ties: the longest active), each for a quantum
         backlog = [p for p in self._active
-                   if p.cpu.level > 0 and (p.pending or p.sock in ready_set)]
+                   if not p.starved and (p.pending or p.sock in ready_set)]
         for peer in backlog:
             peer.used = max(peer.used, self._vtime)
         backlog.sort(key=lambda p: (p.used, p.active_since))
@@ -266,6 +287,7 @@ class Lobby:
             if peer not in self._active:
                 continue
             self._vtime = max(self._vtime, peer.used)
+            served.append(peer)
             admitted = self._serve_peer(peer)
             if admitted is not None:
                 return admitted
@@ -395,11 +417,22 @@ class Lobby:
             self._flush(peer)
             return None
         finally:
-            spent = time.thread_time() - start
-            peer.cpu.level -= spent
-            peer.used += spent
-            self._cpu.level -= spent
-            self.stats.cpu_s += spent
+            self._charge(peer, time.thread_time() - start)
+
+    def _charge(self, peer: _Peer, spent: float) -> None:
+        """``spent`` CPU seconds on ``peer``: off its budget and the lobby's."""
+        peer.cpu.level -= spent
+        peer.used += spent
+        self._cpu.level -= spent
+        self.stats.cpu_s += spent
+
+    def _charge_all(self, peers: list[_Peer], spent: float) -> None:
+        """``spent`` CPU seconds of a turn that served ``peers``, split evenly among them
+        (one that left still counts against the lobby)."""
+        share = spent / len(peers)
+        for peer in peers:
+            if peer.cpu is not None:
+                self._charge(peer, share)
 
     def _frame(self, peer: _Peer, frame: Frame) -> Admitted | None:
         """Answer one frame of ``peer`` (as the link would); an AUTH_CHALLENGE that

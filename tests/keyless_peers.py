@@ -15,9 +15,10 @@ It prints ``started`` once each thread has connected (or after 10 s), and at the
 * ``flood``: each thread opens connections as fast as it can, says HELLO on each without
   waiting for any answer, and keeps its last ``--hold`` open (default 32): the reconnect
   loop judged worst, bounded only by how fast the device (or the kernel) accepts.
-* ``ping``, ``view``, ``zeros``: one connection per thread says HELLO, then sends PINGs,
-  VIEW_REQUESTs or zero bytes as fast as the socket takes them (work for a peer that
-  holds a slot without authenticating).
+* ``ping``, ``view``, ``zeros``, ``garbage``: one connection per thread says HELLO, then
+  sends PINGs, VIEW_REQUESTs, zero bytes (empty frames) or bytes with no frame delimiter
+  (no 0x00: reads that complete no frame) as fast as the socket takes them (work for a
+  peer that holds a slot without authenticating).
 
 ``--bind`` sends from another local address (127.0.0.2...: every 127/8 address is the
 loopback on Linux), as peers on other machines would.
@@ -43,7 +44,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from protocol import messages as m
 
-MODES = ("loop", "flood", "ping", "view", "zeros")
+MODES = ("loop", "flood", "ping", "view", "zeros", "garbage")
 
 
 def _hello() -> bytes:
@@ -133,6 +134,7 @@ class Peers:
             "ping": m.Ping(payload=b"p" * 8, sent_us=1).encode(request_id=9) * 64,
             "view": m.ViewRequest(phi_deg=10.0, theta_deg=5.0, sequence=1).encode() * 64,
             "zeros": bytes(4096),
+            "garbage": bytes(range(1, 256)) * 16,
         }[self.mode]
         while not self.stop.is_set():
             sock = self._connect()

@@ -87,6 +87,28 @@ def test_render_view_writes_one_png(tmp_path):
     assert Image.open(out).size == (40, 40)
 
 
+def test_render_view_says_in_one_line_which_transfer_function_and_why(tmp_path):
+    """The transfer function, the modality it is for and where that came from (here the
+    values of a raw int16 CT: Hounsfield units), or that ``--tf`` chose it."""
+    data = np.full((24, 28, 32), -1000, np.int16)
+    data[6:18, 6:22, 6:26] = 40
+    data[9:15, 9:19, 9:23] = 1200
+    raw = tmp_path / "scan.raw"
+    data.tofile(raw)
+    volume = [str(raw), "--dims", "32,28,24", "--dtype", "int16"]
+    for args, expected in [
+        (volume, "transfer function ct-bone for modality ct (not in the header; the data say "
+                 "so: int16 values from -1000 to 1200 with air at -1000: Hounsfield units), "
+                 "window -1000 to 2000 HU"),
+        ([*volume, "--tf", "generic"], "transfer function generic (--tf), window"),
+        (["builtin:tooth"], "transfer function tooth for modality tooth (from the built-in "
+                            "volume), window"),
+    ]:
+        res = _run("render-view", *args, "-o", str(tmp_path / "one.png"), *SMALL)
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(expected), res.stderr
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

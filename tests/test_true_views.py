@@ -107,11 +107,50 @@ class _BrokenRenderer:
         raise RuntimeError("the GPU fell off")
 
 
+class _FlakyRenderer:
+    """The model's real ray-caster, whose ``render_pixels`` raises where ``fail(cameras)``
+    says (``cameras``: the cameras of every call so far, this one last; the coarse caster
+    of moving frames counts with the exact one); ``fail=None``: always."""
+
+    def __init__(self, real, fail) -> None:
+        self.real = real
+        self.settings = real.settings
+        self.image_shape = real.image_shape
+        self.renderer = _FlakyCaster(real.renderer, fail, [])
+
+
+class _FlakyCaster:
+    def __init__(self, caster, fail, cameras) -> None:
+        self.caster, self.fail, self.cameras = caster, fail, cameras
+
+    def coarser(self, factor):
+        return _FlakyCaster(self.caster.coarser(factor), self.fail, self.cameras)
+
+    def composite(self, rgba):
+        return self.caster.composite(rgba)
+
+    def render_pixels(self, camera, *args, **kwargs):
+        self.cameras.append(camera)
+        if self.fail is None or self.fail(self.cameras):
+            raise RuntimeError("the GPU fell off")
+        return self.caster.render_pixels(camera, *args, **kwargs)
+
+
+def _nth_call(n):
+    return lambda cameras: len(cameras) == n + 1
+
+
+def _refining_the_first_view(cameras):
+    first = cameras[0].position
+    return len(cameras) > 1 and bool(np.allclose(cameras[-1].position, first))
+
+
 @pytest.mark.parametrize("predict", [True, False])
 def test_serving_goes_on_when_ray_casting_fails(tmp_path, model_path, model, true_views,
                                                predict):
-    """A frame source that raises ends in one line; a device that synthesizes its own frames
-    keeps showing them, another one gets interpolated scores."""
+    """A ray-caster that always raises costs every view, never the session: a device that
+    synthesizes its own frames keeps showing them, another one gets interpolated scores; the
+    failures are counted and said in one line (not one per view)."""
     name = mem_name(f"broken-{predict}")
     device = _provisioned_device(tmp_path, model_path, name, predict=predict)
     stop = threading.Event()
@@ -121,13 +160,13 @@ def test_serving_goes_on_when_ray_casting_fails(tmp_path, model_path, model, tru
     def host() -> None:
         result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
                                 stop=stop, log=logs.append,
-                                renderer=_BrokenRenderer(true_views.renderer))
+                                renderer=_FlakyRenderer(true_views.renderer, None))
 
     thread = threading.Thread(target=host, daemon=True)
     thread.start()
     try:
         wait_until(lambda: any("ray-casting failed" in line for line in logs), 20,
-                   "the fallback notice")
+                   "the failure notice")
         device.device.set_view(50.0, 10.0)
         # still served: interpolated scores, or (predicting) its own frame, uncorrected
         wait_until(lambda: device.device._shown_view == (50.0, 10.0), 20, "the next view")
@@ -137,10 +176,71 @@ def test_serving_goes_on_when_ray_casting_fails(tmp_path, model_path, model, tru
         device.stop()
     stats = result["stats"]
     assert stats.correction_frames == 0 and stats.motion_frames == 0
+    assert stats.failed_views >= 1
     failed = [line for line in logs if "ray-casting failed" in line]
-    assert len(failed) == 1 and "the GPU fell off" in failed[0]
+    assert 1 <= len(failed) <= 1 + stats.stream_seconds / 10  # said at most every 10 s
+    assert "the GPU fell off" in failed[0] and "serving goes on" in failed[0]
+    assert f"{stats.failed_views} views whose ray-cast failed" in logs[-1]
     if not predict:
         assert stats.key_frames + stats.delta_frames >= 1
+
+
+@pytest.mark.parametrize("predict", [True, False])
+def test_serve_keeps_ray_casting_after_one_failed_view(tmp_path, model_path, model, true_views,
+                                                      predict):
+    """One view whose ray-cast raises costs that view alone: it is counted, said once, and
+    every later view of the orbit is ray-cast (corrected, on a predicting device) again."""
+    name = mem_name(f"flaky-{predict}")
+    device = _provisioned_device(tmp_path, model_path, name, predict=predict)
+    logs: list[str] = []
+    with device:
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model, fps=0,
+                      orbit=parse_orbit("steps:6:10"), log=logs.append,
+                      renderer=_FlakyRenderer(true_views.renderer, _nth_call(0)))
+    assert stats.frames == 6
+    assert stats.motion_frames == 5  # every view but the failed one was ray-cast
+    assert stats.failed_views == 1
+    failed = [line for line in logs if "ray-casting failed" in line]
+    assert len(failed) == 1 and "view (0, 10)" in failed[0] and "1 failed view " in failed[0]
+    if predict:
+        assert stats.correction_frames == 6  # the failed view's correction is empty
+
+
+def test_a_resting_view_whose_refinement_fails_is_not_tried_again(tmp_path, model_path, model,
+                                                                  true_views):
+    """Refining the first resting view raises (every time): that view is left as it is,
+    not refined again turn after turn, and the next view is ray-cast and refined as usual."""
+    name = mem_name("flaky-rest")
+    device = _provisioned_device(tmp_path, model_path, name, predict=False)
+    stop = threading.Event()
+    logs: list[str] = []
+    sent: list = []
+    result: dict = {}
+
+    def host() -> None:
+        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
+                                stop=stop, log=logs.append, on_frame=lambda e, v: sent.append(v),
+                                stats_every_s=0.3,
+                                renderer=_FlakyRenderer(true_views.renderer,
+                                                         _refining_the_first_view))
+
+    def turns_after_the_failure() -> bool:  # a statistics line after the notice
+        said = [i for i, line in enumerate(logs) if "ray-casting failed" in line]
+        return bool(said) and any(" fps, link " in line for line in logs[said[0] + 1:])
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    try:
+        wait_until(turns_after_the_failure, 20, "the failure notice, then a statistics line")
+        device.device.set_view(80.0, 10.0)
+        wait_until(lambda: sent.count((80.0, 10.0)) >= 2, 20, "the next view, refined")
+    finally:
+        stop.set()
+        thread.join(10)
+        device.stop()
+    stats = result["stats"]
+    assert stats.failed_views == 1
+    assert stats.motion_frames >= 2 and stats.refined_frames >= 1
 
 
 def test_serve_rejects_an_unknown_score_mode(model_path):

@@ -669,3 +669,74 @@ def test_volume_geometry_properties():
     assert vol.dims == (5, 4, 3)
     np.testing.assert_allclose(vol.extent_mm, [4.0, 6.0, 1.0])
     np.testing.assert_allclose(vol.center_mm, [2.0, 3.0, 0.5])
+
+
+# --------------------------------------------------------------------------
+# what the values say when the header says nothing about the modality
+# --------------------------------------------------------------------------
+
+
+def _ct_head(offset: float, dtype: str) -> np.ndarray:
+    """A CT-like head in HU (+ ``offset``): air around it, soft tissue, a bone shell."""
+    z, y, x = np.mgrid[:24, :28, :32].astype(np.float32)
+    r = np.sqrt(((x - 15.5) / 12) ** 2 + ((y - 13.5) / 10) ** 2 + ((z - 11.5) / 9) ** 2)
+    hu = np.where(r < 1.0, 40.0, -1000.0)
+    hu = np.where((r > 0.75) & (r < 0.9), 1200.0, hu)
+    return (hu + offset).astype(dtype)
+
+
+@pytest.mark.parametrize("case", ["int16 HU raw", "uint16 HU+1024 dat", "float32 HU raw"])
+def test_the_data_say_ct_when_the_header_is_silent(tmp_path, case):
+    """A CT with no modality in its header (raw, volvis .dat) is recognised by its values:
+    signed values with air at -1000 (Hounsfield units), or 16-bit ones with air at the
+    bottom and soft tissue about 1040 above it (HU with an offset)."""
+    if case.startswith("uint16"):
+        path = write_dat(tmp_path / "scan.dat", _ct_head(1024.0, "uint16"))
+        vol = load_volume(path)
+    else:
+        dtype = case.split()[0]
+        path = write_raw(tmp_path / "scan.raw", _ct_head(0.0, dtype))
+        vol = load_volume(path, dims=(32, 28, 24), dtype=dtype)
+    assert vol.modality == "ct"
+    assert vol.metadata["modality_source"] == "data"
+    assert "Hounsfield" in vol.metadata["modality_note"]
+    assert vol.metadata.get("units") == (None if case.startswith("uint16") else "HU")
+
+
+@pytest.mark.parametrize("case", ["uint8 ct", "uint16 mri", "uint16 ramp"])
+def test_data_that_do_not_say_ct_stay_generic(tmp_path, case):
+    """8-bit data (an industrial CT, a rescaled scan), a 16-bit MRI (tissue far from
+    +1040 above air) and a plain ramp keep the generic look."""
+    if case == "uint8 ct":
+        data = ((_ct_head(1024.0, "float32") / 2224.0) * 255).astype(np.uint8)
+    elif case == "uint16 mri":
+        data = (_ct_head(1000.0, "float32") * 0.3).astype(np.uint16)  # air 0, tissue ~312
+    else:
+        data = (np.arange(24 * 28 * 32) % 4000).astype(np.uint16).reshape(24, 28, 32)
+    path = write_raw(tmp_path / "scan.raw", data)
+    vol = load_volume(path, dims=(32, 28, 24), dtype=data.dtype.name)
+    assert vol.modality == "generic" and vol.metadata["modality_source"] == "none"
+
+
+def test_the_header_and_the_user_win_over_the_data(tmp_path):
+    data = _ct_head(0.0, "int16")
+    path = write_mhd(tmp_path / "scan.mhd", data, extra={"Modality": "MET_MOD_MR"})
+    header = load_volume(path)
+    assert header.modality == "mri" and header.metadata["modality_source"] == "header"
+    raw = write_raw(tmp_path / "scan.raw", data)
+    user = load_volume(raw, dims=(32, 28, 24), dtype="int16", modality="generic")
+    assert user.modality == "generic" and user.metadata["modality_source"] == "user"
+
+
+@pytest.mark.shared_data
+def test_shared_cts_without_their_name_are_told_by_their_values(shared_path, tmp_path):
+    """headsq (a uint16 CT in a .dat header) under another name is CT by its values; the
+    engine (an 8-bit industrial CT with no soft tissue) stays generic."""
+    headsq = shared_path("headsq")
+    text = headsq.read_text().replace("headsq.raw", "scan.raw")
+    (tmp_path / "scan.dat").write_text(text)
+    (tmp_path / "scan.raw").write_bytes((headsq.parent / "headsq.raw").read_bytes())
+    vol = load_volume(tmp_path / "scan.dat")
+    assert vol.modality == "ct" and vol.metadata["modality_source"] == "data", vol.metadata
+    engine = load_volume(shared_path("engine"))
+    assert engine.modality == "generic" and engine.metadata["modality_source"] == "none"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import TYPE_CHECKING
 
 from host.errors import EigencastError
@@ -92,14 +93,21 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
     )
 
 
-def render_setup(args: argparse.Namespace):
-    """Load the volume and transfer function and build the renderer: (volume, tf, renderer)."""
-    from host.render.transfer import transfer_function_from_args
+def render_setup(args: argparse.Namespace, *, say: bool = False):
+    """Load the volume and transfer function and build the renderer: (volume, tf, renderer).
+
+    ``say``: print on stderr, in one line, which transfer function was chosen for which
+    modality and why (`describe_transfer_function`)."""
+    from host.render.transfer import describe_transfer_function, transfer_function_from_args
     from host.volume import volume_from_args
 
     volume = volume_from_args(args.volume, args)
     tf = transfer_function_from_args(args, volume)
-    return volume, tf, renderer_from_args(args, volume, tf)
+    renderer = renderer_from_args(args, volume, tf)
+    if say:
+        print(describe_transfer_function(volume, tf, getattr(args, "tf", None)),
+              file=sys.stderr)
+    return volume, tf, renderer
 
 
 def camera_settings(args: argparse.Namespace, volume, renderer) -> dict:  # noqa: ANN001

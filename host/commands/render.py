@@ -127,7 +127,7 @@ def _depth_offset(args: argparse.Namespace, settings: dict, size: tuple[int, int
 def run(args: argparse.Namespace) -> int:
     width, height = parse_size(args.size)
     view_set = parse_view_set(args.views)
-    volume, tf, renderer = render_setup(args)
+    volume, tf, renderer = render_setup(args, say=True)
     camera_opts = camera_settings(args, volume, renderer)
     cameras = [
         orbit_camera(v, camera_opts["center_mm"], camera_opts["radius_mm"],

@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     if not -90.0 <= args.theta <= 90.0:
         raise EigencastError(f"--theta {args.theta}: elevation must be within [-90, 90]")
     width, height = parse_size(args.size)
-    volume, _tf, renderer = render_setup(args)
+    volume, _tf, renderer = render_setup(args, say=True)
     framing = camera_settings(args, volume, renderer)
     camera = orbit_camera(View(args.phi % 360.0, args.theta), framing["center_mm"],
                           framing["radius_mm"], projection=args.projection, fov_deg=args.fov)

@@ -23,6 +23,9 @@ streams one SCORES packet per view:
   packets (one line says so), and a model whose volume cannot be ray-cast sends the
   training views' scores interpolated at the view (``HostModel.quantized_scores``, at the
   canonical view: bit-identical to ``eigencast view --blend``).
+* **A view that fails costs that view.** A view whose ray-cast (or coding) raises is sent as
+  if it could not be ray-cast (the device keeps its own frame, or gets interpolated scores),
+  counted (``ServeStats.failed_views``, said in one line), and the next one is corrected.
 * **Deltas.** Each delta is coded against the last packet *sent* in this session (the
   writer hands a packet to the transport before the next one is encoded, so none is
   replaced unsent). A device that misses a base (a packet lost on a noisy line) sends
@@ -96,6 +99,8 @@ _WAIT_S = 0.1
 _LINGER_S = 0.5
 """After an orbit's last packet, key-frame requests are still answered until the device has
 been quiet this long (a lost last delta would otherwise never be repaired), seconds."""
+_FAILURE_LOG_S = 10.0
+"""A failed view is said at most this often (the statistics line counts them all), s."""
 
 
 # --------------------------------------------------------------------------- stats
@@ -127,6 +132,9 @@ class ServeStats:
         and their bytes.
     unchanged_frames : int
         Views whose correction had nothing worth sending (the device keeps its own frame).
+    failed_views : int
+        Ray-casts (or codings) of a view that raised: each view was skipped (the device
+        kept its own frame, or got interpolated scores) and serving went on.
     stride_frames : dict
         Moving frames per stride (str keys; "0": none fitted the budget).
     sessions, reconnects : int
@@ -162,6 +170,7 @@ class ServeStats:
     correction_frames: int = 0
     correction_bytes: int = 0
     unchanged_frames: int = 0
+    failed_views: int = 0
     stride_frames: dict = field(default_factory=dict)
     views: list = field(default_factory=list, repr=False)
 
@@ -209,6 +218,8 @@ class ServeStats:
             kinds.append(f"{self.refined_frames} refined")
         if self.unchanged_frames:
             kinds.append(f"{self.unchanged_frames} views left as the device made them")
+        if self.failed_views:
+            kinds.append(f"{self.failed_views} views whose ray-cast failed")
         return (f"{self.frames} frames ({', '.join(kinds) or 'none'}), "
                 f"{self.bytes_per_frame:.0f} B/frame, {self.fps:.1f} fps, "
                 f"link {self.link_bytes_per_s / 1024:.1f} KiB/s")
@@ -458,8 +469,8 @@ class _Serving:
     (:meth:`_score`) and sends it (:meth:`_send`). The encoder, the running orbit, the
     frame sources, the view on show and the statistics carry over sessions. Each session
     picks what it sends from the device's HELLO_REPLY (:meth:`_begin`: ``kind`` is
-    ``"correct"``, ``"motion"`` or ``"interpolate"``); ray-casting that fails falls back to
-    ``"interpolate"`` for good.
+    ``"correct"``, ``"motion"`` or ``"interpolate"``); a view whose ray-cast fails is skipped
+    and counted (:meth:`_view_failed`), and the next one is ray-cast as usual.
     """
 
     settings: _Settings
@@ -488,6 +499,8 @@ class _Serving:
     deadline: float | None = None
     """``duration_s`` after the first session began (monotonic): reconnecting counts."""
     streaming: bool = False
+    failed_view: tuple[float, float] | None = None  # its refinement is not tried again
+    failure_said: float | None = None  # when a failed view was last said (monotonic)
 
     def run(self) -> ServeStats:
         """Serve sessions until done; reconnect after a lost link (or give up)."""
@@ -735,14 +748,22 @@ class _Serving:
         if self.motion is not None:
             self.motion.budget_s = self.pace.budget_s
 
-    def _fall_back(self, error: BaseException) -> None:
-        """Ray-casting failed: say so and send what needs no ray-cast from now on."""
-        self.say(f"ray-casting failed ({type(error).__name__}: {_short(error)}); "
-                 + ("the device shows its own frames uncorrected" if self.kind == "correct"
-                    else "sending interpolated scores only"))
-        self.renderer = None
-        self.motion = None
-        self.sources.clear()
+    def _view_failed(self, view: tuple[float, float] | None, error: BaseException) -> None:
+        """One view's ray-cast (or coding) raised: count it, say so (the first time, then
+        at most every `_FAILURE_LOG_S`), and go on; that view is sent as if it could not
+        be ray-cast and is not refined again."""
+        self.stats.failed_views += 1
+        self.failed_view = view
+        now = time.monotonic()
+        if self.failure_said is not None and now - self.failure_said < _FAILURE_LOG_S:
+            return
+        self.failure_said = now
+        where = f" of view ({view[0]:g}, {view[1]:g})" if view is not None else ""
+        shown = ("the device shows its own frame of it uncorrected" if self.kind == "correct"
+                 else "it gets interpolated scores")
+        n = self.stats.failed_views
+        self.say(f"ray-casting failed{where} ({type(error).__name__}: {_short(error)}); "
+                 f"{shown}, serving goes on ({n} failed view{'s' if n != 1 else ''} so far)")
 
     def _choose(self, conn: _Connection, request: tuple[Any, int, bool, bool],
                 now: float) -> _Frame | None:
@@ -787,7 +808,8 @@ class _Serving:
         ray-cast), or repeated as a key frame; else wait."""
         shown = self.current
         step = None
-        if self.motion is not None and shown.view is not None and not want_key:
+        if (self.motion is not None and shown.view is not None and not want_key
+                and shown.view != self.failed_view):
             step = self._sparse(self.motion.refine, shown.view)
         if step is not None:
             if step.scores is None:  # more pixels, nothing new to show yet
@@ -803,12 +825,12 @@ class _Serving:
     def _sparse(self, call: Callable[[tuple[float, float]], Any],
                 view: tuple[float, float]) -> Any | None:
         """``call(view)`` of the sparse source, its rays and time counted; None when it
-        failed (then serving falls back to what needs no ray-cast) or had nothing to do
+        failed (that view is skipped: :meth:`_view_failed`) or had nothing to do
         (``refine`` of a view already fully ray-cast, or no longer the last frame's)."""
         try:
             step = call(view)
         except Exception as exc:
-            self._fall_back(exc)
+            self._view_failed(view, exc)
             return None
         if step is None:
             return None
@@ -824,6 +846,7 @@ class _Serving:
         stats = self.stats
         step = self._sparse(self.motion.frame, frame.view)
         if step is not None:
+            self.failed_view = None
             frame.scores, frame.weights, frame.fine = step.scores, step.weights, step.complete
             stats.motion_frames += 1
             stride = str(step.stride)
@@ -836,9 +859,7 @@ class _Serving:
         shown = self.current
         shown.view, shown.sequence, shown.scores = frame.view, frame.sequence, frame.scores
         shown.fine = frame.fine
-        encoded = self.encoder.encode(frame.view, key=frame.key, scores=frame.scores,
-                                      fine=frame.fine, weights=frame.weights,
-                                      always=self.orbit is not None)
+        encoded = self._encode(frame)
         fps = self.settings.fps
         if encoded is None:
             self.stats.unchanged_frames += 1
@@ -865,6 +886,21 @@ class _Serving:
         self._count(encoded, frame)
         if self.on_frame is not None:
             self.on_frame(encoded, frame.view)
+
+    def _encode(self, frame: _Frame) -> EncodedScores | None:
+        """The frame's packet; a frame whose ray-cast scores cannot be coded costs that view
+        (:meth:`_view_failed`): it is coded as if it had no ray-cast."""
+        always = self.orbit is not None
+        if frame.scores is not None:
+            try:
+                return self.encoder.encode(frame.view, key=frame.key, scores=frame.scores,
+                                           fine=frame.fine, weights=frame.weights,
+                                           always=always)
+            except Exception as exc:
+                self._view_failed(frame.view, exc)
+                frame.scores, frame.weights, frame.fine = None, None, False
+                self.current.scores, self.current.fine = None, False
+        return self.encoder.encode(frame.view, key=frame.key, always=always)
 
     def _count(self, encoded: EncodedScores, frame: _Frame) -> None:
         stats, size = self.stats, len(encoded.packet)

@@ -40,6 +40,7 @@ __all__ = [
     "add_transfer_function_argument",
     "atomic_write_bytes",
     "default_transfer_function",
+    "describe_transfer_function",
     "encode_png",
     "format_float",
     "hu_calibration",

@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from host.errors import TransferFunctionError
+from host.volume.modality import AIR_HU, SOFT_TISSUE_HU, sample_values, tissue_peaks
 
 if TYPE_CHECKING:
     from host.volume import Volume
@@ -67,6 +68,7 @@ __all__ = [
     "TransferFunction",
     "add_transfer_function_argument",
     "default_transfer_function",
+    "describe_transfer_function",
     "hu_calibration",
     "load_transfer_function",
     "transfer_function_from_args",
@@ -74,9 +76,6 @@ __all__ = [
 
 WINDOW_UNITS = ("data", "HU")
 _MAX_JSON_BYTES = 16 << 20
-_SUBSAMPLE_VOXELS = 4_000_000
-AIR_HU = -1000.0
-SOFT_TISSUE_HU = 40.0
 
 
 def _points(value: object, columns: int, what: str) -> np.ndarray:
@@ -277,13 +276,7 @@ class TransferFunction:
 
 def _sample(data: np.ndarray) -> np.ndarray:
     """At most about 4 M finite voxels (fixed stride), as a flat float32 array."""
-    flat = np.asarray(data, dtype=np.float32).ravel()
-    if flat.size > _SUBSAMPLE_VOXELS:
-        flat = flat[:: math.ceil(flat.size / _SUBSAMPLE_VOXELS)]
-    finite = np.isfinite(flat)
-    if not finite.all():
-        flat = flat[finite]
-    return flat
+    return sample_values(data)
 
 
 def _percentile_window(data: np.ndarray, percentiles: tuple[float, float]) -> tuple[float, float]:
@@ -314,20 +307,10 @@ def hu_calibration(volume: Volume) -> tuple[float, float] | None:
     """
     if volume.metadata.get("units") == "HU":
         return None
-    flat = _sample(volume.data)
-    if flat.size == 0:
+    peaks = tissue_peaks(_sample(volume.data))
+    if peaks is None:
         return None
-    air, top = (float(v) for v in np.percentile(flat, [0.5, 99.9]))
-    if not top > air:
-        return None
-    start = air + 0.10 * (top - air)
-    counts, edges = np.histogram(flat, bins=128, range=(start, top))
-    if counts.sum() == 0 or counts.max() < 0.02 * flat.size:
-        return None
-    peak = int(np.argmax(counts))
-    soft = 0.5 * (edges[peak] + edges[peak + 1])
-    if not soft > air:
-        return None
+    air, soft = peaks
     scale = (SOFT_TISSUE_HU - AIR_HU) / (soft - air)
     return float(scale), float(AIR_HU - scale * air)
 
@@ -458,6 +441,44 @@ def default_transfer_function(volume: Volume) -> TransferFunction:
         volume.modality, "generic"
     )
     return PRESETS[name]
+
+
+_MODALITY_SOURCES = {
+    "user": "--modality",
+    "header": "the file's header",
+    "known-dataset": "a known dataset",
+    "builtin": "the built-in volume",
+}
+
+
+def describe_transfer_function(volume: Volume, tf: TransferFunction, spec: str | None) -> str:
+    """One line for the user: which transfer function, for which modality and why, and its
+    window in the volume's values.
+
+    Parameters
+    ----------
+    volume : Volume
+    tf : TransferFunction
+        The one chosen (`transfer_function_from_args`).
+    spec : str or None
+        ``--tf`` as given (None: the default for the modality).
+    """
+    lo, hi = tf.resolve_window(volume)
+    units = " HU" if volume.metadata.get("units") == "HU" else ""
+    window = f"window {lo:.4g} to {hi:.4g}{units}"
+    if spec is not None:
+        return f"transfer function {tf.name} (--tf), {window}"
+    source = volume.metadata.get("modality_source")
+    if source == "data":
+        why = f" (not in the header; the data say so: {volume.metadata.get('modality_note')})"
+    elif source in _MODALITY_SOURCES:
+        why = f" (from {_MODALITY_SOURCES[source]})"
+    elif volume.modality == "generic":
+        why = (" (nothing in the header, and the data do not look like CT in Hounsfield "
+               "units; --modality or --tf choose another look)")
+    else:
+        why = ""
+    return f"transfer function {tf.name} for modality {volume.modality}{why}, {window}"
 
 
 # --------------------------------------------------------------------------

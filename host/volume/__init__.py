@@ -54,8 +54,10 @@ Layout
 ------
 ``core.py`` (`Volume`, what readers share), ``load.py`` (`load_volume`: format detection,
 the `READERS` registry, orientation and overrides, the ``--dims ...`` CLI options),
-``orientation.py`` (axis codes, `KNOWN_DATASETS`), ``read_<format>.py`` (one reader per
-format, as pyserial keeps one ``protocol_*.py`` per URL scheme) and ``phantoms.py``
+``orientation.py`` (axis codes, `KNOWN_DATASETS`), ``modality.py`` (what the values say
+about the modality when nothing else does: CT in Hounsfield units), ``read_<format>.py``
+(one reader per format, as pyserial keeps one ``protocol_*.py`` per URL scheme) and
+``phantoms.py``
 (``builtin:NAME``). A new format: a ``read_NAME.py`` returning a ``core._Loaded``, an entry in
 `READERS` and its extension/magic bytes in ``load._detect_format``.
 

@@ -28,8 +28,10 @@ from host.volume.core import (
     _Loaded,
     _read_head,
 )
+from host.volume.modality import guess_modality
 from host.volume.orientation import (
     KNOWN_DATASETS,
+    KnownDataset,
     _parse_axis_code,
     _reorient_to_ras,
 )
@@ -136,6 +138,9 @@ def _apply_overrides(
     if code is not None:
         data, sp = _reorient_to_ras(data, sp, code)
         meta["orientation"] = {"file_axes": code, "source": "user", "note": ""}
+    if modality is not None:
+        meta["modality_source"] = "user"
+        meta.pop("modality_note", None)
     return Volume(
         np.ascontiguousarray(data),
         sp,
@@ -183,19 +188,43 @@ def _finish(
         bad = int(np.count_nonzero(~np.isfinite(values)))
         raise _fail(path, f"{bad} voxels are NaN or infinite")
 
-    mod = modality or (known.modality if known and loaded.modality is None else None)
-    mod = mod or loaded.modality or "generic"
+    mod, mod_source, mod_note, units = _modality(modality, loaded, known, values, file_dtype)
     metadata = {
         "format": loaded.fmt,
         "file_dims": list(file_dims),
         "file_dtype": file_dtype,
         "value_range": [float(values.min()), float(values.max())],
         "orientation": {"file_axes": file_axes, "source": source, "note": note},
+        "modality_source": mod_source,
     }
-    if loaded.units:
-        metadata["units"] = loaded.units
+    if mod_note:
+        metadata["modality_note"] = mod_note
+    if units:
+        metadata["units"] = units
     metadata.update(loaded.extra)
     return Volume(values, sp, name=name, modality=mod, source=str(path), metadata=metadata)
+
+
+def _modality(
+    modality: str | None,
+    loaded: _Loaded,
+    known: KnownDataset | None,
+    values: np.ndarray,
+    file_dtype: str,
+) -> tuple[str, str, str, str | None]:
+    """``(modality, source, note, units)``: the caller's, the header's, a known dataset's, or
+    what the values say (`guess_modality`: CT only); ``generic`` when nothing says."""
+    if modality is not None:
+        return modality, "user", "", loaded.units
+    if loaded.modality is not None:
+        return loaded.modality, "header", "", loaded.units
+    if known is not None:
+        return known.modality, "known-dataset", known.note, loaded.units
+    guess = guess_modality(values, file_dtype)
+    if guess is not None:
+        mod, units, why = guess
+        return mod, "data", why, loaded.units or units
+    return "generic", "none", "", loaded.units
 
 
 def _stem(path: Path) -> str:

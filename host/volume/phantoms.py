@@ -509,6 +509,7 @@ def builtin_volume(name: str) -> Volume:
         "file_dtype": "float32",
         "value_range": [float(data.min()), float(data.max())],
         "orientation": {"file_axes": "RAS", "source": "builtin", "note": ""},
+        "modality_source": "builtin",
     }
     if spec.units:
         metadata["units"] = spec.units
