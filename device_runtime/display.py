@@ -23,8 +23,10 @@ and the ``overlay`` / ``zoom`` state) that :mod:`device_runtime.runtime` drives:
     ``sequence`` (the view request the frame answers, 0: none) and ``kind`` (the device's
     own frame of the view: ``warp``, the depth warp of its neighbours, or ``blend``, the
     blend of its own scores, shown while the warp is made or when the image has no depth;
-    ``corrected``: the own frame corrected by the host; ``key`` / ``delta``: a host frame of
-    absolute scores; ``mean``: the image's first frame). Without a folder it presents nothing.
+    ``corrected``: the own frame corrected by the host; ``layer``: a resting view's frame
+    refined by a layer, ``exact``: refined until it is the host's ray-cast bit for bit;
+    ``key`` / ``delta``: a host frame of absolute scores; ``mean``: the image's first
+    frame). Without a folder it presents nothing.
 
 PNGs are written by :func:`encode_png` (zlib + struct: no imaging library on the device),
 atomically (temporary file, then rename), so a reader never sees half a file.
@@ -80,6 +82,8 @@ _CSV_HEADER = ",".join(FRAMES_CSV_COLUMNS) + "\n"
 
 def frame_kind(info: dict) -> str:
     """What a presented frame is (``frames.csv``'s ``kind``) from its info."""
+    if info.get("layer") is not None:
+        return "exact" if info.get("exact") else "layer"
     if info.get("corrected"):
         return "corrected"
     if info.get("synthesized"):

@@ -130,6 +130,8 @@ DEFAULT_FPS = 60.0
 """Display ticks per second of a window."""
 HEADLESS_FPS = 30.0
 """Display ticks per second without a screen (a board's display rate)."""
+LAYER_MAX_BYTES = 1 << 16
+"""A layer's packet bound when neither ``--max-frame`` nor the transport sets one."""
 LAYER_QUEUE = 64
 """Refinement layers held for the display at most (each one strip of a frame)."""
 SWITCH_INTERVAL_S = 0.001
@@ -416,11 +418,11 @@ class RuntimeDevice(FrameScheduler, Device):
         try:
             layer = decode_layer(packet, image_digest=model.image.digest or bytes(32),
                                  image_shape=model.image.image_shape,
-                                 max_packet_bytes=self.config.max_frame_bytes)
+                                 max_packet_bytes=self._frame_limit())
         except ImageMismatch:
             stats.wrong_image += 1
             return
-        except ProtocolError as exc:
+        except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.layers_bad += 1
             self._log_limited("bad-layer", f"bad layer dropped: "
                               f"{' '.join(str(exc).split())[:160]} ({stats.layers_bad} so far)")
@@ -430,6 +432,12 @@ class RuntimeDevice(FrameScheduler, Device):
                 stats.layers_dropped += 1
             self._layers.append(LayerItem(model, layer))
         self._scores.wake()
+
+    def _frame_limit(self) -> int:
+        """The largest frame this device takes (its ``--max-frame``, else its transport's)."""
+        transport = getattr(self.link, "transport", None)
+        return int(self.config.max_frame_bytes
+                   or getattr(transport, "max_frame_bytes", None) or LAYER_MAX_BYTES)
 
     def _session_link(self) -> Any:
         """The link when a host session is up (HELLO done; a keyed device: AUTH done), else

@@ -238,12 +238,10 @@ class FrameScheduler:
                 item = self._layers[0]
                 layer = item.packet
                 view = (layer.phi_deg, layer.theta_deg)
-                rest = self._rest_for(model, item)
+                rest, wait = self._rest_for(model, item)
                 if rest is None:
-                    due = model.shown.correction_due
-                    if (item.model is model and view == self.view and due is not None
-                            and due.scores.frame == layer.base_frame):
-                        return False  # its correction waits for the warp: so does it
+                    if wait:  # its frame is being made (a warp, a correction waiting for it)
+                        return False
                     self._layers.popleft()
                     self.runtime_stats.layers_dropped += 1
                     continue
@@ -270,26 +268,39 @@ class FrameScheduler:
                 frame=rest.frame, settled=True)
             return True
 
-    def _rest_for(self, model: LoadedModel, item: Any) -> RestFrame | None:
-        """The resting frame ``item``'s layer refines: the one being refined, or a new one
-        of the frame on show when that is the layer's base (its view and correction; an
-        absolute layer with base 0: any frame of its view). None: it belongs to no frame
-        on show."""
+    def _rest_for(self, model: LoadedModel, item: Any) -> tuple[RestFrame | None, bool]:
+        """The resting frame ``item``'s layer refines, and whether to wait for it: the one
+        being refined; else for base frame 0 the device's own frame of the view (its warp,
+        or its blend), for another base the frame on show when it is that correction's.
+        (None, True): that frame is still being made; (None, False): the layer belongs to
+        no frame the device shows or will show."""
         layer = item.packet
         view = (layer.phi_deg, layer.theta_deg)
         shown = model.shown
         if item.model is not model or view != self.view or self._view_dirty:
-            return None
+            return None, False
         rest = shown.rest
         if rest is not None and rest.view == view and rest.base_frame == layer.base_frame:
-            return rest
-        base = shown.base
-        fits = base is not None and base[0] == view and (
-            base[1] == layer.base_frame or (layer.base_frame == 0 and not layer.residual))
-        if not fits or self._shown_frame is None:
-            return None
-        shown.rest = RestFrame(view, layer.base_frame, self._shown_frame)
-        return shown.rest
+            return rest, False
+        if layer.base_frame == 0:
+            own = self._own_frame(model, view)
+            if own is None:
+                return None, shown.warp_due == view
+            shown.rest = RestFrame(view, 0, own)
+            return shown.rest, False
+        if shown.base == (view, layer.base_frame) and self._shown_frame is not None:
+            shown.rest = RestFrame(view, layer.base_frame, self._shown_frame)
+            return shown.rest, False
+        due = shown.correction_due
+        return None, due is not None and due.scores.frame == layer.base_frame
+
+    def _own_frame(self, model: LoadedModel, view: tuple[float, float]) -> np.ndarray | None:
+        """The device's own frame of ``view``: the warp made for it, or (an image without
+        depth) the blend of its own scores; None while the warp is not made."""
+        if model.warp_worker is None:
+            return model.reconstructor.update(model.own_scores(view))
+        own = model.shown.own_warp
+        return own[1] if own is not None and own[0] == view else None
 
     def _keeps_exact(self, model: LoadedModel, view: tuple[float, float]) -> bool:
         """The view's exact frame is on show: a host frame of it must not replace it."""

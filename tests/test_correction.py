@@ -467,8 +467,9 @@ def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
     lines: list[str] = []
 
     def host():
+        # rest="correction": the corrections themselves (layers after them: test_rest_exact)
         result["stats"] = serve(depth_model_path, f"mem://{name}?end=a", key=KEY, stop=stop,
-                                log=lines.append,
+                                log=lines.append, rest="correction",
                                 on_frame=lambda enc, view: sent.append((enc, view)))
 
     thread = threading.Thread(target=host, daemon=True)
@@ -549,7 +550,9 @@ def test_a_served_device_in_steady_motion_shows_the_view_warped_ahead_at_once(
 
 
 def _fine(encoded, model) -> bool:
-    return float(encoded.step) == pytest.approx(model.score_step, rel=1e-6)
+    """A resting view's complete correction (not a refinement layer's strip)."""
+    return encoded.step is not None and float(encoded.step) == pytest.approx(
+        model.score_step, rel=1e-6)
 
 
 def test_serve_sends_ray_cast_scores_to_a_device_that_does_not_synthesize(
@@ -671,7 +674,7 @@ def _serve_until_rest(url: str, image_path, target, frames: list) -> list:
     sent: list = []
     stop = threading.Event()
     thread = threading.Thread(target=lambda: serve(
-        image_path, url, key=KEY, stop=stop, log=_quiet,
+        image_path, url, key=KEY, stop=stop, log=_quiet, rest="correction",
         on_frame=lambda enc, view: sent.append((enc, view))), daemon=True)
     thread.start()
     try:

@@ -191,3 +191,86 @@ if __name__ == "__main__":
     if sys.argv[1:] != ["--regenerate"]:
         sys.exit("usage: python tests/test_layers.py --regenerate")
     _regenerate()
+
+
+# --------------------------------------------------------------------------- on a device
+
+
+@pytest.fixture(scope="module")
+def resting_device(tmp_path_factory):
+    """A predicting RuntimeDevice (no link) resting on a view of the tiny depth model, its
+    own warp on show; and the truth a layer would bring."""
+    from provision_helpers import KEY
+    from runtime_helpers import tiny_model
+
+    from device_runtime.device import DeviceConfig
+    from device_runtime.runtime import LoadedModel, RuntimeDevice
+    from protocol.image import read_image
+
+    image = read_image(tiny_model(tmp_path_factory, name="tiny-depth", depth=True), key=KEY)
+    shown: list = []
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path_factory.mktemp("flash"), key=KEY),
+                           predict=True, view=(40.0, 10.0), log=lambda _: None,
+                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
+    model = LoadedModel.build(image, slot="A", generation=1, test=False, want_predictor=True)
+    device._decoder_model = model  # (what activation does: the dispatcher decodes with it)
+    device._swap_model(model)
+    device._show_due_warp(model, timeout_s=30)
+    assert shown[-1][1].get("synthesized")
+    yield device, model, shown, image
+    device.close()
+    model.close()
+
+
+def _layer_for(device, image, pixels, **kwargs) -> bytes:
+    h, w = image.image_shape
+    fields = {"frame": 5, "base_frame": 0, "view": device.view, "image_digest": image.digest,
+              "layer": 0, "y0": 0, "rows": h} | kwargs
+    return encode_layer(_file(pixels, "PNG"), codec=CODEC_PNG, **fields)
+
+
+def test_a_device_drops_every_bad_layer_and_shows_a_good_one_exactly(resting_device):
+    """Mutated, truncated, oversized and misdirected layers reach a resting device: none is
+    shown, none stops it; each is counted; then a good exact layer makes the frame on show
+    exactly its pixels, and a later host frame of the view does not replace it."""
+    from protocol import messages as m
+
+    device, model, shown, image = resting_device
+    h, w = image.image_shape
+    rng = np.random.default_rng(7)
+    truth = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+    good = _layer_for(device, image, truth, exact=True)
+    bad = [good[:n] for n in (3, 20, LAYER_HEADER_SIZE, LAYER_HEADER_SIZE + 30)]
+    for _ in range(60):  # random byte flips anywhere
+        packet = bytearray(good)
+        for _ in range(rng.integers(1, 5)):
+            packet[rng.integers(0, len(packet))] = rng.integers(0, 256)
+        bad.append(bytes(packet))
+    huge = bytearray(good)  # a PNG that declares 60000 x 60000 pixels (an image bomb)
+    huge[LAYER_HEADER_SIZE + 16:LAYER_HEADER_SIZE + 24] = (60000).to_bytes(4, "big") * 2
+    bad += [bytes(huge),
+            _layer_for(device, image, truth, view=(device.view[0] + 5, device.view[1])),
+            _layer_for(device, image, truth, base_frame=12345, residual=True),
+            _layer_for(device, image, truth[: h // 2], rows=h // 2, y0=h // 2 + 1),
+            _layer_for(device, image, truth, image_digest=bytes(32))]
+    frames_before = len(shown)
+    on_show = device._shown_frame.copy()
+    for packet in bad:
+        device.on_scores(m.Scores(sequence=0, packet=packet))
+        while device._layers:
+            device.display_turn(None)
+    stats = device.runtime_stats
+    assert stats.exact_frames == 0
+    for frame, info in shown[frames_before:]:  # whatever a flipped pixel byte made, it is
+        assert info.get("layer") is not None and not info.get("exact")  # never "exact"
+    np.testing.assert_array_equal(on_show if len(shown) == frames_before else shown[-1][0],
+                                  device._shown_frame)
+    # each one a layer accounted for, or (its magic or version flipped) a bad score packet
+    assert stats.layer_packets + stats.decode_errors == len(bad)
+    assert (stats.layers_bad + stats.layers_dropped + stats.wrong_image
+            + stats.layers_applied) == stats.layer_packets
+    device.on_scores(m.Scores(sequence=0, packet=good))
+    device.display_turn(None)
+    assert shown[-1][1].get("exact") and stats.exact_frames == 1
+    np.testing.assert_array_equal(shown[-1][0], truth)
+    np.testing.assert_array_equal(device._shown_frame, truth)

@@ -47,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "view (default 33; a lower --fps or a slower link lengthens it): "
                         "a faster host corrects moving views more, a slower one less, never "
                         "later")
+    parser.add_argument("--rest-quality", metavar="Q", default="exact",
+                        help="what a view you stop on becomes: 'exact' (default: refined "
+                        "until it is the ray-cast bit for bit), an object SSIM such as 0.95 "
+                        "(refined until it reaches it), or 'correction' (the eigenspace's "
+                        "best frame only, the fewest bytes)")
     parser.add_argument("--volume", metavar="PATH",
                         help="the volume to ray-cast (default: the source recorded in the "
                         "model; it must be the same volume)")
@@ -96,6 +101,15 @@ def run(args: argparse.Namespace) -> int:
             raise EigencastError(f"--orbit: {exc}") from None
     if args.deadline is not None and not (args.deadline > 0 and args.deadline < 1e6):
         raise EigencastError(f"--deadline {args.deadline}: must be > 0 milliseconds")
+    rest = args.rest_quality
+    if rest not in ("exact", "correction"):
+        try:
+            rest = float(rest)
+        except ValueError:
+            rest = None
+        if rest is None or not 0.0 < rest < 1.0:
+            raise EigencastError(f"--rest-quality {args.rest_quality}: expected exact, "
+                                 "correction or an object SSIM between 0 and 1 (e.g. 0.95)")
     if not args.model.is_file():
         raise EigencastError(f"{args.model}: no such eigenspace image")
     key = load_key(args.key) if args.key is not None else None
@@ -126,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         model=model,
         volume=args.volume,
         deadline_s=(DEFAULT_DEADLINE_S if args.deadline is None else args.deadline / 1000.0),
+        rest=rest,
     )
     if args.json:
         print(json.dumps(stats.as_dict()))

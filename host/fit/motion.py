@@ -415,6 +415,14 @@ class MotionScores:
         return MotionFrame(y, stride, pattern.n_pixels, seconds, prior_kind, complete,
                            weights)
 
+    def rest_images(self, view: tuple[float, float]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The resting ``view``'s full ray-cast and the device's own frame of it (uint8
+        (h, w, 3) each, the source's own arrays: not to be changed), once its correction is
+        complete; None otherwise (another view, not complete yet, or no ``own``)."""
+        if view != self._view or not self._complete or self._synth is None:
+            return None
+        return self._image, self._synth
+
     def converged(self, view: tuple[float, float]) -> bool:
         """``view`` is the last frame's and its scores are already the full projection
         (False for another view: it has not been ray-cast yet)."""

@@ -4,7 +4,10 @@ Owns provisioning (``provisioning.py``: handshake, chunked image transfer with r
 and resume, commit) and serving (``serving.py``: the session that answers view requests with
 score packets: corrections of the device's own frames, ``correction.py``, or absolute
 scores, ``encoding.py``, from the sparse ray-casts of `host.fit.MotionScores` that fit a
-deadline; ``true_views.py``: the scores of ray-cast views; ``errors.py``: `ServeError`).
+deadline; ``true_views.py``: the scores of ray-cast views; ``serve_stats.py``: `ServeStats`;
+``errors.py``: `ServeError`), and what a resting view gets once its ray-cast is whole
+(``resting.py``: its complete correction and the refinement layers that end at the exact
+ray-cast, planned by ``layers.py``: `RestPlanner`).
 Both drive the shared protocol (`protocol.link`, `protocol.transport`, `protocol.scores`)
 from the host end.
 
@@ -24,11 +27,13 @@ from host.lazy import attach
 __all__ = [
     "CHUNK_LATENCY_S",
     "DEFAULT_DEADLINE_S",
+    "DEFAULT_TARGETS",
     "SCORE_MODES",
     "FrameEncoder",
     "ImageInfo",
     "ProvisionError",
     "ProvisionResult",
+    "RestPlanner",
     "ServeError",
     "ServeStats",
     "TrueViewScores",

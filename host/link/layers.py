@@ -10,25 +10,33 @@ runs). `RestPlanner.plan` then lays out the layers:
    cheaper of two codings that reach the target, each a WebP at the lowest quality setting
    that reaches it (a bisection over libwebp's quality, `method` 6): the *residual* of the
    ray-cast against the device's frame (``(R - F) >> 1`` offset by 128) or the ray-cast
-   *itself*. Where the eigenspace is good the device's frame predicts the ray-cast and the
-   residual is cheaper; where it is weak the ray-cast is.
+   *itself*. Where the device's frame predicts the ray-cast the residual is cheaper; where
+   it does not, the ray-cast is. For the first layer the device's frame is either its own
+   frame with the complete correction or its own frame alone (the residual against the own
+   frame was the cheapest first step on every shared volume measured: the correction's
+   cell-wise changes cost the residual more than the correction saves, research/rest_layers.md).
 2. **The exact layer**: the ray-cast itself, lossless (WebP lossless or PNG, whichever is
    smaller), never coded against the device's frame: on a CPU whose float32 arithmetic
    differs from the host's in a level here and there (docs/protocol.md) the frame still
    ends exactly the ray-cast.
 
-Each layer is sent as strips of whole rows (`max_strip_pixels`: a strip's decode costs the
-device about a blend or less, and a layer can stop between strips when the view moves) in
-packets no larger than the device's frames. The planner also says whether the complete
-correction pays for itself (`Plan.skip_correction`): when the first layer alone, coded from
-the ray-cast, reaches its target in fewer bytes than the correction and the residual layer
-together, the correction is not sent and the layers refine the device's own frame. What the
-device will show after each layer (its frame, as pygame decodes the strips) is in the plan,
-so its quality and cumulative bytes are known before anything is sent.
+Each layer is sent as strips of whole rows, each in a packet no larger than
+``max_packet_bytes``: the device's largest frame, and on a slow line what it carries in a
+quarter of a second (`serve` sets it), so a new view's correction never waits behind more
+than one strip. A strip is otherwise the whole frame: every strip is a file of its own, and
+strips cost bytes (a 256 x 256 ray-cast in 2 x 2 independent WebP lossless tiles: +7 %,
+research/rest_layers.md), while pygame decodes a whole 256 x 256 frame in about half a
+blend's time (BENCHMARKS.md). The planner also says whether the complete correction pays for
+itself (`Plan.skip_correction`): the first layer is the cheapest of the correction plus a
+residual against the corrected frame, and a residual against (or a coding of the ray-cast
+over) the own frame alone. What the device will show after each layer (its frame, as pygame
+decodes the strips) is in the plan, so its quality and cumulative bytes are known before
+anything is sent.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,6 +49,7 @@ from protocol.layers import CODEC_PNG, CODEC_WEBP, decode_layer, encode_layer
 __all__ = [
     "DEFAULT_TARGETS",
     "MAX_STRIP_PIXELS",
+    "EncodedLayer",
     "Plan",
     "PlannedLayer",
     "RestPlanner",
@@ -49,15 +58,14 @@ __all__ = [
 
 #: Object SSIM each lossy layer reaches, before the exact layer.
 DEFAULT_TARGETS = (0.95,)
-#: Pixels per strip at most: pygame decodes a WebP or PNG strip of this size in about half
-#: a blend's time or less of a 256 x 256 image on one core (BENCHMARKS.md), so a strip costs
-#: the device less than a blend.
-MAX_STRIP_PIXELS = 256 * 256
+#: Pixels per strip at most (a frame of up to 4096 x 4096 is one strip unless its packet is
+#: too large; `RestPlanner` halves strips until each fits ``max_packet_bytes``).
+MAX_STRIP_PIXELS = 1 << 24
 #: A pixel whose largest channel is above this shows the object (black background).
 OBJECT_LEVEL = 2
 _SSIM_WIN = 7
 #: The residual's shift: (R - F) >> 1 fits a byte around 128 for any frame.
-RESIDUAL_SHIFT = 1
+RESIDUAL_SHIFT = 0
 _WEBP_METHOD = 6
 
 
@@ -91,12 +99,62 @@ class PlannedLayer:
         return sum(len(p) for p in self.packets)
 
 
+@dataclass(frozen=True)
+class EncodedLayer:
+    """One strip's packet as ``serve`` sends it.
+
+    Attributes
+    ----------
+    packet : bytes
+    frame : int
+        Its frame number.
+    layer : int
+        The layer it belongs to (0 first).
+    last : bool
+        The layer's last strip: once it is applied the device shows ``quality``.
+    exact : bool
+        A strip of the exact layer.
+    quality : float
+        Object SSIM of the device's frame once the whole layer is applied.
+    """
+
+    packet: bytes
+    frame: int
+    layer: int
+    last: bool
+    exact: bool
+    quality: float
+    step: None = None  # (a score packet's step: a layer has none)
+
+    def numbered(self, frame: int) -> EncodedLayer:
+        """The same strip as frame number ``frame`` (its packet's header rewritten)."""
+        packet = self.packet[:4] + int(frame).to_bytes(4, "little") + self.packet[8:]
+        return dataclasses.replace(self, packet=packet, frame=int(frame))
+
+
 @dataclass
 class Plan:
     """The layers of one resting view and whether its complete correction is sent first."""
 
     skip_correction: bool
     layers: list[PlannedLayer] = field(default_factory=list)
+
+    def sends(self) -> list[EncodedLayer]:
+        """Every strip's packet in the order it is sent."""
+        from protocol.layers import LAYER_HEADER_SIZE
+
+        out = []
+        for index, layer in enumerate(self.layers):
+            for k, packet in enumerate(layer.packets):
+                frame = int.from_bytes(packet[4:8], "little")
+                assert len(packet) > LAYER_HEADER_SIZE
+                out.append(EncodedLayer(packet, frame, index, k == len(layer.packets) - 1,
+                                        layer.exact, layer.quality))
+        return out
+
+    @property
+    def size_bytes(self) -> int:
+        return sum(layer.size_bytes for layer in self.layers)
 
 
 class RestPlanner:
@@ -140,26 +198,42 @@ class RestPlanner:
     def plan(self, view: tuple[float, float], truth: np.ndarray, corrected: np.ndarray,
              own: np.ndarray, correction_bytes: int, *, base_frame: int,
              first_frame: int) -> Plan:
-        """The layers after the complete correction (``corrected``, ``correction_bytes``;
-        its packet's frame number ``base_frame``), or after the device's ``own`` frame
-        when the correction does not pay. Packets are numbered from ``first_frame``."""
+        """The layers of a resting view whose full ray-cast is ``truth``: either after its
+        complete correction (``corrected``: the device's frame with it, ``correction_bytes``;
+        its packet's frame number ``base_frame``), or, when that costs more, refining the
+        device's ``own`` frame without it (base frame 0). Packets are numbered from
+        ``first_frame``."""
         truth = np.asarray(truth, dtype=np.uint8)
         corrected = np.asarray(corrected, dtype=np.uint8)
-        reached = self.quality(truth, corrected)
-        target = next((t for t in self.targets if t > reached), None)
-        skip = False
-        first = None
-        if target is not None:
-            first = self._lossy(view, truth, corrected, target, base_frame, first_frame, 0,
-                                residual=True)
-            alone = self._lossy(view, truth, np.asarray(own, dtype=np.uint8), target, 0,
-                                first_frame, 0, residual=False)
-            if alone is not None and (first is None or alone.size_bytes
-                                      < correction_bytes + first.size_bytes):
-                skip, first = True, alone
+        own = np.asarray(own, dtype=np.uint8)
+        skip, first = self._first(view, truth, corrected, own, correction_bytes, base_frame,
+                                  first_frame)
         start, base = (own, 0) if skip else (corrected, base_frame)
-        return Plan(skip, self._layers(view, truth, np.asarray(start, dtype=np.uint8), base,
-                                       first_frame, first=first))
+        return Plan(skip, self._layers(view, truth, start, base, first_frame, first=first))
+
+    def _first(self, view: tuple[float, float], truth: np.ndarray, corrected: np.ndarray,
+               own: np.ndarray, correction_bytes: int, base_frame: int, frame: int
+               ) -> tuple[bool, PlannedLayer | None]:
+        """Whether to skip the correction, and the first lossy layer: the cheapest of the
+        correction and a residual against its frame, a residual against the own frame, and
+        the ray-cast itself, each reaching the first target the corrected frame does not."""
+        reached = self.quality(truth, corrected) if base_frame else -1.0
+        target = next((t for t in self.targets if t > reached), None)
+        if target is None:  # the correction reaches every target: the exact layer is next
+            return False, None
+        options = []
+        if base_frame:
+            layer = self._lossy(view, truth, corrected, target, base_frame, frame, 0,
+                                residual=True)
+            if layer is not None:
+                options.append((correction_bytes + layer.size_bytes, False, layer))
+        layer = self._lossy(view, truth, own, target, 0, frame, 0, residual=True)
+        if layer is not None:
+            options.append((layer.size_bytes, True, layer))
+        if not options:
+            return base_frame == 0, None
+        _, skip, layer = min(options, key=lambda o: o[0])
+        return skip, layer
 
     def _layers(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
                 base_frame: int, frame: int, *,
@@ -167,13 +241,16 @@ class RestPlanner:
         """The lossy layers from ``current`` (the first one given, when planned already),
         then the exact one."""
         layers: list[PlannedLayer] = []
-        reached = self.quality(truth, current)
+        if first is not None:
+            layers.append(first)
+            frame += len(first.packets)
+            current = first.frame
+        reached = first.quality if first is not None else self.quality(truth, current)
         for target in self.targets:
             if reached >= target:
                 continue
-            layer = first if first is not None and not layers else self._lossy(
-                view, truth, current, target, base_frame, frame, len(layers),
-                residual=base_frame != 0)
+            layer = self._lossy(view, truth, current, target, base_frame, frame, len(layers),
+                                residual=True)
             if layer is None:
                 break
             layers.append(layer)
@@ -287,17 +364,30 @@ def object_ssim(truth: np.ndarray, frame: np.ndarray) -> float:
     image's SSIM map (7 x 7 window, ``data_range=255``, averaged over the channels) averaged
     over the pixels where ``truth`` shows the object (a channel above `OBJECT_LEVEL`), the
     image's 3-pixel border left out as scikit-image's mean does; evaluate's
-    ``structural_similarity`` with its ``object_mask`` (a test checks they agree)."""
+    ``structural_similarity`` with its ``object_mask`` (a test checks they agree).
+
+    The map is computed on the object's bounding box and 3 pixels around it only: every
+    window of an object pixel lies inside it, so the values are the whole image's."""
     from skimage.metrics import structural_similarity as sk_ssim
 
-    _, full = sk_ssim(truth.astype(np.float64), frame.astype(np.float64), data_range=255,
-                      channel_axis=-1, full=True)
-    ssim = full.mean(axis=2)
     mask = truth.max(axis=2) > OBJECT_LEVEL
+    if not mask.any():
+        return 1.0
+    h, w = mask.shape
     pad = (_SSIM_WIN - 1) // 2
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    r0, r1 = max(0, rows[0] - pad), min(h, rows[-1] + pad + 1)
+    c0, c1 = max(0, cols[0] - pad), min(w, cols[-1] + pad + 1)
+    if min(r1 - r0, c1 - c0) < _SSIM_WIN:  # too small a box for the window: the whole image
+        r0, r1, c0, c1 = 0, h, 0, w
+    _, full = sk_ssim(truth[r0:r1, c0:c1].astype(np.float64),
+                      frame[r0:r1, c0:c1].astype(np.float64), data_range=255,
+                      channel_axis=-1, full=True)
+    ssim = np.zeros((h, w))
+    ssim[r0:r1, c0:c1] = full.mean(axis=2)
     inner, m = ssim[pad:-pad, pad:-pad], mask[pad:-pad, pad:-pad]
     if not m.any():
-        return float(ssim[mask].mean(dtype=np.float64)) if mask.any() else 1.0
+        return float(ssim[mask].mean(dtype=np.float64))
     return float(inner[m].mean(dtype=np.float64))
 
 

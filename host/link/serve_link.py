@@ -22,7 +22,7 @@ from protocol.transport import open_transport
 
 if TYPE_CHECKING:
     from host.fit.model import HostModel
-    from host.link.serving import ServeStats
+    from host.link.serve_stats import ServeStats
 
 __all__ = ["Connection", "DeviceEvents", "device_opener"]
 

@@ -67,9 +67,11 @@ from device_runtime.orbit import Orbit, OrbitSpec
 from host.fit.model import HostModel
 from host.link.encoding import FrameEncoder
 from host.link.errors import ServeError
+from host.link.layers import EncodedLayer
 from host.link.serve_link import Connection as _Connection
 from host.link.serve_link import DeviceEvents as _DeviceEvents
 from host.link.serve_link import device_opener as _device_opener
+from host.link.serve_stats import ServeStats
 from host.link.true_views import open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
@@ -99,130 +101,13 @@ _WAIT_S = 0.1
 _LINGER_S = 0.5
 """After an orbit's last packet, key-frame requests are still answered until the device has
 been quiet this long (a lost last delta would otherwise never be repaired), seconds."""
+#: Bytes a SCORES frame adds to its packet (CBOR body, event counter and tag, frame header
+#: and CRC), with room to spare: a layer's strip is split to fit the device's frames.
+_SCORES_OVERHEAD = 96
+#: Seconds of a serial line one refinement strip may take at most.
+_STRIP_S = 0.25
 _FAILURE_LOG_S = 10.0
 """A failed view is said at most this often (the statistics line counts them all), s."""
-
-
-# --------------------------------------------------------------------------- stats
-
-
-@dataclass
-class ServeStats:
-    """What :func:`serve` did (all sessions).
-
-    Attributes
-    ----------
-    frames, key_frames, delta_frames : int
-        Score packets sent.
-    packet_bytes, key_bytes, delta_bytes : int
-        Their sizes (score packets, before framing).
-    wire_bytes : int
-        Bytes the links wrote (all frames, framing included) and read.
-    requests, coalesced, keyframe_requests : int
-        VIEW_REQUESTs received, those superseded before they were answered, KEYFRAME_REQUESTs.
-    refined_frames : int
-        Packets that refined a resting view.
-    motion_frames, motion_pixels, motion_seconds : int, int, float
-        Frames of moving views made from a sparse ray-cast, rays cast for them and their
-        refinements, and the host time it took.
-    converged_frames : int
-        Refinements that reached the full ray-cast of a resting view.
-    correction_frames, correction_bytes : int
-        Corrections of the device's own frames sent (not counted as key or delta frames)
-        and their bytes.
-    unchanged_frames : int
-        Views whose correction had nothing worth sending (the device keeps its own frame).
-    failed_views : int
-        Ray-casts (or codings) of a view that raised: each view was skipped (the device
-        kept its own frame, or got interpolated scores) and serving went on.
-    stride_frames : dict
-        Moving frames per stride (str keys; "0": none fitted the budget).
-    sessions, reconnects : int
-    stream_seconds : float
-        Time spent streaming (sessions, not connecting).
-    device_id : str
-    provisioned : bool
-        The image was installed first (``provision_missing``).
-    """
-
-    frames: int = 0
-    key_frames: int = 0
-    delta_frames: int = 0
-    packet_bytes: int = 0
-    key_bytes: int = 0
-    delta_bytes: int = 0
-    wire_bytes_sent: int = 0
-    wire_bytes_received: int = 0
-    requests: int = 0
-    coalesced: int = 0
-    keyframe_requests: int = 0
-    sessions: int = 0
-    reconnects: int = 0
-    stream_seconds: float = 0.0
-    device_id: str = ""
-    provisioned: bool = False
-    last_view: tuple[float, float] | None = None
-    refined_frames: int = 0
-    motion_frames: int = 0
-    motion_pixels: int = 0
-    motion_seconds: float = 0.0
-    converged_frames: int = 0
-    correction_frames: int = 0
-    correction_bytes: int = 0
-    unchanged_frames: int = 0
-    failed_views: int = 0
-    stride_frames: dict = field(default_factory=dict)
-    views: list = field(default_factory=list, repr=False)
-
-    @property
-    def bytes_per_frame(self) -> float:
-        """Mean score-packet size, bytes."""
-        return self.packet_bytes / self.frames if self.frames else 0.0
-
-    @property
-    def fps(self) -> float:
-        """Frames sent per second of streaming."""
-        return self.frames / self.stream_seconds if self.stream_seconds > 0 else 0.0
-
-    @property
-    def link_bytes_per_s(self) -> float:
-        """Wire bytes sent per second of streaming."""
-        return self.wire_bytes_sent / self.stream_seconds if self.stream_seconds > 0 else 0.0
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-able summary."""
-        out = {k: v for k, v in self.__dict__.items() if k != "views"}
-        out["last_view"] = list(self.last_view) if self.last_view else None
-        out.update(bytes_per_frame=self.bytes_per_frame, fps=self.fps,
-                   link_bytes_per_s=self.link_bytes_per_s,
-                   mean_key_bytes=self.key_bytes / self.key_frames if self.key_frames else 0.0,
-                   mean_delta_bytes=(self.delta_bytes / self.delta_frames
-                                     if self.delta_frames else 0.0))
-        return out
-
-    def line(self) -> str:
-        """One human line: frames by kind (with their mean bytes), bytes per frame, fps,
-        link rate."""
-        kinds = []
-        if self.key_frames:
-            kinds.append(f"{self.key_frames} key ({self.key_bytes / self.key_frames:.0f} B)")
-        if self.delta_frames:
-            kinds.append(f"{self.delta_frames} delta "
-                         f"({self.delta_bytes / self.delta_frames:.0f} B)")
-        if self.correction_frames:
-            kinds.append(f"{self.correction_frames} corrections of the device's own frames "
-                         f"({self.correction_bytes / self.correction_frames:.0f} B)")
-        elif self.motion_frames:
-            kinds.append(f"{self.motion_frames} sparse")
-        if self.refined_frames:
-            kinds.append(f"{self.refined_frames} refined")
-        if self.unchanged_frames:
-            kinds.append(f"{self.unchanged_frames} views left as the device made them")
-        if self.failed_views:
-            kinds.append(f"{self.failed_views} views whose ray-cast failed")
-        return (f"{self.frames} frames ({', '.join(kinds) or 'none'}), "
-                f"{self.bytes_per_frame:.0f} B/frame, {self.fps:.1f} fps, "
-                f"link {self.link_bytes_per_s / 1024:.1f} KiB/s")
 
 
 # --------------------------------------------------------------------------- score modes
@@ -268,6 +153,7 @@ def serve(
     volume: str | None = None,
     deadline_s: float = DEFAULT_DEADLINE_S,
     motion: Any | None = None,
+    rest: str | float = "exact",
 ) -> ServeStats:
     """Serve score packets for ``model_path`` to the device at ``url``.
 
@@ -355,6 +241,10 @@ def serve(
         raise ValueError(f"scores={scores!r}: expected one of {', '.join(SCORE_MODES)}")
     if not deadline_s > 0:
         raise ValueError(f"deadline_s={deadline_s} must be > 0")
+    if rest not in ("exact", "correction") and not (
+            isinstance(rest, (int, float)) and 0.0 < float(rest) < 1.0):
+        raise ValueError(f"rest={rest!r}: expected 'exact', 'correction' or an object SSIM "
+                         "in (0, 1)")
     # the whole file is validated once, by HostModel.load (here or by the caller)
     info = inspect_image(model_path, key=key, whole_file=False)
     model = model or HostModel.load(model_path, key=key)
@@ -382,6 +272,7 @@ def serve(
         orbit=orbit.start() if orbit is not None else None,
         sources={} if motion is None else {
             "correct" if getattr(motion, "corrects", False) else "motion": motion},
+        rest=rest,
     )
     return run.run()
 
@@ -443,6 +334,9 @@ class _Frame:
     refined: bool = False
     fine: bool = False
     weights: np.ndarray | None = None
+    sent: Any = None
+    """A packet made already: the resting view's complete correction (`EncodedScores`),
+    or one strip of a refinement layer (`host.link.layers.EncodedLayer`)."""
 
 
 @dataclass
@@ -499,6 +393,12 @@ class _Serving:
     deadline: float | None = None
     """``duration_s`` after the first session began (monotonic): reconnecting counts."""
     streaming: bool = False
+    rest: Any = "exact"
+    """What a resting view gets after its correction: ``"exact"``, an object SSIM to stop
+    at, or ``"correction"`` (no layers)."""
+    resting: Any | None = None
+    """The resting views' correction and layers (`host.link.resting.RestSender`; None: this
+    session's device reads no layers, or ``rest`` asks for none)."""
     failed_view: tuple[float, float] | None = None  # its refinement is not tried again
     failure_said: float | None = None  # when a failed view was last said (monotonic)
 
@@ -527,6 +427,8 @@ class _Serving:
         finally:
             self.deadline = None  # ends the watchdog
             self.sources.clear()
+            if self.resting is not None:
+                self.resting.close()
         return self._finish()
 
     def _done(self) -> bool:
@@ -651,6 +553,14 @@ class _Serving:
             self.kind = "interpolate"
         self.encoder.enabled = correct
         self.motion = self._source(self.kind) if self.renderer is not None else None
+        planner = self._planner(hello) if correct and self.motion is not None else None
+        if self.resting is not None:
+            self.resting.close()
+        self.resting = None
+        if planner is not None:
+            from host.link.resting import RestSender
+
+            self.resting = RestSender(model, planner)
         if self.motion is not None:
             self.motion.budget_s = self.pace.budget_s
         if correct:
@@ -661,6 +571,33 @@ class _Serving:
                      f"{'ray-cast' if self.kind == 'motion' else 'interpolated'} scores "
                      "instead of corrections of its own frames")
         return f"{'ray-cast' if self.kind == 'motion' else 'interpolated'} scores"
+
+    def _planner(self, hello: m.HelloReply) -> Any | None:
+        """The layers' planner of a session whose device reads them (score packet version
+        4) and whose ``rest`` asks for any; None otherwise."""
+        from host.link.layers import DEFAULT_TARGETS, RestPlanner
+        from protocol.layers import LAYER_VERSION
+
+        rest = self.rest
+        if rest == "correction" or LAYER_VERSION not in (hello.score_versions or ()):
+            return None
+        if rest == "exact":
+            targets, exact = DEFAULT_TARGETS, True
+        else:
+            targets = (*(t for t in DEFAULT_TARGETS if t < float(rest)), float(rest))
+            exact = False
+        # the SCORES message around a packet: its CBOR body, the event tag and the frame
+        room = hello.max_frame_bytes - _SCORES_OVERHEAD
+        return RestPlanner(self.encoder.model.digest, targets=targets, exact=exact,
+                           max_packet_bytes=max(min(room, self._link_share()), 256))
+
+    def _link_share(self) -> int:
+        """The bytes a serial line carries in `_STRIP_S` (a strip never holds a new view's
+        correction back longer); TCP: no bound."""
+        scheme = self.settings.url.split("://", 1)[0] if "://" in self.settings.url else ""
+        if scheme in ("socket", "tcp"):
+            return 1 << 30
+        return int(self.settings.baud / 10 * _STRIP_S)
 
     def _source(self, kind: str) -> Any | None:
         """The sparse ray-cast frame source of ``kind`` (made once, kept across sessions)."""
@@ -771,6 +708,8 @@ class _Serving:
         view refined (or repeated as a key frame), or the newest request. None: nothing to
         send this turn."""
         view, sequence, fresh, want_key = request
+        if fresh and self.resting is not None:
+            self.resting.cancel()  # a new view: the resting view's plan and layers are moot
         if self.orbit is not None and conn.linger_until is None:
             frame = self._orbit_view(conn, want_key, now)
         elif conn.linger_until is not None:
@@ -807,6 +746,8 @@ class _Serving:
         """No new request: the view on show refined (a denser sparse frame, up to its full
         ray-cast), or repeated as a key frame; else wait."""
         shown = self.current
+        if self.resting is not None and self.resting.pending and not want_key:
+            return self._rest_packet(conn, shown)
         step = None
         if (self.motion is not None and shown.view is not None and not want_key
                 and shown.view != self.failed_view):
@@ -814,13 +755,52 @@ class _Serving:
         if step is not None:
             if step.scores is None:  # more pixels, nothing new to show yet
                 return None
+            if self.resting is not None and not step.complete:
+                return None  # layers follow: what is sent waits for the whole ray-cast
             self.stats.converged_frames += int(step.complete)
-            return _Frame(shown.view, shown.sequence, step.scores, want_key, refined=True,
-                          fine=step.complete, weights=step.weights)
+            frame = _Frame(shown.view, shown.sequence, step.scores, want_key, refined=True,
+                           fine=step.complete, weights=step.weights)
+            if step.complete and self.resting is not None:
+                return self._plan_rest(frame)
+            return frame
         if want_key and shown.view is not None:
             return _Frame(shown.view, shown.sequence, shown.scores, key=True, fine=shown.fine)
         conn.events.wait(_WAIT_S)
         return None
+
+    def _plan_rest(self, frame: _Frame) -> _Frame | None:
+        """The resting view's full ray-cast is done: code its complete correction and plan
+        its layers on the planning thread (`host.link.resting`); nothing is sent until the
+        plan says what. A correction that cannot be coded is sent as `_encode` made it."""
+        assert self.motion is not None and self.resting is not None
+        encoded = self._encode(frame)
+        images = self.motion.rest_images(frame.view)
+        if images is None or frame.scores is None:
+            frame.sent = encoded
+            return frame if encoded is not None else None
+        self.current.scores, self.current.fine = frame.scores, True
+        self.resting.start(frame.view, *images, encoded, self.motion.own)
+        return None
+
+    def _rest_packet(self, conn: _Connection, shown: _Shown) -> _Frame | None:
+        """The resting view's next packet once its plan is ready (the correction, or a
+        strip numbered by the session's counter), else a short wait."""
+        assert self.resting is not None
+        encoder = self.encoder
+        number = encoder.next_frame if encoder.next_frame <= 0xFFFFFFFF else 1
+        try:
+            packet = self.resting.next(number)
+        except Exception as exc:  # a plan that failed costs that view's layers only
+            self._view_failed(shown.view, exc)
+            self.resting.cancel()
+            return None
+        if packet is None:
+            conn.events.wait(_WAIT_S)
+            return None
+        if isinstance(packet, EncodedLayer):
+            encoder.next_frame = number + 1
+        return _Frame(shown.view, shown.sequence, shown.scores, refined=True, fine=True,
+                      sent=packet)
 
     def _sparse(self, call: Callable[[tuple[float, float]], Any],
                 view: tuple[float, float]) -> Any | None:
@@ -841,7 +821,7 @@ class _Serving:
     def _score(self, frame: _Frame) -> None:
         """Scores for a frame that carries none: a sparse ray-cast's (its correction in a
         correcting session); interpolated otherwise (left None)."""
-        if frame.scores is not None or self.motion is None:
+        if frame.scores is not None or frame.sent is not None or self.motion is None:
             return
         stats = self.stats
         step = self._sparse(self.motion.frame, frame.view)
@@ -857,9 +837,11 @@ class _Serving:
         correction with nothing worth sending is not sent (the device keeps its own frame),
         except for a host-driven view, which the device must be told (an empty one)."""
         shown = self.current
-        shown.view, shown.sequence, shown.scores = frame.view, frame.sequence, frame.scores
-        shown.fine = frame.fine
-        encoded = self._encode(frame)
+        layer = isinstance(frame.sent, EncodedLayer)
+        if not layer:
+            shown.view, shown.sequence, shown.scores = frame.view, frame.sequence, frame.scores
+            shown.fine = frame.fine
+        encoded = frame.sent if frame.sent is not None else self._encode(frame)
         fps = self.settings.fps
         if encoded is None:
             self.stats.unchanged_frames += 1
@@ -902,11 +884,15 @@ class _Serving:
                 self.current.scores, self.current.fine = None, False
         return self.encoder.encode(frame.view, key=frame.key, always=always)
 
-    def _count(self, encoded: EncodedScores, frame: _Frame) -> None:
+    def _count(self, encoded: EncodedScores | EncodedLayer, frame: _Frame) -> None:
         stats, size = self.stats, len(encoded.packet)
         stats.frames += 1
         stats.packet_bytes += size
-        if self.encoder.last_kind == "correction":
+        if isinstance(encoded, EncodedLayer):
+            stats.layer_frames += 1
+            stats.layer_bytes += size
+            stats.exact_views += int(encoded.exact and encoded.last)
+        elif self.encoder.last_kind == "correction":
             stats.correction_frames += 1
             stats.correction_bytes += size
         elif self.encoder.last_was_key:
