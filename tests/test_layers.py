@@ -223,7 +223,7 @@ def resting_device(tmp_path_factory):
 
 
 def _layer_for(device, image, pixels, **kwargs) -> bytes:
-    h, w = image.image_shape
+    h = image.image_shape[0]
     fields = {"frame": 5, "base_frame": 0, "view": device.view, "image_digest": image.digest,
               "layer": 0, "y0": 0, "rows": h} | kwargs
     return encode_layer(_file(pixels, "PNG"), codec=CODEC_PNG, **fields)
@@ -235,7 +235,7 @@ def test_a_device_drops_every_bad_layer_and_shows_a_good_one_exactly(resting_dev
     exactly its pixels, and a later host frame of the view does not replace it."""
     from protocol import messages as m
 
-    device, model, shown, image = resting_device
+    device, _, shown, image = resting_device
     h, w = image.image_shape
     rng = np.random.default_rng(7)
     truth = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
@@ -261,7 +261,7 @@ def test_a_device_drops_every_bad_layer_and_shows_a_good_one_exactly(resting_dev
             device.display_turn(None)
     stats = device.runtime_stats
     assert stats.exact_frames == 0
-    for frame, info in shown[frames_before:]:  # whatever a flipped pixel byte made, it is
+    for _, info in shown[frames_before:]:  # whatever a flipped pixel byte made, it is
         assert info.get("layer") is not None and not info.get("exact")  # never "exact"
     np.testing.assert_array_equal(on_show if len(shown) == frames_before else shown[-1][0],
                                   device._shown_frame)
