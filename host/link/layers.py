@@ -214,23 +214,27 @@ class RestPlanner:
     def _first(self, view: tuple[float, float], truth: np.ndarray, corrected: np.ndarray,
                own: np.ndarray, correction_bytes: int, base_frame: int, frame: int
                ) -> tuple[bool, PlannedLayer | None]:
-        """Whether to skip the correction, and the first lossy layer: the cheapest of the
-        correction and a residual against its frame, a residual against the own frame, and
-        the ray-cast itself, each reaching the first target the corrected frame does not."""
-        reached = self.quality(truth, corrected) if base_frame else -1.0
-        target = next((t for t in self.targets if t > reached), None)
-        if target is None:  # the correction reaches every target: the exact layer is next
-            return False, None
-        options = []
+        """Whether to skip the correction, and the first lossy layer (None: none). The first
+        target is the lowest the own frame does not reach (none: the own frame needs no
+        correction and no lossy layer); the cheapest way to reach it wins: the correction
+        alone (when its frame reaches it), the correction and a residual against its frame,
+        or a residual against (or a coding of the ray-cast over) the own frame alone."""
+        target = next((t for t in self.targets if t > self.quality(truth, own)), None)
+        if target is None:
+            return True, None
+        options: list[tuple[int, bool, PlannedLayer | None]] = []
         if base_frame:
-            layer = self._lossy(view, truth, corrected, target, base_frame, frame, 0,
-                                residual=True)
-            if layer is not None:
-                options.append((correction_bytes + layer.size_bytes, False, layer))
+            if self.quality(truth, corrected) >= target:
+                options.append((correction_bytes, False, None))
+            else:
+                layer = self._lossy(view, truth, corrected, target, base_frame, frame, 0,
+                                    residual=True)
+                if layer is not None:
+                    options.append((correction_bytes + layer.size_bytes, False, layer))
         layer = self._lossy(view, truth, own, target, 0, frame, 0, residual=True)
         if layer is not None:
             options.append((layer.size_bytes, True, layer))
-        if not options:
+        if not options:  # nothing reaches it: the exact layer after the correction, if any
             return base_frame == 0, None
         _, skip, layer = min(options, key=lambda o: o[0])
         return skip, layer
