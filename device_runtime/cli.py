@@ -140,7 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         usage=USAGE,
         description="The eigencast device: answers a host over a serial port or TCP, keeps "
-        "eigenspace images in a flash folder.",
+        "eigenspace images in a flash folder. While you drag, every display tick shows the "
+        "best frame ready (the view's depth warp once it is made, else the quick blend of the "
+        "neighbouring views): a slow board shows more blends while the view moves, never a "
+        "late frame, and the warp as soon as it rests.",
     )
     parser.add_argument("--version", action="version", version=version_line())
     where = parser.add_mutually_exclusive_group()
@@ -217,6 +220,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="initial view in degrees (default 30,15)")
     show.add_argument("--max-frames", metavar="N", type=int,
                       help="exit after presenting N frames")
+    show.add_argument("--fps", metavar="N", type=float,
+                      help="display ticks per second (default 60 in a window, 30 headless): "
+                      "at most one blend per tick while the view moves")
     show.add_argument("--request-rate", metavar="HZ", type=float, default=60.0,
                       help="view requests per second at most (default 60; latest wins)")
     show.add_argument("--stats", metavar="FILE", type=Path,
@@ -394,9 +400,10 @@ def headless_plan(args: argparse.Namespace) -> str:
     return f"{drive}; {out}"
 
 
-def _presenter(args: argparse.Namespace) -> tuple[Any, str | None]:
-    """The window, or the headless presenter and the line that says what it will do (logged
-    once the device is ready to run)."""
+def _presenter(args: argparse.Namespace, image_shape: tuple[int, int]
+               ) -> tuple[Any, str | None]:
+    """The window (at ``image_shape``, the active image's), or the headless presenter and the
+    line that says what it will do (logged once the device is ready to run)."""
     from device_runtime.display import HeadlessPresenter, Window, WindowUnavailable
 
     screenshots = args.screenshots or args.frames or Path(".")
@@ -404,7 +411,7 @@ def _presenter(args: argparse.Namespace) -> tuple[Any, str | None]:
         return HeadlessPresenter(args.frames, every=args.every, keep=args.keep_frames or None,
                                  screenshot_dir=screenshots), f"headless: {headless_plan(args)}"
     try:
-        return Window((256, 256), title=f"eigencast - {args.device_id}",
+        return Window(image_shape, title=f"eigencast - {args.device_id}",
                       screenshot_dir=screenshots, zoom=args.zoom), None
     except WindowUnavailable as exc:
         if args.display:
@@ -426,6 +433,8 @@ def _check_runtime_args(args: argparse.Namespace) -> None:
         raise _UsageError(f"--request-rate {args.request_rate} must be > 0")
     if args.zoom is not None and not 0.125 <= args.zoom <= 8:
         raise _UsageError(f"--zoom {args.zoom} must be within 0.125..8")
+    if args.fps is not None and not 0 < args.fps <= 1000:
+        raise _UsageError(f"--fps {args.fps} must be within 0..1000 (exclusive of 0)")
 
 
 def _write_stats(path: Path, device: Any) -> None:
@@ -457,10 +466,8 @@ def _serve(args: argparse.Namespace) -> int:
     presenter = None
     device = None
     try:
-        presenter, plan = _presenter(args)
         device = RuntimeDevice(
             config,
-            presenter=presenter,
             standalone=args.standalone,
             predict=not args.no_predict,
             view=args.view or DEFAULT_VIEW,
@@ -470,6 +477,11 @@ def _serve(args: argparse.Namespace) -> int:
             max_frames=args.max_frames,
             log=_log,
         )
+        # the window opens once, at the size of the image the device booted with
+        loaded = device._decoder_model
+        presenter, plan = _presenter(args, loaded.image.image_shape if loaded is not None
+                                     else (256, 256))
+        device.use_presenter(presenter, fps=args.fps)
     except BaseException:
         if transport is not None:
             transport.close()

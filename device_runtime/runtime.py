@@ -195,7 +195,9 @@ class RuntimeDevice(FrameScheduler, Device):
         on_frame: Callable[[np.ndarray, dict], None] | None = None,
         log: Callable[[str], None] | None = None,
     ) -> None:
-        self.presenter = presenter if presenter is not None else HeadlessPresenter(None)
+        self.presenter: Any = None
+        self.use_presenter(presenter if presenter is not None else HeadlessPresenter(None),
+                           fps=fps)
         self.standalone = standalone
         self.predict = predict
         self.view = canonical_view(*view)
@@ -203,11 +205,6 @@ class RuntimeDevice(FrameScheduler, Device):
         self._script = collections.deque(canonical_view(*v) for v in (views or ()))
         self.limiter = RequestLimiter(request_rate_hz)
         self.max_frames = max_frames
-        if fps is None:
-            fps = HEADLESS_FPS if getattr(self.presenter, "headless", True) else DEFAULT_FPS
-        if not fps > 0:
-            raise ValueError(f"RuntimeDevice: fps={fps!r} must be > 0")
-        self.tick_s = 1.0 / float(fps)
         self.clock = clock
         self.on_frame = on_frame
         self.runtime_stats = RuntimeStats()
@@ -235,6 +232,17 @@ class RuntimeDevice(FrameScheduler, Device):
         self._layers: collections.deque[LayerItem] = collections.deque(maxlen=LAYER_QUEUE)
         self._layers_lock = threading.Lock()
         super().__init__(config, log=log)
+
+    def use_presenter(self, presenter: Any, *, fps: float | None = None) -> None:
+        """Show frames on ``presenter`` from now on (before the display loop runs), at
+        ``fps`` display ticks per second (default `DEFAULT_FPS` for a window,
+        `HEADLESS_FPS` without one)."""
+        if fps is None:
+            fps = HEADLESS_FPS if getattr(presenter, "headless", True) else DEFAULT_FPS
+        if not fps > 0:
+            raise ValueError(f"RuntimeDevice: fps={fps!r} must be > 0")
+        self.presenter = presenter
+        self.tick_s = 1.0 / float(fps)
 
     # ------------------------------------------------------------------ boot / images
     def boot(self) -> Any:

@@ -165,3 +165,64 @@ def test_auth_timeout_drops_an_unauthenticated_hog_of_the_tcp_slot(tmp_path):
     finally:
         assert dev.stop() == 0
     assert any("did not authenticate within 0.5 s; dropped" in line for line in dev.lines)
+
+
+def test_the_window_opens_once_at_the_size_of_the_image(tmp_path, tmp_path_factory,
+                                                       monkeypatch):
+    """A standalone device with a window: the window is made once, at the image's size
+    (it was made at 256 x 256 and then again at the image's, and input sent to the first
+    was lost), and the display runs at a window's rate unless --fps says otherwise."""
+    from runtime_helpers import key_file, tiny_model
+
+    from device_runtime import display
+    from device_runtime.display import Quit
+    from device_runtime.runtime import RuntimeDevice
+
+    model_path = tiny_model(tmp_path_factory)
+    flash = tmp_path / "flash"
+    device = DeviceProcess(flash, "--headless", key_file=key_file(model_path))
+    provision(model_path, device.url, key=KEY, show_progress=False, log=lambda line: None)
+    assert device.stop() == 0
+    made, resized, ticks = [], [], []
+
+    class FakeWindow:
+        headless = False
+        overlay = False
+        zoom = 1.0
+
+        def __init__(self, image_shape, **kwargs):
+            made.append(tuple(image_shape))
+            self.shape = tuple(image_shape)
+            self.polls = 0
+
+        def set_image_shape(self, shape):
+            if tuple(shape) != self.shape:
+                resized.append(tuple(shape))
+
+        def poll(self):
+            self.polls += 1
+            return [Quit()] if self.polls > 3 else []
+
+        def present(self, frame, info=None, *, overlay_lines=None):
+            assert frame.shape[:2] == self.shape
+            return True
+
+        def close(self):
+            pass
+
+    original = RuntimeDevice.run_display
+
+    def run_display(self, stop=None):
+        ticks.append(self.tick_s)
+        return original(self, stop)
+
+    monkeypatch.setattr(display, "Window", FakeWindow)
+    monkeypatch.setattr(RuntimeDevice, "run_display", run_display)
+    args = ["--standalone", "--flash", str(flash), "--key", str(key_file(model_path))]
+    assert main(args) == 0
+    from protocol.image import read_image
+
+    shape = tuple(read_image(model_path, key=KEY).image_shape)
+    assert made == [shape] and resized == [] and ticks == [pytest.approx(1 / 60)]
+    assert main([*args, "--fps", "24"]) == 0
+    assert ticks[-1] == pytest.approx(1 / 24)
