@@ -379,6 +379,23 @@ def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path)
     assert len(res.stderr.strip().splitlines()) == 1
 
 
+def test_evaluate_help_says_the_models_recorded_settings_win(small_model):
+    """--help listed "--size (default 300)" and a --tf "chosen from the volume's modality"
+    while the model's recorded settings were used: it says which wins, and those options
+    are refused for a model that records its settings (one line each)."""
+    text = " ".join(_run("evaluate", "--help").stdout.split())
+    assert "default 300" not in text and "chosen from the volume's modality" not in text
+    assert "evaluate always ray-casts novel views that way" in text
+    assert "--size N|WxH its images' size (default and only value: the model's)" in text
+    assert "required for it" in text
+    for option in (["--size", "64"], ["--samples", "50"], ["--tf", "generic"]):
+        res = _run("evaluate", str(small_model), *option, "--views", "random:2", check=False)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 1 and len(lines) == 1, res.stderr
+        assert "records its render settings and evaluate ray-casts with them" in lines[0]
+        assert option[0] in lines[0]
+
+
 def test_evaluate_foreign_model_needs_explicit_render_options(tooth_db, tmp_path):
     foreign = tmp_path / "foreign.cdb"
     shutil.copytree(tooth_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
