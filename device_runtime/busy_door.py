@@ -12,10 +12,11 @@ the second host says at once that the device is busy:
   said BYE), and a connection still held when the session ends is handed to the next one
   (:meth:`release`: the lobby of a keyed device, the transport of a keyless one) as if it
   had waited in the backlog.
-* **Bounded.** At most `HELD` connections are held (past that the oldest is closed); each is
-  read at most `READ_BYTES` a poll, frames over `MAX_FRAME_BYTES` are dropped, anything but
-  a HELLO is ignored, and a connection that sends no HELLO `ANSWER_S` after its grace is
-  closed unanswered. The device's loop polls it every 50-250 ms.
+* **Bounded.** At most `ACCEPT_PER_POLL` connections are accepted a poll and `HELD` held
+  (past that the oldest is closed); each is read at most `READ_BYTES` a poll, frames over
+  `MAX_FRAME_BYTES` are dropped, anything but a HELLO is ignored, and a connection that
+  sends no HELLO `ANSWER_S` after its grace is closed unanswered. The device's loop polls it
+  every 50-250 ms.
 
 One thread (the device's ``serve`` loop) drives it; nothing here is thread-safe.
 """
@@ -43,6 +44,9 @@ ANSWER_S = 3.0
 """After its grace, a connection has this long to send HELLO, seconds."""
 HELD = 16
 """Connections held at most."""
+ACCEPT_PER_POLL = 4
+"""Connections accepted a poll at most (a flood of connections waits in the listen backlog, as
+it did before, instead of costing the device more than a few accepts a poll)."""
 READ_BYTES = 1024
 MAX_FRAME_BYTES = 1024
 BUSY_MESSAGE = "the device is serving another host; try again when that one is done"
@@ -121,7 +125,7 @@ class BusyDoor:
 
     # ------------------------------------------------------------------ internals
     def _accept(self, now: float) -> None:
-        for _ in range(HELD):
+        for _ in range(ACCEPT_PER_POLL):
             try:
                 sock, address = self.listener.accept()
             except (BlockingIOError, InterruptedError):
