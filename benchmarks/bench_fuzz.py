@@ -24,7 +24,7 @@ device one view, which must be shown.
 Run: ``.venv/bin/python benchmarks/bench_fuzz.py [--inputs 100000] [--seed 11] [--json]``
 (``--inputs`` is per transport; ``--quick``: 5,000). Prints BENCHMARKS.md-ready lines.
 
-Three more sections (issue 21; ``--sections fuzz,lockout,flood,rest``, all by default):
+More sections (``--sections fuzz,lockout,flood,rest`` by default, ``lobby`` on request):
 
 * ``lockout``: keyless peers (``tests/keyless_peers.py``, a process of their own) attack a
   keyed ``eigencast-device`` process: none (the baseline), 3, 16 and 64 threads looping
@@ -42,6 +42,9 @@ Three more sections (issue 21; ``--sections fuzz,lockout,flood,rest``, all by de
   The device shows ``--flood-model`` (default: the tooth rendered at 256 px from 144 views
   with depth and fitted ``--depth --key``, built in the run, about 2 minutes; ``--quick``:
   the tiny model), so its frames cost what a real device's do.
+* ``lobby``: the CPU time the device's thread really spends under one unauthenticated peer
+  flooding each kind (``garbage``: bytes with no frame delimiter), against what the lobby
+  charges the peer, over ``--flood-seconds`` windows (its own clock, so load barely moves it).
 * ``rest``: ``eigencast serve`` for ``--rest-seconds`` (60) against a device process resting
   on a view, one at a pole and an in-process device dragged then released, in each of the
   ways serve can serve (`REST_MODES`: corrections of the device's own frames, the ray-cast
@@ -507,6 +510,55 @@ def report_flood(out: dict[str, Any]) -> None:
               f"{r['peer_reconnects']} |")
 
 
+# --------------------------------------------------------------------------- lobby CPU
+
+LOBBY_FLOODS = ("ping", "view", "zeros", "garbage")
+
+
+def run_lobby_cpu(work: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The CPU time the device's thread really spends under each one-peer flood (its own
+    clock, ``pthread_getcpuclockid``) against what the lobby charges to the peer
+    (`LobbyStats.cpu_s`), after its idle rate measured in the same run; an in-process keyed
+    device on TCP, the peer a process of its own."""
+    from provision_helpers import DeviceThread
+
+    out = []
+    for flood in LOBBY_FLOODS:
+        flash = work / f"lobby-{flood}"
+        with DeviceThread("tcp-listen://127.0.0.1:0", flash, key=KEY,
+                          auth_timeout_s=600) as dev:
+            clock = time.pthread_getcpuclockid(dev.thread.ident)
+            t0, c0 = time.monotonic(), time.clock_gettime(clock)
+            time.sleep(2.0)
+            idle = (time.clock_gettime(clock) - c0) / (time.monotonic() - t0)
+            peers = keyless_peers.spawn(f"socket://127.0.0.1:{dev.transport.port}", flood, 1)
+            try:
+                wait_until(lambda: dev.device.lobby is not None
+                           and dev.device.lobby.stats.cpu_s > 0, 20, "the flood")
+                lobby = dev.device.lobby
+                t0, c0 = time.monotonic(), time.clock_gettime(clock)
+                charged0, read0 = lobby.stats.cpu_s, lobby.stats.bytes_read
+                time.sleep(args.flood_seconds)
+                elapsed = time.monotonic() - t0
+                out.append({"flood": flood, "idle": idle, "window_s": elapsed,
+                            "thread": (time.clock_gettime(clock) - c0) / elapsed,
+                            "charged": (lobby.stats.cpu_s - charged0) / elapsed,
+                            "read_mb_s": (lobby.stats.bytes_read - read0) / elapsed / 1e6})
+            finally:
+                keyless_peers.finish(peers)
+    return out
+
+
+def report_lobby_cpu(rows: list[dict[str, Any]]) -> None:
+    print(f"\n### The device thread's CPU under one unauthenticated peer's flood "
+          f"({rows[0]['window_s']:.0f} s windows)\n")
+    print("| flood | device thread, % of a core | charged to the peer | read MB/s | idle |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['flood']} | {100 * r['thread']:.1f} % | {100 * r['charged']:.1f} % | "
+              f"{r['read_mb_s']:.2f} | {100 * r['idle']:.1f} % |")
+
+
 # --------------------------------------------------------------------------- rest
 
 REST_CASES = {"resting": "30,10", "pole": "0,-90", "dragged": None}
@@ -685,6 +737,11 @@ def main() -> int:
             for out in extra["flood"]:
                 report_flood(out)
                 failed |= any(r["ratio"] < 0.8 for r in out["runs"])
+        if "lobby" in sections:
+            extra["lobby"] = run_lobby_cpu(work, args)
+            report_lobby_cpu(extra["lobby"])
+            # the lobby's budget (docs/protocol.md 5.2): 2 % a second per peer, and crumbs
+            failed |= any(r["thread"] > 0.06 for r in extra["lobby"])
         if "rest" in sections:
             extra["rest"] = run_rest(work, model_path, args)
             report_rest(extra["rest"], args)

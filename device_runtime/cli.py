@@ -25,7 +25,8 @@ view requests to the host) and the program exits when they are done.
 Serving logs one line per event to stderr (``eigencast-device: ...``); with
 ``--listen`` the first lines include ``listening on tcp-listen://HOST:PORT``
 (the real port when PORT is 0). It keeps running after a host disconnects and
-stops on SIGINT/SIGTERM. The key comes from ``--key`` or, failing that, from
+stops on SIGINT (Ctrl-C: exit code 130, as every eigencast command) or SIGTERM (a
+service manager's stop: exit code 0). The key comes from ``--key`` or, failing that, from
 the one ``--pair`` installed in the flash folder (``DIR/device.key``, mode
 0600). A device without a key refuses provisioning unless ``--insecure``;
 ``--insecure`` is refused on a paired flash folder (``--unpair`` removes the
@@ -498,9 +499,12 @@ def _serve(args: argparse.Namespace) -> int:
     if plan is not None:
         _log(plan)
     stop = threading.Event()
+    interrupted: list[int] = []
     if threading.current_thread() is threading.main_thread():
 
         def on_signal(signum: int, frame: Any) -> None:
+            if signum == signal.SIGINT:  # Ctrl-C: exit 130; SIGTERM (a service's stop): 0
+                interrupted.append(signum)
             stop.set()
 
         signal.signal(signal.SIGTERM, on_signal)
@@ -555,8 +559,8 @@ def _serve(args: argparse.Namespace) -> int:
     _log(f"presented {stats.frames_presented} frames; decoded {stats.key_frames} key, "
          f"{stats.delta_frames} delta and {stats.correction_packets} correction packets"
          + (f" ({stats.stale_dropped} for views already left)" if stats.stale_dropped else ""))
-    _log("stopped")
-    return 0
+    _log("interrupted" if interrupted else "stopped")
+    return 130 if interrupted else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -578,6 +582,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise _UsageError("give --port URL or --listen HOST:PORT (or --standalone, --status, "
                               "--pair)")
         return _serve(args)
+    except KeyboardInterrupt:  # before the signal handlers are set (booting)
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
     except _UsageError as exc:
         if isinstance(exc, _ParseError):
             print(f"usage: {USAGE}", file=sys.stderr)

@@ -54,6 +54,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+from device_runtime.busy_door import BusyDoor
 from device_runtime.device_config import (
     DEFAULT_DEVICE_ID,
     DEFAULT_RAM_BUDGET_BYTES,
@@ -207,6 +208,7 @@ class Device(ImageReceiver):
         self._told_no_transfer: set[int] = set()
         self._drop_logged: dict[str, float] = {}
         self.lobby: Lobby | None = None
+        self.door: BusyDoor | None = None
         self.store = FlashStore.open(config.flash_dir, capacity_bytes=config.slot_size_bytes)
         self.boot_result = self.boot()
 
@@ -411,6 +413,9 @@ class Device(ImageReceiver):
             if self.lobby is not None:
                 self.lobby.close()
                 self.lobby = None
+            if self.door is not None:
+                self.door.close()
+                self.door = None
             transport.close()
             self.close()
 
@@ -418,7 +423,9 @@ class Device(ImageReceiver):
         """Serve one connection on ``transport`` until the link drops, RESET, or ``stop``.
 
         A keyed device listening on TCP first runs its :class:`~device_runtime.lobby.Lobby`
-        until a connection authenticates, and serves that one."""
+        until a connection authenticates, and serves that one. While a host is served on
+        TCP, other connections are told BUSY (:class:`~device_runtime.busy_door.BusyDoor`);
+        those still in its grace when the host leaves are the next session's."""
         stop = stop or threading.Event()
         self.transport = transport
         self._end_session.clear()
@@ -426,14 +433,24 @@ class Device(ImageReceiver):
         listening = isinstance(transport, TcpListenTransport)
         keyed = self.config.key is not None
         admitted = None
+        if listening and (self.door is None or self.door.listener is not transport.listener):
+            self.door = BusyDoor(transport.listener, log=self._log_limited)
         if listening and keyed:
             if self.lobby is None or self.lobby.transport is not transport:
                 self.lobby = Lobby(transport, self, auth_timeout_s=self.config.auth_timeout_s,
                                    log=self._log_limited)
+            for sock, address in self.door.release():
+                self.lobby.hold(sock, address, time.monotonic())
             admitted = self.lobby.admit(stop)
             if admitted is None:
                 return
             self.session = admitted.session
+        elif listening and not transport.connected:
+            waiting = self.door.release()
+            if waiting:  # the oldest is the host; the rest wait in the door again
+                transport.adopt(*waiting[0])
+                for sock, address in waiting[1:]:
+                    self.door.hold(sock, address, time.monotonic())
         last_frame = [time.monotonic()]
 
         def on_frame(frame: Frame) -> None:
@@ -475,6 +492,8 @@ class Device(ImageReceiver):
                     last_frame[0] = now
                     unauth_since = None
                     continue
+                if listening:
+                    self.door.poll(now)
                 if not (listening and keyed):
                     continue
                 # The lobby let in a connection whose AUTH verifies; should its session lose

@@ -307,18 +307,22 @@ class Lobby:
                     self._accept_after = now + _TICK_S
                     self.log("accept", f"accepting a connection failed: {exc}")
                 return
-            sock.setblocking(False)
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            source = str(address[0])
-            self._waiting.setdefault(source, collections.deque()).append(
-                _Peer(sock, source, now))
-            self._n_waiting += 1
-            self.stats.accepted += 1
-            if self._n_waiting > WAITING:
-                crowded = max(self._waiting.values(), key=len)
-                self._drop_waiting(crowded, crowded[0])
-                self.stats.shed += 1
+            self.hold(sock, address, now)
+
+    def hold(self, sock: socket.socket, address: Any, now: float) -> None:
+        """Take ``sock`` (accepted from the listener, e.g. while a host was served) as a
+        waiting connection accepted at ``now`` (monotonic)."""
+        sock.setblocking(False)
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        source = str(address[0])
+        self._waiting.setdefault(source, collections.deque()).append(_Peer(sock, source, now))
+        self._n_waiting += 1
+        self.stats.accepted += 1
+        if self._n_waiting > WAITING:
+            crowded = max(self._waiting.values(), key=len)
+            self._drop_waiting(crowded, crowded[0])
+            self.stats.shed += 1
 
     def _expire(self, now: float) -> None:
         limit = self.auth_timeout_s

@@ -59,3 +59,15 @@ def test_the_board_page_states_the_same_versions():
     bounds = dict(re.findall(r"^\| (\w+) \| [\d.]+ \| >= ([\d.]+) \|$", page, flags=re.M))
     assert {n: Version(b) for n, b in bounds.items()} == {
         r.name.lower(): _lower_bound(r) for r in _device_requirements()}
+
+
+def test_the_board_page_updates_the_package_lists_before_installing():
+    """On a fresh Debian 13 (under arm64 emulation) the page's `apt install` failed with
+    "Unable to locate package python3-numpy": a fresh system has no package lists until
+    `apt update`. The page's command block says it first."""
+    page = (REPO / "docs" / "board-install.md").read_text()
+    block = re.search(r"```sh\n(.*?)```", page, flags=re.S).group(1)
+    commands = [line.split("#")[0].strip() for line in block.splitlines()]
+    update = next(i for i, c in enumerate(commands) if re.fullmatch(r"sudo apt(-get)? update", c))
+    install = next(i for i, c in enumerate(commands) if c.startswith("sudo apt install"))
+    assert update < install

@@ -84,6 +84,21 @@ def test_pair_installs_the_key_with_mode_0600_and_the_device_uses_it(tmp_path, c
     assert f"paired, fingerprint {key_fingerprint(KEY)}" in capsys.readouterr().out
 
 
+def test_ctrl_c_exits_130_and_a_service_stop_0(tmp_path):
+    """Ctrl-C (SIGINT) ends the device with 130 as every eigencast command (it was 0);
+    SIGTERM, a service manager's stop, still 0."""
+    import signal
+
+    dev = DeviceProcess(tmp_path / "flash", "--insecure")
+    dev.proc.send_signal(signal.SIGINT)
+    assert dev.proc.wait(timeout=30) == 130
+    dev.stop()
+    assert dev.lines[-1].endswith("interrupted"), dev.lines[-3:]
+    assert not any("Traceback" in line for line in dev.lines)
+    dev = DeviceProcess(tmp_path / "flash", "--insecure")
+    assert dev.stop() == 0 and dev.lines[-1].endswith("stopped")
+
+
 def test_insecure_is_announced_loudly_and_the_device_stops_cleanly(tmp_path):
     dev = DeviceProcess(tmp_path / "flash", "--insecure")
     rc = dev.stop()

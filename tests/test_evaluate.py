@@ -379,6 +379,23 @@ def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path)
     assert len(res.stderr.strip().splitlines()) == 1
 
 
+def test_evaluate_help_says_the_models_recorded_settings_win(small_model):
+    """--help listed "--size (default 300)" and a --tf "chosen from the volume's modality"
+    while the model's recorded settings were used: it says which wins, and those options
+    are refused for a model that records its settings (one line each)."""
+    text = " ".join(_run("evaluate", "--help").stdout.split())
+    assert "default 300" not in text and "chosen from the volume's modality" not in text
+    assert "evaluate always ray-casts novel views that way" in text
+    assert "--size N|WxH its images' size (default and only value: the model's)" in text
+    assert "required for it" in text
+    for option in (["--size", "64"], ["--samples", "50"], ["--tf", "generic"]):
+        res = _run("evaluate", str(small_model), *option, "--views", "random:2", check=False)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 1 and len(lines) == 1, res.stderr
+        assert "records its render settings and evaluate ray-casts with them" in lines[0]
+        assert option[0] in lines[0]
+
+
 def test_evaluate_foreign_model_needs_explicit_render_options(tooth_db, tmp_path):
     foreign = tmp_path / "foreign.cdb"
     shutil.copytree(tooth_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
@@ -582,3 +599,62 @@ def test_codec_equivalent_interpolates_the_curve_in_quality():
     assert eq["min_bytes"] == 100.0
     out = codec_equivalent(points, 0.95, 50.0)  # above the best, below the smallest file
     assert out["bytes_for_ssim"] is None and out["ssim_at_bytes"] is None
+
+
+def _report_evaluation():
+    """An evaluation as the report draws it: every kind of curve, marker and per-view method,
+    so both legends are as full as a real report's."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(3)
+    rd = []
+    for kind, labels in (("pca", ["T=0.8", "T=0.9", "T=0.95", "T=0.98"]),
+                         ("jpeg", [f"q={q}" for q in range(10, 100, 10)]),
+                         ("webp", [f"q={q}" for q in range(10, 100, 10)]),
+                         ("avif", [f"q={q}" for q in range(10, 100, 10)])):
+        for i, label in enumerate(labels):
+            rd.append({"kind": kind, "label": label, "bytes_per_view": 60.0 * 1.4 ** i,
+                       "ssim": 0.8 + 0.02 * i, "flip": 0.1 - 0.008 * i})
+    rd += [{"kind": "pca", "label": f"step x{2 ** i}", "bytes_per_view": 150.0 / 2 ** i,
+            "ssim": 0.88 - 0.02 * i, "flip": 0.07 + 0.01 * i} for i in range(1, 5)]
+    rd.append({"kind": "projection", "label": "oracle", "bytes_per_view": 180.0, "ssim": 0.94,
+               "flip": 0.04})
+    point = {"bytes_per_view": 170.0, "ssim": 0.9, "flip": 0.07}
+    summary = {m: dict(point) for m in ("pca", "pca_render", "pca_motion", "pca_predict",
+                                         "pca_warp", "jpeg", "webp", "avif")}
+    summary["webp_db"] = {**point, "quality": 80, "storage_bytes": 58_000}
+    methods = ("nearest", "jpeg", "webp", "avif", "webp_db", "pca", "pca_motion",
+               "pca_render", "pca_predict", "pca_warp")
+    views = [{"theta_deg": float(theta),
+              **{m: {"ssim": float(rng.uniform(0.7, 1.0)), "flip": float(rng.uniform(0.02, 0.2))}
+                 for m in methods}}
+             for theta in rng.uniform(-85, 85, 24)]
+    return SimpleNamespace(rd=rd, views=views, info={"rd_views": 8}, summary=lambda: summary)
+
+
+@pytest.mark.parametrize("plot", ["_rd_plot", "_per_view_plot"])
+def test_report_legends_cover_no_axis_title_and_no_data(plot, tmp_path, monkeypatch):
+    """The legend covered the axis title in rd.png and data points in per_view.png: every
+    legend lies outside both plots' data areas and clear of their axis titles."""
+    import matplotlib.pyplot as plt
+
+    from host.evaluate import report
+
+    close = plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)  # keep the figure to measure it
+    before = set(plt.get_fignums())
+    getattr(report, plot)(_report_evaluation(), tmp_path / "plot.png")
+    (number,) = set(plt.get_fignums()) - before
+    fig = plt.figure(number)
+    try:
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend())]
+        assert len(legends) == 1
+        box = legends[0].get_window_extent(renderer)
+        for ax in fig.axes:
+            assert not box.overlaps(ax.get_window_extent(renderer)), plot
+            for title in (ax.xaxis.label, ax.yaxis.label):
+                assert not box.overlaps(title.get_window_extent(renderer)), (plot, title)
+    finally:
+        close(fig)

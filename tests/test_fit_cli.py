@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -192,3 +193,27 @@ def test_fit_says_what_the_file_holds_beyond_the_device_image(small_db, tmp_path
     device, annex = float(found.group(1)), float(found.group(2))
     assert abs(device + annex - out.stat().st_size / 1e6) <= 0.011
     assert annex > 0
+
+
+def test_fit_says_where_its_image_stack_stays_keeps_one_and_no_cache_keeps_none(small_db,
+                                                                               tmp_path):
+    """fit kept an uncompressed image stack per cell size in DB.cdb/.eigencast-cache (85 MB,
+    4x the database, for one run in the report) and never said so. It says so in one line,
+    the folder holds the last fit's stack only, and --no-cache keeps none."""
+    cache = small_db / ".eigencast-cache"
+    out = tmp_path / "m.ecs"
+    first = _run("fit", str(small_db), "-o", str(out), "--cell", "12", "--no-depth")
+    said = [line for line in first.stdout.splitlines() if "image stack" in line]
+    size = sum(f.stat().st_size for f in cache.iterdir())
+    assert len(said) == 1 and str(cache) in said[0] and f"{size / 1e6:.0f} MB" in said[0]
+    assert "--no-cache" in said[0]
+    _run("fit", str(small_db), "-o", str(out), "--cell", "16", "--no-depth")
+    assert sorted(f.name for f in cache.iterdir()) == [
+        "stack-48x48-cell16x16.u8", "stack-48x48-cell16x16.u8.json"]  # one stack, not two
+    copy = tmp_path / "copy.cdb"
+    shutil.copytree(small_db, copy, ignore=shutil.ignore_patterns(".eigencast-cache"))
+    none = _run("fit", str(copy), "-o", str(out), "--cell", "12", "--no-depth", "--no-cache")
+    assert not (copy / ".eigencast-cache").exists() and "image stack" not in none.stdout
+    refused = _run("fit", str(copy), "-o", str(out), "--no-cache", "--cache", str(tmp_path),
+                   check=False)
+    assert refused.returncode == 1 and "pick one" in refused.stderr

@@ -397,6 +397,15 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
             ),
             4,
         ),
+        (
+            "error_busy",
+            m.Error(
+                code=m.ErrorCode.BUSY,
+                where="HELLO",
+                message="the device is serving another host; try again when that one is done",
+            ),
+            1,
+        ),
         ("ok", m.Ok(), 5),
         ("bye", m.Bye(reason="done"), 0),
         ("set_baud", auth.sign(m.SetBaud(baud=921600, revert_timeout_ms=2000), sk, 7), 6),

@@ -5,6 +5,7 @@ device lost mid-session while ``--duration`` runs, and ``--provision`` of an old
 from __future__ import annotations
 
 import contextlib
+import signal
 import socket
 import subprocess
 import sys
@@ -175,3 +176,27 @@ def test_a_device_that_hangs_up_before_the_session_is_tried_again(tmp_path, mode
         assert "eigencast serve: error:" in last and "Traceback" not in run.stderr, run.stderr
     finally:
         assert device.stop() == 0, "\n".join(device.lines[-10:])
+
+
+def test_ctrl_c_ends_serve_with_130_after_its_summary(tmp_path, model_path):
+    """Ctrl-C ends serving cleanly (BYE, the summary) and exits 130 as every command (it
+    exited 0)."""
+    device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
+    try:
+        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        serving = subprocess.Popen(
+            [*CLI, "serve", str(model_path), "--port", device.url, "--key",
+             str(key_file(model_path))],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+        first = serving.stderr.readline()  # "serving tooth.ecs to device ..." once it streams
+        assert "serving" in first, first
+        serving.send_signal(signal.SIGINT)
+        try:
+            out, err = serving.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            serving.kill()
+            pytest.fail("serve did not end on Ctrl-C")
+    finally:
+        device.stop()
+    assert serving.returncode == 130, first + err
+    assert "served" in out and "Traceback" not in err, (out, err)

@@ -34,11 +34,30 @@ def parse_size(text: str) -> tuple[int, int]:
     return parts[0], parts[1]
 
 
-def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str = "300") -> None:
-    """Add --size, --samples/--step, --projection, --fov, --background, --workers, --no-shading."""
-    g = parser.add_argument_group("rendering")
-    g.add_argument("--size", default=size_default, metavar="N|WxH",
-                   help=f"image size in pixels (default {size_default})")
+#: ``evaluate``'s heading of these options: they describe only a foreign model's images.
+FOREIGN_RENDERING = (
+    "An eigencast model records how its images were ray-cast (volume, transfer function, "
+    "size, camera, samples) and evaluate always ray-casts novel views that way: giving "
+    "--tf or any option below but --workers is then an error. Only a model fitted from "
+    "another tool's Cinema database records nothing; for it give VOLUME, --tf, and these "
+    "where its images were made otherwise.")
+
+
+def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str = "300",
+                         foreign: bool = False) -> None:
+    """Add --size, --samples/--step, --projection, --fov, --background, --workers, --no-shading.
+
+    ``foreign``: for ``evaluate``, where they describe only a model fitted from another
+    tool's database (`FOREIGN_RENDERING`); --size then defaults to the model's size."""
+    if foreign:
+        g = parser.add_argument_group("rendering a model from another tool's database",
+                                      FOREIGN_RENDERING)
+        g.add_argument("--size", default=None, metavar="N|WxH",
+                       help="its images' size (default and only value: the model's)")
+    else:
+        g = parser.add_argument_group("rendering")
+        g.add_argument("--size", default=size_default, metavar="N|WxH",
+                       help=f"image size in pixels (default {size_default})")
     step = g.add_mutually_exclusive_group()
     step.add_argument("--samples", type=int, metavar="N",
                       help="samples per ray across the volume's bounding sphere "
@@ -53,7 +72,8 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str =
                    help="background colour, components in [0,1] (default black)")
     g.add_argument("--no-shading", action="store_true", help="disable gradient shading")
     g.add_argument("--workers", type=int, metavar="N",
-                   help="render threads (default: all cores)")
+                   help="render threads (default: all cores)"
+                        + ("; applies to every model" if foreign else ""))
     g.add_argument("--frame", choices=("visible", "volume"), default="visible",
                    help="orbit around the bounding sphere of what the transfer function "
                         "shows (default) or of the whole volume box")

@@ -65,10 +65,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="processes computing the metrics alongside the ray-caster "
                              "(default: 2 on a multi-core machine; 0 computes them inline)")
     add_volume_arguments(parser)
-    add_transfer_function_argument(parser)
-    add_render_arguments(parser)
+    add_render_arguments(parser, foreign=True)
+    foreign = next(g for g in parser._action_groups if g.title.startswith("rendering a model"))
+    add_transfer_function_argument(foreign, foreign=True)
     # render options only apply to models whose database recorded no settings: detect them
-    parser.set_defaults(size=None, projection=None, fov=None, background=None, frame=None)
+    parser.set_defaults(projection=None, fov=None, background=None, frame=None)
 
 
 def _check_report_folder(path: Path) -> None:
@@ -97,8 +98,8 @@ def _scene(args: argparse.Namespace, model):  # noqa: ANN001
             given.append("--no-shading")
         if given:
             raise EigencastError(
-                f"{what} records its render settings; {', '.join(given)} apply only to models "
-                "fitted from databases of other tools"
+                f"{what} records its render settings and evaluate ray-casts with them: "
+                f"{', '.join(given)} apply only to a model fitted from another tool's database"
             )
         settings = RenderSettings.from_record(model.render_settings, what=what)
         return ViewRenderer.open(settings, args.volume, args, workers=args.workers, what=what)

@@ -117,9 +117,16 @@ def run(args: argparse.Namespace) -> int:
     say = (lambda line: None) if quiet else None
     model = HostModel.load(args.model, key=key)
     stop = threading.Event()
+    interrupted: list[int] = []
+
+    def on_signal(signum: int, frame: object) -> None:
+        if signum == signal.SIGINT:  # Ctrl-C: exit 130 as every command; SIGTERM: 0
+            interrupted.append(signum)
+        stop.set()
+
     if threading.current_thread() is threading.main_thread():
-        for signum in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C ends serving cleanly
-            signal.signal(signum, lambda *_: stop.set())
+        for signum in (signal.SIGINT, signal.SIGTERM):  # either ends serving cleanly
+            signal.signal(signum, on_signal)
     stats = serve(
         args.model,
         args.port,
@@ -146,4 +153,4 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(stats.as_dict()))
     else:
         print(f"served {args.model} to device '{stats.device_id}': {stats.line()}")
-    return 0
+    return 130 if interrupted else 0

@@ -136,13 +136,28 @@ def _save_png(path: Path, image: np.ndarray) -> None:
 
 
 def _rd_plot(evaluation: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig = _rd_figure(evaluation)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _rd_figure(evaluation: Any) -> Any:
+    """The rate-distortion figure (SSIM and FLIP against bytes per view); its legend sits
+    below both plots, clear of their axis titles (constrained layout, "outside")."""
+    plt = _pyplot()
     summary = evaluation.summary()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.0), dpi=110)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 6.0), dpi=110, layout="constrained")
     for ax, metric, label in ((axes[0], "ssim", "SSIM (higher is better)"),
                               (axes[1], "flip", "FLIP (lower is better)")):
         for kind, marker in (("pca", "o"), ("jpeg", "s"), ("webp", "^"), ("avif", "v")):
@@ -212,22 +227,26 @@ def _rd_plot(evaluation: Any, path: Path) -> None:
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4, frameon=False)
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
     n = evaluation.info.get("rd_views", 0)
     fig.suptitle(f"Rate-distortion (sweep over {n} views; markers at equal bytes over all views)",
                  fontsize=10)
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    return fig
+
+
+def _per_view_plot(evaluation: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig = _per_view_figure(evaluation)
     fig.savefig(path)
     plt.close(fig)
 
 
-def _per_view_plot(evaluation: Any, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), dpi=110)
+def _per_view_figure(evaluation: Any) -> Any:
+    """Per-view SSIM and FLIP against elevation, one colour per method; the legend sits
+    below both plots, off the data."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), dpi=110, layout="constrained")
     theta = np.array([v["theta_deg"] for v in evaluation.views])
     for ax, metric, label in ((axes[0], "ssim", "SSIM"), (axes[1], "flip", "FLIP")):
         # dodge the methods sideways so that views at equal elevations stay visible
@@ -241,11 +260,12 @@ def _per_view_plot(evaluation: Any, path: Path) -> None:
         ax.set_xlabel("elevation theta (degrees)")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
-    axes[0].legend(fontsize=7)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, fontsize=7, loc="outside lower center", ncol=3,
+                   frameon=False, markerscale=1.5)
     fig.suptitle("Per-view quality against elevation", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    return fig
 
 
 def _panel(sample: dict, method: str, title: str) -> tuple[str, np.ndarray] | None:

@@ -73,6 +73,7 @@ __all__ = [
     "score_step_for",
     "sparse_samples",
     "split_cells",
+    "stack_cache",
     "stack_for",
     "standalone_scores",
     "subset_database",

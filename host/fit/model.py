@@ -18,6 +18,7 @@ the kept rows keep the bits chosen for the whole model).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -56,6 +57,7 @@ __all__ = [
     "read_model_image",
     "save_model",
     "score_step_for",
+    "stack_cache",
     "stack_for",
     "standalone_scores",
     "subset_database",
@@ -82,13 +84,19 @@ ANNEX_TOTAL_VARIANCE = "total_variance"
 _THRESHOLD_SLACK = 1e-12
 
 
-def _cache_dir(db: CinemaDB, cache_dir: str | os.PathLike | None) -> Path:
+def stack_cache(db: CinemaDB, cache_dir: str | os.PathLike | None = None) -> Path:
+    """The folder `stack_for` keeps ``db``'s stack in: ``cache_dir``, else
+    ``DB.cdb/.eigencast-cache``, else (a read-only database) one under the system's temporary
+    folder. Not created here."""
     if cache_dir is not None:
-        path = Path(cache_dir)
-    else:
-        path = db.path / ".eigencast-cache"
-        if not os.access(db.path, os.W_OK):
-            path = Path(tempfile.gettempdir()) / "eigencast-cache" / db.path.resolve().name
+        return Path(cache_dir)
+    if os.access(db.path, os.W_OK):
+        return db.path / ".eigencast-cache"
+    return Path(tempfile.gettempdir()) / "eigencast-cache" / db.path.resolve().name
+
+
+def _cache_dir(db: CinemaDB, cache_dir: str | os.PathLike | None) -> Path:
+    path = stack_cache(db, cache_dir)
     path.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -102,12 +110,22 @@ def stack_for(
 ) -> CellStack:
     """The cell-major uint8 stack of ``db`` for ``cell_shape``, built once and reused.
 
-    The stack lives in ``DB.cdb/.eigencast-cache/`` (or ``cache_dir``) and is
-    rebuilt when any image file changes (names, sizes, mtimes).
+    Fitting streams its cells from this file (the images of a large database do not fit in
+    memory, and a cell's views must lie together); it is kept so that the next fit of the
+    database with the same cell size starts at once instead of decoding every image again
+    (7 s for 1500 views at 256 px on 2 cores). It lives in `stack_cache` (``DB.cdb/.eigencast-
+    cache/`` or ``cache_dir``), uncompressed (3 bytes per pixel per view, padded to whole
+    cells: 330 MB for 1500 views at 256 px, 6-50 times the PNGs), and is rebuilt when any
+    image file changes (names, sizes, mtimes). The folder keeps this stack only: the others
+    in it are deleted, so it holds one stack at most.
     """
     height, width = db.image_shape
     cache = _cache_dir(db, cache_dir)
     name = f"stack-{height}x{width}-cell{cell_shape[0]}x{cell_shape[1]}.u8"
+    for old in cache.glob("stack-*.u8*"):
+        if old.name not in (name, f"{name}.json") and old.is_file():
+            with contextlib.suppress(OSError):
+                old.unlink()
     source = CellStack.fingerprint_files([db.path / f for f in db.files])
     return CellStack.build(
         db.iter_images(), db.n_views, height, width, cell_shape[0], cell_shape[1],

@@ -76,6 +76,7 @@ from host.link.true_views import open_true_view_scores
 from protocol import messages as m
 from protocol.errors import (
     ProtocolError,
+    RemoteBusy,
     RemoteError,
     TransportClosed,
     TransportError,
@@ -410,8 +411,8 @@ class _Serving:
                 try:
                     if self._attempt():
                         break
-                except (TransportClosed, TransportTimeout, TransportError) as exc:
-                    if isinstance(exc, RemoteError):
+                except (TransportClosed, TransportTimeout, TransportError, RemoteBusy) as exc:
+                    if isinstance(exc, RemoteError) and not isinstance(exc, RemoteBusy):
                         raise
                     self.streaming = False
                     if self.link is not None:
@@ -870,8 +871,7 @@ class _Serving:
             self.on_frame(encoded, frame.view)
 
     def _encode(self, frame: _Frame) -> EncodedScores | None:
-        """The frame's packet; a frame whose ray-cast scores cannot be coded costs that view
-        (:meth:`_view_failed`): it is coded as if it had no ray-cast."""
+        """The frame's packet; scores that cannot be coded cost the view (`_view_failed`)."""
         always = self.orbit is not None
         if frame.scores is not None:
             try:

@@ -53,7 +53,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -792,17 +792,20 @@ def _lerp_hsv(a: np.ndarray, b: np.ndarray, f: np.ndarray, wrap: bool) -> np.nda
 # --------------------------------------------------------------------------
 
 
-def add_transfer_function_argument(parser: argparse.ArgumentParser) -> None:
-    """Add ``--tf PRESET|FILE`` (default: chosen per volume) to ``parser``."""
+def add_transfer_function_argument(parser: Any, *, foreign: bool = False) -> None:
+    """Add ``--tf PRESET|FILE`` (default: chosen per volume) to ``parser`` (or a group).
+
+    ``foreign``: ``evaluate``'s, which only a model fitted from another tool's database
+    takes (an eigencast model's recorded transfer function always wins)."""
+    what = (f"a preset ({', '.join(PRESETS)}) or a ParaView/VolView preset .json "
+            "(FILE.json#NAME picks one of several)")
     parser.add_argument(
         "--tf",
         metavar="PRESET|FILE",
         default=None,
-        help=(
-            f"transfer function: a preset ({', '.join(PRESETS)}) or a ParaView/VolView "
-            "preset .json (FILE.json#NAME picks one of several); default: chosen from the "
-            "volume's modality"
-        ),
+        help=(f"the transfer function its images were rendered with: {what}; required for "
+              "it" if foreign else
+              f"transfer function: {what}; default: chosen from the volume's modality"),
     )
 
 

@@ -40,7 +40,8 @@ raw (any extension, ``dims`` given; ``.gz`` data is inflated), volvis ``.dat``
 (text header, or the 6-byte binary TU Wien header), MetaImage ``.mhd``/``.mha``,
 NRRD ``.nrrd``/``.nhdr``, NIfTI ``.nii``/``.nii.gz``, a DICOM series folder (or
 one ``.dcm`` file of it), TIFF stacks (multi-page file or a folder of
-single-page files) and uncompressed Roettger ``.pvm``. Every problem with a file
+single-page files), uncompressed Roettger ``.pvm`` and NumPy ``.npy``/``.npz`` (one array
+``(z, y, x)``; ``--spacing`` gives its voxel size). Every problem with a file
 raises `VolumeError` with one line naming the file.
 
 Built-in volumes

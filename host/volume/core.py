@@ -116,7 +116,8 @@ RAW_DTYPES: dict[str, str] = {
 SUPPORTED_FORMATS = (
     "builtin:NAME, raw with --dims (.raw, .bin, .gz ...), volvis .dat, MetaImage .mhd/.mha, "
     "NRRD .nrrd/.nhdr, NIfTI .nii/.nii.gz, DICOM series folder or .dcm, "
-    "TIFF stack .tif/.tiff or folder of TIFFs, Roettger .pvm"
+    "TIFF stack .tif/.tiff or folder of TIFFs, Roettger .pvm, NumPy .npy/.npz (z, y, x) with "
+    "--spacing"
 )
 
 _MAX_HEADER_BYTES = 1 << 20  # text headers longer than this are not headers

@@ -41,6 +41,7 @@ from host.volume.read_dicom import _first_dicom, _load_dicom
 from host.volume.read_metaimage import _load_metaimage
 from host.volume.read_nifti import _load_nifti
 from host.volume.read_nrrd import _load_nrrd
+from host.volume.read_numpy import _load_npy, _load_npz
 from host.volume.read_pvm import _load_pvm
 from host.volume.read_raw import _load_raw
 from host.volume.read_tiff import _load_tiff, _load_tiff_folder
@@ -251,6 +252,8 @@ _EXTENSIONS = {
     ".tiff": "tiff",
     ".dat": "dat",
     ".pvm": "pvm",
+    ".npy": "npy",
+    ".npz": "npz",
     ".raw": "raw",
     ".raw.gz": "raw",
     ".bin": "raw",
@@ -288,6 +291,8 @@ def _sniff_magic(head: bytes) -> str | None:
         return "tiff"
     if head.startswith((b"PVM", b"DDS v3")):
         return "pvm"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
     text = head.lstrip()
     if text.startswith((b"ObjectType", b"NDims")):
         return "metaimage"
@@ -326,6 +331,8 @@ READERS: dict[str, Callable[[Path], _Loaded]] = {
     "tiff": _load_tiff,
     "tiff-folder": _load_tiff_folder,
     "pvm": _load_pvm,
+    "npy": _load_npy,
+    "npz": _load_npz,
 }
 
 
