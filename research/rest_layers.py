@@ -529,6 +529,24 @@ def dictionary_sizes(views: list[dict], residuals: list[dict], size_bytes: int =
 # --------------------------------------------------------------------------- determinism
 
 
+def _pygame_libwebp() -> str | None:
+    """The version of the libwebp pygame's SDL_image decodes with (its wheel's copy)."""
+    import ctypes
+    import glob
+
+    import pygame
+
+    libs = Path(pygame.__file__).resolve().parent.parent / "pygame.libs"
+    try:
+        for dep in glob.glob(str(libs / "libsharpyuv-*")):
+            ctypes.CDLL(dep, mode=ctypes.RTLD_GLOBAL)
+        so = glob.glob(str(libs / "libwebp-*"))
+        v = ctypes.CDLL(so[0]).WebPGetDecoderVersion()
+    except (OSError, IndexError, AttributeError):
+        return None
+    return f"{v >> 16}.{(v >> 8) & 255}.{v & 255}"
+
+
 def decode_agreement(files: list[bytes]) -> dict:
     """Whether lossy WebP files decode to the same pixels through Pillow, pygame and dwebp
     (with and without SIMD): counts of files whose decodes differ from Pillow's."""
@@ -536,7 +554,7 @@ def decode_agreement(files: list[bytes]) -> dict:
     from PIL import features
 
     out: dict[str, Any] = {"files": len(files), "pillow_libwebp": features.version("webp"),
-                           "pygame": pygame.version.ver}
+                           "pygame": pygame.version.ver, "pygame_libwebp": _pygame_libwebp()}
     dwebp = shutil.which("dwebp")
     diffs = {"pygame": 0, "dwebp": 0, "dwebp_noasm": 0}
     maxdiff = {k: 0 for k in diffs}
@@ -903,6 +921,52 @@ def summarize(result: dict) -> dict:
     return out
 
 
+def _worst(values: list[float]) -> str:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    return f"{statistics.median(v):.2f} / {max(v):.2f}" if v else "-"
+
+
+def overview(results: list[dict], timing_result: dict | None) -> list[str]:
+    """The bars, per volume: the host's choice per view (`best`: the smallest of the
+    residual after the correction, the residual against the own frame with no correction,
+    and WebP of R) against WebP and AVIF of R; the plan one lossy layer then WebP lossless
+    of R against WebP lossless of R; how often the correction is skipped."""
+    lines = ["## The bars, per volume", "",
+             "`best` = per view the smallest of " + ", ".join(BEST_FROM) + " reaching the "
+             "target (cumulative, the correction included where sent). Ratios median / worst "
+             "over the views. `exact` = `best@0.95 > exact` (one lossy layer, then WebP "
+             "lossless of R) / WebP lossless of R; `+0.99` = with a second lossy layer to "
+             "0.99 in between. `skip` = views whose cheapest first layer (at 0.95) needs no "
+             "correction.", "",
+             "| volume | own / F SSIM | c B | " + " | ".join(
+                 f"{t} /WebP | {t} /AVIF" for t in TARGETS) + " | exact | +0.99 | skip |",
+             "|---|---|---|" + "---|---|" * len(TARGETS) + "---|---|---|"]
+    for r in results:
+        views = r["per_view"]
+        cells = [f"{statistics.median(v['ssim_own'] for v in views):.3f} / "
+                 f"{statistics.median(v['ssim_F'] for v in views):.3f}",
+                 f"{statistics.median(v['correction_bytes'] for v in views):.0f}"]
+        for t in TARGETS:
+            rw, ra = [], []
+            for v in views:
+                hit, w, a = (v["lossy"]["best"][str(t)], v["lossy"]["webp"][str(t)],
+                             v["lossy"]["avif"][str(t)])
+                if hit and w:
+                    rw.append(hit["bytes"] / w["bytes"])
+                if hit and a:
+                    ra.append(hit["bytes"] / a["bytes"])
+            cells += [_worst(rw), _worst(ra)]
+        for plan in ("best@0.95 > exact", "best@0.95 > 0.99 > exact"):
+            cells.append(_worst([v["plans"][plan][-1][1] / v["exact"]["wll_R"]
+                                 for v in views if plan in v["plans"]]))
+        skip = sum(1 for v in views if v["lossy"]["best"]["0.95"]
+                   and v["lossy"]["best"]["0.95"]["from"] in ("res_own", "webp"))
+        cells.append(f"{skip}/{len(views)}")
+        lines.append(f"| {r['name']} | " + " | ".join(cells) + " |")
+    lines.append("")
+    return lines
+
+
 def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
                    command: str) -> None:
     lines = [
@@ -921,6 +985,7 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
         "reach the target (of the views measured).",
         "",
     ]
+    lines += overview(results, timing_result)
     for r in results:
         views = r["per_view"]
         s = summarize(r)
@@ -1017,7 +1082,8 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
                   + "; ".join(f"{k} {_stats(x)}" for k, x in tiles.items()), ""]
         da = r["decode_agreement"]
         lines += [f"Lossy WebP decode agreement ({da['files']} files, Pillow libwebp "
-                  f"{da['pillow_libwebp']}): files whose decode differs from Pillow's "
+                  f"{da['pillow_libwebp']}, pygame {da['pygame']} libwebp "
+                  f"{da.get('pygame_libwebp')}): files whose decode differs from Pillow's "
                   f"{da['differs_from_pillow']}, largest difference "
                   f"{da['max_level_difference']}"
                   + (f"; dwebp: {da['dwebp_libwebp']}" if "dwebp_libwebp" in da else ""), ""]
@@ -1078,6 +1144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         out.write_text(json.dumps(result))
         results.append(result)
     timing_result = None
+    if args.no_timing and (work / "timing.json").exists():  # the last timing run's
+        timing_result = json.loads((work / "timing.json").read_text())
     timed = [r["name"] for r in results]
     if not args.no_timing and results and not any(r["size"] >= 512 for r in results):
         proxy = proxy_layers(work, results[0]["name"], 512)
