@@ -87,6 +87,8 @@ MASK_DILATE = 4
 MASK_LEVEL = 0
 DEFAULT_VOLUMES = ("tooth-256", "head-256", "vismale_head-256", "engine-256", "headsq-256",
                    "brainsmall-256", "mni152-256", "tooth-512", "head-512", "vismale_head-512")
+#: The line below which ``--out`` is rewritten (the findings above it are kept).
+MARKER = "<!-- rest_layers.py writes everything below this line -->"
 #: Candidates a pygame device decodes that `best` chooses from.
 BEST_FROM = ("res1", "res2", "res1_obj", "res_own", "webp")
 LOSSY_ORDER = ("webp", "avif", "jpeg", "res1", "res2", "res1_cw", "res1_sharp", "res1_obj",
@@ -420,18 +422,20 @@ def layer_plans(R: np.ndarray, F: np.ndarray, S: np.ndarray, c: int, lossy: dict
         ladder = ladders[name]
         return ladder.at(ladder.settings.index(hit["setting"]))[2]
 
-    def exact_step(prev: int, last: str) -> list:
+    def exact_step(prev: int, webp_at: float | None) -> list:
         options = [(wll, "wll_R")]
-        key = f"wll_resD@{last.split('@')[1]}" if last.startswith("webp@") else None
+        key = f"wll_resD@{webp_at}" if webp_at is not None else None
         if key and key in exact:
-            options.append((exact[key]["layer"], key))
+            options.append((exact[key]["layer"], "wll_resD"))
         size, kind = min(options)
         return step(1.0, prev + size, kind)
 
     ssim_F = quality(F)
+    ssim_S = quality(S)
     plans: dict[str, list[list]] = {}
-    for first in ("res1", "res_own", "webp", "best"):
-        for t1 in (0.95, 0.97):
+    for first, t1 in (("res1", 0.95), ("res_own", 0.95), ("webp", 0.95), ("best", 0.95),
+                      ("best", 0.97)):
+        if True:
             name = first
             if first == "best":
                 best = lossy["best"][str(t1)]
@@ -441,16 +445,18 @@ def layer_plans(R: np.ndarray, F: np.ndarray, S: np.ndarray, c: int, lossy: dict
             hit = lossy[name][str(t1)]
             if not hit:
                 continue
-            steps: list[list] = []
-            if name not in ("res_own", "webp"):
-                steps.append(step(ssim_F, c, "correction"))
-            if hit["setting"] not in ("F", "S"):
-                steps.append(step(hit["ssim"], hit["bytes"], f"{name}@{t1}"))
-            if not steps:  # the own frame reaches the target: nothing sent
-                steps.append(step(hit["ssim"], 0, "own frame"))
+            # stage 0: what the device shows before any layer
+            corrected = name not in ("res_own", "webp")
+            s0 = step(ssim_F, c, "correction") if corrected else step(ssim_S, 0, "own frame")
+            # stage 1: the first lossy layer (none when the frame already reaches t1)
+            if hit["setting"] in ("F", "S"):
+                s1 = step(hit["ssim"], s0[1], "reached")
+            else:
+                s1 = step(hit["ssim"], hit["bytes"], name)
+            webp_at = t1 if name == "webp" else None
             label = f"{first}@{t1}"
-            plans[f"{label} > exact"] = [*steps, exact_step(steps[-1][1], steps[-1][4])]
-            # a layer to 0.99: the residual against the frame shown, or WebP of R
+            plans[f"{label} > exact"] = [s0, s1, exact_step(s1[1], webp_at)]
+            # stage 2: a layer to 0.99, the residual against the frame shown or WebP of R
             G = frame_of(name, hit)
             res = offset_residual(R, G, 1)
 
@@ -459,19 +465,18 @@ def layer_plans(R: np.ndarray, F: np.ndarray, S: np.ndarray, c: int, lossy: dict
                 data = webp(res, q)
                 return len(data), add_residual(G, decode(data), 1)
 
-            prev = steps[-1][1]
-            second = Ladder(code, list(range(1, 101)), quality, prev).reach(0.99)
+            second = Ladder(code, list(range(1, 101)), quality, s1[1]).reach(0.99)
             fresh = lossy["webp"]["0.99"]
             options = []
             if second:
-                options.append((second["bytes"], second["ssim"], "residual@0.99"))
+                options.append((second["bytes"], second["ssim"], "residual", None))
             if fresh:
-                options.append((prev + fresh["bytes"], fresh["ssim"], "webp@0.99"))
+                options.append((s1[1] + fresh["bytes"], fresh["ssim"], "webp", 0.99))
             if not options:
                 continue
-            size, ssim, kind = min(options)
-            two = [*steps, step(ssim, size, kind)]
-            plans[f"{label} > 0.99 > exact"] = [*two, exact_step(size, kind)]
+            size, ssim, kind, at = min(options)
+            s2 = step(ssim, size, kind)
+            plans[f"{label} > 0.99 > exact"] = [s0, s1, s2, exact_step(size, at)]
     return plans
 
 
@@ -921,6 +926,31 @@ def summarize(result: dict) -> dict:
     return out
 
 
+def _stages(name: str, steps: list[list], view: dict) -> list[list]:
+    """A plan's steps as its stages (before any layer, the first lossy layer[, the layer to
+    0.99], exact), layer kinds without their targets. Results of an earlier version of this
+    script listed only the steps that sent something; their stages are rebuilt here."""
+    def kind(x: list, k: str | None = None) -> list:
+        return [*x[:4], k if k is not None else str(x[4]).split("@")[0]]
+
+    rest = list(steps)
+    if rest[0][4] in ("correction", "own frame"):
+        s0 = kind(rest.pop(0))
+    else:
+        s0 = [view["ssim_own"], 0, None, None, "own frame"]
+    layer = [x for x in rest if "@" in str(x[4]) and str(x[4]).split("@")[1] in ("0.95", "0.97")
+             and not str(x[4]).startswith("wll")]
+    new = [x for x in rest if x[4] in BEST_FROM or x[4] == "reached"]
+    s1 = kind(layer[0]) if layer else (kind(new[0]) if new else kind(s0, "reached"))
+    second = [x for x in rest if x[4] in ("residual@0.99", "webp@0.99")
+              or (x[4] in ("residual", "webp") and x is not (new[0] if new else None))]
+    out = [s0, s1]
+    if "0.99" in name and second:
+        out.append(kind(second[-1]))
+    out.append(kind(rest[-1]))
+    return out
+
+
 def _worst(values: list[float]) -> str:
     v = [x for x in values if x is not None and math.isfinite(x)]
     return f"{statistics.median(v):.2f} / {max(v):.2f}" if v else "-"
@@ -1053,16 +1083,22 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
         lines += ["", "Layer plans (per step: median object SSIM @ median cumulative bytes, "
                   "then the cumulative bytes as median (worst) ratio to the smallest WebP of R "
                   "reaching that step's SSIM on that view / to the smallest AVIF; the exact "
-                  "step to WebP lossless of R). Layer kinds chosen per view in brackets:", ""]
+                  "step to WebP lossless of R). Stages: before any layer (the correction, or "
+                  "the own frame when none is sent) -> the first lossy layer (`reached`: the "
+                  "frame already reaches the target, nothing sent) [-> a layer to 0.99: the "
+                  "residual against the frame shown or WebP of R, the smaller] -> exact (WebP "
+                  "lossless of R, or of (R - D) mod 256 after a WebP of R, the smaller). What "
+                  "each stage was, per view, in brackets:", ""]
         plan_names = []
         for v in views:
             plan_names += [p for p in v["plans"] if p not in plan_names]
         for p in plan_names:
             rows = [v for v in views if p in v["plans"]]
-            n_steps = min(len(v["plans"][p]) for v in rows)
+            staged = [_stages(p, v["plans"][p], v) for v in rows]
+            n_steps = min(len(x) for x in staged)  # stages: before, layer 1[, 0.99], exact
             parts = []
             for k in range(n_steps):
-                st = [v["plans"][p][k] for v in rows]
+                st = [x[k] for x in staged]
                 rw = [x[1] / x[2] for x in st if x[2]]
                 ra = [x[1] / x[3] for x in st if x[3]]
                 kinds: dict[str, int] = {}
@@ -1100,7 +1136,11 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
             lines.append(f"| {name} | {v['size']} | {v['blend_ms']:.2f} | "
                          + "; ".join(parts) + " |")
         lines.append("")
-    path.write_text("\n".join(lines) + "\n")
+    head = ""
+    if path.exists() and MARKER in path.read_text():  # the hand-written findings above it
+        head = path.read_text().split(MARKER)[0]
+        lines = lines[2:]  # the title is the findings'
+    path.write_text(head + MARKER + "\n\n" + "\n".join(lines) + "\n")
 
 
 # --------------------------------------------------------------------------- main
@@ -1118,6 +1158,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--out", default=str(REPO / "research" / "rest_layers.md"))
     p.add_argument("--redo", action="store_true", help="measure volumes already measured")
     p.add_argument("--no-timing", action="store_true", help="skip the one-core timing")
+    p.add_argument("--report-only", action="store_true",
+                   help="only rewrite --out from the volumes already measured (no timing)")
     p.add_argument("--timing-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     work = Path(args.work)
@@ -1136,6 +1178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             results.append(json.loads(out.read_text()))
             print(f"{name}: measured before ({out})", flush=True)
             continue
+        if args.report_only:
+            continue
         if not done.exists():
             print(f"{name}: not ready ({done} missing), skipped", flush=True)
             continue
@@ -1144,6 +1188,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         out.write_text(json.dumps(result))
         results.append(result)
     timing_result = None
+    if args.report_only:
+        args.no_timing = True
     if args.no_timing and (work / "timing.json").exists():  # the last timing run's
         timing_result = json.loads((work / "timing.json").read_text())
     timed = [r["name"] for r in results]
