@@ -1119,7 +1119,8 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
         da = r["decode_agreement"]
         lines += [f"Lossy WebP decode agreement ({da['files']} files, Pillow libwebp "
                   f"{da['pillow_libwebp']}, pygame {da['pygame']} libwebp "
-                  f"{da.get('pygame_libwebp')}): files whose decode differs from Pillow's "
+                  f"{da.get('pygame_libwebp') or 'not recorded'}): files whose decode "
+                  "differs from Pillow's "
                   f"{da['differs_from_pillow']}, largest difference "
                   f"{da['max_level_difference']}"
                   + (f"; dwebp: {da['dwebp_libwebp']}" if "dwebp_libwebp" in da else ""), ""]
@@ -1128,7 +1129,16 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
                   f"CPUs {timing_result['affinity']}, OPENBLAS_NUM_THREADS="
                   f"{timing_result['openblas']}, load {timing_result['load']:.1f}. Thread CPU "
                   "time, median; ratio to the blend (`Reconstructor.update` of a new view's "
-                  "predicted scores) interleaved in the same run.", "",
+                  "predicted scores) interleaved in the same run. Layer files per view: "
+                  "`res1@t` the residual against F (`pixels3d`: added from a view of the "
+                  "surface; `tobytes`: from a copy), `res1_jpeg@t` the same as JPEG 4:4:4, "
+                  "`webp@t` / `wll_R` / `png_R` the ray-cast copied into the frame, "
+                  "`wll_resD@t` / `zstd_resD@t` the mod-256 exact residual added to the "
+                  "`webp@t` frame. `NAME-512proxy`: no 512 database was measured, so R is "
+                  "ray-cast at 512 with the volume's settings, F is the 256 F upsampled "
+                  "(bilinear; a rougher F, so larger residual layers) and the blend is "
+                  "`benchmarks/bench_reconstruct.py`'s synthetic 512 eigenspace (as "
+                  "`bench_device.py` times sizes without a model).", "",
                   "| volume | px | blend ms | layer: ms (x blend) |", "|---|---|---|---|"]
         for name, v in timing_result["volumes"].items():
             parts = [f"{k} {x['ms']:.2f} ({x['ratio']:.2f}x)" for k, x in v.items()
@@ -1210,7 +1220,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"timing failed: {proc.stderr.strip().splitlines()[-1:]}", flush=True)
     write_markdown(results, timing_result, Path(args.out),
                    "nice -n 10 .venv/bin/python research/rest_layers.py "
-                   + " ".join(a for a in (argv if argv is not None else sys.argv[1:])))
+                   + " ".join(a for a in (argv if argv is not None else sys.argv[1:])
+                              if a != "--report-only"))
     print(f"wrote {args.out}")
     return 0
 
