@@ -24,7 +24,7 @@ from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import StandaloneScores
 from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
 from protocol.image import EigenspaceImage
-from protocol.layers import LayerPacket
+from protocol.layers import LayerAssembly, LayerChunk
 from protocol.scores import DecodedScores, ScoreDecoder, score_bound
 
 __all__ = ["LayerItem", "LoadedModel", "ScoreItem", "ShownState"]
@@ -62,6 +62,8 @@ class ShownState:
     rest : RestFrame or None
         The resting view's frame that layers refine (made from the frame on show at the
         first layer; gone when the view or its correction changes).
+    assembly : LayerAssembly
+        The layer file whose chunks are being joined.
     """
 
     synth_view: View | None = None
@@ -73,6 +75,7 @@ class ShownState:
     settled: View | None = None
     base: tuple[View, int] | None = None
     rest: RestFrame | None = None
+    assembly: LayerAssembly = field(default_factory=LayerAssembly)
 
 
 @dataclass
@@ -177,10 +180,11 @@ class LoadedModel:
 
 @dataclass(frozen=True)
 class LayerItem:
-    """A refinement layer (header checked) handed from the dispatcher to the display."""
+    """A refinement layer's chunk (header checked) handed from the dispatcher to the
+    display."""
 
     model: LoadedModel
-    packet: LayerPacket
+    packet: LayerChunk
 
 
 @dataclass(frozen=True)

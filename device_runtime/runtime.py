@@ -96,7 +96,7 @@ from device_runtime.stats import RuntimeStats, peak_rss_bytes
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
-from protocol.layers import LAYER_VERSION, decode_layer, is_layer
+from protocol.layers import LAYER_VERSION, decode_layer, is_layer, max_file_bytes
 from protocol.scores import VERSIONS, ImageMismatch, MissingBase
 
 __all__ = [
@@ -132,8 +132,8 @@ HEADLESS_FPS = 30.0
 """Display ticks per second without a screen (a board's display rate)."""
 LAYER_MAX_BYTES = 1 << 16
 """A layer's packet bound when neither ``--max-frame`` nor the transport sets one."""
-LAYER_QUEUE = 64
-"""Refinement layers held for the display at most (each one strip of a frame)."""
+LAYER_QUEUE = 256
+"""Chunks of refinement layers held for the display at most (and a file's worth of bytes)."""
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while the display loop runs, seconds."""
 
@@ -229,7 +229,8 @@ class RuntimeDevice(FrameScheduler, Device):
         self._tick0 = clock()  # when the display's tick 0 began (reset by run_display)
         self._waiting_for: tuple[float, float] | None = None  # a scripted view not shown yet
         # refinement layers in arrival order (dispatcher -> display), bounded
-        self._layers: collections.deque[LayerItem] = collections.deque(maxlen=LAYER_QUEUE)
+        self._layers: collections.deque[LayerItem] = collections.deque()
+        self._layers_bytes = 0  # the chunks' bytes in _layers
         self._layers_lock = threading.Lock()
         super().__init__(config, log=log)
 
@@ -435,10 +436,13 @@ class RuntimeDevice(FrameScheduler, Device):
             self._log_limited("bad-layer", f"bad layer dropped: "
                               f"{' '.join(str(exc).split())[:160]} ({stats.layers_bad} so far)")
             return
-        with self._layers_lock:
-            if len(self._layers) == self._layers.maxlen:
-                stats.layers_dropped += 1
+        bound = max_file_bytes(model.image.image_shape) + self._frame_limit()
+        with self._layers_lock:  # chunks held: a file's worth and a frame at most
             self._layers.append(LayerItem(model, layer))
+            self._layers_bytes += len(layer.data)
+            while self._layers_bytes > bound or len(self._layers) > LAYER_QUEUE:
+                self._layers_bytes -= len(self._layers.popleft().packet.data)
+                stats.layers_dropped += 1
         self._scores.wake()
 
     def _frame_limit(self) -> int:

@@ -27,9 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from device_runtime.layers import LayerError, RestFrame, decode_strip
+from device_runtime.layers import LayerError, RestFrame, decode_file
 from device_runtime.loaded import LoadedModel, ScoreItem
 from device_runtime.prediction import corrected
+from protocol.errors import ProtocolError
 
 __all__ = ["FrameScheduler"]
 
@@ -228,43 +229,50 @@ class FrameScheduler:
 
     # ------------------------------------------------------------------ layers at rest
     def _apply_layer(self, model: LoadedModel) -> bool:
-        """Apply the next refinement layer that belongs to the frame on show (one strip per
-        turn: a strip's decode costs about a blend); drop those of another view or frame,
-        keep those whose correction waits for its warp. True: one was applied."""
+        """Join the queued chunks of the refinement layers that belong to the frame on show,
+        and apply the next whole one (one decode per turn: it costs about half a blend);
+        drop chunks of another view or frame, keep those whose correction waits for its
+        warp. True: a layer was applied."""
+        stats = self.runtime_stats
         while True:
             with self._layers_lock:
                 if not self._layers:
                     return False
                 item = self._layers[0]
-                layer = item.packet
-                view = (layer.phi_deg, layer.theta_deg)
+                chunk = item.packet
                 rest, wait = self._rest_for(model, item)
                 if rest is None:
                     if wait:  # its frame is being made (a warp, a correction waiting for it)
                         return False
-                    self._layers.popleft()
-                    self.runtime_stats.layers_dropped += 1
+                    self._layers_bytes -= len(self._layers.popleft().packet.data)
+                    stats.layers_dropped += 1
                     continue
-                self._layers.popleft()
-            if not rest.accepts(layer):  # a layer before it was lost or dropped
-                self.runtime_stats.layers_dropped += 1
+                self._layers_bytes -= len(self._layers.popleft().packet.data)
+            if not rest.accepts(chunk):  # a layer before it was lost or dropped
+                stats.layers_dropped += 1
                 continue
+            try:
+                data = model.shown.assembly.add(chunk)
+            except ProtocolError:  # a chunk lost: this layer cannot be joined
+                stats.layers_dropped += 1
+                continue
+            if data is None:
+                continue  # more chunks to come
             t0 = time.perf_counter()
             try:
-                pixels = decode_strip(layer, rest.frame.shape[1])
+                pixels = decode_file(data, chunk.codec, rest.frame.shape[:2])
             except LayerError as exc:
-                self.runtime_stats.layers_bad += 1
-                self._frame_failed(layer.frame, exc)
+                stats.layers_bad += 1
+                self._frame_failed(chunk.frame, exc)
                 continue
-            rest.apply(layer, pixels)
-            self.runtime_stats.layer_s.add(time.perf_counter() - t0)
-            self.runtime_stats.layers_applied += 1
-            exact = rest.is_exact
-            self.runtime_stats.exact_frames += exact
+            rest.apply(chunk, pixels)
+            stats.layer_s.add(time.perf_counter() - t0)
+            stats.layers_applied += 1
+            stats.exact_frames += rest.is_exact
             self._present(model, model.shown.last_y, {
-                "frame": layer.frame, "phi_deg": view[0], "theta_deg": view[1],
-                "key": False, "packet_bytes": layer.packet_bytes, "sequence": 0,
-                "layer": layer.layer, "exact": exact, "base_frame": layer.base_frame},
+                "frame": chunk.frame, "phi_deg": chunk.phi_deg, "theta_deg": chunk.theta_deg,
+                "key": False, "packet_bytes": chunk.packet_bytes, "sequence": 0,
+                "layer": chunk.layer, "exact": rest.is_exact, "base_frame": chunk.base_frame},
                 frame=rest.frame, settled=True)
             return True
 
@@ -338,6 +346,7 @@ class FrameScheduler:
 
     # attributes RuntimeDevice provides
     _layers: Any
+    _layers_bytes: int
     _layers_lock: Any
     _shown_frame: Any
     presenter: Any

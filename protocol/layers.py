@@ -1,19 +1,22 @@
 """Refinement layers: the packets that take a resting view to the exact ray-cast.
 
-Once a resting view's correction is on show, the host sends *layers*, coarse to fine, until
-the device's frame is the host's ray-cast bit for bit. A layer is a score packet of version
-4 (the same magic and SCORES message as the other versions; a decoder that does not list 4
-refuses it in one line) whose payload is a coded image of one horizontal strip of the frame
-(a *tile*: the whole width, rows ``y0 .. y0 + rows``), in a codec the device decodes
-through pygame (PNG, JPEG, WebP lossy or lossless). Little-endian, 32-byte header::
+Once a resting view's correction is on show (or in its place, research/rest_layers.md), the
+host sends *layers*, coarse to fine, until the device's frame is the host's ray-cast bit for
+bit. A layer is one image file of the whole frame in a codec the device decodes through
+pygame (PNG, JPEG, WebP lossy or lossless), sent in one or more *chunks*, each a score packet
+of version 4 (the same magic and SCORES message as the other versions; a decoder that does
+not list 4 refuses it in one line). A file is never split into independent tiles (each tile
+a file of its own cost 4-32 % more bytes, research/rest_layers.md); its bytes are cut into
+chunks that fit the device's frames and a slow line's quarter second, and the device joins
+them. Little-endian, 40-byte header::
 
     offset size field
     0      2    magic b"\\xecS"
     2      1    version 4
-    3      1    flags: bit 0 RESIDUAL (the strip is a residual, else the pixels themselves);
+    3      1    flags: bit 0 RESIDUAL (the file is a residual, else the pixels themselves);
                 bits 1-2 SHIFT s (a residual's values are v = (R - F) >> s offset by 128);
-                bit 3 EXACT (an absolute strip coded losslessly: the ray-cast's pixels
-                exactly); bits 4-7 reserved, 0
+                bit 3 EXACT (absolute, lossless: the ray-cast's pixels exactly);
+                bits 4-7 reserved, 0
     4      4    frame number u32 (the host's packet counter)
     8      4    base frame number u32: the correction whose frame the layer refines (the
                 frame number of the version-3 packet on show; 0: the device's own frame of
@@ -24,30 +27,32 @@ through pygame (PNG, JPEG, WebP lossy or lossless). Little-endian, 32-byte heade
     21     1    codec u8: 1 PNG, 2 JPEG, 3 WebP (lossy or lossless, as the file says)
     22     2    reserved, 0
     24     4    image tag: the first 4 bytes of the eigenspace image's SHA-256 digest
-    28     2    y0 u16: the strip's first row
-    30     2    rows u16: the strip's height (>= 1; y0 + rows <= the image's height)
-    32     ..   the coded strip: an image file of width x rows pixels, RGB
+    28     4    file size u32: the whole file's bytes
+    32     4    offset u32: where this chunk's bytes start in the file
+    36     4    file CRC-32 (zlib's) of the whole file
+    40     ..   the chunk: bytes offset .. offset + len of the file
 
-How the device applies a strip (`device_runtime.layers`) to its frame ``F`` of the view:
-an absolute strip replaces its rows (``F = D``); a residual strip adds to them
-(``F = clip(F + ((D - 128) << s), 0, 255)``, int16). Per row the device counts the layers
-applied since the correction: a residual strip of layer ``L`` applies only to rows that
-have had exactly the layers before it (``L``), an absolute one to rows that have had at
-most ``L``; each sets its rows' count to ``L + 1``. A lost or dropped residual therefore
-never misapplies the next one, and an absolute strip repairs any row. EXACT strips end the
-chain: once every row has had one, the frame is the ray-cast, whatever float32 arithmetic
-made the device's own frame (the host never codes the exact step against it).
+Joining (`LayerAssembly`): a file's chunks come in order; its first chunk (offset 0) must
+hold the file's header, whose declared width and height (`declared_size`: PNG's IHDR, JPEG's
+SOF, WebP's VP8/VP8L/VP8X chunk) must be the image's, and its file size must be within
+`max_file_bytes` of the image, so no file makes a device allocate more than its bound; each
+later chunk must continue the same file (same layer, base frame, view, sizes and CRC) at the
+next byte. When the last byte is in, the CRC is checked and the file is ready to decode.
 
-Decoding is bounded: the packet is checked against ``max_packet_bytes`` before anything
-else, and the image's declared width and height are read from its header
-(`declared_size`: PNG's IHDR, JPEG's SOF, WebP's VP8/VP8L/VP8X chunk) and must equal the
-strip's before the device decodes a byte of it, so no file can make it allocate more than
-one strip.
+How the device applies a layer (`device_runtime.layers`) to its frame ``F`` of the view: an
+absolute file replaces it (``F = D``); a residual adds to it (``F = clip(F + ((D - 128) <<
+s), 0, 255)``, int16). The device counts the layers applied since the frame named by the base:
+a residual of layer ``L`` applies only after exactly the layers before it (``L``), an absolute
+one after at most ``L``; each sets the count to ``L + 1``. A lost or dropped layer therefore
+never misapplies the next one, and an absolute layer repairs any frame. The EXACT layer ends
+the chain: the frame is then the ray-cast, whatever float32 arithmetic made the device's own
+frame (the host never codes the exact step against it).
 """
 
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass
 
 from protocol.errors import LimitExceeded
@@ -58,22 +63,25 @@ __all__ = [
     "CODEC_JPEG",
     "CODEC_PNG",
     "CODEC_WEBP",
+    "FIRST_CHUNK_MIN",
     "FLAG_EXACT",
     "FLAG_RESIDUAL",
     "LAYER_HEADER_SIZE",
     "LAYER_VERSION",
     "MAX_SHIFT",
-    "LayerPacket",
+    "LayerAssembly",
+    "LayerChunk",
     "declared_size",
     "decode_layer",
     "encode_layer",
     "is_layer",
+    "max_file_bytes",
 ]
 
 #: The score packet version of a layer.
 LAYER_VERSION = 4
-_HEADER = struct.Struct("<2sBBIIffBBH4sHH")
-LAYER_HEADER_SIZE = _HEADER.size  # 32
+_HEADER = struct.Struct("<2sBBIIffBBH4sIII")
+LAYER_HEADER_SIZE = _HEADER.size  # 40
 FLAG_RESIDUAL = 0x01
 _SHIFT_MASK, _SHIFT_BIT = 0x06, 1
 FLAG_EXACT = 0x08
@@ -84,25 +92,33 @@ CODEC_PNG, CODEC_JPEG, CODEC_WEBP = 1, 2, 3
 #: codec -> (name, what pygame's loader is told the file is)
 CODECS = {CODEC_PNG: ("png", "x.png"), CODEC_JPEG: ("jpeg", "x.jpg"),
           CODEC_WEBP: ("webp", "x.webp")}
+#: A file's first chunk holds at least this many bytes (or the whole file): every codec's
+#: size fields lie within them.
+FIRST_CHUNK_MIN = 512
+
+
+def max_file_bytes(image_shape: tuple[int, int]) -> int:
+    """The largest layer file a device of ``image_shape`` (height, width) takes: 4 bytes a
+    pixel and 64 KiB (an incompressible frame, lossless, with any codec's overhead)."""
+    return 4 * int(image_shape[0]) * int(image_shape[1]) + (1 << 16)
 
 
 @dataclass(frozen=True)
-class LayerPacket:
-    """A decoded layer header and its coded strip (see the module docstring).
+class LayerChunk:
+    """A decoded layer packet: one chunk of a layer's file (see the module docstring).
 
     Attributes
     ----------
     frame, base_frame : int
     phi_deg, theta_deg : float
-    layer : int
-    codec : int
+    layer, codec : int
     residual : bool
     shift : int
     exact : bool
-    y0, rows : int
-        The strip: rows ``y0 .. y0 + rows`` of the whole width.
+    file_bytes, offset, crc : int
+        The whole file's size and CRC-32, and where this chunk starts in it.
     data : bytes
-        The coded strip (an image file).
+        The chunk.
     packet_bytes : int
     """
 
@@ -115,10 +131,23 @@ class LayerPacket:
     residual: bool
     shift: int
     exact: bool
-    y0: int
-    rows: int
+    file_bytes: int
+    offset: int
+    crc: int
     data: bytes
     packet_bytes: int
+
+    @property
+    def last(self) -> bool:
+        """The file's last chunk."""
+        return self.offset + len(self.data) == self.file_bytes
+
+    def same_file(self, other: LayerChunk) -> bool:
+        """Whether ``other`` is a chunk of the same layer's file."""
+        return (self.base_frame, self.phi_deg, self.theta_deg, self.layer, self.codec,
+                self.residual, self.shift, self.exact, self.file_bytes, self.crc) == (
+            other.base_frame, other.phi_deg, other.theta_deg, other.layer, other.codec,
+            other.residual, other.shift, other.exact, other.file_bytes, other.crc)
 
 
 def is_layer(packet: bytes | bytearray | memoryview) -> bool:
@@ -127,60 +156,70 @@ def is_layer(packet: bytes | bytearray | memoryview) -> bool:
 
 
 def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
-                 view: tuple[float, float], image_digest: bytes, layer: int, y0: int,
-                 rows: int, residual: bool = False, shift: int = 0,
-                 exact: bool = False) -> bytes:
-    """A layer packet carrying the coded strip ``data`` (see the module docstring).
+                 view: tuple[float, float], image_digest: bytes, layer: int,
+                 residual: bool = False, shift: int = 0, exact: bool = False,
+                 max_chunk_bytes: int | None = None) -> list[bytes]:
+    """The packets carrying the layer file ``data``: one, or chunks of at most
+    ``max_chunk_bytes`` each (the first at least `FIRST_CHUNK_MIN`), numbered from
+    ``frame`` (wrapping after 2**32 - 1 to 1).
 
     Raises
     ------
     ValueError
-        A field out of its range (the codec, the shift, the strip, EXACT on a residual).
+        A field out of its range (the codec, the shift, EXACT on a residual, an empty file).
     """
     if codec not in CODECS:
         raise ValueError(f"encode_layer: codec={codec!r} must be one of {sorted(CODECS)}")
     if not 0 <= shift <= MAX_SHIFT or (shift and not residual):
         raise ValueError(f"encode_layer: shift={shift!r} must be 0..{MAX_SHIFT}, on residuals")
     if exact and residual:
-        raise ValueError("encode_layer: an EXACT strip is absolute, not a residual")
-    for name, value, top in (("frame", frame, 0xFFFFFFFF), ("base_frame", base_frame,
-                                                            0xFFFFFFFF),
-                             ("layer", layer, 0xFF), ("y0", y0, 0xFFFF), ("rows", rows, 0xFFFF)):
+        raise ValueError("encode_layer: an EXACT layer is absolute, not a residual")
+    for name, value, top in (("frame", frame, 0xFFFFFFFF),
+                             ("base_frame", base_frame, 0xFFFFFFFF), ("layer", layer, 0xFF)):
         if not 0 <= int(value) <= top:
             raise ValueError(f"encode_layer: {name}={value!r} must be within 0..{top}")
-    if rows < 1:
-        raise ValueError(f"encode_layer: rows={rows!r} must be >= 1")
+    if not data or len(data) > 0xFFFFFFFF:
+        raise ValueError(f"encode_layer: a file of {len(data)} bytes")
+    size = len(data)
+    step = size if max_chunk_bytes is None else max(int(max_chunk_bytes), FIRST_CHUNK_MIN)
     flags = (FLAG_RESIDUAL if residual else 0) | (shift << _SHIFT_BIT) | (
         FLAG_EXACT if exact else 0)
-    head = _HEADER.pack(MAGIC, LAYER_VERSION, flags, frame, base_frame, float(view[0]),
-                        float(view[1]), layer, codec, 0, bytes(image_digest[:4]), y0, rows)
-    return head + bytes(data)
+    crc = zlib.crc32(data)
+    packets = []
+    for k, offset in enumerate(range(0, size, step)):
+        number = (int(frame) + k - 1) % 0xFFFFFFFF + 1
+        head = _HEADER.pack(MAGIC, LAYER_VERSION, flags, number, base_frame, float(view[0]),
+                            float(view[1]), layer, codec, 0, bytes(image_digest[:4]), size,
+                            offset, crc)
+        packets.append(head + bytes(data[offset:offset + step]))
+    return packets
 
 
 def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
-                 image_shape: tuple[int, int], max_packet_bytes: int) -> LayerPacket:
-    """Parse and check a layer packet: its size, header, image tag, strip and the declared
-    size of the coded image (which is not decoded here).
+                 image_shape: tuple[int, int], max_packet_bytes: int) -> LayerChunk:
+    """Parse and check a layer packet: its size, header, image tag, the file's size, and
+    (the first chunk) the image size its file declares. Nothing is decoded here.
 
     Raises
     ------
     LimitExceeded
-        The packet is longer than ``max_packet_bytes``.
+        The packet is longer than ``max_packet_bytes``, or its file larger than
+        `max_file_bytes` of the image.
     ImageMismatch
         Made for another eigenspace image.
     ScorePacketError
-        Anything malformed: magic, version, reserved bits, codec, shift, EXACT with
-        RESIDUAL, a view that is not finite, a strip outside the frame, an image file whose
-        declared size is not the strip's (or unreadable).
+        Anything malformed: magic, version, reserved bits, codec, shift, EXACT with RESIDUAL,
+        a view that is not finite, a chunk outside its file, a first chunk too short to hold
+        the file's header, a file whose declared size is not the image's.
     """
     n = len(packet)
     if n > max_packet_bytes:
         raise LimitExceeded(f"decode layer: packet of {n} bytes exceeds the limit of "
                             f"{max_packet_bytes}")
     if n < LAYER_HEADER_SIZE + 1:
-        raise ScorePacketError(f"decode layer: {n} bytes is shorter than a header and a file")
-    (magic, version, flags, frame, base, phi, theta, layer, codec, reserved, tag, y0,
-     rows) = _HEADER.unpack_from(bytes(packet[:LAYER_HEADER_SIZE]))
+        raise ScorePacketError(f"decode layer: {n} bytes is shorter than a header and a chunk")
+    (magic, version, flags, frame, base, phi, theta, layer, codec, reserved, tag, size,
+     offset, crc) = _HEADER.unpack_from(bytes(packet[:LAYER_HEADER_SIZE]))
     if magic != MAGIC or version != LAYER_VERSION:
         raise ScorePacketError(f"decode layer: not a layer packet (magic {magic!r}, version "
                                f"{version})")
@@ -197,17 +236,71 @@ def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
                             f"{bytes(image_digest[:4]).hex()}")
     if not (abs(phi) < float("inf") and abs(theta) <= 90.0):
         raise ScorePacketError(f"decode layer: bad view ({phi}, {theta})")
-    height, width = image_shape
-    if rows < 1 or y0 + rows > height:
-        raise ScorePacketError(f"decode layer: strip of rows {y0}..{y0 + rows} outside the "
-                               f"image's {height}")
+    bound = max_file_bytes(image_shape)
+    if size > bound:
+        raise LimitExceeded(f"decode layer: a file of {size} bytes exceeds the limit of "
+                            f"{bound}")
     data = bytes(packet[LAYER_HEADER_SIZE:])
-    declared = declared_size(data, codec)
-    if declared != (width, rows):
-        raise ScorePacketError(f"decode layer: the {CODECS[codec][0]} file declares "
-                               f"{declared[0]}x{declared[1]}, the strip is {width}x{rows}")
-    return LayerPacket(frame, base, phi, theta, layer, codec, residual, shift, exact, y0,
-                       rows, data, n)
+    if offset + len(data) > size:
+        raise ScorePacketError(f"decode layer: chunk {offset}..{offset + len(data)} outside "
+                               f"a file of {size} bytes")
+    if offset == 0:
+        if len(data) < min(size, FIRST_CHUNK_MIN):
+            raise ScorePacketError(f"decode layer: a first chunk of {len(data)} bytes cannot "
+                                   "hold the file's header")
+        height, width = image_shape
+        declared = declared_size(data, codec)
+        if declared != (width, height):
+            raise ScorePacketError(f"decode layer: the {CODECS[codec][0]} file declares "
+                                   f"{declared[0]}x{declared[1]}, the image is "
+                                   f"{width}x{height}")
+    return LayerChunk(frame, base, phi, theta, layer, codec, residual, shift, exact, size,
+                      offset, crc, data, n)
+
+
+class LayerAssembly:
+    """Joins a layer file's chunks (module docstring). One file at a time: a chunk of
+    another file starts over (a first chunk) or is refused (a later one).
+
+    Attributes
+    ----------
+    head : LayerChunk or None
+        The first chunk of the file being joined.
+    """
+
+    def __init__(self) -> None:
+        self.head: LayerChunk | None = None
+        self._parts: list[bytes] = []
+        self._have = 0
+
+    def add(self, chunk: LayerChunk) -> bytes | None:
+        """Take a chunk; return the whole file once its last byte is in (its CRC checked).
+
+        Raises
+        ------
+        ScorePacketError
+            A chunk that does not continue the file being joined (lost or reordered
+            chunks), or a joined file whose CRC is wrong; the file is dropped.
+        """
+        if chunk.offset == 0:
+            self.head, self._parts, self._have = chunk, [], 0
+        elif self.head is None or not self.head.same_file(chunk) or chunk.offset != self._have:
+            self.reset()
+            raise ScorePacketError(f"decode layer: chunk at {chunk.offset} continues no file "
+                                   "being joined (a chunk before it was lost)")
+        self._parts.append(chunk.data)
+        self._have += len(chunk.data)
+        if self._have < chunk.file_bytes:
+            return None
+        data = b"".join(self._parts)
+        self.reset()
+        if zlib.crc32(data) != chunk.crc:
+            raise ScorePacketError("decode layer: the joined file's CRC-32 is wrong")
+        return data
+
+    def reset(self) -> None:
+        """Forget the file being joined."""
+        self.head, self._parts, self._have = None, [], 0
 
 
 def declared_size(data: bytes, codec: int) -> tuple[int, int]:

@@ -1,37 +1,32 @@
-"""Refinement layers at rest, host side: from a resting view's corrected frame to the exact
-ray-cast, in as few bytes as each step's quality allows (`protocol.layers` is the format,
-`device_runtime.layers` the device's side).
+"""Refinement layers at rest, host side: from a resting view's frame to the exact ray-cast,
+in as few bytes as each step's quality allows (`protocol.layers` is the format,
+`device_runtime.layers` the device's side; research/rest_layers.md the measurements).
 
-Once a view rests, ``serve`` has the view's full ray-cast ``R`` and knows the frame ``F``
-the device shows (its own frame plus the complete correction: the same code the device
-runs). `RestPlanner.plan` then lays out the layers:
+Once a view rests, ``serve`` has the view's full ray-cast ``R``, the device's own frame ``S``
+of it and the frame ``F`` its complete correction would make (the device's code, run on the
+host). `RestPlanner.plan` then lays out the layers:
 
-1. **Lossy layers**, one per target quality (object SSIM, `DEFAULT_TARGETS`): for each, the
-   cheaper of two codings that reach the target, each a WebP at the lowest quality setting
-   that reaches it (a bisection over libwebp's quality, `method` 6): the *residual* of the
-   ray-cast against the device's frame (``(R - F) >> 1`` offset by 128) or the ray-cast
-   *itself*. Where the device's frame predicts the ray-cast the residual is cheaper; where
-   it does not, the ray-cast is. For the first layer the device's frame is either its own
-   frame with the complete correction or its own frame alone (the residual against the own
-   frame was the cheapest first step on every shared volume measured: the correction's
-   cell-wise changes cost the residual more than the correction saves, research/rest_layers.md).
-2. **The exact layer**: the ray-cast itself, lossless (WebP lossless or PNG, whichever is
-   smaller), never coded against the device's frame: on a CPU whose float32 arithmetic
-   differs from the host's in a level here and there (docs/protocol.md) the frame still
-   ends exactly the ray-cast.
+1. **The first lossy layer** reaches the lowest target (object SSIM, `DEFAULT_TARGETS`) the
+   own frame does not: the cheapest of the correction alone (when ``F`` reaches it), and a
+   WebP (`method` 6, at the lowest quality setting that reaches it: a bisection) of the
+   residual ``R - S`` offset by 128 or of ``R`` itself, sent without the correction. The
+   residual against the own frame was the cheapest first step on 53 of 60 views of five
+   shared volumes at 0.95 (0.35-0.97x the smallest WebP of ``R``); sending the correction
+   first paid on 1 of 180 view and target pairs (its cell-wise changes cost a residual more
+   than they save), so a correction followed by a residual is not tried.
+2. **Later lossy layers** (more targets): the cheaper of the residual against the device's
+   frame after the layers before and ``R`` itself, as above.
+3. **The exact layer**: ``R`` itself, lossless (WebP lossless, or PNG when smaller), never
+   coded against the device's frame: on a CPU whose float32 arithmetic differs from the
+   host's in a level here and there (docs/protocol.md) the frame still ends exactly ``R``.
 
-Each layer is sent as strips of whole rows, each in a packet no larger than
-``max_packet_bytes``: the device's largest frame, and on a slow line what it carries in a
-quarter of a second (`serve` sets it), so a new view's correction never waits behind more
-than one strip. A strip is otherwise the whole frame: every strip is a file of its own, and
-strips cost bytes (a 256 x 256 ray-cast in 2 x 2 independent WebP lossless tiles: +7 %,
-research/rest_layers.md), while pygame decodes a whole 256 x 256 frame in about half a
-blend's time (BENCHMARKS.md). The planner also says whether the complete correction pays for
-itself (`Plan.skip_correction`): the first layer is the cheapest of the correction plus a
-residual against the corrected frame, and a residual against (or a coding of the ray-cast
-over) the own frame alone. What the device will show after each layer (its frame, as pygame
-decodes the strips) is in the plan, so its quality and cumulative bytes are known before
-anything is sent.
+A layer is one file of the whole frame (independent tiles cost 4-32 % more bytes), cut into
+chunks no larger than ``max_packet_bytes``: the device's largest frame, and on a slow line
+what it carries in a quarter of a second (`serve` sets it), so a new view's correction never
+waits behind more than one chunk. pygame decodes a whole frame's file in half a blend's time
+or less (research/rest_layers.md). What the device will show after each layer (its frame, as
+pygame decodes the file) is in the plan, so its quality and cumulative bytes are known
+before anything is sent.
 """
 
 from __future__ import annotations
@@ -43,12 +38,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from device_runtime.layers import RestFrame, decode_strip
-from protocol.layers import CODEC_PNG, CODEC_WEBP, decode_layer, encode_layer
+from device_runtime.layers import RestFrame, decode_file
+from protocol.layers import CODEC_PNG, CODEC_WEBP, LAYER_HEADER_SIZE, LayerChunk, encode_layer
 
 __all__ = [
     "DEFAULT_TARGETS",
-    "MAX_STRIP_PIXELS",
     "EncodedLayer",
     "Plan",
     "PlannedLayer",
@@ -58,13 +52,11 @@ __all__ = [
 
 #: Object SSIM each lossy layer reaches, before the exact layer.
 DEFAULT_TARGETS = (0.95,)
-#: Pixels per strip at most (a frame of up to 4096 x 4096 is one strip unless its packet is
-#: too large; `RestPlanner` halves strips until each fits ``max_packet_bytes``).
-MAX_STRIP_PIXELS = 1 << 24
 #: A pixel whose largest channel is above this shows the object (black background).
 OBJECT_LEVEL = 2
 _SSIM_WIN = 7
-#: The residual's shift: (R - F) >> 1 fits a byte around 128 for any frame.
+#: The residual's shift: R - F offset by 128, clipped (the exact layer fixes what a clip
+#: loses; halving it cost more at every quality, research/rest_layers.md).
 RESIDUAL_SHIFT = 0
 _WEBP_METHOD = 6
 
@@ -76,9 +68,9 @@ class PlannedLayer:
     Attributes
     ----------
     packets : list of bytes
-        Its strips' packets, top to bottom.
+        The chunks of its file, in order.
     frame : ndarray (height, width, 3) uint8
-        The device's frame once they are applied (decoded as the device decodes them).
+        The device's frame once it is applied (decoded as the device decodes it).
     quality : float
         Object SSIM of ``frame`` against the ray-cast (1.0 exact).
     residual, exact : bool
@@ -101,7 +93,7 @@ class PlannedLayer:
 
 @dataclass(frozen=True)
 class EncodedLayer:
-    """One strip's packet as ``serve`` sends it.
+    """One chunk's packet as ``serve`` sends it.
 
     Attributes
     ----------
@@ -111,9 +103,9 @@ class EncodedLayer:
     layer : int
         The layer it belongs to (0 first).
     last : bool
-        The layer's last strip: once it is applied the device shows ``quality``.
+        The layer's last chunk: once it is in, the device shows ``quality``.
     exact : bool
-        A strip of the exact layer.
+        A chunk of the exact layer.
     quality : float
         Object SSIM of the device's frame once the whole layer is applied.
     """
@@ -127,7 +119,7 @@ class EncodedLayer:
     step: None = None  # (a score packet's step: a layer has none)
 
     def numbered(self, frame: int) -> EncodedLayer:
-        """The same strip as frame number ``frame`` (its packet's header rewritten)."""
+        """The same chunk as frame number ``frame`` (its packet's header rewritten)."""
         packet = self.packet[:4] + int(frame).to_bytes(4, "little") + self.packet[8:]
         return dataclasses.replace(self, packet=packet, frame=int(frame))
 
@@ -140,9 +132,7 @@ class Plan:
     layers: list[PlannedLayer] = field(default_factory=list)
 
     def sends(self) -> list[EncodedLayer]:
-        """Every strip's packet in the order it is sent."""
-        from protocol.layers import LAYER_HEADER_SIZE
-
+        """Every chunk's packet in the order it is sent."""
         out = []
         for index, layer in enumerate(self.layers):
             for k, packet in enumerate(layer.packets):
@@ -171,26 +161,24 @@ class RestPlanner:
         reaches are skipped.
     exact : bool
         End with the exact layer (else stop after the last target).
-    max_strip_pixels : int
     max_packet_bytes : int
-        The device's largest frame's worth of packet (strips are split to fit).
+        A chunk's packet at most (the device's largest frame, a slow line's quarter
+        second).
     """
 
     def __init__(self, image_digest: bytes,
                  quality: Callable[[np.ndarray, np.ndarray], float] | None = None,
                  *, targets: tuple[float, ...] = DEFAULT_TARGETS, exact: bool = True,
-                 max_strip_pixels: int = MAX_STRIP_PIXELS,
                  max_packet_bytes: int = 1 << 16) -> None:
         targets = tuple(float(t) for t in targets)
         if any(not 0.0 < t < 1.0 for t in targets) or list(targets) != sorted(targets):
             raise ValueError(f"targets={targets}: increasing object SSIMs in (0, 1) expected")
-        if max_strip_pixels < 1 or max_packet_bytes < 256:
-            raise ValueError("max_strip_pixels must be >= 1 and max_packet_bytes >= 256")
+        if max_packet_bytes < 256:
+            raise ValueError(f"max_packet_bytes={max_packet_bytes} must be >= 256")
         self.digest = bytes(image_digest)
         self.quality = quality if quality is not None else object_ssim
         self.targets = targets
         self.exact = bool(exact)
-        self.max_strip_pixels = int(max_strip_pixels)
         self.max_packet_bytes = int(max_packet_bytes)
         self._settings: dict[tuple[bool, float], int] = {}  # last WebP quality per choice
 
@@ -216,21 +204,15 @@ class RestPlanner:
                ) -> tuple[bool, PlannedLayer | None]:
         """Whether to skip the correction, and the first lossy layer (None: none). The first
         target is the lowest the own frame does not reach (none: the own frame needs no
-        correction and no lossy layer); the cheapest way to reach it wins: the correction
-        alone (when its frame reaches it), the correction and a residual against its frame,
-        or a residual against (or a coding of the ray-cast over) the own frame alone."""
+        correction and no lossy layer); the cheaper way to reach it wins: the correction
+        alone (when its frame reaches it), or a layer over the own frame alone (module
+        docstring)."""
         target = next((t for t in self.targets if t > self.quality(truth, own)), None)
         if target is None:
             return True, None
         options: list[tuple[int, bool, PlannedLayer | None]] = []
-        if base_frame:
-            if self.quality(truth, corrected) >= target:
-                options.append((correction_bytes, False, None))
-            else:
-                layer = self._lossy(view, truth, corrected, target, base_frame, frame, 0,
-                                    residual=True)
-                if layer is not None:
-                    options.append((correction_bytes + layer.size_bytes, False, layer))
+        if base_frame and self.quality(truth, corrected) >= target:
+            options.append((correction_bytes, False, None))
         layer = self._lossy(view, truth, own, target, 0, frame, 0, residual=True)
         if layer is not None:
             options.append((layer.size_bytes, True, layer))
@@ -317,50 +299,36 @@ class RestPlanner:
 
     def _exact(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
                base_frame: int, frame: int, index: int) -> PlannedLayer:
-        """The ray-cast, lossless, each strip as the smaller of WebP lossless and PNG."""
+        """The ray-cast, lossless: the smaller of WebP lossless and PNG."""
         return self._layer(view, truth, truth, current, base_frame, frame, index,
                            residual=False, codec=None, encode=None)
 
-    # ------------------------------------------------------------------ strips
+    # ------------------------------------------------------------------ a layer
     def _layer(self, view: tuple[float, float], source: np.ndarray, truth: np.ndarray,
                current: np.ndarray, base_frame: int, frame: int, index: int, *,
                residual: bool, codec: int | None,
                encode: Callable[[np.ndarray], bytes] | None) -> PlannedLayer:
-        """``source`` coded as strips (``codec`` None: the exact layer, lossless), and the
-        device's frame after them."""
-        height, width = source.shape[:2]
-        rows = max(1, min(height, self.max_strip_pixels // width))
-        packets: list[bytes] = []
-        names = set()
+        """``source`` coded as one file (``codec`` None: the exact layer, lossless: the
+        smaller of WebP lossless and PNG) in chunks, and the device's frame after it."""
+        if codec is None:
+            options = [(CODEC_WEBP, "webp-lossless", _webp(source, lossless=True)),
+                       (CODEC_PNG, "png", _png(source))]
+            codec, name, data = min(options, key=lambda o: len(o[2]))
+        else:
+            assert encode is not None
+            name, data = "webp", encode(source)
+        exact = name != "webp"
+        shift = RESIDUAL_SHIFT if residual else 0
+        packets = encode_layer(data, codec=codec, frame=frame, base_frame=base_frame,
+                               view=view, image_digest=self.digest, layer=index,
+                               residual=residual, shift=shift, exact=exact,
+                               max_chunk_bytes=self.max_packet_bytes - LAYER_HEADER_SIZE)
         rest = RestFrame(view, base_frame, current)
-        todo = [(y0, min(rows, height - y0)) for y0 in range(0, height, rows)]
-        while todo:
-            y0, n = todo.pop(0)
-            strip = np.ascontiguousarray(source[y0:y0 + n])
-            if codec is None:
-                options = [(CODEC_WEBP, "webp-lossless", _webp(strip, lossless=True)),
-                           (CODEC_PNG, "png", _png(strip))]
-                strip_codec, name, data = min(options, key=lambda o: len(o[2]))
-            else:
-                strip_codec, name, data = codec, "webp", encode(strip)
-            packet = encode_layer(data, codec=strip_codec, frame=(frame + len(packets) - 1)
-                                  % 0xFFFFFFFF + 1, base_frame=base_frame, view=view,
-                                  image_digest=self.digest, layer=index, y0=y0, rows=n,
-                                  residual=residual, shift=RESIDUAL_SHIFT if residual else 0,
-                                  exact=codec is None)
-            if len(packet) > self.max_packet_bytes and n > 1:  # too large for a frame: halve
-                todo[:0] = [(y0, n // 2), (y0 + n // 2, n - n // 2)]
-                continue
-            layer = decode_layer(packet, image_digest=self.digest,
-                                 image_shape=(height, width),
-                                 max_packet_bytes=max(len(packet), self.max_packet_bytes))
-            rest.apply(layer, decode_strip(layer, width))
-            packets.append(packet)
-            names.add(name)
-        exact = codec is None
+        chunk = LayerChunk(frame, base_frame, view[0], view[1], index, codec, residual, shift,
+                           exact, len(data), 0, 0, b"", 0)
+        rest.apply(chunk, decode_file(data, codec, source.shape[:2]))
         quality = 1.0 if exact else self.quality(truth, rest.frame)
-        return PlannedLayer(packets, rest.frame, quality, residual, exact,
-                            "+".join(sorted(names)))
+        return PlannedLayer(packets, rest.frame, quality, residual, exact, name)
 
 
 def object_ssim(truth: np.ndarray, frame: np.ndarray) -> float:

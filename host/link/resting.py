@@ -7,7 +7,7 @@ code: `device_runtime.prediction.OwnFrames`) and hands the planning of the layer
 (`host.link.layers.RestPlanner`: seconds of encodes and SSIMs at 512) to a thread of its own,
 so the loop keeps answering the device: a new view cancels the plan (its result is thrown
 away) and the view's layers still queued. Once the plan is ready, `next` gives the packets in
-order: the correction unless the plan skips it, then every strip, each numbered as it is
+order: the correction unless the plan skips it, then every chunk, each numbered as it is
 sent (the frame counter is the session's).
 """
 
@@ -80,7 +80,7 @@ class RestSender:
         self.view = None
 
     def next(self, frame_number: int) -> EncodedScores | EncodedLayer | None:
-        """The next packet of the resting view (a strip numbered ``frame_number``), or None:
+        """The next packet of the resting view (a chunk numbered ``frame_number``), or None:
         nothing (yet). Raises what the planning raised (the view's layers are dropped)."""
         if self._job is not None:
             _, correction, future = self._job

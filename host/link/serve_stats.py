@@ -39,7 +39,7 @@ class ServeStats:
         Ray-casts (or codings) of a view that raised: each view was skipped (the device
         kept its own frame, or got interpolated scores) and serving went on.
     layer_frames, layer_bytes : int
-        Refinement layers' strips sent to resting views, and their bytes.
+        Refinement layers' packets (chunks) sent to resting views, and their bytes.
     exact_views : int
         Resting views whose exact layer was sent whole.
     skipped_corrections : int
@@ -135,7 +135,7 @@ class ServeStats:
         if self.failed_views:
             kinds.append(f"{self.failed_views} views whose ray-cast failed")
         if self.layer_frames:
-            kinds.append(f"{self.layer_frames} layer strips ({self.exact_views} views exact)")
+            kinds.append(f"{self.layer_frames} layer packets ({self.exact_views} views exact)")
         return (f"{self.frames} frames ({', '.join(kinds) or 'none'}), "
                 f"{self.bytes_per_frame:.0f} B/frame, {self.fps:.1f} fps, "
                 f"link {self.link_bytes_per_s / 1024:.1f} KiB/s")

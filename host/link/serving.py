@@ -103,10 +103,10 @@ _LINGER_S = 0.5
 """After an orbit's last packet, key-frame requests are still answered until the device has
 been quiet this long (a lost last delta would otherwise never be repaired), seconds."""
 #: Bytes a SCORES frame adds to its packet (CBOR body, event counter and tag, frame header
-#: and CRC), with room to spare: a layer's strip is split to fit the device's frames.
+#: and CRC), with room to spare: a layer's file is cut in chunks that fit the device's frames.
 _SCORES_OVERHEAD = 96
-#: Seconds of a serial line one refinement strip may take at most.
-_STRIP_S = 0.25
+#: Seconds of a serial line one chunk of a refinement layer may take at most.
+_CHUNK_S = 0.25
 _FAILURE_LOG_S = 10.0
 """A failed view is said at most this often (the statistics line counts them all), s."""
 
@@ -337,7 +337,7 @@ class _Frame:
     weights: np.ndarray | None = None
     sent: Any = None
     """A packet made already: the resting view's complete correction (`EncodedScores`),
-    or one strip of a refinement layer (`host.link.layers.EncodedLayer`)."""
+    or one chunk of a refinement layer (`host.link.layers.EncodedLayer`)."""
 
 
 @dataclass
@@ -593,12 +593,12 @@ class _Serving:
                            max_packet_bytes=max(min(room, self._link_share()), 256))
 
     def _link_share(self) -> int:
-        """The bytes a serial line carries in `_STRIP_S` (a strip never holds a new view's
+        """The bytes a serial line carries in `_CHUNK_S` (a chunk never holds a new view's
         correction back longer); TCP: no bound."""
         scheme = self.settings.url.split("://", 1)[0] if "://" in self.settings.url else ""
         if scheme in ("socket", "tcp"):
             return 1 << 30
-        return int(self.settings.baud / 10 * _STRIP_S)
+        return int(self.settings.baud / 10 * _CHUNK_S)
 
     def _source(self, kind: str) -> Any | None:
         """The sparse ray-cast frame source of ``kind`` (made once, kept across sessions)."""
@@ -785,7 +785,7 @@ class _Serving:
 
     def _rest_packet(self, conn: _Connection, shown: _Shown) -> _Frame | None:
         """The resting view's next packet once its plan is ready (the correction, or a
-        strip numbered by the session's counter), else a short wait."""
+        chunk numbered by the session's counter), else a short wait."""
         assert self.resting is not None
         encoder = self.encoder
         number = encoder.next_frame if encoder.next_frame <= 0xFFFFFFFF else 1
