@@ -64,6 +64,8 @@ class RestFrame:
         Layers applied since the frame named by ``base_frame``.
     is_exact : bool
         The last layer applied was exact: the frame is the ray-cast.
+    finished : bool
+        The host's last planned layer is applied: no more are coming.
     """
 
     view: tuple[float, float]
@@ -71,6 +73,7 @@ class RestFrame:
     frame: np.ndarray
     layers: int = field(default=0, init=False)
     is_exact: bool = field(default=False, init=False)
+    finished: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         self.frame = np.array(self.frame, dtype=np.uint8, copy=True)
@@ -96,3 +99,4 @@ class RestFrame:
             self.frame[...] = pixels
         self.layers = chunk.layer + 1
         self.is_exact = chunk.exact
+        self.finished = chunk.last_layer

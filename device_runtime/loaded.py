@@ -64,6 +64,9 @@ class ShownState:
         first layer; gone when the view or its correction changes).
     assembly : LayerAssembly
         The layer file whose chunks are being joined.
+    layers_heard : ((float, float), float) or None
+        The view a layer chunk last came for, and when: a view whose last planned layer has
+        not come in a while after that is asked for again.
     """
 
     synth_view: View | None = None
@@ -76,6 +79,7 @@ class ShownState:
     base: tuple[View, int] | None = None
     rest: RestFrame | None = None
     assembly: LayerAssembly = field(default_factory=LayerAssembly)
+    layers_heard: tuple[View, float] | None = None
 
 
 @dataclass

@@ -231,6 +231,7 @@ class RuntimeDevice(FrameScheduler, Device):
         # refinement layers in arrival order (dispatcher -> display), bounded
         self._layers: collections.deque[LayerItem] = collections.deque()
         self._layers_bytes = 0  # the chunks' bytes in _layers
+        self._asked_again_s = -math.inf  # when a lost layer last made the view asked again
         self._layers_lock = threading.Lock()
         super().__init__(config, log=log)
 
@@ -642,7 +643,9 @@ class RuntimeDevice(FrameScheduler, Device):
         wait = self.tick_s
         if (model is not None and self._layers and not self._view_dirty
                 and self._apply_layer(model)):
-            wait = 0.0  # one strip per turn: the next at once, input first
+            wait = 0.0  # one layer per turn: the next at once, input first
+        if model is not None and not self.standalone:
+            self._check_layers(model, now)
         if self._view_dirty and model is not None:
             blend_in = self._blend_wait(model, now)
             if blend_in > 0.0:

@@ -32,7 +32,10 @@ from device_runtime.loaded import LoadedModel, ScoreItem
 from device_runtime.prediction import corrected
 from protocol.errors import ProtocolError
 
-__all__ = ["FrameScheduler"]
+__all__ = ["LAYER_RETRY_S", "FrameScheduler"]
+
+#: Shortest time between two requests of the view on show after a layer of it was lost.
+LAYER_RETRY_S = 2.0
 
 
 class FrameScheduler:
@@ -248,6 +251,7 @@ class FrameScheduler:
                     stats.layers_dropped += 1
                     continue
                 self._layers_bytes -= len(self._layers.popleft().packet.data)
+            model.shown.layers_heard = (self.view, self.clock())
             if not rest.accepts(chunk):  # a layer before it was lost or dropped
                 stats.layers_dropped += 1
                 continue
@@ -255,6 +259,7 @@ class FrameScheduler:
                 data = model.shown.assembly.add(chunk)
             except ProtocolError:  # a chunk lost: this layer cannot be joined
                 stats.layers_dropped += 1
+                self._ask_again()
                 continue
             if data is None:
                 continue  # more chunks to come
@@ -264,6 +269,7 @@ class FrameScheduler:
             except LayerError as exc:
                 stats.layers_bad += 1
                 self._frame_failed(chunk.frame, exc)
+                self._ask_again()
                 continue
             rest.apply(chunk, pixels)
             stats.layer_s.add(time.perf_counter() - t0)
@@ -275,6 +281,32 @@ class FrameScheduler:
                 "layer": chunk.layer, "exact": rest.is_exact, "base_frame": chunk.base_frame},
                 frame=rest.frame, settled=True)
             return True
+
+    def _check_layers(self, model: LoadedModel, now: float) -> None:
+        """Layers of the resting view on show came, but the host's last planned one has not
+        for `LAYER_RETRY_S` (a chunk lost on the line, none left to notice it by): ask for
+        the view again."""
+        shown = model.shown
+        heard = shown.layers_heard
+        if heard is None or heard[0] != self.view or self._view_dirty or self._layers:
+            return
+        rest = shown.rest
+        if rest is not None and rest.view == self.view and rest.finished:
+            return
+        if now - heard[1] >= LAYER_RETRY_S:
+            shown.layers_heard = (heard[0], now)
+            self._ask_again()
+
+    def _ask_again(self) -> None:
+        """A layer of the view on show was lost on the way: ask the host for the view again
+        (a served device; at most once every `LAYER_RETRY_S`), which sends its layers
+        again, so a noisy line still ends at the exact frame."""
+        now = self.clock()
+        if self.standalone or now - self._asked_again_s < LAYER_RETRY_S:
+            return
+        self._asked_again_s = now
+        self.runtime_stats.layer_retries += 1
+        self.limiter.offer(self.view)
 
     def _rest_for(self, model: LoadedModel, item: Any) -> tuple[RestFrame | None, bool]:
         """The resting frame ``item``'s layer refines, and whether to wait for it: the one
@@ -348,6 +380,7 @@ class FrameScheduler:
     _layers: Any
     _layers_bytes: int
     _layers_lock: Any
+    _asked_again_s: float
     _shown_frame: Any
     presenter: Any
     runtime_stats: Any

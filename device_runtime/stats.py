@@ -89,6 +89,7 @@ class RuntimeStats:
     layers_bad: int = 0
     exact_frames: int = 0
     kept_exact: int = 0
+    layer_retries: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     correct_s: _Ema = field(default_factory=_Ema)
     layer_s: _Ema = field(default_factory=_Ema)
@@ -150,6 +151,7 @@ class RuntimeStats:
             "layers_bad": self.layers_bad,  # malformed, or not decodable to their strip
             "exact_frames": self.exact_frames,  # resting views shown exactly
             "kept_exact": self.kept_exact,  # host frames of an exact view not shown
+            "layer_retries": self.layer_retries,  # views asked again after a lost layer
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
             "decode_ms": ms(self.decode_s),

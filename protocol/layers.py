@@ -16,7 +16,8 @@ them. Little-endian, 40-byte header::
     3      1    flags: bit 0 RESIDUAL (the file is a residual, else the pixels themselves);
                 bits 1-2 SHIFT s (a residual's values are v = (R - F) >> s offset by 128);
                 bit 3 EXACT (absolute, lossless: the ray-cast's pixels exactly);
-                bits 4-7 reserved, 0
+                bit 4 LAST (the last layer the host plans for this view);
+                bits 5-7 reserved, 0
     4      4    frame number u32 (the host's packet counter)
     8      4    base frame number u32: the correction whose frame the layer refines (the
                 frame number of the version-3 packet on show; 0: the device's own frame of
@@ -65,6 +66,7 @@ __all__ = [
     "CODEC_WEBP",
     "FIRST_CHUNK_MIN",
     "FLAG_EXACT",
+    "FLAG_LAST",
     "FLAG_RESIDUAL",
     "LAYER_HEADER_SIZE",
     "LAYER_VERSION",
@@ -72,9 +74,11 @@ __all__ = [
     "LayerAssembly",
     "LayerChunk",
     "declared_size",
+    "decode_header_flags",
     "decode_layer",
     "encode_layer",
     "is_layer",
+    "marked_last",
     "max_file_bytes",
 ]
 
@@ -85,7 +89,8 @@ LAYER_HEADER_SIZE = _HEADER.size  # 40
 FLAG_RESIDUAL = 0x01
 _SHIFT_MASK, _SHIFT_BIT = 0x06, 1
 FLAG_EXACT = 0x08
-_RESERVED = 0xF0
+FLAG_LAST = 0x10
+_RESERVED = 0xE0
 #: The largest residual shift (a residual of 8-bit pixels needs at most one bit more).
 MAX_SHIFT = 2
 CODEC_PNG, CODEC_JPEG, CODEC_WEBP = 1, 2, 3
@@ -115,6 +120,8 @@ class LayerChunk:
     residual : bool
     shift : int
     exact : bool
+    last_layer : bool
+        The last layer the host plans for the view (LAST).
     file_bytes, offset, crc : int
         The whole file's size and CRC-32, and where this chunk starts in it.
     data : bytes
@@ -131,6 +138,7 @@ class LayerChunk:
     residual: bool
     shift: int
     exact: bool
+    last_layer: bool
     file_bytes: int
     offset: int
     crc: int
@@ -145,9 +153,11 @@ class LayerChunk:
     def same_file(self, other: LayerChunk) -> bool:
         """Whether ``other`` is a chunk of the same layer's file."""
         return (self.base_frame, self.phi_deg, self.theta_deg, self.layer, self.codec,
-                self.residual, self.shift, self.exact, self.file_bytes, self.crc) == (
+                self.residual, self.shift, self.exact, self.last_layer, self.file_bytes,
+                self.crc) == (
             other.base_frame, other.phi_deg, other.theta_deg, other.layer, other.codec,
-            other.residual, other.shift, other.exact, other.file_bytes, other.crc)
+            other.residual, other.shift, other.exact, other.last_layer, other.file_bytes,
+            other.crc)
 
 
 def is_layer(packet: bytes | bytearray | memoryview) -> bool:
@@ -158,7 +168,7 @@ def is_layer(packet: bytes | bytearray | memoryview) -> bool:
 def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
                  view: tuple[float, float], image_digest: bytes, layer: int,
                  residual: bool = False, shift: int = 0, exact: bool = False,
-                 max_chunk_bytes: int | None = None) -> list[bytes]:
+                 last: bool = False, max_chunk_bytes: int | None = None) -> list[bytes]:
     """The packets carrying the layer file ``data``: one, or chunks of at most
     ``max_chunk_bytes`` each (the first at least `FIRST_CHUNK_MIN`), numbered from
     ``frame`` (wrapping after 2**32 - 1 to 1).
@@ -183,7 +193,7 @@ def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
     size = len(data)
     step = size if max_chunk_bytes is None else max(int(max_chunk_bytes), FIRST_CHUNK_MIN)
     flags = (FLAG_RESIDUAL if residual else 0) | (shift << _SHIFT_BIT) | (
-        FLAG_EXACT if exact else 0)
+        FLAG_EXACT if exact else 0) | (FLAG_LAST if last else 0)
     crc = zlib.crc32(data)
     packets = []
     for k, offset in enumerate(range(0, size, step)):
@@ -193,6 +203,20 @@ def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
                             offset, crc)
         packets.append(head + bytes(data[offset:offset + step]))
     return packets
+
+
+def decode_header_flags(packet: bytes) -> tuple[int | None, int | None, int | None]:
+    """(flags, offset, file size) of a layer packet's header; (None, None, None) for any
+    other packet (tests, traces: nothing is checked)."""
+    if not is_layer(packet) or len(packet) < LAYER_HEADER_SIZE:
+        return None, None, None
+    fields = _HEADER.unpack_from(bytes(packet[:LAYER_HEADER_SIZE]))
+    return fields[2], fields[12], fields[11]
+
+
+def marked_last(packet: bytes) -> bytes:
+    """``packet`` with LAST set (its layer turned out to be the plan's last)."""
+    return packet[:3] + bytes([packet[3] | FLAG_LAST]) + packet[4:]
 
 
 def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
@@ -226,6 +250,7 @@ def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
     if flags & _RESERVED or reserved:
         raise ScorePacketError(f"decode layer: reserved bits set (flags 0x{flags:02x})")
     residual, exact = bool(flags & FLAG_RESIDUAL), bool(flags & FLAG_EXACT)
+    last_layer = bool(flags & FLAG_LAST)
     shift = (flags & _SHIFT_MASK) >> _SHIFT_BIT
     if shift > MAX_SHIFT or (shift and not residual) or (exact and residual):
         raise ScorePacketError(f"decode layer: bad flags 0x{flags:02x}")
@@ -254,8 +279,8 @@ def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
             raise ScorePacketError(f"decode layer: the {CODECS[codec][0]} file declares "
                                    f"{declared[0]}x{declared[1]}, the image is "
                                    f"{width}x{height}")
-    return LayerChunk(frame, base, phi, theta, layer, codec, residual, shift, exact, size,
-                      offset, crc, data, n)
+    return LayerChunk(frame, base, phi, theta, layer, codec, residual, shift, exact,
+                      last_layer, size, offset, crc, data, n)
 
 
 class LayerAssembly:

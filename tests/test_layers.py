@@ -123,7 +123,7 @@ def test_bad_layers_are_refused_before_their_file_is_decoded():
         _decode(huge)
     for bad, what in [
         (good[:LAYER_HEADER_SIZE], "shorter"),  # truncated: no chunk
-        (good[:3] + bytes([0x10]) + good[4:], "reserved"),  # reserved flag bit
+        (good[:3] + bytes([0x20]) + good[4:], "reserved"),  # reserved flag bit
         (good[:21] + bytes([9]) + good[22:], "codec"),  # unknown codec
         (good[:32] + (len(data) - 5).to_bytes(4, "little") + good[36:], "outside"),
         (_packets(_file(_pixels(rows=23), "PNG"))[0], "declares"),  # another height
@@ -306,6 +306,8 @@ def test_a_device_drops_every_bad_layer_and_shows_a_good_one_exactly(resting_dev
     # each packet a layer's chunk, or (its magic or version flipped) a bad score packet
     assert stats.layer_packets + stats.decode_errors == sum(len(p) for p in sends)
     assert stats.layers_bad + stats.layers_dropped + stats.wrong_image > len(sends) // 2
+    # a layer of the view on show lost on the way: the device asks for the view again
+    assert stats.layer_retries >= 1 and device.limiter.pending
     for packet in good:
         device.on_scores(m.Scores(sequence=0, packet=packet))
     device.display_turn(None)

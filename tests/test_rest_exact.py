@@ -122,6 +122,77 @@ def test_a_resting_view_ends_the_ray_cast_bit_for_bit_over_the_serial_line(
     assert kinds[0] == "other" and kinds[-1] == "layer"
 
 
+def test_a_noisy_line_still_ends_exact(tmp_path, depth_model_path, truth_of):
+    """Over a 115200-baud line that flips bits (frames and chunks are lost to their CRCs):
+    the device asks for a view again when a layer of it was lost, and the resting view
+    still ends exactly the ray-cast."""
+    name = mem_name("noisy")
+    shown: list = []
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
+    provision(depth_model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+              log=_quiet)
+    view = canonical_view(130.0, -20.0)
+    stop, sent = threading.Event(), []
+    with device:
+        device.device.set_view(*view)
+        thread, _ = _serving(f"mem://{name}?end=a&ber=4e-5&seed=3", depth_model_path, stop,
+                             sent)
+        try:
+            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
+                                   for _, i in shown), 180, "the exact frame")
+        finally:
+            stop.set()
+            thread.join(30)
+    frame = next(f for f, i in reversed(shown) if i.get("exact"))
+    np.testing.assert_array_equal(frame, truth_of(view))
+
+
+@pytest.mark.parametrize("lose", ["first chunk", "last chunk"])
+def test_a_lost_chunk_of_the_exact_layer_is_asked_for_again(tmp_path, depth_model_path,
+                                                            truth_of, lose):
+    """The exact layer's first (or last) chunk never reaches the device: it notices (the
+    next chunk continues no file, or the last planned layer does not come), asks for the view
+    again, and the view still ends exactly the ray-cast."""
+    from protocol.layers import decode_header_flags
+
+    name = mem_name("lost")
+    shown: list = []
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
+    provision(depth_model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+              log=_quiet)
+    runtime = device.device
+    receive = runtime.on_scores
+    lost: list = []
+
+    def on_scores(msg):
+        flags, offset, size = decode_header_flags(msg.packet)
+        exact = flags is not None and flags & 0x08
+        wanted = offset == 0 if lose == "first chunk" else (
+            offset is not None and offset + len(msg.packet) - 40 == size)
+        if exact and wanted and not lost:
+            lost.append(offset)
+            return
+        receive(msg)
+
+    runtime.on_scores = on_scores
+    view = canonical_view(222.0, 33.0)
+    stop, sent = threading.Event(), []
+    with device:
+        runtime.set_view(*view)
+        thread, _ = _serving(f"mem://{name}?end=a", depth_model_path, stop, sent)
+        try:
+            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
+                                   for _, i in shown), 120, "the exact frame")
+        finally:
+            stop.set()
+            thread.join(30)
+    assert lost and runtime.runtime_stats.layer_retries >= 1
+    frame = next(f for f, i in reversed(shown) if i.get("exact"))
+    np.testing.assert_array_equal(frame, truth_of(view))
+
+
 def test_a_real_device_process_over_tcp_presents_the_exact_frame(tmp_path, depth_model_path,
                                                                  truth_of):
     """``eigencast-device --headless --frames`` over TCP: the last frame it presents (the PNG

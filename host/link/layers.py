@@ -39,7 +39,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from device_runtime.layers import RestFrame, decode_file
-from protocol.layers import CODEC_PNG, CODEC_WEBP, LAYER_HEADER_SIZE, LayerChunk, encode_layer
+from protocol.layers import (
+    CODEC_PNG,
+    CODEC_WEBP,
+    LAYER_HEADER_SIZE,
+    LayerChunk,
+    encode_layer,
+    marked_last,
+)
 
 __all__ = [
     "DEFAULT_TARGETS",
@@ -244,6 +251,8 @@ class RestPlanner:
             current, reached = layer.frame, layer.quality
         if self.exact:
             layers.append(self._exact(view, truth, current, base_frame, frame, len(layers)))
+        if layers:  # the device knows no more are coming once the last one is in
+            layers[-1].packets = [marked_last(p) for p in layers[-1].packets]
         return layers
 
     def _lossy(self, view: tuple[float, float], truth: np.ndarray, current: np.ndarray,
@@ -325,7 +334,7 @@ class RestPlanner:
                                max_chunk_bytes=self.max_packet_bytes - LAYER_HEADER_SIZE)
         rest = RestFrame(view, base_frame, current)
         chunk = LayerChunk(frame, base_frame, view[0], view[1], index, codec, residual, shift,
-                           exact, len(data), 0, 0, b"", 0)
+                           exact, False, len(data), 0, 0, b"", 0)
         rest.apply(chunk, decode_file(data, codec, source.shape[:2]))
         quality = 1.0 if exact else self.quality(truth, rest.frame)
         return PlannedLayer(packets, rest.frame, quality, residual, exact, name)
