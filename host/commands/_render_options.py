@@ -11,6 +11,7 @@ if TYPE_CHECKING:
     from host.volume import Volume
 
 __all__ = [
+    "LIGHTING_NAMES",
     "add_render_arguments",
     "camera_settings",
     "parse_size",
@@ -33,8 +34,14 @@ def parse_size(text: str) -> tuple[int, int]:
     return parts[0], parts[1]
 
 
+#: ``--lighting`` choices: the names of `host.render.lighting.LIGHTINGS` (kept here as
+#: text so ``--help`` does not load numba; a test checks they agree).
+LIGHTING_NAMES = ("headlight", "cinematic")
+
+
 def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str = "300") -> None:
-    """Add --size, --samples/--step, --projection, --fov, --background, --workers, --no-shading."""
+    """Add --size, --samples/--step, --projection, --fov, --background, --workers,
+    --no-shading, --lighting."""
     g = parser.add_argument_group("rendering")
     g.add_argument("--size", default=size_default, metavar="N|WxH",
                    help=f"image size in pixels (default {size_default})")
@@ -51,6 +58,10 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str =
     g.add_argument("--background", default="0,0,0", metavar="R,G,B",
                    help="background colour, components in [0,1] (default black)")
     g.add_argument("--no-shading", action="store_true", help="disable gradient shading")
+    g.add_argument("--lighting", choices=LIGHTING_NAMES, default=None, metavar="NAME",
+                   help="headlight (default: Blinn-Phong, the light at the camera) or "
+                        "cinematic (a light fixed above the object, with soft shadows, "
+                        "ambient occlusion and scattering; docs/lighting.md)")
     g.add_argument("--workers", type=int, metavar="N",
                    help="render threads (default: all cores)")
     g.add_argument("--frame", choices=("visible", "volume"), default="visible",
@@ -81,6 +92,10 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
     if not 1.0 <= args.fov <= 150.0:
         raise EigencastError(f"--fov {args.fov}: must be within [1, 150] degrees")
     samples = args.samples if (args.samples is not None or args.step is not None) else 1000
+    lighting = getattr(args, "lighting", None) or "headlight"
+    if args.no_shading and lighting != "headlight":
+        raise EigencastError(f"--no-shading: not with --lighting {lighting}, which shades by "
+                             "the gradient")
     return Renderer(
         volume,
         tf,
@@ -89,6 +104,7 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
         shading=not args.no_shading,
         background=_parse_background(args.background),
         workers=args.workers,
+        lighting=lighting,
     )
 
 

@@ -500,7 +500,9 @@ def absolute_source(source: str | None) -> str | None:
 def _same_settings(old_text: str, settings: dict) -> bool:
     """The sidecar ``old_text`` records ``settings`` once both volume sources are made
     absolute and the view count is left out where the old one lacks it (a database rendered
-    before sources were recorded absolute, or before the count was, resumes)."""
+    before sources were recorded absolute, or before the count was, resumes); a renderer
+    record without a lighting is the headlight's (a database rendered before lighting was
+    recorded resumes with the headlight)."""
     try:
         old = json.loads(old_text)
     except ValueError:
@@ -511,6 +513,11 @@ def _same_settings(old_text: str, settings: dict) -> bool:
     old_views, new_views = old.get("views"), new.get("views")
     if isinstance(old_views, dict) and isinstance(new_views, dict) and "count" not in old_views:
         new_views.pop("count", None)  # recorded since: the view spec says the same
+    old_renderer, new_renderer = old.get("renderer"), new.get("renderer")
+    if (isinstance(old_renderer, dict) and isinstance(new_renderer, dict)
+            and "lighting" not in old_renderer
+            and (new_renderer.get("lighting") or {}).get("model") == "headlight"):
+        new_renderer.pop("lighting")  # recorded since: no record means the headlight
     for record in (old, new):
         volume = record.get("volume")
         if isinstance(volume, dict) and isinstance(volume.get("source"), str):
