@@ -255,7 +255,7 @@ LIGHTINGS: dict[str, Lighting] = {
     "headlight": Lighting(name="headlight"),
     "cinematic": Lighting(
         name="cinematic", model="world", light_phi_deg=20.0, light_theta_deg=50.0,
-        key_strength=1.0, ambient=0.35, scattering=0.25, specular=0.15, shininess=24.0,
+        key_strength=1.0, ambient=0.45, scattering=0.3, specular=0.15, shininess=24.0,
         phase_g=0.25, surface_gradient=0.1, shadow_bias=1.0, shadow_step=1.0, near_shadow=1.0,
         near_steps=2,
         occlusion_radii=(2.0, 4.0, 8.0), scattering_radius=6.0,
