@@ -391,3 +391,23 @@ def test_a_model_ray_casts_novel_views_with_its_databases_lighting(tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert "--lighting" in err and "records its render settings" in err
     assert len(err.splitlines()) == 1
+
+
+def test_fit_takes_a_test_database_of_either_age_and_refuses_another_look(tmp_path, capsys):
+    """A training database rendered before lighting was recorded and a held-out one
+    rendered now with the headlight are the same settings; a cinematic one is not."""
+    common = ["builtin:tooth", "--size", "24", "--samples", "60", "--no-depth"]
+    train, held, lit_db = tmp_path / "train.cdb", tmp_path / "held.cdb", tmp_path / "lit.cdb"
+    assert main(["render", *common, "-o", str(train), "--views", "grid:8x3"]) == 0
+    sidecar = json.loads((train / SIDECAR).read_text())
+    del sidecar["renderer"]["lighting"]
+    (train / SIDECAR).write_text(json.dumps(sidecar, indent=2, sort_keys=True) + "\n")
+    assert main(["render", *common, "-o", str(held), "--views", "random:3"]) == 0
+    assert main(["render", *common, "-o", str(lit_db), "--views", "random:3",
+                 "--lighting", "cinematic"]) == 0
+    fit = ["fit", str(train), "--target", "ssim=0.5", "--no-standalone", "--cell", "12"]
+    assert main([*fit, "-o", str(tmp_path / "a.ecs"), "--test-db", str(held)]) == 0
+    capsys.readouterr()
+    assert main([*fit, "-o", str(tmp_path / "b.ecs"), "--test-db", str(lit_db)]) == 1
+    err = capsys.readouterr().err
+    assert "renderer differ" in err and len(err.strip().splitlines()) == 1
