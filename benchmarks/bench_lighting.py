@@ -3,7 +3,7 @@
 Usage::
 
     .venv/bin/python benchmarks/bench_lighting.py [--volumes builtin:head,tooth]
-        [--views grid:100x15] [--size 256] [--stride 1] [--output DIR] [--json]
+        [--views grid:100x15] [--size 256] [--stride 1] [--output DIR] [--json] [--quick]
 
 For each volume, in one process and on every core the machine lets numba use, renders the
 view set twice the way ``eigencast render`` does (a ray-cast with depth, the PNG and the
@@ -103,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stride", type=int, default=1, help="render every N-th view")
     parser.add_argument("--output", type=Path, help="keep the databases in this folder")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: builtin:head, grid:20x3 at 64 px")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.volumes, args.views, args.size = "builtin:head", "grid:20x3", 64
     import numba
 
     warmup()

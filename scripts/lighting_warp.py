@@ -77,17 +77,21 @@ def main() -> int:
                     for look in LOOKS}
         better = sum(c > h for h, c in zip(per_view["headlight"], per_view["cinematic"]))
         for look in LOOKS:
-            s = {m: results[look][m]["ssim_object"] for m in METHODS}
+            r = results[look]
+            s = {m: r[m]["ssim_object"] for m in METHODS}
             gap = (s["pca_warp"] - s["pca"]) / max(1e-9, s["pca_render"] - s["pca"])
             rows.append((label, look, s["pca"], s["pca_warp"], s["pca_render"], gap,
-                         f"{better}/{len(per_view[look])}" if look == "cinematic" else ""))
-    print(f"object SSIM on {args.test_views}, databases {args.views} at {args.size} px")
+                         f"{better}/{len(per_view[look])}" if look == "cinematic" else "",
+                         r["components_per_cell"], r["eigenspace_bytes"] / 1e6))
+    print(f"object SSIM on {args.test_views}, databases {args.views} at {args.size} px, "
+          "default fit")
     print("| volume | look | blend (`pca`) | **own frame (`pca_warp`)** | projection "
-          "(`pca_render`) | gap closed by the warp | views where cinematic's warp is higher |")
-    print("|---|---|---|---|---|---|---|")
-    for label, look, blend, warp, oracle, gap, better in rows:
+          "(`pca_render`) | gap closed by the warp | views where cinematic's warp is higher "
+          "| components / cell | eigenspace MB |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for label, look, blend, warp, oracle, gap, better, k, mb in rows:
         print(f"| {label} | {look} | {blend:.4f} | **{warp:.4f}** | {oracle:.4f} | {gap:.2f} "
-              f"| {better} |")
+              f"| {better} | {k:.1f} | {mb:.2f} |")
     return 0
 
 

@@ -313,9 +313,14 @@ def lighting_from_record(record: Mapping | str | None) -> Lighting:
         kwargs = {k: record[k] for k in known if k in record}
         kwargs["name"] = str(kwargs["name"])
         kwargs["occlusion_radii"] = tuple(float(r) for r in kwargs.get("occlusion_radii", ()))
-        for k in known - {"name", "model", "occlusion_radii"}:
+        for k in known - {"name", "model", "occlusion_radii", "near_steps"}:
             if k in kwargs:
                 kwargs[k] = float(kwargs[k])
+        if "near_steps" in kwargs:
+            steps = float(kwargs["near_steps"])
+            if not steps.is_integer():
+                raise ValueError(f"near_steps={kwargs['near_steps']!r} must be an integer")
+            kwargs["near_steps"] = int(steps)
         return Lighting(**kwargs).check()
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"malformed lighting record: {exc}") from None
