@@ -279,6 +279,21 @@ def test_the_light_field_is_computed_once_per_scene_and_cached_on_disk(tmp_path,
     assert not a._field.flags.writeable  # shared: nobody may change it
 
 
+def test_the_disk_cache_keeps_the_most_recently_used_within_its_bound(tmp_path, monkeypatch):
+    volume, tf, _ = _scene()
+    monkeypatch.setenv("EIGENCAST_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(lighting_module, "_MEMORY_CACHE", {})
+    first = Renderer(volume, tf, samples=100, lighting="cinematic")
+    (kept,) = tmp_path.glob("light-field-*.npy")
+    monkeypatch.setattr(lighting_module, "DISK_CACHE_BYTES", kept.stat().st_size + 100)
+    Renderer(volume, tf, samples=100, lighting=lit(light_theta_deg=10.0))
+    (newest,) = tmp_path.glob("light-field-*.npy")  # the older one went
+    assert newest != kept
+    monkeypatch.setattr(lighting_module, "_MEMORY_CACHE", {})
+    again = Renderer(volume, tf, samples=100, lighting="cinematic")  # computed again
+    np.testing.assert_array_equal(first._field, again._field)
+
+
 def test_bad_lightings_raise_value_error():
     volume, tf, _ = _scene()
     with pytest.raises(ValueError, match="expected one of headlight, cinematic"):

@@ -62,8 +62,9 @@ Everything is float64 arithmetic in a fixed order (no fastmath) over fixed grids
 light field and the images are the same bytes on every run, thread count and Dask worker.
 The light field is cached per content (`light_field_key`): in memory for the process, and
 on disk under `cache_dir` (``$EIGENCAST_CACHE_DIR``, default ``~/.cache/eigencast``; an
-empty value turns the disk cache off), so a resumed render and the Dask workers on the
-client's machine load it instead of computing it again.
+empty value turns the disk cache off; the least recently used beyond `DISK_CACHE_BYTES` are
+deleted), so a resumed render and the Dask workers on the client's machine load it instead
+of computing it again.
 """
 
 from __future__ import annotations
@@ -84,6 +85,7 @@ from scipy.ndimage import binary_dilation, uniform_filter
 __all__ = [
     "ALPHA_MAX",
     "DEFAULT_LIGHTING",
+    "DISK_CACHE_BYTES",
     "LIGHTINGS",
     "LIGHT_AMBIENT",
     "LIGHT_FIELD_VERSION",
@@ -110,6 +112,8 @@ ALPHA_MAX = 1.0 - 1e-4
 TAU_MAX = 14.0
 #: Light fields kept in memory per process.
 _MEMORY_CACHE_SIZE = 2
+#: Bytes of light fields kept on disk; the least recently used go first.
+DISK_CACHE_BYTES = 2 * 2**30
 _MEMORY_CACHE: dict[str, np.ndarray] = {}
 _CACHE_LOCK = threading.Lock()
 _CACHE_ENV = "EIGENCAST_CACHE_DIR"
@@ -480,11 +484,25 @@ def cache_dir() -> Path | None:
 def _load_cached(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
     try:
         field = np.load(path, allow_pickle=False)
+        os.utime(path)  # recently used: pruned last
     except (OSError, ValueError):
         return None
     if field.shape != shape or field.dtype != np.float32:
         return None
     return np.ascontiguousarray(field)
+
+
+def _prune_cache(folder: Path, keep_bytes: int) -> None:
+    """Delete the least recently used light fields in ``folder`` beyond ``keep_bytes``."""
+    try:
+        files = [(p.stat().st_mtime, p.stat().st_size, p) for p in folder.glob("light-field-*.npy")]
+    except OSError:
+        return
+    total = 0
+    for _, size, path in sorted(files, key=lambda f: (-f[0], f[2].name)):
+        total += size
+        if total > keep_bytes:
+            path.unlink(missing_ok=True)
 
 
 def _store_cached(path: Path, field: np.ndarray) -> None:
@@ -494,6 +512,7 @@ def _store_cached(path: Path, field: np.ndarray) -> None:
         with open(tmp, "wb") as fh:
             np.save(fh, field, allow_pickle=False)
         os.replace(tmp, path)
+        _prune_cache(path.parent, DISK_CACHE_BYTES)
     except OSError:
         pass  # a read-only or full cache only costs the next run the computation
 
