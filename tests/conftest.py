@@ -7,6 +7,7 @@ import os
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+os.environ.setdefault("EIGENCAST_CACHE_DIR", "")  # no light fields cached on disk by tests
 
 import pytest
 

@@ -88,6 +88,15 @@ def test_local_n_render_is_byte_identical_to_in_process(tmp_path, reference):
     assert _snapshot(db) == _snapshot(reference)
 
 
+def test_a_cinematic_render_on_the_cluster_is_byte_identical(tmp_path, scheduler):
+    """The workers compute the same light field (or read the client's from the cache)."""
+    args = ["render", "builtin:tooth", "--views", "grid:8x3", *SMALL, "--lighting", "cinematic"]
+    assert main([*args, "-o", str(tmp_path / "here.cdb")]) == 0
+    assert main([*args, "-o", str(tmp_path / "there.cdb"), "--scheduler", scheduler]) == 0
+    here, there = _snapshot(tmp_path / "here.cdb"), _snapshot(tmp_path / "there.cdb")
+    assert here == there and sum(name.startswith("images/") for name in here) == 24
+
+
 def test_render_survives_a_killed_worker(tmp_path, reference, scheduler, monkeypatch):
     killed = _kill_one_worker_on_first_call(monkeypatch, scheduler, CinemaWriter, "write_png")
     db = tmp_path / "killed.cdb"

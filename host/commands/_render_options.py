@@ -12,6 +12,7 @@ if TYPE_CHECKING:
     from host.volume import Volume
 
 __all__ = [
+    "LIGHTING_NAMES",
     "add_render_arguments",
     "camera_settings",
     "parse_size",
@@ -34,10 +35,14 @@ def parse_size(text: str) -> tuple[int, int]:
     return parts[0], parts[1]
 
 
+#: ``--lighting`` choices: the names of `host.render.lighting.LIGHTINGS` (kept here as
+#: text so ``--help`` does not load numba; a test checks they agree).
+LIGHTING_NAMES = ("headlight", "cinematic")
+
 #: ``evaluate``'s heading of these options: they describe only a foreign model's images.
 FOREIGN_RENDERING = (
     "An eigencast model records how its images were ray-cast (volume, transfer function, "
-    "size, camera, samples) and evaluate always ray-casts novel views that way: giving "
+    "size, camera, samples, lighting) and evaluate always ray-casts novel views that way: giving "
     "--tf or any option below but --workers is then an error. Only a model fitted from "
     "another tool's Cinema database records nothing; for it give VOLUME, --tf, and these "
     "where its images were made otherwise.")
@@ -45,7 +50,8 @@ FOREIGN_RENDERING = (
 
 def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str = "300",
                          foreign: bool = False) -> None:
-    """Add --size, --samples/--step, --projection, --fov, --background, --workers, --no-shading.
+    """Add --size, --samples/--step, --projection, --fov, --background, --workers,
+    --no-shading, --lighting.
 
     ``foreign``: for ``evaluate``, where they describe only a model fitted from another
     tool's database (`FOREIGN_RENDERING`); --size then defaults to the model's size."""
@@ -71,6 +77,10 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str =
     g.add_argument("--background", default="0,0,0", metavar="R,G,B",
                    help="background colour, components in [0,1] (default black)")
     g.add_argument("--no-shading", action="store_true", help="disable gradient shading")
+    g.add_argument("--lighting", choices=LIGHTING_NAMES, default=None, metavar="NAME",
+                   help="headlight (default: Blinn-Phong, the light at the camera) or "
+                        "cinematic (a light fixed above the object, with soft shadows, "
+                        "ambient occlusion and scattering; docs/lighting.md)")
     g.add_argument("--workers", type=int, metavar="N",
                    help="render threads (default: all cores)"
                         + ("; applies to every model" if foreign else ""))
@@ -102,6 +112,10 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
     if not 1.0 <= args.fov <= 150.0:
         raise EigencastError(f"--fov {args.fov}: must be within [1, 150] degrees")
     samples = args.samples if (args.samples is not None or args.step is not None) else 1000
+    lighting = getattr(args, "lighting", None) or "headlight"
+    if args.no_shading and lighting != "headlight":
+        raise EigencastError(f"--no-shading: not with --lighting {lighting}, which shades by "
+                             "the gradient")
     return Renderer(
         volume,
         tf,
@@ -110,6 +124,7 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
         shading=not args.no_shading,
         background=_parse_background(args.background),
         workers=args.workers,
+        lighting=lighting,
     )
 
 

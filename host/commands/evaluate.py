@@ -18,7 +18,8 @@ HELP = ("ray-cast novel views with the model's own render settings and compare w
 
 #: Files and folders a report folder holds; an existing folder with anything else is refused.
 REPORT_ENTRIES = {"index.html", "rd.png", "per_view.png", "summary.json", "views"}
-_FOREIGN_ONLY = ("tf", "size", "projection", "fov", "background", "frame", "samples", "step")
+_FOREIGN_ONLY = ("tf", "size", "projection", "fov", "background", "frame", "samples", "step",
+                 "lighting")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -34,7 +34,7 @@ from host.fit.model import (
     truncate_eigenspace,
 )
 from host.fit.quantize import DEFAULT_BIT_BUDGET
-from host.render.cinema import CinemaDB
+from host.render.cinema import CinemaDB, with_recorded_lighting
 
 HELP = "fit a PCA eigenspace to a Cinema database and write the eigenspace image (MODEL.ecs)"
 
@@ -370,8 +370,10 @@ def _heldout_views(args: argparse.Namespace, db: CinemaDB):
                 f"{test.image_shape[0]}, {db.path} has {db.image_shape[1]}x{db.image_shape[0]}"
             )
         if test.settings and db.settings:
-            differ = sorted(k for k in set(test.settings) | set(db.settings)
-                            if k not in _VIEW_KEYS and test.settings.get(k) != db.settings.get(k))
+            ours = with_recorded_lighting(db.settings)
+            theirs = with_recorded_lighting(test.settings)
+            differ = sorted(k for k in set(theirs) | set(ours)
+                            if k not in _VIEW_KEYS and theirs.get(k) != ours.get(k))
             if differ:
                 raise EigencastError(
                     f"--test-db {args.test_db}: rendered with other settings than {db.path} "

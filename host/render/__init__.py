@@ -3,7 +3,9 @@
 Owns the camera and view sets (``camera.py``), transfer functions and their presets
 (``transfer.py``), the numba ray-caster (``raycast.py``; its depth kernel for
 ``Renderer.render_with_depth`` in ``raycast_depth.py``) and its slow numpy reference
-(``raycast_reference.py``, for tests), the recorded render settings that let any later
+(``raycast_reference.py``, for tests), its lighting looks (``lighting.py``: the headlight
+and a light fixed in the world, `LIGHTINGS`) with their Monte Carlo reference
+(``lighting_reference.py``), the recorded render settings that let any later
 stage re-render a view exactly as the database was rendered (``settings.py``:
 `RenderSettings`, `ViewRenderer`, `OBJECT_ALPHA_MIN`) and the Cinema database itself
 (``cinema.py``: `CinemaWriter`, `CinemaDB`).
@@ -16,7 +18,9 @@ May import: `host.volume`, `host.errors`, `host.progress`; never fit, evaluate o
 from host.lazy import attach
 
 __all__ = [
+    "DEFAULT_LIGHTING",
     "DEFAULT_SAMPLES",
+    "LIGHTINGS",
     "MAX_IMAGE_SIDE",
     "MAX_SAMPLES",
     "MAX_VIEWS",
@@ -29,6 +33,7 @@ __all__ = [
     "Camera",
     "CinemaDB",
     "CinemaWriter",
+    "Lighting",
     "RenderSettings",
     "Renderer",
     "SettingsError",
@@ -44,14 +49,19 @@ __all__ = [
     "encode_png",
     "format_float",
     "hu_calibration",
+    "light_field",
+    "lighting_from_record",
     "load_transfer_function",
     "orbit_camera",
     "parse_view_set",
     "ray_box_segments",
+    "render_lighting_reference",
     "render_reference",
+    "resolve_lighting",
     "resolve_window",
     "samples_in_box",
     "transfer_function_from_args",
+    "transmittance_reference",
     "warmup",
 ]
 

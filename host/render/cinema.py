@@ -58,6 +58,7 @@ __all__ = [
     "depth_problem",
     "encode_depth",
     "format_float",
+    "with_recorded_lighting",
 ]
 
 SIDECAR = "eigencast.json"
@@ -497,10 +498,24 @@ def absolute_source(source: str | None) -> str | None:
     return str(Path(source).expanduser().resolve())
 
 
+def with_recorded_lighting(settings: dict) -> dict:
+    """``settings`` (a sidecar) with ``renderer.lighting`` filled in where it was rendered
+    before lighting was recorded: the headlight's record (`host.render.lighting`). For
+    comparing the records of databases of both ages; a copy where it adds the record."""
+    renderer = settings.get("renderer") if isinstance(settings, dict) else None
+    if not isinstance(renderer, dict) or "lighting" in renderer:
+        return settings
+    from host.render.lighting import LIGHTINGS
+
+    return {**settings, "renderer": {**renderer, "lighting": LIGHTINGS["headlight"].record()}}
+
+
 def _same_settings(old_text: str, settings: dict) -> bool:
     """The sidecar ``old_text`` records ``settings`` once both volume sources are made
     absolute and the view count is left out where the old one lacks it (a database rendered
-    before sources were recorded absolute, or before the count was, resumes)."""
+    before sources were recorded absolute, or before the count was, resumes); a renderer
+    record without a lighting is the headlight's (a database rendered before lighting was
+    recorded resumes with the headlight)."""
     try:
         old = json.loads(old_text)
     except ValueError:
@@ -511,6 +526,7 @@ def _same_settings(old_text: str, settings: dict) -> bool:
     old_views, new_views = old.get("views"), new.get("views")
     if isinstance(old_views, dict) and isinstance(new_views, dict) and "count" not in old_views:
         new_views.pop("count", None)  # recorded since: the view spec says the same
+    old = with_recorded_lighting(old)  # recorded since: no record means the headlight
     for record in (old, new):
         volume = record.get("volume")
         if isinstance(volume, dict) and isinstance(volume.get("source"), str):

@@ -33,7 +33,9 @@ Model (the numpy reference in `host.render.raycast_reference` implements the sam
   white headlight (light and eye at the camera, so the half vector is the light
   vector), two-sided: ``c' = min(1, c * (AMBIENT + DIFFUSE * n.l) +
   SPECULAR * (n.l)**SHININESS)`` with ``n.l = |g . d| / |g|``; elsewhere ``c``
-  is unshaded.
+  is unshaded. That is the ``headlight`` lighting (the default); a light fixed in the
+  world (``lighting="cinematic"``, `host.render.lighting`) shades the same samples from
+  the same gradient with its shadows, ambient occlusion and scattering instead.
 * **Compositing.** Front to back: ``C += (1 - A) * a * c``,
   ``A += (1 - A) * a``; the ray stops once ``A > 1 - 1/255``
   (`EARLY_TERMINATION_ALPHA`).
@@ -68,6 +70,15 @@ from numba import njit, prange
 
 from host.errors import TransferFunctionError
 from host.render.camera import Camera
+from host.render.lighting import (
+    Lighting,
+    extinction_lut,
+    light_field,
+    ray_phase,
+    resolve_lighting,
+    shade_world,
+    transmittance_at,
+)
 from host.render.transfer import TransferFunction
 from host.volume import Volume
 
@@ -179,11 +190,17 @@ def _cast_ray(
     use_skip: bool,
     shading: bool,
     params: np.ndarray,
+    field: np.ndarray,
+    light: np.ndarray,
     out: np.ndarray,
     row: int,
     col: int,
 ) -> None:
-    """Cast the ray through pixel ``(row, col)`` and store its premultiplied RGBA in ``out``."""
+    """Cast the ray through pixel ``(row, col)`` and store its premultiplied RGBA in ``out``.
+
+    ``light[0] == 0``: the headlight; otherwise a world-fixed light with the light field
+    ``field`` (`host.render.lighting.shade_world`).
+    """
     nz, ny, nx = u.shape
     isx, isy, isz = inv_spacing[0], inv_spacing[1], inv_spacing[2]
     # ray in index space; t stays in world mm along the unit direction (wx, wy, wz)
@@ -218,6 +235,8 @@ def _cast_ray(
     n_lut = lut.shape[0]
     ambient, diffuse, specular, shininess = params[0], params[1], params[2], params[3]
     early_alpha, grad_eps = params[4], params[5]
+    world_lit = light[0] != 0.0
+    phase = ray_phase(light, wx, wy, wz) if world_lit else 0.0
     cr = 0.0
     cg = 0.0
     cb = 0.0
@@ -268,7 +287,10 @@ def _cast_ray(
                 gy = (_trilinear(u, x, yp, z) - _trilinear(u, x, ym, z)) / (yp - ym) * isy
                 gz = (_trilinear(u, x, y, zp) - _trilinear(u, x, y, zm)) / (zp - zm) * isz
                 gmag = math.sqrt(gx * gx + gy * gy + gz * gz)
-                if gmag >= grad_eps:
+                if world_lit:
+                    r, g, b = shade_world(u, field, light, phase, x, y, z, gx, gy, gz, gmag,
+                                          wx, wy, wz, r, g, b)
+                elif gmag >= grad_eps:
                     ndl = abs(gx * wx + gy * wy + gz * wz) / gmag
                     lit = ambient + diffuse * ndl
                     spec = specular * ndl**shininess
@@ -301,6 +323,8 @@ def _render_kernel(
     use_skip: bool,
     shading: bool,
     params: np.ndarray,
+    field: np.ndarray,
+    light: np.ndarray,
     n_strips: int,
     out: np.ndarray,
 ) -> None:
@@ -325,6 +349,8 @@ def _render_kernel(
                     use_skip,
                     shading,
                     params,
+                    field,
+                    light,
                     out,
                     row,
                     col,
@@ -343,6 +369,8 @@ def _render_pixels_kernel(
     use_skip: bool,
     shading: bool,
     params: np.ndarray,
+    field: np.ndarray,
+    light: np.ndarray,
     n_strips: int,
     out: np.ndarray,
 ) -> None:
@@ -373,6 +401,8 @@ def _render_pixels_kernel(
                     use_skip,
                     shading,
                     params,
+                    field,
+                    light,
                     out,
                     i,
                     0,
@@ -461,7 +491,13 @@ class Renderer:
     step : float, optional
         Step in units of the smallest voxel spacing; exclusive with ``samples``.
     shading : bool
-        Blinn-Phong headlight shading (see the module docstring).
+        Gradient shading: the lighting's (see the module docstring); False draws the
+        transfer function's colours as they are (headlight only).
+    lighting : str or Lighting
+        A name in `host.render.lighting.LIGHTINGS` (``headlight``, the default, or
+        ``cinematic``) or a `Lighting`. A world-fixed light computes its light field here
+        (once per volume, transfer function and light; cached, see
+        `host.render.lighting.light_field`).
     background : (r, g, b)
         Background in [0, 1] (sRGB-coded) used by `render_rgb8`.
     workers : int, optional
@@ -493,7 +529,12 @@ class Renderer:
         opacity_correction: bool = True,
         empty_space_skipping: bool = True,
         early_termination: bool = True,
+        lighting: str | Lighting | None = None,
     ) -> None:
+        self.lighting = resolve_lighting(lighting)
+        if self.lighting.world_lit and not shading:
+            raise ValueError(f"lighting={self.lighting.name!r} shades by the gradient; it "
+                             "cannot be combined with shading=False")
         if samples is not None and step is not None:
             raise ValueError(f"give samples={samples} or step={step}, not both")
         self.volume = volume
@@ -550,6 +591,7 @@ class Renderer:
                 f"transfer function {tf.name!r}: LUT is not finite float (n, 4) RGBA"
             )
         lut = np.clip(lut, 0.0, 1.0)
+        lut_unit = lut.copy()  # opacity per unit, what the light field's extinction uses
         if self.opacity_correction:
             ratio = self.step_mm / self.unit_mm
             lut[:, 3] = 1.0 - np.power(1.0 - lut[:, 3], ratio)
@@ -567,6 +609,15 @@ class Renderer:
             dtype=np.float64,
         )
         self._inv_spacing = 1.0 / np.array(volume.spacing, dtype=np.float64)
+        self._light = self.lighting.kernel_params(
+            volume.spacing, GRADIENT_EPSILON / self.unit_mm,
+            extinction_lut(lut_unit, self.unit_mm))
+        if self.lighting.world_lit:
+            self._field = light_field(self._u, np.clip(lut_unit, 0.0, 1.0), self._block_empty,
+                                      BLOCK_SIZE, volume.spacing, self.lighting)
+        else:
+            self._field = np.zeros((2, 2, 2, 2), dtype=np.float32)  # never read
+            self._field.flags.writeable = False  # (one kernel signature for both looks)
 
     def _empty_blocks(self) -> np.ndarray:
         """uint8 (nbz, nby, nbx): 1 where every value the block can take has zero opacity."""
@@ -620,6 +671,30 @@ class Renderer:
         radius = float(np.quantile(dist, 1.0 - trim)) + float(spacing.max())
         return center, min(radius, self.volume.radius_mm * 2.0)
 
+    def light_transmittance(self, points_mm: np.ndarray) -> np.ndarray:
+        """The key light's transmittance ``T`` at world points, as the shading uses it.
+
+        Parameters
+        ----------
+        points_mm : array-like of shape (n, 3)
+            World mm, inside the volume box.
+
+        Returns
+        -------
+        ndarray of shape (n,), float64
+            In [0, 1] (`host.render.lighting`, "The light's transmittance").
+
+        Raises
+        ------
+        ValueError
+            The headlight (no light in the world), or a point outside the box.
+        """
+        if not self.lighting.world_lit:
+            raise ValueError(f"light_transmittance: lighting {self.lighting.name!r} has no "
+                             "light fixed in the world")
+        points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) * self._inv_spacing
+        return transmittance_at(self._u, self._field, self._light, points)
+
     @property
     def empty_block_fraction(self) -> float:
         """Share of the 8^3-cell blocks that are skipped as empty."""
@@ -655,7 +730,7 @@ class Renderer:
             try:
                 kernel(self._u, self._block_empty, origins, directions, self._inv_spacing,
                        self.step_mm, self._lut, self.empty_space_skipping, self.shading,
-                       self._params, 4 * threads, *outputs)
+                       self._params, self._field, self._light, 4 * threads, *outputs)
             finally:
                 numba.set_num_threads(previous)
 
@@ -757,6 +832,8 @@ class Renderer:
                     self.empty_space_skipping,
                     self.shading,
                     self._params,
+                    self._field,
+                    self._light,
                     max(1, min(4 * threads, -(-rows.size // _PIXEL_CHUNK))),
                     out,
                 )
@@ -848,6 +925,7 @@ class Renderer:
                 "gradient": "central differences of the trilinear field, 1 voxel",
                 "gradient_epsilon": GRADIENT_EPSILON,
             },
+            "lighting": self.lighting.record(),
             "background": list(self.background),
             "tf_window": list(self.window),
             "lut_size": LUT_SIZE,

@@ -15,6 +15,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from host.render.lighting import ray_phase, shade_world
 from host.render.raycast import BLOCK_SIZE, _axis_exit, _check_size, _trilinear
 
 __all__ = ["DEPTH_QUARTER", "DEPTH_THREE_QUARTERS", "render_depth_layers"]
@@ -64,6 +65,8 @@ def _cast_ray_depth(
     use_skip: bool,
     shading: bool,
     params: np.ndarray,
+    field: np.ndarray,
+    light: np.ndarray,
     out: np.ndarray,
     depth: np.ndarray,
     row: int,
@@ -119,6 +122,8 @@ def _cast_ray_depth(
     n_lut = lut.shape[0]
     ambient, diffuse, specular, shininess = params[0], params[1], params[2], params[3]
     early_alpha, grad_eps = params[4], params[5]
+    world_lit = light[0] != 0.0
+    phase = ray_phase(light, wx, wy, wz) if world_lit else 0.0
     cr = 0.0
     cg = 0.0
     cb = 0.0
@@ -171,7 +176,10 @@ def _cast_ray_depth(
                 gy = (_trilinear(u, x, yp, z) - _trilinear(u, x, ym, z)) / (yp - ym) * isy
                 gz = (_trilinear(u, x, y, zp) - _trilinear(u, x, y, zm)) / (zp - zm) * isz
                 gmag = math.sqrt(gx * gx + gy * gy + gz * gz)
-                if gmag >= grad_eps:
+                if world_lit:
+                    r, g, b = shade_world(u, field, light, phase, x, y, z, gx, gy, gz, gmag,
+                                          wx, wy, wz, r, g, b)
+                elif gmag >= grad_eps:
                     ndl = abs(gx * wx + gy * wy + gz * wz) / gmag
                     lit = ambient + diffuse * ndl
                     spec = specular * ndl**shininess
@@ -220,6 +228,8 @@ def _render_depth_kernel(
     use_skip: bool,
     shading: bool,
     params: np.ndarray,
+    field: np.ndarray,
+    light: np.ndarray,
     n_strips: int,
     out: np.ndarray,
     depth: np.ndarray,
@@ -244,6 +254,8 @@ def _render_depth_kernel(
                     use_skip,
                     shading,
                     params,
+                    field,
+                    light,
                     out,
                     depth,
                     row,

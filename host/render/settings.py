@@ -90,6 +90,9 @@ class RenderSettings:
     renderer_version : str
     width, height : int
         Image size in pixels.
+    lighting : host.render.lighting.Lighting
+        The recorded lighting look (``renderer["lighting"]``); a record without one (a
+        database rendered before lighting was recorded) reads as the headlight.
     """
 
     record: dict
@@ -111,6 +114,7 @@ class RenderSettings:
     renderer_version: str
     width: int
     height: int
+    lighting: Any = None
 
     # ------------------------------------------------------------------ construction
 
@@ -130,6 +134,8 @@ class RenderSettings:
         SettingsError
             No record (a foreign database), or a key missing / malformed.
         """
+        from host.render.lighting import lighting_from_record  # (loads numba: only here)
+
         if not record:
             raise SettingsError(
                 f"{what}: no render settings recorded (a database from another tool); "
@@ -170,6 +176,7 @@ class RenderSettings:
                 renderer_version=str(ren.get("renderer", "")),
                 width=int(img["width"]),
                 height=int(img["height"]),
+                lighting=lighting_from_record(ren.get("lighting")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise SettingsError(f"{what}: malformed render settings: {exc!r}") from None
@@ -192,6 +199,8 @@ class RenderSettings:
             problems.append(f"step_voxels {self.step_voxels}")
         if not (1 <= self.width <= 8192 and 1 <= self.height <= 8192):
             problems.append(f"image size {self.width}x{self.height}")
+        if self.lighting.world_lit and not self.shading:
+            problems.append(f"lighting {self.lighting.name!r} without shading")
         if problems:
             raise SettingsError(f"{what}: malformed render settings: {'; '.join(problems)}")
 
@@ -276,6 +285,7 @@ class RenderSettings:
             workers=workers,
             opacity_correction=self.opacity_correction,
             early_termination=self.early_termination,
+            lighting=self.lighting,
             **kwargs,
         )
 
