@@ -196,8 +196,10 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     if args.depth:
         from host.evaluate.splat_filter import choose_splat_tent
         from host.fit.depth import add_depth
+        from host.fit.floor import add_noise_floor
 
         depth = add_depth(image, db, depth_threshold)
+        depth["floor"] = add_noise_floor(image, db).summary()
         depth["splat"] = choose_splat_tent(image, db)
     save_model(out, image, annex, key=key)
     if standalone is not None:
@@ -207,6 +209,7 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
               f"cell at T={depth['threshold']}), table noise {depth['score_mse']:.3g} mm², "
               f"{depth['raw_bytes'] / 1e6:.2f} MB raw ({depth['section']}); "
               f"synthesis {image.synthesis['method']}")
+        print(_floor_line(depth["floor"]))
         print(_splat_line(depth["splat"]))
     device_bytes = image_device_bytes(out)
     annex_bytes = out.stat().st_size - device_bytes
@@ -221,6 +224,13 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
         f"step {image.score_quantization['step']:.3g}; int8 loss {int8['train_loss_db']:.3f} dB"
     )
     return 0
+
+
+def _floor_line(floor: dict) -> str:
+    """What `host.fit.floor.measure_noise_floor` found, in one line."""
+    return (f"noise floor: {floor['cells']} cells show black below a level of "
+            f"{floor['median']:.0f} (median; at most {floor['max']}), measured on "
+            f"{floor['views']} training views; the warp leaves their haze out")
 
 
 def _splat_line(splat: dict) -> str:
