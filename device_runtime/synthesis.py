@@ -303,8 +303,8 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
     planes, and the warped frame on show (its own array); `SYNTHESIS_METHOD_FLOOR`, the
-    per-pixel levels of `noise_levels` and, on a miss, the object pixels' levels and flags.
-    A predicting device's worker
+    per-pixel levels of `noise_levels` (a byte each) and, on a miss, the object pixels'
+    largest channels, levels and two flags (4 bytes each). A predicting device's worker
     also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`) and a frame
     made ahead (`WarpWorker`), counted here; a standalone device shares the display's.
     """
@@ -320,7 +320,7 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     depth += 4 * cell * cell * cell * cell  # one cell's components as float32
     warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
     colour = 2 * n * 3 + WORKER_SCRATCH_BYTES + n * 3  # + the frame made ahead
-    levels = n * 4 if record.get("method") == SYNTHESIS_METHOD_FLOOR else 0  # `noise_levels`
+    levels = n * 5 if record.get("method") == SYNTHESIS_METHOD_FLOOR else 0  # `noise_levels`
     return int(cache + depth + warp + colour + levels)
 
 
