@@ -226,13 +226,6 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     return 0
 
 
-def _floor_line(floor: dict) -> str:
-    """What `host.fit.floor.measure_noise_floor` found, in one line."""
-    return (f"noise floor: {floor['cells']} cells show black below a level of "
-            f"{floor['median']:.0f} (median; at most {floor['max']}), measured on "
-            f"{floor['views']} training views; the warp leaves their haze out")
-
-
 def _splat_line(splat: dict) -> str:
     """What `choose_splat_tent` found, in one line."""
     if not splat["views"]:
@@ -240,6 +233,13 @@ def _splat_line(splat: dict) -> str:
     found = ", ".join(f"{t}: {s:.4f}" for t, s in splat["ssim"].items())
     return (f"splat filter [1, {splat['tent']}, 1], chosen on {splat['views']} training views "
             f"warped from their row neighbours (object SSIM by centre weight: {found})")
+
+
+def _floor_line(floor: dict) -> str:
+    """What `host.fit.floor.measure_noise_floor` found, in one line."""
+    return (f"noise floor: in {floor['cells']} cells the warp paints pixels at or below a level "
+            f"of {floor['median']:.0f} (median; at most {floor['max']}) black, measured on "
+            f"{floor['views']} training views: the eigenspace's haze on the black background")
 
 
 def _choose_depth(args: argparse.Namespace, db: CinemaDB) -> None:
