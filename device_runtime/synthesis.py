@@ -7,7 +7,8 @@ apart, which shows every edge twice (docs/rate-distortion.md, section 9). An ima
 distance along each pixel's ray where the opacity crosses one half, at half resolution) and
 names the synthesis method in its manifest (``"synthesis": {"method": "warp-depth-1", ...}``,
 :data:`SYNTHESIS_METHOD`; :data:`SYNTHESIS_METHOD_TENT` with the splat filter the fit chose
-for the volume). For a novel view the device then
+for the volume; :data:`SYNTHESIS_METHOD_FLOOR` with that filter and the colour's noise floor,
+:data:`NOISE_FLOOR_SECTION`). For a novel view the device then
 
 1. takes the interpolator's neighbours and weights (:class:`StandaloneScores`' interpolator)
    and, where they lie on two theta rows, fades the farther row out unless the view is
@@ -19,7 +20,9 @@ for the volume). For a novel view the device then
    upsampled 2x at those pixels, int16 packed points, 9 bytes per object pixel with the
    colour); they are cached per training view (:class:`ViewSynthesizer`, the
    :data:`CACHE_VIEWS` views of one frame: while a drag moves, the neighbours change only
-   every grid step);
+   every grid step); with the noise floor, the pixels at or below their cell's floor are
+   warped black (`noise_levels`: the eigenspace's haze on the black background is not
+   painted, and the neighbour still says where its picture is black);
 3. forward-warps every neighbour's points into the new camera with a z-test, blends them by
    their weights and fills the cracks (`device_runtime.warping`: :func:`forward_warp`,
    :func:`fill_holes`; its names are re-exported here).
@@ -82,11 +85,13 @@ __all__ = [
     "HOLE_NEIGHBOURS",
     "HOLE_PASSES",
     "KNOWN_SYNTHESIS",
+    "NOISE_FLOOR_SECTION",
     "OBJECT_LEVEL",
     "ROW_RAMP",
     "SPLAT_TENT",
     "SPLAT_TENTS",
     "SYNTHESIS_METHOD",
+    "SYNTHESIS_METHOD_FLOOR",
     "SYNTHESIS_METHOD_TENT",
     "WORKER_SCRATCH_BYTES",
     "Z_TOLERANCE",
@@ -98,6 +103,7 @@ __all__ = [
     "check_synthesis",
     "fill_holes",
     "forward_warp",
+    "noise_levels",
     "orbit_pose",
     "row_weights",
     "splat_tent",
@@ -113,7 +119,20 @@ SYNTHESIS_METHOD = "warp-depth-1"
 #: refuses such an image in one line instead of showing (and being corrected against) frames
 #: other than the host's.
 SYNTHESIS_METHOD_TENT = "warp-depth-2"
-KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD, SYNTHESIS_METHOD_TENT})
+#: `SYNTHESIS_METHOD_TENT` (``splat_tent`` named, 6 included) whose neighbours' pixels at or
+#: below their cell's noise floor (`NOISE_FLOOR_SECTION`, which the fit measures on the
+#: training views) are warped black: the eigenspace's haze on the black background is not
+#: painted. The image must hold the section; a device that predates the method refuses the
+#: image in one line (its frames would differ from the host's).
+SYNTHESIS_METHOD_FLOOR = "warp-depth-3"
+KNOWN_SYNTHESIS = frozenset({SYNTHESIS_METHOD, SYNTHESIS_METHOD_TENT, SYNTHESIS_METHOD_FLOOR})
+#: Image section of `SYNTHESIS_METHOD_FLOOR`: uint8 (n_cells,), one per colour cell (the
+#: image's cells, row-major). A reconstructed training view's pixel whose largest channel is
+#: at most its cell's value shows black: the warp unprojects it as before (above
+#: `OBJECT_LEVEL`) with colour 0. ``fit --depth`` measures it (`host.fit.floor`): per cell,
+#: the level at or below which showing black instead of the reconstruction brings the
+#: training views closest to their renderings.
+NOISE_FLOOR_SECTION = "noise_floor"
 #: Image sections of the depth eigenspace (``fit --depth``), in this order. The score table
 #: is either the plain int16 ``depth_scores`` (the first images) or, smaller,
 #: :data:`DEPTH_DELTA_SECTION` in its place.
@@ -220,13 +239,14 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
             offset):
         raise ImageFormatError("image manifest: synthesis.depth_offset_mm must be a number")
     tent = record.get("splat_tent")
-    if method == SYNTHESIS_METHOD_TENT:
+    if method in (SYNTHESIS_METHOD_TENT, SYNTHESIS_METHOD_FLOOR):
         if isinstance(tent, bool) or tent not in SPLAT_TENTS:
             raise ImageFormatError(f"image manifest: synthesis.splat_tent={tent!r} must be one of "
                                    f"{', '.join(map(str, SPLAT_TENTS))}")
     elif tent is not None:
         raise ImageFormatError(f"image manifest: synthesis.splat_tent belongs to method "
-                               f"{SYNTHESIS_METHOD_TENT!r}, not {method!r}")
+                               f"{SYNTHESIS_METHOD_TENT!r} or {SYNTHESIS_METHOD_FLOOR!r}, "
+                               f"not {method!r}")
     if image_shape is not None and [2 * v for v in record["depth_shape"]] != list(image_shape):
         raise ImageFormatError(
             f"image manifest: synthesis.depth_shape {record['depth_shape']} is not half the "
@@ -242,8 +262,34 @@ def check_synthesis(record: Any, image_shape: tuple[int, int] | None = None) -> 
 
 def splat_tent(record: dict) -> int:
     """The splat filter's centre weight a (checked) ``synthesis`` record names: its
-    ``splat_tent`` for `SYNTHESIS_METHOD_TENT`, else 6."""
+    ``splat_tent`` for `SYNTHESIS_METHOD_TENT` and `SYNTHESIS_METHOD_FLOOR`, else 6."""
     return int(record.get("splat_tent", SPLAT_TENTS[0]))
+
+
+def noise_levels(image: Any, record: dict) -> np.ndarray | None:
+    """The level at or below which a reconstructed training view's pixel (largest channel)
+    is warped black: per pixel, uint8 (h, w), its cell's noise floor (`NOISE_FLOOR_SECTION`)
+    for `SYNTHESIS_METHOD_FLOOR`; None for the others (every pixel keeps its colour).
+
+    Raises
+    ------
+    ImageFormatError
+        `SYNTHESIS_METHOD_FLOOR` without the section, or a section of another dtype or
+        shape.
+    """
+    if record.get("method") != SYNTHESIS_METHOD_FLOOR:
+        return None
+    floor = image.sections.get(NOISE_FLOOR_SECTION)
+    if floor is None:
+        raise ImageFormatError(f"image: synthesis {SYNTHESIS_METHOD_FLOOR!r} needs the section "
+                               f"{NOISE_FLOOR_SECTION!r}")
+    ny, nx = image.grid_shape
+    if floor.dtype != np.uint8 or floor.shape != (ny * nx,):
+        raise ImageFormatError(f"image section {NOISE_FLOOR_SECTION!r}: expected uint8 of shape "
+                               f"({ny * nx},) (one per cell), got {_describe(floor)}")
+    (h, w), (ch, cw) = image.image_shape, image.cell_shape
+    cells = floor.reshape(ny, nx)
+    return np.ascontiguousarray(np.repeat(np.repeat(cells, ch, axis=0), cw, axis=1)[:h, :w])
 
 
 def synthesis_memory_bytes(manifest: dict) -> int:
@@ -257,7 +303,9 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     frame, the splats' target pixels of 4 views (4 bytes each, all pixels at most: the
     reused `Warper.splats`), one view's projection temporaries, the
     padded grid (z-buffer then weights, 3 accumulators, coverage) and the tent filter's
-    planes, and the warped frame on show (its own array). A predicting device's worker
+    planes, and the warped frame on show (its own array); `SYNTHESIS_METHOD_FLOOR`, the
+    per-pixel levels of `noise_levels` (a byte each) and, on a miss, the object pixels'
+    largest channels, levels and two flags (4 bytes each). A predicting device's worker
     also has its own reconstructor (frame buffers and `WORKER_SCRATCH_BYTES`) and a frame
     made ahead (`WarpWorker`), counted here; a standalone device shares the display's.
     """
@@ -273,7 +321,8 @@ def synthesis_memory_bytes(manifest: dict) -> int:
     depth += 4 * cell * cell * cell * cell  # one cell's components as float32
     warp = 4 * n * 4 * 5 // 4 + n * (4 + 4 + 8 + 1 + 4 + 4) + padded * (4 + 12 + 1 + 8) + n * 6
     colour = 2 * n * 3 + WORKER_SCRATCH_BYTES + n * 3  # + the frame made ahead
-    return int(cache + depth + warp + colour)
+    levels = n * 5 if record.get("method") == SYNTHESIS_METHOD_FLOOR else 0  # `noise_levels`
+    return int(cache + depth + warp + colour + levels)
 
 
 # ----------------------------------------------------------------------------- depth
@@ -484,7 +533,8 @@ class ViewSynthesizer:
     Raises
     ------
     ImageFormatError
-        No synthesis record, unknown method, or malformed depth sections.
+        No synthesis record, unknown method, malformed depth sections, or a missing or
+        malformed noise floor (`noise_levels`).
     """
 
     def __init__(self, image: Any, standalone: Any, reconstructor: Any,
@@ -498,6 +548,9 @@ class ViewSynthesizer:
         h, w = image.image_shape
         self.warper = Warper(record["fov_deg"], record["distance_mm"], w, h,
                              record["z_tolerance_mm"], splat_tent(record))
+        #: Per pixel, the level at or below which a neighbour's pixel is warped black
+        #: (`noise_levels`; None: none is).
+        self.noise_level = noise_levels(image, record)
         views = image.views or {}
         try:
             self.phi = np.asarray(views["phi_deg"], dtype=np.float64)
@@ -524,11 +577,15 @@ class ViewSynthesizer:
         top = np.maximum(colour[..., 0], colour[..., 1])
         np.maximum(top, colour[..., 2], out=top)
         obj = top > OBJECT_LEVEL
-        del top
         src = np.flatnonzero(obj).astype(np.int32)
+        # the eigenspace's haze on black: where it is, and warped, but black
+        black = (None if self.noise_level is None else
+                 np.take(top, src, mode="clip") <= np.take(self.noise_level, src, mode="clip"))
+        del top
         cells = self.depth.needed_cells(obj)
         del obj
-        cloud = self.warper.cloud_at(colour, self.depth.reconstruct(view, cells), src)
+        cloud = self.warper.cloud_at(colour, self.depth.reconstruct(view, cells), src,
+                                     black=black)
         self._cache[view] = cloud
         while len(self._cache) > self.cache_views:
             self._cache.popitem(last=False)

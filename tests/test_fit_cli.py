@@ -156,8 +156,10 @@ def test_fit_stores_depth_and_the_standalone_table_by_default(small_db, tmp_path
         out = tmp_path / f"{name}.ecs"
         runs[name] = _run("fit", str(small_db), "-o", str(out), "--cell", "16", *extra)
         images[name] = read_image(out)
-    assert images["default"].synthesis["method"] == "warp-depth-1"
+    assert images["default"].synthesis["method"] == "warp-depth-3"  # with the noise floor
+    assert "noise_floor" in images["default"].sections
     assert "standalone table" in runs["default"].stdout and "depth:" in runs["default"].stdout
+    assert "noise floor: " in runs["default"].stdout
     assert "splat filter [1, " in runs["default"].stdout
     assert images["old"].synthesis == images["default"].synthesis  # old scripts still work
     assert images["nodepth"].synthesis is None and standalone_table(images["nodepth"])

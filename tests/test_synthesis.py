@@ -121,8 +121,10 @@ def test_fit_depth_without_depth_maps_is_a_one_line_error(tooth_db, tmp_path, ca
 
 def test_fit_depth_stores_the_depth_eigenspace_and_names_the_method(depth_model, depth_db):
     image = read_image(depth_model, key=KEY)
-    assert image.synthesis["method"] == "warp-depth-1"
-    assert read_manifest(depth_model)["synthesis"]["method"] == "warp-depth-1"
+    assert image.synthesis["method"] == "warp-depth-3"  # the warp with the noise floor
+    assert read_manifest(depth_model)["synthesis"]["method"] == "warp-depth-3"
+    assert image.synthesis["splat_tent"] in (6, 14, 30, 62)
+    assert image.sections["noise_floor"].shape == (image.n_cells,)
     assert {"depth_counts", "depth_scales", "depth_mean", "depth_components"} <= set(
         image.sections)
     # one table: plain or delta-coded, whichever compresses smaller
@@ -185,13 +187,16 @@ def test_warping_a_training_view_to_its_own_camera_gives_its_reconstruction(dept
     image = read_image(depth_model, key=KEY)
     synth = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
     db = CinemaDB.open(depth_db)
+    tent = image.synthesis["splat_tent"]
     for i in (7, 60, 130):
         frame = synth.frame(float(db.phi_deg[i]), float(db.theta_deg[i]))
         own = Reconstructor.from_image(image).update(synth.standalone.training_scores(i))
         obj = own.max(axis=2) > 2
         # every pixel lands on itself (whatever its depth: the same ray), so the frame is
-        # the reconstruction through the splat filter (SPLAT_TENT), computed here apart
-        diff = np.abs(frame.astype(float) - _tent_normalised(own.astype(float), obj))
+        # the reconstruction, with the pixels at or below their cell's noise floor black,
+        # through the splat filter, computed here apart
+        shown = own * (own.max(axis=2) > _floor_per_pixel(image))[..., None]
+        diff = np.abs(frame.astype(float) - _tent_normalised(shown.astype(float), obj, tent))
         assert diff[obj].mean() < 1.0, diff[obj].mean()
     misses = synth.misses
     synth.frame(float(db.phi_deg[7]) + 1.0, float(db.theta_deg[7]) + 1.0)
@@ -303,9 +308,11 @@ def _tent_normalised(img, covered, centre=6):
 
 
 def _with_splat_tent(depth_model, tmp_path, tent):
-    """depth_model rewritten as if its fit had chosen the splat filter ``tent``."""
+    """depth_model rewritten as if its fit had chosen the splat filter ``tent`` and measured
+    no noise floor (``warp-depth-2``, as fits wrote it before the floor)."""
     image = read_image(depth_model, key=KEY)
     image.synthesis = {**image.synthesis, "method": "warp-depth-2", "splat_tent": tent}
+    del image.sections["noise_floor"]
     out = tmp_path / f"tent{tent}.ecs"
     write_image(out, image, key=KEY)
     return out
@@ -327,7 +334,8 @@ def test_the_splat_filter_an_image_names_is_checked_and_warps_its_frames(depth_m
                             StandaloneScores(read_image(depth_model, key=KEY)),
                             Reconstructor.from_image(read_image(depth_model, key=KEY)))
     try:
-        assert loaded.synthesis.warper.tent == 30 and plain.warper.tent == 6
+        assert loaded.synthesis.warper.tent == 30
+        assert plain.warper.tent == read_image(depth_model, key=KEY).synthesis["splat_tent"]
         host = WarpFrames(HostModel.load(path))
         for view in ((12.5, 3.0), (100.0, -44.0)):
             frame = loaded.synthesis.frame(*view)
@@ -358,7 +366,7 @@ def test_fit_chooses_the_splat_filter_on_its_training_views_and_leaves_the_image
     """`choose_splat_tent` warps training views from their row neighbours with each filter,
     keeps the default unless another beats it by the margin (the most spreading of filters
     tied with the best), and leaves every section as it was; a chosen filter is written as
-    ``warp-depth-2``."""
+    ``warp-depth-2``, and any filter of an image with the noise floor as ``warp-depth-3``."""
     import host.evaluate.splat_filter as splat
     from device_runtime.synthesis import SPLAT_TENTS
 
@@ -367,24 +375,38 @@ def test_fit_chooses_the_splat_filter_on_its_training_views_and_leaves_the_image
     assert pick({6: 0.80, 14: 0.801, 30: 0.8015, 62: 0.80}) == 6  # not by the margin
     assert pick({6: 0.80, 14: 0.79, 30: 0.78, 62: 0.77}) == 6
     assert pick({6: 0.80, 14: 0.80, 30: 0.81, 62: 0.83}) == 62
-    image = read_image(depth_model, key=KEY)
-    before = {k: v.copy() for k, v in image.sections.items()}
     db = CinemaDB.open(depth_db)
-    found = splat.choose_splat_tent(image, db, views=12, quiet=True)
-    assert found["views"] == 12 and set(found["ssim"]) == set(SPLAT_TENTS)
-    assert all(0.0 < v <= 1.0 for v in found["ssim"].values())
-    assert found["tent"] == pick(found["ssim"])
-    assert image.synthesis["method"] == ("warp-depth-1" if found["tent"] == 6
-                                         else "warp-depth-2")
-    assert set(image.sections) == set(before)
-    for k, v in before.items():
-        np.testing.assert_array_equal(image.sections[k], v)
-    monkeypatch.setattr(splat, "pick_splat_tent", lambda means, margin: 14)
-    assert splat.choose_splat_tent(image, db, views=4, quiet=True)["tent"] == 14
-    assert image.synthesis["method"] == "warp-depth-2" and image.synthesis["splat_tent"] == 14
-    monkeypatch.setattr(splat, "pick_splat_tent", lambda means, margin: 6)
-    splat.choose_splat_tent(image, db, views=4, quiet=True)  # chosen again: the default
-    assert image.synthesis["method"] == "warp-depth-1" and "splat_tent" not in image.synthesis
+    for floored in (False, True):  # an image without the noise floor, then one with
+        image = read_image(depth_model, key=KEY)
+        if not floored:
+            del image.sections["noise_floor"]
+        before = {k: v.copy() for k, v in image.sections.items()}
+        found = splat.choose_splat_tent(image, db, views=12, quiet=True)
+        assert found["views"] == 12 and set(found["ssim"]) == set(SPLAT_TENTS)
+        assert all(0.0 < v <= 1.0 for v in found["ssim"].values())
+        assert found["tent"] == pick(found["ssim"])
+        if floored:  # the warp with the floor names its filter, the default included
+            assert image.synthesis["method"] == "warp-depth-3"
+            assert image.synthesis["splat_tent"] == found["tent"]
+        else:
+            assert image.synthesis["method"] == ("warp-depth-1" if found["tent"] == 6
+                                                 else "warp-depth-2")
+        assert set(image.sections) == set(before)
+        for k, v in before.items():
+            np.testing.assert_array_equal(image.sections[k], v)
+        with monkeypatch.context() as m:
+            m.setattr(splat, "pick_splat_tent", lambda means, margin: 14)
+            assert splat.choose_splat_tent(image, db, views=4, quiet=True)["tent"] == 14
+            assert image.synthesis["method"] == ("warp-depth-3" if floored else "warp-depth-2")
+            assert image.synthesis["splat_tent"] == 14
+            m.setattr(splat, "pick_splat_tent", lambda means, margin: 6)
+            splat.choose_splat_tent(image, db, views=4, quiet=True)  # chosen again: the default
+        if floored:
+            assert image.synthesis["method"] == "warp-depth-3"
+            assert image.synthesis["splat_tent"] == 6
+        else:
+            assert image.synthesis["method"] == "warp-depth-1"
+            assert "splat_tent" not in image.synthesis
     # row neighbours: each view between its previous and next in phi on its theta row
     phi = np.array([0.0, 90.0, 180.0, 270.0, 45.0, 10.0])
     theta = np.array([0.0, 0.0, 0.0, 0.0, 30.0, 60.0])
@@ -1051,3 +1073,156 @@ def test_fit_depth_default_rounds_to_a_fifth_of_the_z_tolerance_in_the_smaller_c
         "depth_scores_delta"])
     name = "depth_scores_delta" if delta < plain else "depth_scores"
     assert list(stored) == [name] and stored[name] == min(plain, delta)
+
+
+# ----------------------------------------------------------------------------- noise floor
+
+
+def _floor_per_pixel(image):
+    """The image's noise floor (one per colour cell) at every pixel, uint8 (h, w)."""
+    (h, w), (ch, cw), (ny, nx) = image.image_shape, image.cell_shape, image.grid_shape
+    cells = image.sections["noise_floor"].reshape(ny, nx)
+    return np.kron(cells, np.ones((ch, cw), np.uint8))[:h, :w]
+
+
+def _without_floor(depth_model):
+    """depth_model as fits wrote it before the noise floor: the same eigenspaces and splat
+    filter (``warp-depth-2``), no floor section."""
+    image = read_image(depth_model, key=KEY)
+    image.synthesis = {**image.synthesis, "method": "warp-depth-2"}
+    del image.sections["noise_floor"]
+    return image
+
+
+def test_the_own_frame_paints_no_haze_where_the_ray_cast_is_black(depth_model):
+    """The device's own frame of novel views (the depth warp) is black where the ray-cast is
+    black away from the object: more than 2 pixels from it (beyond the reach of the splat
+    filter and the depth's upsampling), at most 1 % of those pixels show anything (above
+    `OBJECT_LEVEL`). The same image warped without its noise floor (as fits wrote it
+    before) painted the eigenspace's haze there on 5 % of them."""
+    from scipy.ndimage import binary_dilation
+
+    from device_runtime.prediction import OwnFrames, prediction_view
+    from device_runtime.synthesis import OBJECT_LEVEL
+    from host.render.settings import RenderSettings, ViewRenderer
+
+    model = HostModel.load(depth_model)
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="test"))
+    frames = {"floor": OwnFrames(model.image), "none": OwnFrames(_without_floor(depth_model))}
+    assert frames["floor"].warps and frames["none"].warps
+    painted = {k: 0 for k in frames}
+    far_px = 0
+    for phi, theta in zip(np.linspace(5.0, 355.0, 12), np.linspace(-50.0, 50.0, 12)):
+        view = prediction_view(float(phi), float(theta))
+        truth, _ = scene.render(*view)
+        far = ~binary_dilation(truth.max(axis=2) > 0, np.ones((3, 3), bool), iterations=2)
+        far_px += int(far.sum())
+        for k, own in frames.items():
+            painted[k] += int((far & (own.frame(*view).max(axis=2) > OBJECT_LEVEL)).sum())
+    assert painted["floor"] <= 0.01 * far_px, (painted, far_px)
+    assert painted["none"] > 0.03 * far_px, (painted, far_px)  # the haze this test is about
+
+
+def test_a_training_view_warps_with_the_pixels_at_or_below_the_noise_floor_black(depth_model,
+                                                                               depth_db):
+    """``warp-depth-3``: every pixel of a training view above `OBJECT_LEVEL` is warped, those
+    at or below their cell's floor black (their points stay: the neighbour still says where
+    its picture is black); an image of the older methods warps every colour, with or
+    without the section."""
+    from device_runtime.synthesis import OBJECT_LEVEL, noise_levels
+
+    image = read_image(depth_model, key=KEY)
+    synth = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+    older = _without_floor(depth_model)
+    bare = ViewSynthesizer(older, StandaloneScores(older), Reconstructor.from_image(older))
+    np.testing.assert_array_equal(synth.noise_level, _floor_per_pixel(image))
+    assert bare.noise_level is None
+    db = CinemaDB.open(depth_db)
+    black = 0
+    for i in (7, 60, 130):
+        colour = Reconstructor.from_image(image).update(synth.standalone.training_scores(i))
+        top = colour.max(axis=2)
+        points, rgb = synth.view_cloud(i)
+        kept, old_rgb = bare.view_cloud(i)
+        np.testing.assert_array_equal(points, kept)  # the same points: all above OBJECT_LEVEL
+        assert points.shape[1] == int((top > OBJECT_LEVEL).sum())
+        dim = top[top > OBJECT_LEVEL] <= _floor_per_pixel(image)[top > OBJECT_LEVEL]
+        assert not rgb[:, dim].any()
+        np.testing.assert_array_equal(rgb[:, ~dim], old_rgb[:, ~dim])
+        black += int(dim.sum())
+        view = (float(db.phi_deg[i]) + 2.0, float(db.theta_deg[i]))
+        assert np.abs(synth.frame(*view).astype(int) - bare.frame(*view)).max() > 0
+    assert black > 0
+    # the older methods ignore a section they do not know
+    kept = read_image(depth_model, key=KEY)
+    kept.synthesis = {**kept.synthesis, "method": "warp-depth-2"}
+    assert noise_levels(kept, kept.synthesis) is None
+
+
+def test_a_floor_image_without_a_good_floor_section_is_refused_in_one_line(depth_model):
+    """``warp-depth-3`` needs its section, uint8, one value per colour cell."""
+    cases = []
+    image = read_image(depth_model, key=KEY)
+    del image.sections["noise_floor"]
+    cases.append((image, "needs the section 'noise_floor'"))
+    for bad in (lambda f: f.astype(np.int16), lambda f: f[:-1]):
+        image = read_image(depth_model, key=KEY)
+        image.sections["noise_floor"] = bad(image.sections["noise_floor"])
+        cases.append((image, "expected uint8 of shape"))
+    for image, why in cases:
+        with pytest.raises(ImageFormatError, match=why) as err:
+            ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
+        assert "\n" not in str(err.value)
+
+
+def test_the_noise_floor_is_the_level_at_or_below_which_black_is_closest_to_the_renderings(
+        depth_model, depth_db):
+    """`measure_noise_floor` (what fit --depth stores): per cell, the level at or below which
+    the training views' reconstructions shown black are closest (squared error) to their
+    renderings; `OBJECT_LEVEL` where the object never is. Checked here by summing the
+    errors of whole floors directly: the fit's floor beats no floor and the floor moved a
+    few levels either way."""
+    from device_runtime.synthesis import OBJECT_LEVEL
+    from host.fit.floor import measure_noise_floor
+
+    image = read_image(depth_model, key=KEY)
+    db = CinemaDB.open(depth_db)
+    found = measure_noise_floor(image, db, views=None, progress=False)
+    assert found.views == db.n_views
+    np.testing.assert_array_equal(found.floor, image.sections["noise_floor"])
+    assert found.floor.min() >= OBJECT_LEVEL and found.floor.max() > OBJECT_LEVEL
+    table = StandaloneScores(read_image(depth_model, key=KEY))
+    rec = Reconstructor.from_image(image)
+    views = [(rec.update(table.training_scores(i)).astype(np.int64),
+              db.read_image(i).astype(np.int64)) for i in range(db.n_views)]
+    (h, w), (ch, cw), (ny, nx) = image.image_shape, image.cell_shape, image.grid_shape
+    empty = np.ones((ny * ch, nx * cw), bool)
+    for _, truth in views:
+        empty[:h, :w] &= truth.max(axis=2) == 0
+    never = empty.reshape(ny, ch, nx, cw).all(axis=(1, 3)).ravel()
+    assert never.any() and (found.floor[never] == OBJECT_LEVEL).all()
+
+    def error(floor):
+        level = np.kron(floor.reshape(ny, nx), np.ones((ch, cw), np.int64))[:h, :w]
+        return sum(int((((r * (r.max(axis=2) > level)[..., None]) - t) ** 2).sum())
+                   for r, t in views)
+
+    best = error(found.floor.astype(np.int64))
+    assert best < error(np.full(found.floor.shape, OBJECT_LEVEL))
+    for shift in (-3, -1, 1, 3):
+        assert best <= error(np.maximum(found.floor.astype(np.int64) + shift, OBJECT_LEVEL))
+
+
+def test_the_floor_of_a_cell_is_its_best_summed_gain_above_the_object_level():
+    from host.fit.floor import FLOOR_LEVELS, floor_from_gains
+
+    gains = np.zeros((4, FLOOR_LEVELS))
+    gains[1, [0, 1, 2]] = 100.0  # at or below OBJECT_LEVEL: not the floor's to take
+    gains[2, [5, 7, 10]] = (3.0, -2.0, 4.0)  # 3 at 5, 1 at 7..9, 5 at 10
+    gains[3, [4, 6]] = (2.0, -5.0)
+    gains[3, 9] = 3.0  # 2 at 4, -3 at 6, 0 at 9: the best is 4
+    np.testing.assert_array_equal(floor_from_gains(gains), [2, 2, 10, 4])
+    assert floor_from_gains(gains).dtype == np.uint8
+    gains[2, 11] = -1.0
+    gains[2, 12] = 1.0  # 5 again at 12: ties take the smaller level
+    assert floor_from_gains(gains)[2] == 10

@@ -214,8 +214,10 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     if args.depth:
         from host.evaluate.splat_filter import choose_splat_tent
         from host.fit.depth import add_depth
+        from host.fit.floor import add_noise_floor
 
         depth = add_depth(image, db, depth_threshold)
+        depth["floor"] = add_noise_floor(image, db).summary()
         depth["splat"] = choose_splat_tent(image, db)
     save_model(out, image, annex, key=key)
     if standalone is not None:
@@ -225,6 +227,7 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
               f"cell at T={depth['threshold']}), table noise {depth['score_mse']:.3g} mm², "
               f"{depth['raw_bytes'] / 1e6:.2f} MB raw ({depth['section']}); "
               f"synthesis {image.synthesis['method']}")
+        print(_floor_line(depth["floor"]))
         print(_splat_line(depth["splat"]))
     device_bytes = image_device_bytes(out)
     annex_bytes = out.stat().st_size - device_bytes
@@ -262,6 +265,13 @@ def _splat_line(splat: dict) -> str:
     found = ", ".join(f"{t}: {s:.4f}" for t, s in splat["ssim"].items())
     return (f"splat filter [1, {splat['tent']}, 1], chosen on {splat['views']} training views "
             f"warped from their row neighbours (object SSIM by centre weight: {found})")
+
+
+def _floor_line(floor: dict) -> str:
+    """What `host.fit.floor.measure_noise_floor` found, in one line."""
+    return (f"noise floor: in {floor['cells']} cells the warp paints pixels at or below a level "
+            f"of {floor['median']:.0f} (median; at most {floor['max']}) black, measured on "
+            f"{floor['views']} training views: the eigenspace's haze on the black background")
 
 
 def _choose_depth(args: argparse.Namespace, db: CinemaDB) -> None:

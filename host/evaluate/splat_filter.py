@@ -17,8 +17,10 @@ import numpy as np
 
 from device_runtime.synthesis import (
     DEPTH_DELTA_SECTION,
+    NOISE_FLOOR_SECTION,
     SPLAT_TENTS,
     SYNTHESIS_METHOD,
+    SYNTHESIS_METHOD_FLOOR,
     SYNTHESIS_METHOD_TENT,
 )
 
@@ -48,8 +50,10 @@ def choose_splat_tent(image: Any, db: Any, *, views: int = TENT_VIEWS,
     against the rendered view. Of the filters within `TENT_TIE` of the best mean, the one
     that spreads the splats most is taken; it is written into the image (method
     `SYNTHESIS_METHOD_TENT`, ``synthesis.splat_tent``) only when it beats the default by
-    more than ``margin``, else the image keeps `SYNTHESIS_METHOD`. The image's sections are
-    left as they were.
+    more than ``margin``, else the image keeps `SYNTHESIS_METHOD`. An image with the noise
+    floor (`NOISE_FLOOR_SECTION`, `host.fit.floor.add_noise_floor`) is warped with it and
+    named `SYNTHESIS_METHOD_FLOOR` with the filter taken (the default included). The image's
+    sections are left as they were.
 
     Returns
     -------
@@ -67,10 +71,13 @@ def choose_splat_tent(image: Any, db: Any, *, views: int = TENT_VIEWS,
     from host.evaluate.metrics import compare_images
     from host.progress import progress
 
+    default = SPLAT_TENTS[0]
+    floored = NOISE_FLOOR_SECTION in image.sections
     record = {k: v for k, v in image.synthesis.items() if k != "splat_tent"}
     record["method"] = SYNTHESIS_METHOD
+    if floored:
+        record.update(method=SYNTHESIS_METHOD_FLOOR, splat_tent=default)
     image.synthesis = record
-    default = SPLAT_TENTS[0]
     cases = _row_triples(np.asarray(image.views["phi_deg"], dtype=np.float64),
                          np.asarray(image.views["theta_deg"], dtype=np.float64), views)
     if not cases:
@@ -108,7 +115,9 @@ def choose_splat_tent(image: Any, db: Any, *, views: int = TENT_VIEWS,
     if not all(np.isfinite(m) for m in means.values()):
         return {"tent": default, "ssim": means, "views": len(cases)}
     best = pick_splat_tent(means, margin)
-    if best != default:
+    if floored:
+        image.synthesis = {**record, "splat_tent": int(best)}
+    elif best != default:
         image.synthesis = {**record, "method": SYNTHESIS_METHOD_TENT, "splat_tent": int(best)}
     return {"tent": best, "ssim": means, "views": len(cases)}
 

@@ -6,10 +6,11 @@ eigenspace to a bit budget (``quantize.py``), view interpolation of scores
 (``interpolate.py``: `ScoreInterpolator`, the host twin of
 ``device_runtime/interpolation.py``) and the host model: fitting a database, building and
 saving the ``.ecs`` image with its annex, loading it back as a `HostModel` that reconstructs
-exactly what a device shows (``model.py``), and the recovery of a view's scores from a
-sparse ray-cast with a prior (``recover.py``: `SparseRecovery`, `ProgressiveRecovery`) and
-the frames that fit a deadline while the view moves (``motion.py``: `MotionScores`, used by
-``serve`` and evaluate's ``pca_motion``).
+exactly what a device shows (``model.py``), the noise floor of the colour eigenspace, at or
+below which the device's warp shows black (``floor.py``: `add_noise_floor`), and the recovery
+of a view's scores from a sparse ray-cast with a prior (``recover.py``: `SparseRecovery`,
+`ProgressiveRecovery`) and the frames that fit a deadline while the view moves
+(``motion.py``: `MotionScores`, used by ``serve`` and evaluate's ``pca_motion``).
 
 May import: `host.render` (the database and its settings), `host.errors`, `host.progress`,
 `protocol` (the image format) and `device_runtime` (the device's own reconstruction and
@@ -45,6 +46,7 @@ __all__ = [
     "InvalidParameterError",
     "MotionFrame",
     "MotionScores",
+    "NoiseFloor",
     "NotFittedError",
     "ProgressiveRecovery",
     "QuantizationLoss",
@@ -52,6 +54,7 @@ __all__ = [
     "SamplePattern",
     "ScoreInterpolator",
     "SparseRecovery",
+    "add_noise_floor",
     "add_standalone_table",
     "allocate_bits",
     "angle_between",
@@ -62,6 +65,7 @@ __all__ = [
     "fit_database",
     "int8_loss_db",
     "int8_report",
+    "measure_noise_floor",
     "merge_cells",
     "offset_order",
     "quantize_components",
