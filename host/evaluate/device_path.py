@@ -140,8 +140,9 @@ class RestStep:
         Packet bytes sent for the view up to and including this step (cumulative).
     step_bytes : int
         This step's own packet bytes (all its strips).
-    packets : int
-        Its packets (a layer's strips; 1 for the correction, 0 for the own frame).
+    packets : list of bytes
+        Its packets as planned (a layer's strips, top to bottom; the correction's one; none
+        for the own frame).
     codec : str or None
         A layer's codec (``"webp"``, ``"webp-lossless"``, ``"png"``, or both joined by ``+``).
     residual : bool
@@ -155,7 +156,7 @@ class RestStep:
     frame: np.ndarray
     bytes: int
     step_bytes: int
-    packets: int = 0
+    packets: list[bytes] = field(default_factory=list)
     codec: str | None = None
     residual: bool = False
     planned_quality: float | None = None
@@ -325,11 +326,11 @@ class ServedFrames:
         total = 0
         if not out.skip_correction:
             total = size
-            out.steps.append(RestStep("correction", corrected, size, size, 1))
+            out.steps.append(RestStep("correction", corrected, size, size, [encoded.packet]))
         for layer in plan.layers:
             total += layer.size_bytes
             out.steps.append(RestStep("exact" if layer.exact else "layer", layer.frame, total,
-                                      layer.size_bytes, len(layer.packets), layer.codec,
+                                      layer.size_bytes, list(layer.packets), layer.codec,
                                       layer.residual, float(layer.quality)))
         return out
 

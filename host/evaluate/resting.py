@@ -143,7 +143,7 @@ def rest_record(rest: Any, measured: dict[str, Any]) -> dict[str, Any]:
     steps = []
     for step, values in zip(rest.steps, measured["steps"], strict=True):
         rec = {"kind": step.kind, "bytes": step.bytes, "step_bytes": step.step_bytes,
-               "packets": step.packets, "codec": step.codec, "residual": step.residual,
+               "packets": len(step.packets), "codec": step.codec, "residual": step.residual,
                "planned_quality": step.planned_quality, **values}
         if step.kind == "exact":
             rec.update(measured.get("exact") or {})
