@@ -29,6 +29,15 @@ ray-cast alpha); ``fps`` counts ticks showing a frame not shown at the previous 
 are wire bytes per score packet received during the trace; "view to frame" is the median
 time from setting a view to the first frame of it on show. The verdict per trace (issue
 23): the served path's object SSIM minus the best WebP stream's whose fps is not above it.
+
+``bench_link.py --parts rest`` (`rest_part`): one real session per baud in which the
+device rests on each of ``--rest-views`` random views in turn until the frame on show is
+the exact ray-cast (`rest_session`): per view the time from setting the view to its
+corrected frame (the first layer when the plan skips the correction), to object SSIM 0.95
+and 0.99 (of whatever frame is on show, the own frame included) and to the exact frame,
+when the host had the view's layers planned, against the time the smallest WebP and AVIF
+of each quality (and the WebP lossless file) take on the same line (`codec_times`: one
+frame, no host time); medians over the views.
 """
 
 from __future__ import annotations
@@ -479,3 +488,214 @@ def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | 
         tables.append(table)
         record[trace_name] = {str(k): v for k, v in res.items()}
     return tables, record
+
+
+# --------------------------------------------------------------------------- at rest
+
+#: The object SSIMs whose time from rest ``--parts rest`` reports (and the codecs' files).
+REST_QUALITIES = (0.95, 0.99)
+#: How long a resting view may take to reach its exact frame before it counts as missed.
+REST_TIMEOUT_S = 60.0
+
+
+def _at(shown: list[tuple[float, np.ndarray, dict]], view: tuple[float, float],
+        since: float) -> list[tuple[float, np.ndarray, dict]]:
+    """The frames of ``view`` presented from ``since`` on."""
+    return [(t, f, i) for t, f, i in shown
+            if t >= since and (i.get("phi_deg"), i.get("theta_deg")) == view]
+
+
+def rest_session(case: Any, model_path: Path, flash0: Path, views: list[tuple[float, float]],
+                 baud: int, work: Path, source: Any = None,
+                 timeout_s: float = REST_TIMEOUT_S) -> list[dict[str, Any]]:
+    """One real serve session over a paced mem:// line in which the device rests on each of
+    ``views`` in turn until its exact frame is on show (or ``timeout_s``): per view the
+    times from setting the view to its first frame, to the corrected frame (the first layer
+    when the plan skips the correction), to each of `REST_QUALITIES` (object SSIM of the
+    frame on show against the ray-cast) and to the exact frame; when the host queued the
+    view's first layer (its ray-cast and plan done) and the bytes it queued for the view."""
+    from bench_link import quality
+
+    from device_runtime.orbit import canonical_view
+    from host.link.layers import EncodedLayer
+    from host.link.serving import serve
+
+    flash = work / f"flash-rest-{uuid.uuid4().hex[:8]}"
+    shutil.copytree(flash0, flash)
+    name = f"bench-rest-{uuid.uuid4().hex[:8]}"
+    start = canonical_view(views[0][0] + 180.0, 0.0)  # rested on before the first view
+    dev = DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=True, view=start)
+    device = dev.device
+    stop = threading.Event()
+    out: dict[str, Any] = {}
+    sent: list[tuple[float, bool, tuple[float, float], int]] = []  # (when, layer, view, B)
+
+    def queued(enc: Any, view: tuple[float, float]) -> None:
+        sent.append((time.monotonic(), isinstance(enc, EncodedLayer), tuple(view),
+                     len(enc.packet)))
+
+    def host() -> None:
+        try:
+            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
+                                 stop=stop, log=lambda line: None, model=case.model,
+                                 renderer=case.renderer, stats_every_s=0, motion=source,
+                                 on_frame=queued)
+        except BaseException as exc:  # reported below
+            out["error"] = exc
+
+    def exact_of(view: tuple[float, float], since: float) -> bool:
+        return any(i.get("exact") for _, _, i in _at(dev.shown, view, since))
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    runs = []
+    try:
+        if not wait_for(lambda: exact_of(start, 0.0) or "error" in out, timeout_s):
+            raise RuntimeError(f"no exact frame of the first view {start} in {timeout_s:g} s")
+        if "error" in out:
+            raise RuntimeError(f"serve failed: {out['error']!r}")
+        for view in views:
+            view = canonical_view(*view)
+            time.sleep(0.3)  # a hand that just let go of the previous view
+            t_set = time.monotonic()
+            device.set_view(*view)
+            view = device.view
+            done = wait_for(lambda v=view, t=t_set: exact_of(v, t), timeout_s)
+            runs.append({"view": view, "t_set": t_set, "done": done})
+    finally:
+        stop.set()
+        thread.join(30)
+        dev.stop()
+        shutil.rmtree(flash, ignore_errors=True)
+    results = []
+    for k, run in enumerate(runs):
+        view, t_set = run["view"], run["t_set"]
+        t_end = runs[k + 1]["t_set"] if k + 1 < len(runs) else math.inf
+        frames = [(t, f, i) for t, f, i in _at(dev.shown, view, t_set) if t < t_end]
+        rgb, mask = case.render(view)
+        r: dict[str, Any] = {"view": view, "exact": run["done"],
+                             **rest_milestones(frames, t_set,
+                                               lambda f, rgb=rgb, mask=mask:
+                                               quality(rgb, f, mask)[0])}
+        mine = [(t, lay, b) for t, lay, v, b in sent if v == view and t_set <= t < t_end]
+        r["host_ready_s"] = next((t - t_set for t, lay, _ in mine if lay), math.inf)
+        r["bytes"] = sum(b for _, _, b in mine)
+        results.append(r)
+    return results
+
+
+def rest_milestones(frames: list[tuple[float, np.ndarray, dict]], t_set: float,
+                    score: Any) -> dict[str, Any]:
+    """When a resting view's frames (``(time, frame, info)`` as presented, in order) reached
+    each milestone, seconds after ``t_set``: ``first_s`` (any frame of it), ``corrected_s``
+    (its corrected frame, or its first layer when that came first: the plan skipped the
+    correction), ``ssim0.95_s`` / ``ssim0.99_s`` (the first frame on show, the own frame
+    included, whose ``score`` reaches it; an exact frame scores 1), ``exact_s``; inf where
+    never. Also ``corrected_ssim`` (the first refined frame's score), ``own_ssim``,
+    ``correction_sent`` and ``layers_shown``."""
+    r: dict[str, Any] = {"first_s": frames[0][0] - t_set if frames else math.inf}
+    corrected = next((t for t, _, i in frames if i.get("corrected")), None)
+    layer = next((t for t, _, i in frames if i.get("layer") is not None), None)
+    first_layer = layer if layer is not None else math.inf
+    r["corrected_s"] = (corrected if corrected is not None and corrected <= first_layer
+                        else first_layer) - t_set
+    r["correction_sent"] = corrected is not None
+    r["exact_s"] = next((t - t_set for t, _, i in frames if i.get("exact")), math.inf)
+    ssims = []  # (when, score, refined: the correction or a layer) per frame
+    for t, f, i in frames:
+        refined = bool(i.get("corrected") or i.get("layer") is not None)
+        ssims.append((t, 1.0 if i.get("exact") else float(score(f)), refined))
+    for q in REST_QUALITIES:  # whatever is on show: the own frame may reach it already
+        r[f"ssim{q:g}_s"] = next((t - t_set for t, s, _ in ssims if s >= q), math.inf)
+    r["corrected_ssim"] = next((s for _, s, refined in ssims if refined), math.nan)
+    r["own_ssim"] = next((s for _, s, refined in ssims if not refined), math.nan)
+    r["layers_shown"] = sum(i.get("layer") is not None for _, _, i in frames)
+    return r
+
+
+def codec_times(case: Any, view: tuple[float, float], baud: int,
+                corrected_ssim: float) -> dict[str, float]:
+    """Seconds the smallest WebP and AVIF file of the view's ray-cast reaching the corrected
+    frame's object SSIM and each of `REST_QUALITIES` take on the line (one frame each; no
+    host time: the codec is favoured), and its WebP lossless file (the exact frame)."""
+    import io
+
+    from bench_link import smallest_file, wire_bytes
+    from PIL import Image
+
+    rgb, mask = case.render(view)
+    rate = baud / 10.0
+    out: dict[str, float] = {}
+    ladders: dict[str, dict] = {"webp": {}, "avif": {}}
+    targets = {"corrected": corrected_ssim, **{f"ssim{q:g}": q for q in REST_QUALITIES}}
+    for label, target in targets.items():
+        for codec in ("webp", "avif"):
+            size = (smallest_file(rgb, mask, target, codec, ladders[codec])
+                    if math.isfinite(target) else math.nan)
+            out[f"{codec}_{label}_s"] = (wire_bytes(int(size)) / rate if math.isfinite(size)
+                                         else math.nan)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, "WEBP", lossless=True, exact=True)
+    out["webp_lossless_s"] = wire_bytes(len(buf.getvalue())) / rate
+    out["webp_lossless_bytes"] = len(buf.getvalue())
+    return out
+
+
+def rest_table(title: str, res: dict[int, list[dict]]) -> str:
+    """Medians over the views per baud: ours against the codecs' files."""
+    def med(rows: list[dict], key: str) -> str:
+        vals = np.array([r[key] for r in rows], dtype=np.float64)
+        if not vals.size:
+            return "-"
+        m = float(np.median(vals))  # (a missed view counts as infinitely late)
+        return "missed" if not math.isfinite(m) else f"{m:.2f}"
+
+    lines = [f"**{title}**", "",
+             "| baud | views (exact, correction sent) | first frame s | corrected s "
+             "(SSIM) | SSIM 0.95 s | SSIM 0.99 s | exact s | host ready s | bytes to exact "
+             "| WebP / AVIF at the corrected SSIM s | WebP / AVIF 0.95 s | WebP / AVIF 0.99 s "
+             "| WebP lossless s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for baud, rows in res.items():
+        n_exact = sum(r["exact"] for r in rows)
+        n_corr = sum(r["correction_sent"] for r in rows)
+        corr_ssim = float(np.nanmedian([r["corrected_ssim"] for r in rows]))
+        lines.append(
+            f"| {baud} | {len(rows)} ({n_exact}, {n_corr}) | {med(rows, 'first_s')} | "
+            f"{med(rows, 'corrected_s')} ({corr_ssim:.3f}) | {med(rows, 'ssim0.95_s')} | "
+            f"{med(rows, 'ssim0.99_s')} | {med(rows, 'exact_s')} | {med(rows, 'host_ready_s')}"
+            f" | {float(np.median([r['bytes'] for r in rows])):.0f} | "
+            f"{med(rows, 'webp_corrected_s')} / {med(rows, 'avif_corrected_s')} | "
+            f"{med(rows, 'webp_ssim0.95_s')} / {med(rows, 'avif_ssim0.95_s')} | "
+            f"{med(rows, 'webp_ssim0.99_s')} / {med(rows, 'avif_ssim0.99_s')} | "
+            f"{med(rows, 'webp_lossless_s')} |")
+    return "\n".join(lines)
+
+
+def rest_part(case: Any, path: Path, desc: str, bauds: list[int], n_views: int,
+              work: Path, seed: int = 11) -> tuple[list[str], dict[str, Any]]:
+    """Resting sessions of one model at each baud (`rest_session`) against the codecs'
+    files on the same line (`codec_times`): the table (markdown) and the record."""
+    from host.render.camera import parse_view_set
+
+    flash = provisioned_flash(path, work)
+    t0 = time.perf_counter()
+    source = prepared_source(case, "served")
+    print(f"  rest: host source prepared in {time.perf_counter() - t0:.1f} s", flush=True)
+    views = [(v.phi_deg, v.theta_deg) for v in
+             parse_view_set(f"random:{n_views}:{seed}").views]
+    res: dict[int, list[dict]] = {}
+    for baud in bauds:
+        t0 = time.perf_counter()
+        rows = rest_session(case, path, flash, views, baud, work, source=source)
+        for r in rows:
+            r.update(codec_times(case, r["view"], baud, r["corrected_ssim"]))
+        res[baud] = rows
+        print(rest_table(f"{desc} at rest, {baud} baud", {baud: rows})
+              + f"\n({time.perf_counter() - t0:.0f} s)", flush=True)
+    table = rest_table(f"at rest: {desc}, {n_views} views random:{n_views}:{seed} (serve + "
+                       "RuntimeDevice over a paced mem:// line, 64 KiB frames; medians; "
+                       "codecs: one file's time on the line, no host time)", res)
+    return [table], {str(b): [{k: (list(v) if isinstance(v, tuple) else v)
+                               for k, v in r.items()} for r in rows]
+                     for b, rows in res.items()}
