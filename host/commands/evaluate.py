@@ -13,8 +13,9 @@ from pathlib import Path
 from host.errors import EigencastError
 
 HELP = ("ray-cast novel views with the model's own render settings and compare what the device "
-        "shows (its own frame, served at rest and while moving) with equal-bytes JPEG/WebP/AVIF "
-        "and the nearest training view (PSNR, SSIM, FLIP, blockiness)")
+        "shows (its own frame, served at rest and while moving, and at rest each refinement "
+        "layer up to the exact frame) with JPEG/WebP/AVIF and the nearest training view "
+        "(PSNR, SSIM, FLIP, blockiness)")
 
 #: Files and folders a report folder holds; an existing folder with anything else is refused.
 REPORT_ENTRIES = {"index.html", "rd.png", "per_view.png", "rest.png", "summary.json", "views"}
