@@ -112,3 +112,14 @@ def test_the_rest_table_takes_medians_and_says_missed():
     assert cells[5] == "4.00" and cells[6] == "4.00"  # the median of 3, 4 and a miss
     rows = [{**row, "exact_s": math.inf} for _ in range(3)]
     assert "missed" in link_real.rest_table("t", {115200: rows})
+
+
+def test_the_complete_correction_is_the_score_packet_just_before_the_first_strip():
+    sparse, complete, strip = (10.1, False, 60), (11.9, False, 300), (12.0, True, 2800)
+    assert link_real.complete_correction_sent([sparse, complete, strip], 10.0)
+    assert not link_real.complete_correction_sent([sparse, strip], 10.0)  # skipped
+    assert not link_real.complete_correction_sent([sparse, (11.9, True, 2800)], 10.0)
+    # no sparse correction (nothing worth sending): the complete one alone, late
+    assert link_real.complete_correction_sent([complete, strip], 10.0)
+    assert not link_real.complete_correction_sent([(10.1, False, 60), (10.2, True, 9)], 10.0)
+    assert not link_real.complete_correction_sent([sparse], 10.0)  # no layers at all
