@@ -104,7 +104,8 @@ def test_the_rest_table_takes_medians_and_says_missed():
            "corrected_s": 1.0, "ssim0.95_s": 1.0, "ssim0.99_s": 4.0, "exact_s": 4.0,
            "host_ready_s": 0.5, "bytes": 30000, "webp_corrected_s": 0.3,
            "avif_corrected_s": 0.25, "webp_ssim0.95_s": 0.3, "avif_ssim0.95_s": 0.25,
-           "webp_ssim0.99_s": 1.0, "avif_ssim0.99_s": 0.8, "webp_lossless_s": 2.7}
+           "webp_ssim0.99_s": 1.0, "avif_ssim0.99_s": 0.8, "webp_lossless_s": 2.7,
+           "raycast_s": 0.4}
     rows = [{**row, "exact_s": v, "ssim0.99_s": v} for v in (3.0, 4.0, math.inf)]
     line = link_real.rest_table("t", {115200: rows}).splitlines()[-1]
     cells = [c.strip() for c in line.strip("|").split("|")]
