@@ -635,8 +635,8 @@ class Reconstructor:
         outs, calls = job.outs, job.calls
         for i, p in enumerate(positions):
             k, rows, w, cast = calls[p]
-            if k == 1:
-                np.multiply(rows[0], w[0], out=outs[i])
+            if k == 1:  # float32 math whatever numpy's promotion of an int8 row and a scalar
+                np.multiply(rows[0], w[0], out=outs[i], dtype=np.float32)
             else:
                 np.copyto(cast, rows, casting="unsafe")
                 np.dot(w, cast, out=outs[i])
