@@ -664,6 +664,13 @@ class WarpWorker:
     cached). Where warps take less than the request interval every view's warp starts at
     once, as before.
 
+    A view led: while views are held on steady motion (requests come faster than a warp
+    takes), the worker warps the view the motion reaches as many steps ahead as a warp
+    takes intervals, plus one (`_lead_view`, at most `LEAD_STEPS`); a request on the way
+    there does not give it up, and its frame waits for its view like a view made ahead.
+    Its time measures a warp again, so a slow estimate left by other work does not hold a
+    quick motion's views.
+
     Any caller can always get the frame of a view: ``take(view, timeout_s)`` with a timeout
     asks for the view if it is neither asked nor made, starts it at once (no hold) and
     waits for it; the frame is `ViewSynthesizer.frame`'s, bit for bit.
@@ -718,6 +725,9 @@ class WarpWorker:
     #: that will not be asked costs a warp); how far apart in time (of the interval).
     AHEAD_ANGLE_TOL = AHEAD_SNAP_DEG
     AHEAD_TIME_TOL = 1.0
+    #: The farthest (in request steps) a warp leads steady motion that requests views
+    #: faster than a warp takes (`_lead_view`).
+    LEAD_STEPS = 8
     #: The longest a warp waits at one check for the display to finish its frame, seconds.
     YIELD_S = 0.1
 
@@ -744,6 +754,7 @@ class WarpWorker:
         self._ahead: tuple[tuple[float, float], np.ndarray] | None = None  # made ahead
         self._guessed: tuple[float, float] | None = None  # the last view warped ahead
         self._speculative = False  # the warp in flight is a view made ahead
+        self._lead = False  # ... and leads the motion by more than a step (`_lead_view`)
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
         self._thread.start()
 
@@ -777,6 +788,8 @@ class WarpWorker:
             self._last_request_t = now
             self._history = [*self._history[1 - self.AHEAD_VIEWS:], (now, *view)]
             ahead, self._ahead = self._ahead, None
+            if ahead is not None and ahead[0] != view and self._still_ahead(ahead[0]):
+                self._ahead, ahead = ahead, None  # a lead further on: kept for its view
             if ahead is not None and ahead[0] == view:  # made ahead: there at once
                 self.ahead_used += 1
                 self._pending, self._urgent = None, False
@@ -823,14 +836,14 @@ class WarpWorker:
         self._thread.join(timeout=10.0)
 
     @classmethod
-    def predicted_view(cls, history: list[tuple[float, float, float]]
+    def predicted_view(cls, history: list[tuple[float, float, float]], steps: int = 1
                        ) -> tuple[float, float] | None:
         """The next view of steady motion: ``history`` holds the last requests as (time,
         phi, theta), oldest first; when at least `AHEAD_VIEWS` of them lie on a straight
         line in angle (within `AHEAD_ANGLE_TOL`) with one step between each and evenly in
-        time (within `AHEAD_TIME_TOL` of the interval), the view one more step on, by the
-        least-squares line through them (its rounding averaged out: the device's views are
-        float32), canonical. None: no steady motion."""
+        time (within `AHEAD_TIME_TOL` of the interval), the view ``steps`` more steps on, by
+        the least-squares line through them (its rounding averaged out: the device's views
+        are float32), canonical. None: no steady motion."""
         if len(history) < cls.AHEAD_VIEWS:
             return None
         t, phi, theta = (np.asarray(a, dtype=np.float64) for a in zip(*history))
@@ -845,8 +858,8 @@ class WarpWorker:
             slope, icpt = np.polyfit(k, a, 1)
             if np.abs(icpt + slope * k - a).max() > cls.AHEAD_ANGLE_TOL:
                 return None
-            out.append(icpt + slope * len(a))
-        if abs(out[0] - phi[-1]) + abs(out[1] - theta[-1]) < 1e-6:
+            out.append(icpt + slope * (len(a) - 1 + steps))
+        if abs(out[0] - phi[-1]) + abs(out[1] - theta[-1]) < 1e-6 * steps:
             return None  # not moving
         return canonical_view(out[0], out[1])
 
@@ -864,6 +877,28 @@ class WarpWorker:
         `AHEAD_SNAP_DEG` (phi across 360)."""
         return all(abs((x - y + 180.0) % 360.0 - 180.0) <= cls.AHEAD_SNAP_DEG
                    for x, y in zip(a, b))
+
+    def _still_ahead(self, view: tuple[float, float]) -> bool:
+        """Whether ``view`` lies ahead on the line of the steady motion requested (one to
+        `LEAD_STEPS` steps on); under the lock, or read without it (a stale answer costs
+        one warp)."""
+        history = list(self._history)
+        return any(v is not None and self.same_view(v, view) for v in (
+            self.predicted_view(history, k) for k in range(1, self.LEAD_STEPS + 1)))
+
+    def _lead_view(self) -> tuple[float, float] | None:
+        """While requests come faster than a warp takes (a held view) on steady motion: the
+        view as many steps ahead as a warp takes intervals, plus one, so that its warp is
+        made before it is asked (under the lock). None: no steady motion, or that view is
+        made (or was begun) already."""
+        if self.warp_s is None or self.interval_s is None or not self.interval_s > 0:
+            return None
+        steps = min(self.LEAD_STEPS, math.ceil(self.warp_s / self.interval_s) + 1)
+        view = self.predicted_view(self._history, steps)
+        if view is None or view == self._guessed or (
+                self._ahead is not None and self._still_ahead(self._ahead[0])):
+            return None
+        return view
 
     def _ahead_view(self, now: float) -> tuple[float, float] | None:
         """The view to warp ahead now (under the lock), or None: only while the next request
@@ -896,8 +931,13 @@ class WarpWorker:
         lock: attribute reads, and a stale answer only delays the give-up to the next
         check."""
         self._display_idle.wait(self.YIELD_S)
-        pending = self._pending
-        return self._closed or (pending is not None and pending != self._current)
+        pending, current = self._pending, self._current
+        if self._closed:
+            return True
+        if pending is None or pending == current:
+            return False
+        # a lead stays wanted while the motion still comes its way
+        return not (self._lead and current is not None and self._still_ahead(current))
 
     def _next_view(self) -> tuple[tuple[float, float], bool] | None:
         """The view to warp next, once it has waited its hold, and whether it is made ahead
@@ -915,6 +955,12 @@ class WarpWorker:
                 continue
             hold = self.hold_s()
             wait = self._pending_t + hold - now
+            if hold > 0.0 and not self._urgent:
+                lead = self._lead_view()
+                if lead is not None:
+                    self._guessed = lead
+                    self._lead = True
+                    return lead, True
             probe = hold > 0.0 and now - self._started_t >= self.PROBE_S
             if self._urgent or wait <= 0.0 or probe:
                 view, self._pending, self._urgent = self._pending, None, False
@@ -948,11 +994,13 @@ class WarpWorker:
                                                            or spent > self.warp_s):
                         self.warp_s = spent
                     self._current, self._speculative, self._probe = None, False, False
+                    self._lead = False
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1
                     self._current, self._speculative, self._probe = None, False, False
+                    self._lead = False
                     self._cond.notify_all()
                 continue
             spent = time.monotonic() - t0
@@ -964,11 +1012,14 @@ class WarpWorker:
                 self._probe = False
                 self._current = None
                 ahead, self._speculative = self._speculative, False
+                lead, self._lead = self._lead, False
                 made = False
                 if self._pending == view:
                     self._pending, self._urgent = None, False
                     self._result, made = (view, frame), True
                     self._cond.notify_all()
+                elif ahead and (self._pending is None or lead):
+                    self._ahead = (view, frame)  # until its view is asked
                 elif self._pending is None:
                     if ahead:
                         self._ahead = (view, frame)  # until its view is asked
