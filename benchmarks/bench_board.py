@@ -33,9 +33,10 @@ it rests: ``on time``, the share of ticks at whose end the screen shows the view
 set at the tick's start (or a newer one); ``stall``, the longest run of ticks that were not,
 in board ms; ``warp``, the share of ticks whose frame on show is the view's warp or a
 corrected frame of it; ``rest->warp`` and ``rest->corr``, board ms from the last input to
-the first warp (or corrected frame, or refinement layer) of the final view. The image needs depth and the
-standalone table (``fit``'s defaults); a served case ray-casts with the image's recorded
-render settings, so its volume must be where the database was rendered from.
+the first warp (or corrected frame, or refinement layer) of the final view. The image
+needs depth and the standalone table (``fit``'s defaults); a served case ray-casts with the
+image's recorded render settings, so its volume must be where the database was rendered
+from.
 """
 
 from __future__ import annotations
