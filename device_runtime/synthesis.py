@@ -33,7 +33,7 @@ size (:func:`synthesis_memory_bytes`) and kept to what a device's RAM bound allo
 standalone device reconstructs the neighbours with the display's reconstructor. A frame is a
 function of the image and the view only (not of the cache, the reconstructor or the thread):
 the same code makes the host's frames (``eigencast evaluate``'s ``pca_warp``), so host and
-device frames are identical, and ``scripts/warp_views.py`` (the go/no-go measurement)
+device frames are identical, and ``research/warp_views.py`` (the go/no-go measurement)
 imports it. A served device makes its warps on a thread of its own (:class:`WarpWorker`).
 
 Geometry: the orbit cameras of an eigencast database look at the bounding sphere's centre

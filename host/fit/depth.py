@@ -9,7 +9,7 @@ device's way: float16 means, int8 components with a float32 scale each, an int16
 every training view's scores (`device_runtime.synthesis.DepthEigenspace`). `add_depth`
 puts it into an image as the sections `device_runtime.synthesis.DEPTH_SECTIONS` and names the
 synthesis method in the manifest (``image.synthesis``). The research measurement
-(``scripts/warp_views.py``, docs/rate-distortion.md section 9) fits with the same code.
+(``research/warp_views.py``, docs/rate-distortion.md section 9) fits with the same code.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 docs/rate-distortion.md section 9.7. For the shared tooth and VisMale head at 256 and 512 (the
 cached databases and models ``/work/cache/{tooth,vismale_head}-{256,512}.{cdb,ecs}``, the
 paper's grid of 1500 views) and the 20 held-out views of sections 9.1 / 9.5
-(``random:20:15``, ray-cast truth cached by ``scripts/warp_views.py`` in ``--warp-cache``),
+(``random:20:15``, ray-cast truth cached by ``research/warp_views.py`` in ``--warp-cache``),
 every novel view is made by the product's warp (`device_runtime.synthesis.forward_warp`
 through `Warper.warp`: nearest splats, tent filter, z-test, hole filling) from the 4
 neighbours of the model's bilinear interpolation, and scored by object SSIM / FLIP:
@@ -41,7 +41,7 @@ neighbours the held-out views use are encoded as well, for their frames only).
 
 Usage::
 
-    nice -n 5 .venv/bin/python scripts/warp_storage.py [--volumes tooth,vismale_head] \\
+    nice -n 5 .venv/bin/python research/warp_storage.py [--volumes tooth,vismale_head] \\
         [--sizes 256,512] [--views 20] [--seed 15] [-o /work/cache/warpstore/results.json]
 
 Everything is cached under ``--cache`` (default ``/work/cache/warpstore``): the product depth
@@ -84,7 +84,7 @@ from host.fit.model import HostModel, add_standalone_table, score_step_for
 from host.render.camera import parse_view_set
 from host.render.cinema import CinemaDB
 from protocol.image import DEFAULT_LEVEL, HEADER_SIZE, image_size, write_image
-from scripts.warp_views import Volume, Warper, variant_depth
+from research.warp_views import Volume, Warper, variant_depth
 
 #: Depth score noise of the fit used to re-quantize at every ``--depth-mse`` (mm^2 / pixel):
 #: fine enough that rounding twice adds nothing measurable.
@@ -511,7 +511,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=0, help="only the first N held-out views")
     ap.add_argument("--cache", default="/work/cache/warpstore")
     ap.add_argument("--warp-cache", default="/work/cache/warp",
-                    help="scripts/warp_views.py's cache (training depths, held-out truth)")
+                    help="research/warp_views.py's cache (training depths, held-out truth)")
     ap.add_argument("--depth-thresholds", default="0.9,0.95,0.98,0.99")
     ap.add_argument("--depth-mse", default=f"{DEPTH_SCORE_MSE},0.5,2,8,32",
                     help="depth table noise, mm^2 per pixel (fit --depth's default for the "

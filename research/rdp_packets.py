@@ -1,9 +1,9 @@
 """Score-packet rate-distortion experiments (issue 6 item 3; docs/rate-distortion-packets.md).
 
-    .venv/bin/python scripts/rdp_packets.py MODEL.ecs TEST.cdb -o OUT.json
+    .venv/bin/python research/rdp_packets.py MODEL.ecs TEST.cdb -o OUT.json
         [--views 100] [--factors 1,2,4,8,16,32] [--codec-views 40] [--flip]
 
-For the held-out views of TEST.cdb (object pixels, `scripts/rdp_common.py`) and a sweep of
+For the held-out views of TEST.cdb (object pixels, `research/rdp_common.py`) and a sweep of
 score steps (multiples of the model's own step, which `fit` chose from the 0.25 MSE rule):
 
 * **quantizers**: ``uniform`` (``rint(y / s)``, what eigencast sent so far) and ``waterfill``

@@ -1,6 +1,6 @@
 """The device's own frames under each lighting look: evaluate's ``pca_warp`` per look.
 
-    .venv/bin/python scripts/lighting_warp.py --dbs DIR [--volumes builtin:head,tooth]
+    .venv/bin/python research/lighting_warp.py --dbs DIR [--volumes builtin:head,tooth]
         [--size 256] [--views grid:100x15] [--test-views random:20:15]
 
 For each volume and look (``headlight``, ``cinematic``) it uses ``DIR/NAME-LOOK.cdb`` (as

@@ -33,7 +33,7 @@ background is black, so a pixel is object when any channel is non-zero).
 
 Usage::
 
-    .venv/bin/python scripts/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
+    .venv/bin/python research/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
         [--webp-db-qualities 60,80,95] [--views N] [--workers 2]
 
 Produces: docs/rate-distortion.md, sections 2 "View interpolation" and 3 "Cell seams"

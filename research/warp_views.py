@@ -53,7 +53,7 @@ the neighbours' depths at 512 (~80 views per volume, cached) and the held-out vi
 
 Usage::
 
-    .venv/bin/python scripts/warp_views.py [--volumes tooth,vismale_head] [--sizes 256,512] \\
+    .venv/bin/python research/warp_views.py [--volumes tooth,vismale_head] [--sizes 256,512] \\
         [--views 20] [--seed 15] [--cache /work/cache/warp] [--images docs/images] \\
         [-o /work/cache/warp/results.json]
 

@@ -32,7 +32,7 @@ pixels, the mean over the views, and the share of views where a variant beats th
 
 Usage::
 
-    .venv/bin/python scripts/warp_layers.py MODEL.ecs TRAIN.cdb TEST.cdb [--views 40] \\
+    .venv/bin/python research/warp_layers.py MODEL.ecs TRAIN.cdb TEST.cdb [--views 40] \\
         [--no-layers] [--json OUT.json]
 """
 

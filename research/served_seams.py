@@ -13,9 +13,9 @@ inside). Then the cost on one core of a correction (`Reconstructor.correct`) wit
 the smoothing against a blend (`Reconstructor.update`) of the same image, in the same run,
 and a check that the device's smoothing is `border_blend` bit for bit:
 
-    .venv/bin/python scripts/served_seams.py /work/cache/db/tooth-256.ecs --views 12
+    .venv/bin/python research/served_seams.py /work/cache/db/tooth-256.ecs --views 12
     OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 taskset -c 0 \\
-        .venv/bin/python scripts/served_seams.py /work/cache/db/tooth-256.ecs --cost-only
+        .venv/bin/python research/served_seams.py /work/cache/db/tooth-256.ecs --cost-only
 """
 
 from __future__ import annotations

@@ -34,7 +34,7 @@ the factor's one-off build (a single run).
 
 Usage::
 
-    .venv/bin/python scripts/sparse_recovery.py MODEL.ecs [MODEL.ecs ...] \\
+    .venv/bin/python research/sparse_recovery.py MODEL.ecs [MODEL.ecs ...] \\
         [--views 10] [--seed 1] [--strides 2,4,8] [--lambdas 100] [--json out.json]
 """
 
