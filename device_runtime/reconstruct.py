@@ -45,7 +45,7 @@ shown):
   rounds and writes only its corrected cells, all at once.
   So a correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
   cells' rows, one while moving a few rows in a fraction of the cells (BENCHMARKS.md,
-  "Device loop", section x).
+  "Correcting the own frame").
 """
 
 from __future__ import annotations
