@@ -1,4 +1,4 @@
-"""Score interpolation, WebP database and cell seams on held-out views (docs/rate-distortion.md).
+"""Score interpolation, WebP database and cell seams on held-out views (docs/design-notes.md).
 
 For one fitted model (``.ecs`` from a grid training database) and a database of held-out test
 views rendered with the same settings, every novel view is made by several methods and
@@ -36,7 +36,7 @@ Usage::
     .venv/bin/python research/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
         [--webp-db-qualities 60,80,95] [--views N] [--workers 2]
 
-Produces: docs/rate-distortion.md, sections 2 "View interpolation" and 3 "Cell seams"
+Produces: docs/design-notes.md, "The blend's weights: bilinear" (and "Tried and not kept")
 (through rd_plots.py).
 """
 

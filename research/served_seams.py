@@ -1,6 +1,7 @@
 """Do corrections of the device's own frame add cell seams, and what does smoothing them buy?
 
-docs/rate-distortion.md section 10.4 (issue 23 item 6). For each model, on random views, the
+docs/design-notes.md, "Cell seams of a correction" (issue 23 item 6). For each model, on
+random views, the
 frames of the one served path (`host.evaluate.ServedFrames`: the own frame, at rest, while
 moving at ``--stride``) computed with the device's seam smoothing off
 (`Reconstructor.seam_strength` 0), and the same frames smoothed (`border_blend`, the device's

@@ -1,4 +1,4 @@
-"""The one served path across volumes: docs/rate-distortion.md section 10 (issue 23).
+"""The one served path across volumes: docs/design-notes.md, "Serving" (issue 23).
 
 For every case (a model with depth and the standalone table) this runs
 

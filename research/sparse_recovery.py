@@ -1,5 +1,5 @@
-"""Sparse ray-cast recovery on held-out views (docs/rate-distortion.md, "Sparse ray-cast
-recovery", issue 13).
+"""Sparse ray-cast recovery on held-out views (docs/design-notes.md, "Sparse ray-casts
+while moving", issue 13).
 
 For each fitted model (``.ecs`` whose render settings name the volume), on random
 off-grid views, every frame is the device's reconstruction of quantized scores (the

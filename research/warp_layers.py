@@ -1,6 +1,6 @@
 """Where the depth warp loses against the projection, and whether a second depth layer pays.
 
-docs/rate-distortion.md section 9.10 (issue 22). For a standalone depth image (``fit
+docs/design-notes.md, "One depth layer" (issue 22). For a standalone depth image (``fit
 --standalone --depth``), its training database (``render --depth``) and a held-out database
 of the same volume and settings (``render --depth --views random:N:SEED``, whose stored
 images are the truth; object pixels: a channel above `OBJECT_LEVEL`), every held-out view is

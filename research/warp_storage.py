@@ -1,6 +1,7 @@
 """Issue 15's storage question: what depth costs, and eigencast + depth against WebP + depth.
 
-docs/rate-distortion.md section 9.7. For the shared tooth and VisMale head at 256 and 512 (the
+docs/design-notes.md, "The depth eigenspace", "Storage against image databases". For the
+shared tooth and VisMale head at 256 and 512 (the
 cached databases and models ``/work/cache/{tooth,vismale_head}-{256,512}.{cdb,ecs}``, the
 paper's grid of 1500 views) and the 20 held-out views of sections 9.1 / 9.5
 (``random:20:15``, ray-cast truth cached by ``research/warp_views.py`` in ``--warp-cache``),

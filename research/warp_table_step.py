@@ -5,7 +5,8 @@
 
 A standalone image with depth (``eigencast fit --standalone --depth``) stores the training
 views' colour scores at the packet step, and that table is its largest part
-(docs/rate-distortion.md 9.7: the reason a WebP + depth database is smaller). The warp blends
+(docs/design-notes.md, "Storage against image databases": the reason a WebP + depth
+database is smaller). The warp blends
 4 neighbours and filters its splats, so it may need less precision than the packet step.
 For each image and each factor, this writes the image again with the table re-quantized at
 factor x the packet step (`host.fit.model.add_standalone_table`, as ``fit --standalone``

@@ -57,7 +57,7 @@ Usage::
         [--views 20] [--seed 15] [--cache /work/cache/warp] [--images docs/images] \\
         [-o /work/cache/warp/results.json]
 
-Produces: docs/rate-distortion.md, section 9 "Depth-aware view synthesis (issue 15)" (the
+Produces: docs/design-notes.md, "The device's own frame is a depth warp" (the
 tables printed at the end, and the pictures ``docs/images/warp-<volume>.jpg``).
 """
 
