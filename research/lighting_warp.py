@@ -18,7 +18,7 @@ code, its depth eigenspace) of the *training images themselves* (the database's 
 place of their reconstructions), on the same views, against the same fresh ray-casts. It
 separates what the lighting does to the warp from what it does to the eigenspace.
 
-Produces: BENCHMARKS.md, "Lighting looks", the pca_warp table.
+Produces: BENCHMARKS.md, "Lighting looks", the pca_warp figures.
 """
 
 from __future__ import annotations
