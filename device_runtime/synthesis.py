@@ -2,7 +2,7 @@
 
 A standalone device used to show a novel view as the eigenspace reconstruction of the
 interpolated training scores: a weighted sum of the 4 neighbouring training views, 12 degrees
-apart, which shows every edge twice (docs/rate-distortion.md, section 9). An image fitted with
+apart, which shows every edge twice (docs/design-notes.md). An image fitted with
 ``eigencast fit --depth`` also carries a cell eigenspace of every training view's depth (the
 distance along each pixel's ray where the opacity crosses one half, at half resolution) and
 names the synthesis method in its manifest (``"synthesis": {"method": "warp-depth-1", ...}``,
@@ -29,11 +29,12 @@ for the volume; :data:`SYNTHESIS_METHOD_FLOOR` with that filter and the colour's
 
 Everything is numpy, float32, with no per-pixel Python loop. Memory is bounded by the frame
 size (:func:`synthesis_memory_bytes`) and kept to what a device's RAM bound allows
-(docs/rate-distortion.md 9.9): the warp works one view at a time on a grid it reuses, and a
+(BENCHMARKS.md, "The device's own frame"): the warp works one view at a time on a grid it
+reuses, and a
 standalone device reconstructs the neighbours with the display's reconstructor. A frame is a
 function of the image and the view only (not of the cache, the reconstructor or the thread):
 the same code makes the host's frames (``eigencast evaluate``'s ``pca_warp``), so host and
-device frames are identical, and ``scripts/warp_views.py`` (the go/no-go measurement)
+device frames are identical, and ``research/warp_views.py`` (the go/no-go measurement)
 imports it. A served device makes its warps on a thread of its own (:class:`WarpWorker`).
 
 Geometry: the orbit cameras of an eigencast database look at the bounding sphere's centre
@@ -156,7 +157,8 @@ CACHE_VIEWS = 4
 #: this, and faded in linearly from here to half (`row_weights`), so away from the rows'
 #: middle one row's two views are warped. Fewer, nearer sources blend fewer misaligned
 #: reconstructions: object SSIM +0.003 to +0.016 on every shared volume against all four
-#: (docs/rate-distortion.md 9.10), and a drag along a row reconstructs half the neighbours.
+#: (docs/design-notes.md, "Which neighbours"), and a drag along a row reconstructs half the
+#: neighbours.
 ROW_RAMP = 0.4
 #: Scratch of a predicting device's warp worker's own reconstructor (one thread): a third
 #: of the display's, for 1.5x its time per neighbour (a cache miss, ~0.8 per drag frame),
