@@ -660,8 +660,10 @@ class WarpWorker:
     its warp starts (`hold_s`: two recent request intervals, at most a warp's time); a
     newer request in that time replaces it unstarted (``skipped``), and the warp starts
     once the view rests; every `PROBE_S` of holding one view's warp starts anyway and
-    measures a warp's time again (an estimate is not left stale by a motion that holds
-    every view). A view requested while a warp is in flight gives that warp up at
+    measures a warp's time again, to its end (an estimate is not left stale by a motion that
+    holds every view). Only warm warps set the estimate: one that made its neighbours (a
+    cold start, a cache miss) can only lower it, so a drag that begins cold is not held.
+    A view requested while a warp is in flight gives that warp up at
     its next check (`ViewSynthesizer.frame`'s ``cancel``: a neighbour already made stays
     cached). Where warps take less than the request interval every view's warp starts at
     once, as before.
@@ -704,9 +706,9 @@ class WarpWorker:
         Views warped ahead (made or begun; counted in ``made`` / ``cancelled`` too), and
         those asked for after all.
     warp_s : float or None
-        The recent time a warp takes (exponential average of the warps made, raised by a
-        warp given up later than that that made no neighbour, replaced by a probe's);
-        None until the first.
+        The recent time a warp takes (exponential average of the warps made that made no
+        neighbour, lowered by those that did, raised by a warp given up later than that that
+        made no neighbour, replaced by a probe's); None until the first warm one.
     """
 
     #: Request intervals longer than this are a view at rest, not a drag.
@@ -936,8 +938,8 @@ class WarpWorker:
         pending, current = self._pending, self._current
         if self._closed:
             return True
-        if pending is None or pending == current:
-            return False
+        if pending is None or pending == current or self._probe:
+            return False  # (a probe measures a warp's time: it runs to its end)
         # a lead stays wanted while the motion still comes its way
         return not (self._lead and current is not None and self._still_ahead(current))
 
@@ -1006,11 +1008,15 @@ class WarpWorker:
                     self._cond.notify_all()
                 continue
             spent = time.monotonic() - t0
+            warm = getattr(self.synthesis, "misses", 0) == misses
             with self._cond:
                 self.made += 1
-                # a probe's time replaces the estimate it was started to check
-                self.warp_s = spent if self.warp_s is None or self._probe else (
-                    self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                if warm:  # a probe's time replaces the estimate it was started to check
+                    self.warp_s = spent if self.warp_s is None or self._probe else (
+                        self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                elif self.warp_s is not None and spent < self.warp_s:
+                    # a warp that made its neighbours says how long a warp takes at most
+                    self.warp_s += self.SMOOTHING * (spent - self.warp_s)
                 self._probe = False
                 self._current = None
                 ahead, self._speculative = self._speculative, False

@@ -1254,3 +1254,35 @@ def test_steady_motion_faster_than_a_warp_is_led_by_warps_made_ahead():
                    for phi, theta in synth.started[1:]), synth.started
     finally:
         worker.close()
+
+
+def test_a_cold_warp_that_made_its_neighbours_does_not_hold_the_motion_after_it():
+    """The first warp makes its neighbours (60 ms); the warps after it take 1 ms. That cold
+    warp is no warp's time: views then asked every 5 ms are warped, not held. (The old worker
+    took 60 ms as a warp's time and held every view of an unsteady drag until a probe.)"""
+    from device_runtime.synthesis import WarpWorker
+
+    class ColdOnce(_Sleepy):
+        misses = 0
+
+        def frame(self, phi, theta, cancel=None):
+            if not self.misses:
+                self.misses += 1
+                time.sleep(0.06)  # making the neighbours (the work being simulated)
+            return super().frame(phi, theta, cancel)
+
+    synth = ColdOnce(0.001)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        assert worker.take((0.0, 10.0), timeout_s=10.0) is not None
+        assert worker.warp_s is None
+        # an unsteady drag (no line to warp ahead on): growing steps
+        views = [(0.05 * i * i, 10.0) for i in range(1, 81)]
+        for view in views:
+            worker.request(view)
+            time.sleep(0.005)  # the drag's pace (the input being simulated)
+        assert len(synth.started) > 50 and worker.skipped < 20, (synth.started,
+                                                                   worker.skipped)
+    finally:
+        worker.close()
