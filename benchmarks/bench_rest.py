@@ -13,16 +13,17 @@ when the plan sends it, each lossy layer, the exact layer) its object SSIM (mask
 ray-cast's alpha) and cumulative bytes against the smallest WebP (method 6), AVIF (speed 4)
 and JPEG of the ray-cast reaching the same object SSIM, and the exact step against the
 ray-cast's WebP lossless and optimized PNG files. The layers are planned unsplit (packets up
-to ``--packet-bytes``, default the planner's 64 KiB: one strip at 256) and, for the strip
-columns, as ``serve`` splits them on each ``--splits`` packet size (2880: a 115200-baud
-line's quarter second; 16288: a TCP device's default 16 KiB frame).
+to ``--packet-bytes``, default the planner's 64 KiB: one chunk at 256) and, for the chunk
+columns ("strips"), as ``serve`` splits each layer's file on each ``--splits`` packet size
+(2880: a 115200-baud line's quarter second; 16288: a TCP device's default 16 KiB frame).
 
 **device**: on one core (the process pins itself to ``--cpu``, ``OPENBLAS_NUM_THREADS=1``,
-``Reconstructor(threads=1)``), each layer's packets applied as the device's scheduler
-applies them (`protocol.layers.decode_layer` + `device_runtime.layers.decode_strip` +
-`RestFrame.apply`, per strip), interleaved with the device's blend (`Reconstructor.update`
-of a moved view's interpolated scores, `StandaloneScores`); thread CPU time, median of
-``--repeat``; the ratio layer / blend per layer (all its strips) and per strip.
+``Reconstructor(threads=1)``), each layer's packets taken as the device's scheduler takes
+them (`protocol.layers.decode_layer` and `LayerAssembly.add` per chunk; the whole file's
+`device_runtime.layers.decode_file` + `RestFrame.apply` with its last chunk), interleaved
+with the device's blend (`Reconstructor.update` of a moved view's interpolated scores,
+`StandaloneScores`); thread CPU time, median of ``--repeat``; the ratio layer / blend per
+layer (all its chunks) and for its costliest chunk (the one that decodes).
 
 Usage (one command; the figures of BENCHMARKS.md "Refinement layers at rest")::
 
@@ -219,10 +220,10 @@ def time_device(planned: dict[str, Any], cpu: int, repeat: int,
                 splits: list[int]) -> dict[str, Any]:
     """Thread CPU time of the device applying each layer (and strip) against its blend, on
     CPU ``cpu`` alone."""
-    from device_runtime.layers import RestFrame, decode_strip
+    from device_runtime.layers import RestFrame, decode_file
     from device_runtime.reconstruct import Reconstructor
     from device_runtime.standalone import StandaloneScores
-    from protocol.layers import decode_layer
+    from protocol.layers import LayerAssembly, decode_layer
 
     os.sched_setaffinity(0, {cpu})
     model = planned["model"]
@@ -241,14 +242,19 @@ def time_device(planned: dict[str, Any], cpu: int, repeat: int,
 
     def layer_s(packets: list[bytes], before: np.ndarray, view: tuple[float, float],
                 base: int) -> list[float]:
+        """Per chunk as the device's scheduler takes it: its header checked, joined, and
+        the last one's file decoded and applied (one decode per layer)."""
         rest = RestFrame(view, base, before)
+        assembly = LayerAssembly()
         out = []
         for packet in packets:
             t0 = time.thread_time()
-            layer = decode_layer(packet, image_digest=model.digest,
+            chunk = decode_layer(packet, image_digest=model.digest,
                                  image_shape=(height, width),
                                  max_packet_bytes=max(len(packet), 1 << 16))
-            rest.apply(layer, decode_strip(layer, width))
+            data = assembly.add(chunk)
+            if data is not None:
+                rest.apply(chunk, decode_file(data, chunk.codec, (height, width)))
             out.append(time.thread_time() - t0)
         return out
 
