@@ -14,10 +14,11 @@ from PIL import Image
 from provision_helpers import KEY, DeviceProcess, mem_name
 from runtime_helpers import RuntimeThread, wait_until
 
+from device_runtime.device import DeviceConfig
 from device_runtime.orbit import canonical_view
 from host.cli import main as eigencast
 from host.fit.model import HostModel
-from host.link.layers import RestPlanner, object_ssim
+from host.link.layers import EncodedLayer, RestPlanner, object_ssim
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
@@ -55,7 +56,8 @@ def _serving(url: str, model_path, stop: threading.Event, sent: list, **kwargs):
     out: dict = {}
 
     def host() -> None:
-        out["stats"] = serve(model_path, url, key=KEY, stop=stop, log=_quiet,
+        kwargs.setdefault("log", _quiet)
+        out["stats"] = serve(model_path, url, key=KEY, stop=stop,
                              on_frame=lambda enc, view: sent.append((enc, view)), **kwargs)
 
     thread = threading.Thread(target=host, daemon=True)
@@ -285,3 +287,40 @@ def test_object_ssim_is_evaluates_measure():
                        ).astype(np.uint8)
         assert object_ssim(truth, test) == pytest.approx(
             structural_similarity(truth, test, mask=object_mask(truth)), abs=1e-12)
+
+
+def test_a_correction_larger_than_the_devices_frames_costs_its_view_not_the_session(
+        tmp_path, depth_model_path, truth_of, monkeypatch):
+    """A correction that does not fit the device's frames (a 256 px tooth's complete one is
+    28 kB, a serial device's frame 4 kB; here the room for scores is cut to 200 bytes so a
+    48 px model's do not fit): serve used to stop there ("does not fit the device's
+    frames"); now that correction is not sent (counted, said once), and the layers, chunked
+    to fit, still take the frame to the ray-cast bit for bit."""
+    import host.link.serving as serving
+
+    monkeypatch.setattr(serving, "_SCORES_OVERHEAD", 1024 - 200)
+    name = mem_name("small-frames")
+    shown: list = []
+    config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=1024)
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           config=config,
+                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
+    provision(depth_model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
+              log=_quiet)
+    view = canonical_view(47.0, 23.0)
+    stop, sent = threading.Event(), []
+    lines: list[str] = []
+    with device:
+        device.device.set_view(*view)
+        thread, out = _serving(f"mem://{name}?end=a", depth_model_path, stop, sent,
+                               log=lines.append)
+        try:
+            wait_until(lambda: any(i.get("exact") for _, i in shown), 90, "the exact frame")
+            np.testing.assert_array_equal(device.device._shown_frame, truth_of(view))
+        finally:
+            stop.set()
+            thread.join(30)
+    stats = out["stats"]
+    assert stats.oversize_corrections >= 1 and stats.exact_views >= 1
+    assert all(len(enc.packet) <= 200 or isinstance(enc, EncodedLayer) for enc, _ in sent)
+    assert sum("does not fit the device's frames" in line for line in lines) == 1

@@ -38,6 +38,9 @@ class ServeStats:
     failed_views : int
         Ray-casts (or codings) of a view that raised: each view was skipped (the device
         kept its own frame, or got interpolated scores) and serving went on.
+    oversize_corrections : int
+        Corrections larger than the device's frames: not sent (the device kept its own
+        frame of that view; at rest the layers, which are chunked, refined it instead).
     layer_frames, layer_bytes : int
         Refinement layers' packets (chunks) sent to resting views, and their bytes.
     exact_views : int
@@ -81,6 +84,7 @@ class ServeStats:
     correction_bytes: int = 0
     unchanged_frames: int = 0
     failed_views: int = 0
+    oversize_corrections: int = 0
     layer_frames: int = 0
     layer_bytes: int = 0
     exact_views: int = 0
@@ -134,6 +138,9 @@ class ServeStats:
             kinds.append(f"{self.unchanged_frames} views left as the device made them")
         if self.failed_views:
             kinds.append(f"{self.failed_views} views whose ray-cast failed")
+        if self.oversize_corrections:
+            kinds.append(f"{self.oversize_corrections} corrections too large for the "
+                         "device's frames")
         if self.layer_frames:
             kinds.append(f"{self.layer_frames} layer packets ({self.exact_views} views exact)")
         return (f"{self.frames} frames ({', '.join(kinds) or 'none'}), "

@@ -402,6 +402,7 @@ class _Serving:
     session's device reads no layers, or ``rest`` asks for none)."""
     failed_view: tuple[float, float] | None = None  # its refinement is not tried again
     failure_said: float | None = None  # when a failed view was last said (monotonic)
+    score_room: int = 1 << 30  # the device's frame less the SCORES message around a packet
 
     def run(self) -> ServeStats:
         """Serve sessions until done; reconnect after a lost link (or give up)."""
@@ -554,6 +555,7 @@ class _Serving:
             self.kind = "interpolate"
         self.encoder.enabled = correct
         self.motion = self._source(self.kind) if self.renderer is not None else None
+        self.score_room = hello.max_frame_bytes - _SCORES_OVERHEAD
         planner = self._planner(hello) if correct and self.motion is not None else None
         if self.resting is not None:
             self.resting.close()
@@ -780,6 +782,9 @@ class _Serving:
             frame.sent = encoded
             return frame if encoded is not None else None
         self.current.scores, self.current.fine = frame.scores, True
+        if encoded is not None and len(encoded.packet) > self.score_room:
+            self._oversize(encoded)  # the layers (chunked) refine the own frame instead
+            encoded = None
         self.resting.start(frame.view, *images, encoded, self.motion.own)
         return None
 
@@ -847,6 +852,10 @@ class _Serving:
         if encoded is None:
             self.stats.unchanged_frames += 1
             return
+        if (not layer and self.encoder.last_kind == "correction"
+                and len(encoded.packet) > self.score_room):
+            self._oversize(encoded)  # costs this view: the device keeps its own frame
+            return
         sent = conn.sent
         sent.clear()
         queued = time.monotonic()
@@ -869,6 +878,17 @@ class _Serving:
         self._count(encoded, frame)
         if self.on_frame is not None:
             self.on_frame(encoded, frame.view)
+
+    def _oversize(self, encoded: EncodedScores) -> None:
+        """A correction larger than the device's frames is not sent: counted, and said once
+        per session (the device shows its own frame of that view; at rest the layers, which
+        are chunked to fit, take it to the exact frame all the same)."""
+        self.stats.oversize_corrections += 1
+        if self.stats.oversize_corrections == 1:
+            self.say(f"a correction of {len(encoded.packet)} bytes does not fit the device's "
+                     f"frames ({self.score_room} bytes of scores): such views keep the "
+                     "device's own frame until their layers come (eigencast-device "
+                     "--max-frame 65536 takes them)")
 
     def _encode(self, frame: _Frame) -> EncodedScores | None:
         """The frame's packet; scores that cannot be coded cost the view (`_view_failed`)."""
