@@ -36,6 +36,7 @@ from protocol.errors import (
     ReplayError,
 )
 from protocol.framing import Channel, Flags, Frame, Kind, encode_frame
+from protocol.image import MAX_LOOKS
 from protocol.records import MAX_DEPTH, U8, U16, U32, U64, Detail, Record, scan_cbor, wire
 
 __all__ = [
@@ -947,6 +948,10 @@ class Scores(TaggedEvent):
     """The VIEW_REQUEST/KEYFRAME_REQUEST sequence answered (0: unsolicited, e.g. orbit)."""
     packet: bytes = wire(1, min_len=1, max_len=MAX_PAYLOAD_BYTES, repr=False)
     """Opaque score packet, decoded by protocol.scores with the device's limits."""
+    look: int | None = wire(2, default=None, ge=0, le=MAX_LOOKS - 1)
+    """The look the packet was made for, of an image with several (absent: the first): a
+    device that shows another look drops it (the user switched looks while it was on its
+    way)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -964,6 +969,10 @@ class ViewRequest(Message):
     """Elevation in degrees."""
     sequence: int = wire(2, ge=0, le=U32)
     """Increases with every request; SCORES echoes it."""
+    look: int | None = wire(3, default=None, ge=0, le=MAX_LOOKS - 1)
+    """The look on show of an image with several (`protocol.image`, manifest ``looks``): its
+    index; absent: the first (an image with one look, or a device that predates looks). A
+    host that predates looks ignores it."""
 
 
 @dataclass(frozen=True, kw_only=True)

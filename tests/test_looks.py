@@ -1,0 +1,309 @@
+"""Several looks in one image: ``eigencast fit A B C`` (host/fit/looks.py), the single-look
+image of each look (device_runtime/looks.py), a device switching looks, ``serve`` correcting
+the look on show, and devices that predate looks refusing such an image in one line. The
+format itself (version 2, the manifest's ``looks``): test_image.py."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from provision_helpers import KEY, mem_name
+from runtime_helpers import TINY_LOOKS, RuntimeThread, tiny_looks_model, wait_until
+
+from device_runtime.device import DeviceConfig
+from device_runtime.display import CycleLook, HeadlessPresenter
+from device_runtime.looks import look_image, look_index, look_names
+from device_runtime.prediction import OwnFrames
+from device_runtime.reconstruct import Reconstructor
+from device_runtime.runtime import LoadedModel, RuntimeDevice
+from device_runtime.standalone import StandaloneScores
+from host.cli import main as eigencast
+from host.errors import FitError
+from host.evaluate.warp import WarpFrames
+from host.fit.model import HostModel
+from host.link import provision, serve
+from host.link.provisioning import ProvisionError
+from host.render.cinema import CinemaDB
+from protocol import image as image_format
+from protocol import messages as m
+from protocol.errors import ImageFormatError
+from protocol.image import read_image, read_manifest
+from protocol.layers import is_layer
+from protocol.scores import decode_header
+
+NAMES = tuple(name for _, name in TINY_LOOKS)
+
+
+@pytest.fixture(scope="module")
+def looks_path(tmp_path_factory):
+    return tiny_looks_model(tmp_path_factory)
+
+
+def _dbs(looks_path):
+    return [CinemaDB.open(looks_path.parent / f"look{i}.cdb") for i in range(len(NAMES))]
+
+
+def _quiet(line: str) -> None:
+    pass
+
+
+def test_fit_writes_one_image_whose_looks_share_the_scores_and_the_depth(looks_path):
+    """Three databases of the same views make one version-2 image: one standalone table and
+    one K for every look, the lighting variants sharing the depth and the other transfer
+    function with its own; each look's eigenspace reconstructs its own training views, far
+    closer than any other look's."""
+    image = read_image(looks_path, key=KEY)
+    assert read_manifest(looks_path)["header"]["format_version"] == 2
+    assert look_names(image) == NAMES
+    assert sum(name.startswith("standalone_scores") for name in image.sections) == 1
+    own = [look.get("sections", {}) for look in image.looks]
+    assert own[0] == {}
+    assert {"mean", "scales", "eigenimages", "noise_floor"} <= set(own[1]) <= {
+        "mean", "scales", "eigenimages", "noise_floor"}
+    assert any(k.startswith("depth_") for k in own[2])
+    records = image.provenance["looks"]
+    assert [r["name"] for r in records] == list(NAMES)
+    assert records[1]["render"]["renderer"]["lighting"]["name"] == "cinematic"
+    dbs = _dbs(looks_path)
+    for look in range(len(NAMES)):
+        view = look_image(image, look)
+        assert view.looks is None and view.n_coefficients == image.n_coefficients
+        assert view.provenance["render"] == dbs[look].settings
+        rec, table = Reconstructor.from_image(view), StandaloneScores(view)
+        for i in (0, 37, 61):
+            frame = rec.update(table.training_scores(i)).astype(float)
+            err = [float(np.mean((frame - db.read_image(i)) ** 2)) for db in dbs]
+            others = [e for j, e in enumerate(err) if j != look]
+            assert err[look] < 0.25 * min(others), (look, i, err)
+
+
+def test_looks_are_named_and_picked_by_name_or_index(looks_path, tmp_path, capsys):
+    image = read_image(looks_path)
+    assert look_index(image, "lamp") == 1 and look_index(image, "2") == 2
+    assert look_index(image, None) == 0
+    with pytest.raises(ValueError, match=r"no look 'bone' in the image \(its looks: plain, "):
+        look_index(image, "bone")
+    with pytest.raises(ValueError, match="look 3 is out of range"):
+        look_index(image, 3)
+    out = tmp_path / "lamp.png"
+    assert eigencast(["view", str(looks_path), "--phi", "30", "--theta", "10", "--look",
+                      "lamp", "-o", str(out)]) == 0
+    assert "look lamp" in capsys.readouterr().out
+    assert eigencast(["view", str(looks_path), "--phi", "30", "--theta", "10", "--look",
+                      "bone", "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no look 'bone'" in err[0]
+    with pytest.raises(FitError, match="no look 'bone'"):
+        HostModel.load(looks_path, look="bone")
+
+
+def test_fit_refuses_databases_of_other_views(looks_path, tmp_path, capsys):
+    other = tmp_path / "other.cdb"
+    assert eigencast(["render", "builtin:tooth", "-o", str(other), "--views", "grid:8x5",
+                      "--size", "32", "--samples", "40", "--no-depth"]) == 0
+    capsys.readouterr()
+    first = str(looks_path.parent / "look0.cdb")
+    assert eigencast(["fit", first, str(other), "-o", str(tmp_path / "x.ecs")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "are not the same views" in err[-1]
+    assert eigencast(["fit", first, first, "-o", str(tmp_path / "x.ecs"),
+                      "--look-names", "a"]) == 1
+    assert "1 names for 2 databases" in capsys.readouterr().err
+    assert not (tmp_path / "x.ecs").exists()
+
+
+def _standalone_device(image, tmp_path, frames: list, look: int = 0) -> RuntimeDevice:
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
+                           standalone=True, view=(40.0, 10.0), log=_quiet,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info))))
+    model = LoadedModel.build(image, slot="A", generation=1, test=False, want_standalone=True,
+                              look=look)
+    device._decoder_model = model  # as `_activate` leaves it
+    device._models.put(model)
+    return device
+
+
+def _rest(device: RuntimeDevice, frames: list) -> None:
+    """Display turns until the warp of the view on show is on show."""
+    wait_until(lambda: device.display_turn(None) is not None and frames
+               and frames[-1][1].get("synthesized")
+               and (frames[-1][1]["phi_deg"], frames[-1][1]["theta_deg"]) == device.view,
+               30, "the warp of the view")
+
+
+def test_a_device_switches_looks_at_once_and_shows_what_eigencast_view_shows(
+        looks_path, tmp_path):
+    """Key ``l`` (`CycleLook`) on a standalone device: the new look's own frame of the view
+    is shown on the same turn (its blend), then its warp, bit for bit the host's frame of
+    that look (``eigencast view --look``); the old look's model (its worker, its cached
+    views) is closed; after the last look comes the first; the overlay names the look."""
+    image = read_image(looks_path, key=KEY)
+    frames: list = []
+    device = _standalone_device(image, tmp_path, frames)
+    warps = {name: WarpFrames(HostModel.load(looks_path, look=name)) for name in NAMES}
+    try:
+        _rest(device, frames)
+        first = device._model
+        assert first.look_name == "plain"
+        np.testing.assert_array_equal(frames[-1][0], warps["plain"].frame(*device.view))
+        for step, name in enumerate((*NAMES[1:], NAMES[0])):
+            shown = len(frames)
+            old = device._model
+            device.apply(CycleLook())
+            assert device._model is not old and device._model.look_name == name
+            assert device._decoder_model is device._model
+            assert not old.warp_worker._thread.is_alive()
+            assert len(frames) == shown + 1 and not frames[-1][1].get("synthesized")
+            blend = Reconstructor.from_image(look_image(image, name))
+            np.testing.assert_array_equal(
+                frames[-1][0], blend.update(device._model.own_scores(device.view)))
+            _rest(device, frames)
+            np.testing.assert_array_equal(frames[-1][0], warps[name].frame(*device.view))
+            assert device.runtime_stats.look_switches == step + 1
+        device.presenter.overlay = True
+        assert device.overlay_lines()[0].startswith("look plain  (1/3")
+        assert device.stats_dict()["image"]["looks"] == list(NAMES)
+    finally:
+        device.close_display()
+        device.close()
+
+
+def test_a_device_starts_on_the_look_it_is_told(looks_path, tmp_path):
+    image = read_image(looks_path, key=KEY)
+    frames: list = []
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
+                           standalone=True, view=(40.0, 10.0), log=_quiet, look="generic",
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info))))
+    try:
+        device._models.put(LoadedModel.build(image, slot="A", generation=1, test=False,
+                                             want_standalone=True,
+                                             look=look_index(image, device.look)))
+        _rest(device, frames)
+        want = WarpFrames(HostModel.load(looks_path, look="generic")).frame(*device.view)
+        np.testing.assert_array_equal(frames[-1][0], want)
+        assert device.show_look("plain") and device._model.look == 0
+        with pytest.raises(ValueError, match="no look 'x'"):
+            device.show_look("x")
+    finally:
+        device.close_display()
+        device.close()
+
+
+class _Keys(HeadlessPresenter):
+    """A headless presenter whose `poll` hands out queued actions (keys pressed)."""
+
+    def __init__(self) -> None:
+        super().__init__(None)
+        self.queue: list = []
+
+    def poll(self):
+        out, self.queue = self.queue, []
+        return out
+
+
+def test_serve_corrects_the_look_on_show(looks_path, tmp_path):
+    """A served device switches to the cinematic look: its VIEW_REQUESTs say so, the host
+    marks its packets with that look, and the corrected frames the device shows are its
+    own frames of that look plus the host's corrections (never the first look's); the
+    complete correction at rest brings the frame closer to the cinematic ray-cast than to
+    the headlight one (the host ray-casts the look on show)."""
+    name = mem_name("looks")
+    frames: list = []
+    keys = _Keys()
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           presenter=keys,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
+    provision(looks_path, f"mem://{name}?end=a", key=KEY, show_progress=False, log=_quiet)
+    packets: dict = {}
+    original = device.device.on_scores
+
+    def on_scores(msg):
+        if not is_layer(msg.packet):  # (layers are not asked for here)
+            header = decode_header(msg.packet)
+            packets[header.frame] = msg.look or 0
+        original(msg)
+
+    device.device.on_scores = on_scores
+    stop = threading.Event()
+    result: dict = {}
+    lines: list[str] = []
+    thread = threading.Thread(target=lambda: result.setdefault("stats", serve(
+        looks_path, f"mem://{name}?end=a", key=KEY, stop=stop, log=lines.append,
+        rest="correction", stats_every_s=0)), daemon=True)
+    lamp = HostModel.load(looks_path, look="lamp")
+    with device:
+        thread.start()
+        try:
+            wait_until(lambda: any(i.get("corrected") for _, i in frames), 60,
+                       "the first correction")
+            keys.queue.append(CycleLook())
+            wait_until(lambda: device.device._model.look == 1, 20, "the switch")
+            switched = len(frames)
+            wait_until(lambda: any(i.get("corrected") and packets.get(i.get("frame")) == 1
+                                   for _, i in frames[switched:]), 60,
+                       "a correction of the cinematic look")
+            view = device.device.view
+            wait_until(lambda: result.get("stats") is None and any(
+                i.get("corrected") and (i["phi_deg"], i["theta_deg"]) == view
+                and packets.get(i["frame"]) == 1 for _, i in frames[switched:]), 30, "rest")
+            threading.Event().wait(1.0)  # the complete correction of the resting view
+        finally:
+            stop.set()
+            thread.join(20)
+    stats = result["stats"]
+    assert stats.look_switches == 1
+    assert any("the device shows look lamp" in ln for ln in lines), lines
+    after = [(f, i) for f, i in frames[switched:] if i.get("corrected")]
+    assert after and all(packets[i["frame"]] == 1 for _, i in after)
+    assert device.device.runtime_stats.as_dict()["look_switches"] == 1
+    f, info = after[-1]
+    synth = OwnFrames(lamp.image).frame(info["phi_deg"], info["theta_deg"])
+    truth_lamp = _ray_cast(lamp, info)
+    truth_plain = _ray_cast(HostModel.load(looks_path, look="plain"), info)
+
+    def err(a, b):
+        return float(np.mean((a.astype(float) - b.astype(float)) ** 2))
+
+    assert err(f, truth_lamp) < err(synth, truth_lamp)
+    assert err(f, truth_lamp) < 0.5 * err(f, truth_plain)
+
+
+def _ray_cast(model: HostModel, info: dict) -> np.ndarray:
+    from host.link.true_views import open_true_view_scores
+
+    return open_true_view_scores(model, None).renderer.render_rgb8(info["phi_deg"],
+                                                                   info["theta_deg"])
+
+
+def test_a_device_that_predates_looks_refuses_the_image_in_one_line(looks_path, tmp_path,
+                                                                    monkeypatch):
+    """An image with looks is format version 2: a reader of version 1 only refuses it in one
+    line; a host will not send it to a device whose HELLO lists version 1 only, and such a
+    device refuses IMAGE_BEGIN of version 2 (UNSUPPORTED_FORMAT)."""
+    import device_runtime.device as device_module
+    import device_runtime.image_receiver as receiver_module
+
+    versions = image_format.SUPPORTED_VERSIONS
+    monkeypatch.setattr(image_format, "SUPPORTED_VERSIONS", (1,))
+    with pytest.raises(ImageFormatError, match=r"unsupported format version 2 \(supported: 1\)"
+                       ) as info:
+        read_image(looks_path)
+    assert "\n" not in str(info.value)
+    # the host reads it; the device is the old one
+    monkeypatch.setattr(image_format, "SUPPORTED_VERSIONS", versions)
+    monkeypatch.setattr(device_module, "SUPPORTED_VERSIONS", (1,))
+    monkeypatch.setattr(receiver_module, "SUPPORTED_VERSIONS", (1,))
+    name = mem_name("old")
+    with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b") as device:
+        with pytest.raises(ProvisionError, match="reads image format versions 1; this image "
+                           "is version 2") as info:
+            provision(looks_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
+                      log=_quiet)
+        assert "\n" not in str(info.value)
+        begin = m.ImageBegin(digest=bytes(32), size_bytes=4096, image_tag=bytes(32),
+                             format_version=2, generation=1)
+        with pytest.raises(Exception, match="format version 2 is not supported") as info:
+            device.device.handle_image_begin(begin, None)
+        assert info.value.code == m.ErrorCode.UNSUPPORTED_FORMAT
