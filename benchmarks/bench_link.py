@@ -53,6 +53,12 @@ ticks), with the verdict "served at least 0.1 object SSIM above the best WebP st
 more frames per second". The key part's ``correction at rest (predict ...)`` rows measure
 issue 14's retired correction of the score blend (version-2 packets), kept for history.
 
+``rest`` (`link_real.rest_part`): real resting sessions at each baud: the device rests on
+each of ``--rest-views`` random views until its exact frame is on show; the time from rest
+to the corrected frame (or the first layer where the plan skips the correction), to object
+SSIM 0.95 and 0.99 and to the exact frame, against the time the smallest WebP and AVIF of
+each quality and the WebP lossless file take on the same line; medians over the views.
+
 ``cells``: cell sizes (``--cells``) at 128 and 256: ``eigencast fit DB --cell C`` into
 ``--work``, then the ``key`` measurement of each (plus the interpolated frame's SSIM).
 
@@ -69,6 +75,12 @@ The served path on a 115200-baud line, both shared volumes at 256 (issue 23; BEN
     .venv/bin/python benchmarks/bench_link.py --cache /work/cache/db \
         --blend-cache /work/cache/bench23/nodepth --sizes 256 --parts real --bauds 115200
 
+Resting sessions at 115200 and 921600 baud, 20 views per volume at 256 (BENCHMARKS.md,
+"Refinement layers at rest"; about 10 minutes per volume)::
+
+    nice .venv/bin/python benchmarks/bench_link.py --cache bench-out/rest/ecs --sizes 256 \
+        --volumes tooth,head,vismale_head --parts rest --bauds 115200,921600
+
 Missing models in ``--cache`` (``VOLUME-SIZE.ecs``) are skipped with one line.
 """
 
@@ -77,6 +89,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -88,8 +101,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")  # (the device decodes layers)
 
-from link_real import DEFAULT_REAL_MODES, SAMPLE_DELAY_S, real_part  # noqa: E402
+from link_real import DEFAULT_REAL_MODES, SAMPLE_DELAY_S, real_part, rest_part  # noqa: E402
 
 from host.evaluate.baselines import decode_image, encode_image, encode_within_budget  # noqa: E402
 from host.evaluate.masks import alpha_object_mask  # noqa: E402
@@ -588,6 +602,8 @@ def main(argv: list[str] | None = None) -> int:
                     "display ticks after its view was set")
     ap.add_argument("--real-work", type=Path, default=Path("/work/cache/link-real"),
                     help="real part: the devices' flash folders")
+    ap.add_argument("--rest-views", type=int, default=20,
+                    help="rest part: views the device rests on, each until its exact frame")
     ap.add_argument("--cells", default="8,12,16,24")
     ap.add_argument("--cell-sizes", default="128,256")
     ap.add_argument("--write", type=Path, default=None,
@@ -610,7 +626,7 @@ def main(argv: list[str] | None = None) -> int:
     for size in [int(s) for s in args.sizes.split(",")]:
         for vol in volumes:
             path = args.cache / f"{vol}-{size}.ecs"
-            if not ({"key", "link", "real"} & set(parts)):
+            if not ({"key", "link", "real", "rest"} & set(parts)):
                 break
             if not path.exists():
                 print(f"skip {vol}-{size}: no model {path}", flush=True)
@@ -655,6 +671,11 @@ def main(argv: list[str] | None = None) -> int:
                 tables += tabs
                 for trace_name, r in rec.items():
                     record[f"real/{vol}-{size}/{trace_name}"] = r
+            if "rest" in parts:
+                tabs, rec = rest_part(case, path, desc, [int(b) for b in args.bauds.split(",")],
+                                      args.rest_views, args.real_work)
+                tables += tabs
+                record[f"rest/{vol}-{size}"] = rec
     if "cells" in parts:
         tables += cells_part(args.cache, args.work, volumes,
                              [int(s) for s in args.cell_sizes.split(",")],

@@ -29,6 +29,15 @@ ray-cast alpha); ``fps`` counts ticks showing a frame not shown at the previous 
 are wire bytes per score packet received during the trace; "view to frame" is the median
 time from setting a view to the first frame of it on show. The verdict per trace (issue
 23): the served path's object SSIM minus the best WebP stream's whose fps is not above it.
+
+``bench_link.py --parts rest`` (`rest_part`): one real session per baud in which the
+device rests on each of ``--rest-views`` random views in turn until the frame on show is
+the exact ray-cast (`rest_session`): per view the time from setting the view to its
+corrected frame (the first layer when the plan skips the correction), to object SSIM 0.95
+and 0.99 (of whatever frame is on show, the own frame included) and to the exact frame,
+when the host had the view's layers planned, against the time the smallest WebP and AVIF
+of each quality (and the WebP lossless file) take on the same line (`codec_times`: one
+frame, no host time); medians over the views.
 """
 
 from __future__ import annotations
@@ -79,7 +88,8 @@ class DeviceThreads:
     on threads; ``shown`` records (monotonic time, frame, info) per present."""
 
     def __init__(self, flash: Path, url: str, baud: int, *, predict: bool,
-                 view: tuple[float, float], record: bool = True) -> None:
+                 view: tuple[float, float], record: bool = True,
+                 max_frame_bytes: int = 65536) -> None:
         from device_runtime.device import DeviceConfig
         from device_runtime.runtime import RuntimeDevice
 
@@ -88,7 +98,8 @@ class DeviceThreads:
                                                         dict(info or {}))))
                     if record else None)
         # frames as large as the model's key packets (eigencast-device --max-frame 65536)
-        config = DeviceConfig(flash_dir=flash, key=None, insecure=True, max_frame_bytes=65536)
+        config = DeviceConfig(flash_dir=flash, key=None, insecure=True,
+                              max_frame_bytes=max_frame_bytes)
         self.device = RuntimeDevice(config, predict=predict, view=view, on_frame=on_frame,
                                     presenter=_Presenter(), log=lambda line: None)
         self.stop_event = threading.Event()
@@ -479,3 +490,266 @@ def real_part(case: Any, blend_case: Any | None, path: Path, blend_path: Path | 
         tables.append(table)
         record[trace_name] = {str(k): v for k, v in res.items()}
     return tables, record
+
+
+# --------------------------------------------------------------------------- at rest
+
+#: The object SSIMs whose time from rest ``--parts rest`` reports (and the codecs' files).
+REST_QUALITIES = (0.95, 0.99)
+#: How long a resting view may take to reach its exact frame before it counts as missed.
+REST_TIMEOUT_S = 60.0
+#: Sessions whose serve fails (a new one takes the views left) before a baud gives up.
+REST_RETRIES = 3
+#: The resting device's frames (eigencast-device --max-frame): 16 KiB, the host's own
+#: frames at most (serve's transport to a model whose score packets fit 16 KiB). With 64 KiB
+#: frames serve plans layer strips up to a quarter second of a 921600-baud line (23040 B)
+#: and fails sending the first one over 16 KiB (its planner reads the device's limit, not
+#: its own link's).
+REST_MAX_FRAME_BYTES = 16384
+
+
+def _at(shown: list[tuple[float, np.ndarray, dict]], view: tuple[float, float],
+        since: float) -> list[tuple[float, np.ndarray, dict]]:
+    """The frames of ``view`` presented from ``since`` on."""
+    return [(t, f, i) for t, f, i in shown
+            if t >= since and (i.get("phi_deg"), i.get("theta_deg")) == view]
+
+
+def rest_session(case: Any, model_path: Path, flash0: Path, views: list[tuple[float, float]],
+                 baud: int, work: Path, source: Any = None,
+                 timeout_s: float = REST_TIMEOUT_S) -> tuple[list[dict[str, Any]], str | None]:
+    """One real serve session over a paced mem:// line in which the device rests on each of
+    ``views`` in turn until its exact frame is on show (or ``timeout_s``): per view the
+    times from setting the view to its first frame, to the corrected frame (the first layer
+    when the plan skips the correction), to each of `REST_QUALITIES` (object SSIM of the
+    frame on show against the ray-cast) and to the exact frame; when the host queued the
+    view's first layer (its ray-cast and plan done) and the bytes it queued for the view.
+    A session whose ``serve`` fails ends there: the views done so far and the error (else
+    None)."""
+    from bench_link import quality
+
+    from device_runtime.orbit import canonical_view
+    from host.link.layers import EncodedLayer
+    from host.link.serving import serve
+
+    flash = work / f"flash-rest-{uuid.uuid4().hex[:8]}"
+    shutil.copytree(flash0, flash)
+    name = f"bench-rest-{uuid.uuid4().hex[:8]}"
+    start = canonical_view(views[0][0] + 180.0, 0.0)  # rested on before the first view
+    dev = DeviceThreads(flash, f"mem://{name}?end=b", baud, predict=True, view=start,
+                        max_frame_bytes=REST_MAX_FRAME_BYTES)
+    device = dev.device
+    stop = threading.Event()
+    out: dict[str, Any] = {}
+    sent: list[tuple[float, bool, tuple[float, float], int]] = []  # (when, layer, view, B)
+
+    def queued(enc: Any, view: tuple[float, float]) -> None:
+        sent.append((time.monotonic(), isinstance(enc, EncodedLayer), tuple(view),
+                     len(enc.packet)))
+
+    def host() -> None:
+        try:
+            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
+                                 stop=stop, log=lambda line: None, model=case.model,
+                                 renderer=case.renderer, stats_every_s=0, motion=source,
+                                 on_frame=queued)
+        except BaseException as exc:  # reported below
+            out["error"] = exc
+
+    def exact_of(view: tuple[float, float], since: float) -> bool:
+        return any(i.get("exact") for _, _, i in _at(dev.shown, view, since))
+
+    thread = threading.Thread(target=host, daemon=True)
+    thread.start()
+    runs = []
+    try:
+        if not wait_for(lambda: exact_of(start, 0.0) or "error" in out, timeout_s):
+            raise RuntimeError(f"no exact frame of the first view {start} in {timeout_s:g} s")
+        for view in views:
+            if "error" in out:
+                break
+            view = canonical_view(*view)
+            time.sleep(0.3)  # a hand that just let go of the previous view
+            t_set = time.monotonic()
+            device.set_view(*view)
+            view = device.view
+            done = wait_for(lambda v=view, t=t_set: exact_of(v, t) or "error" in out,
+                            timeout_s)
+            if "error" in out:  # serve died on this view: it counts for nothing
+                break
+            runs.append({"view": view, "t_set": t_set, "done": done})
+    finally:
+        stop.set()
+        thread.join(30)
+        dev.stop()
+        shutil.rmtree(flash, ignore_errors=True)
+    results = []
+    for k, run in enumerate(runs):
+        view, t_set = run["view"], run["t_set"]
+        t_end = runs[k + 1]["t_set"] if k + 1 < len(runs) else math.inf
+        frames = [(t, f, i) for t, f, i in _at(dev.shown, view, t_set) if t < t_end]
+        rgb, mask = case.render(view)
+        r: dict[str, Any] = {"view": view, "exact": run["done"],
+                             **rest_milestones(frames, t_set,
+                                               lambda f, rgb=rgb, mask=mask:
+                                               quality(rgb, f, mask)[0])}
+        mine = [(t, lay, b) for t, lay, v, b in sent if v == view and t_set <= t < t_end]
+        r["host_ready_s"] = next((t - t_set for t, lay, _ in mine if lay), math.inf)
+        r["complete_sent"] = complete_correction_sent(mine, t_set)
+        r["bytes"] = sum(b for _, _, b in mine)
+        results.append(r)
+    error = out.get("error")
+    return results, None if error is None else f"{type(error).__name__}: {error}"
+
+
+def complete_correction_sent(queued: list[tuple[float, bool, int]], t_set: float) -> bool:
+    """Whether the host sent a resting view its complete correction, from what it queued
+    for the view (``(time, a layer, bytes)`` in order): a score packet right before the
+    first strip (queued back to back, within 0.3 s), which is not the sparse correction of
+    the view's first frame (the view's first packet, queued within 0.3 s of rest)."""
+    first = next((k for k, (_, layer, _) in enumerate(queued) if layer), None)
+    if not first or queued[first - 1][1] or queued[first][0] - queued[first - 1][0] > 0.3:
+        return False
+    return first >= 2 or queued[0][0] - t_set > 0.3
+
+
+def rest_milestones(frames: list[tuple[float, np.ndarray, dict]], t_set: float,
+                    score: Any) -> dict[str, Any]:
+    """When a resting view's frames (``(time, frame, info)`` as presented, in order) reached
+    each milestone, seconds after ``t_set``: ``first_s`` (any frame of it), ``corrected_s``
+    (its corrected frame, or its first layer when that came first: the plan skipped the
+    correction), ``ssim0.95_s`` / ``ssim0.99_s`` (the first frame on show, the own frame
+    included, whose ``score`` reaches it; an exact frame scores 1), ``exact_s``; inf where
+    never. Also ``corrected_ssim`` (the first refined frame's score), ``own_ssim``,
+    ``correction_sent`` and ``layers_shown``."""
+    r: dict[str, Any] = {"first_s": frames[0][0] - t_set if frames else math.inf}
+    corrected = next((t for t, _, i in frames if i.get("corrected")), None)
+    layer = next((t for t, _, i in frames if i.get("layer") is not None), None)
+    first_layer = layer if layer is not None else math.inf
+    r["corrected_s"] = (corrected if corrected is not None and corrected <= first_layer
+                        else first_layer) - t_set
+    r["correction_sent"] = corrected is not None
+    r["exact_s"] = next((t - t_set for t, _, i in frames if i.get("exact")), math.inf)
+    ssims = []  # (when, score, refined: the correction or a layer) per frame
+    for t, f, i in frames:
+        refined = bool(i.get("corrected") or i.get("layer") is not None)
+        ssims.append((t, 1.0 if i.get("exact") else float(score(f)), refined))
+    for q in REST_QUALITIES:  # whatever is on show: the own frame may reach it already
+        r[f"ssim{q:g}_s"] = next((t - t_set for t, s, _ in ssims if s >= q), math.inf)
+    r["corrected_ssim"] = next((s for _, s, refined in ssims if refined), math.nan)
+    r["own_ssim"] = next((s for _, s, refined in ssims if not refined), math.nan)
+    r["layers_shown"] = sum(i.get("layer") is not None for _, _, i in frames)
+    return r
+
+
+def codec_times(case: Any, view: tuple[float, float], baud: int,
+                corrected_ssim: float) -> dict[str, float]:
+    """Seconds the smallest WebP and AVIF file of the view's ray-cast reaching the corrected
+    frame's object SSIM and each of `REST_QUALITIES` take on the line (one frame each; no
+    host time: the codec is favoured), and its WebP lossless file (the exact frame); and
+    ``raycast_s``: one full ray-cast of the view on this machine now (what a codec stream
+    waits for before it can code the view)."""
+    import io
+
+    from bench_link import smallest_file, wire_bytes
+    from PIL import Image
+
+    rgb, mask = case.render(view)
+    rate = baud / 10.0
+    t0 = time.perf_counter()  # what a codec stream needs before it can code the view
+    case.renderer.render(*view)
+    out: dict[str, float] = {"raycast_s": time.perf_counter() - t0}
+    ladders: dict[str, dict] = {"webp": {}, "avif": {}}
+    targets = {"corrected": corrected_ssim, **{f"ssim{q:g}": q for q in REST_QUALITIES}}
+    for label, target in targets.items():
+        for codec in ("webp", "avif"):
+            size = (smallest_file(rgb, mask, target, codec, ladders[codec])
+                    if math.isfinite(target) else math.nan)
+            out[f"{codec}_{label}_s"] = (wire_bytes(int(size)) / rate if math.isfinite(size)
+                                         else math.nan)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, "WEBP", lossless=True, exact=True)
+    out["webp_lossless_s"] = wire_bytes(len(buf.getvalue())) / rate
+    out["webp_lossless_bytes"] = len(buf.getvalue())
+    return out
+
+
+def rest_table(title: str, res: dict[int, list[dict]]) -> str:
+    """Medians over the views per baud: ours against the codecs' files."""
+    def med(rows: list[dict], key: str) -> str:
+        vals = np.array([r[key] for r in rows], dtype=np.float64)
+        if not vals.size:
+            return "-"
+        m = float(np.median(vals))  # (a missed view counts as infinitely late)
+        return "missed" if not math.isfinite(m) else f"{m:.2f}"
+
+    lines = [f"**{title}**", "",
+             "| baud | views (exact, complete correction sent) | first frame s | corrected s "
+             "(SSIM) | SSIM 0.95 s | SSIM 0.99 s | exact s | host ready s | after host ready: "
+             "0.95 / exact s | bytes to exact | WebP / AVIF at the corrected SSIM s | "
+             "WebP / AVIF 0.95 s | WebP / AVIF 0.99 s | WebP lossless s | a ray-cast s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for baud, rows in res.items():
+        if not rows:
+            lines.append(f"| {baud} | 0 |" + " - |" * 13)
+            continue
+        rows = [{**r, "line0.95_s": r["ssim0.95_s"] - r["host_ready_s"],
+                 "line_exact_s": r["exact_s"] - r["host_ready_s"]} for r in rows]
+        n_exact = sum(r["exact"] for r in rows)
+        n_corr = sum(r.get("complete_sent", False) for r in rows)
+        corr_ssim = float(np.nanmedian([r["corrected_ssim"] for r in rows]))
+        lines.append(
+            f"| {baud} | {len(rows)} ({n_exact}, {n_corr}) | {med(rows, 'first_s')} | "
+            f"{med(rows, 'corrected_s')} ({corr_ssim:.3f}) | {med(rows, 'ssim0.95_s')} | "
+            f"{med(rows, 'ssim0.99_s')} | {med(rows, 'exact_s')} | {med(rows, 'host_ready_s')}"
+            f" | {med(rows, 'line0.95_s')} / {med(rows, 'line_exact_s')}"
+            f" | {float(np.median([r['bytes'] for r in rows])):.0f} | "
+            f"{med(rows, 'webp_corrected_s')} / {med(rows, 'avif_corrected_s')} | "
+            f"{med(rows, 'webp_ssim0.95_s')} / {med(rows, 'avif_ssim0.95_s')} | "
+            f"{med(rows, 'webp_ssim0.99_s')} / {med(rows, 'avif_ssim0.99_s')} | "
+            f"{med(rows, 'webp_lossless_s')} | {med(rows, 'raycast_s')} |")
+    return "\n".join(lines)
+
+
+def rest_part(case: Any, path: Path, desc: str, bauds: list[int], n_views: int,
+              work: Path, seed: int = 11) -> tuple[list[str], dict[str, Any]]:
+    """Resting sessions of one model at each baud (`rest_session`) against the codecs'
+    files on the same line (`codec_times`): the table (markdown) and the record."""
+    from host.render.camera import parse_view_set
+
+    flash = provisioned_flash(path, work)
+    t0 = time.perf_counter()
+    source = prepared_source(case, "served")
+    print(f"  rest: host source prepared in {time.perf_counter() - t0:.1f} s", flush=True)
+    views = [(v.phi_deg, v.theta_deg) for v in
+             parse_view_set(f"random:{n_views}:{seed}").views]
+    res: dict[int, list[dict]] = {}
+    errors: dict[int, list[str]] = {}
+    for baud in bauds:
+        t0 = time.perf_counter()
+        rows: list[dict] = []
+        while len(rows) < len(views) and len(errors.get(baud, [])) < REST_RETRIES:
+            done, error = rest_session(case, path, flash, views[len(rows):], baud, work,
+                                       source=source)
+            rows += done
+            if error is not None:  # a new session for the views left (the failed one skipped)
+                errors.setdefault(baud, []).append(error)
+                print(f"  serve failed after {len(rows)} views: {error}", flush=True)
+                rows.append({"view": views[len(rows)], "failed": error})
+        rows = [r for r in rows if "failed" not in r]
+        for r in rows:
+            r.update(codec_times(case, r["view"], baud, r["corrected_ssim"]))
+        res[baud] = rows
+        print(rest_table(f"{desc} at rest, {baud} baud", {baud: rows})
+              + f"\n({time.perf_counter() - t0:.0f} s)", flush=True)
+    table = rest_table(f"at rest: {desc}, {n_views} views random:{n_views}:{seed} (serve + "
+                       "RuntimeDevice over a paced mem:// line, 16 KiB frames; medians; "
+                       "codecs: one file's time on the line, no host time)", res)
+    for baud, errs in errors.items():
+        table += (f"\n\n{baud}: serve failed {len(errs)} time(s) (the view it failed on is "
+                  f"left out, a new session took the rest): {errs[0]}")
+    record: dict[str, Any] = {
+        str(b): [{k: (list(v) if isinstance(v, tuple) else v) for k, v in r.items()}
+                 for r in rows] for b, rows in res.items()}
+    record["errors"] = {str(b): e for b, e in errors.items()}
+    return [table], record

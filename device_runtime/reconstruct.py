@@ -11,20 +11,27 @@ shown):
 * ``w = y * scales`` is formed once per frame (the scales fold into the coefficients).
 * Only cells whose slice of ``y`` changed since the last call (exact equality) are recomputed;
   cells with 0 components show their mean, written once at construction.
-* The work is cut at construction into *jobs* that respect ``scratch_bytes``: a job is a run of
-  consecutive cells whose int8 rows, cast to float32, plus one float32 output row per cell fit
-  the scratch budget; a cell too large for that (e.g. the single cell of a ``standard``
-  eigenspace) is cut into tiles of whole pixel rows of the cell, accumulating over row chunks
-  when even one tile of all its components does not fit. Per job: one int8 -> float32 cast of
-  the rows into the fixed scratch buffer, one BLAS ``sgemv`` per cell (``w_c @ E_c``), then the
-  mean is added and the batch is rounded, clipped and written straight into the frame buffer
-  through a ``(n_cells_y, cell_h, n_cells_x, cell_w, 3)`` view (a job whose cells changed
-  only in part casts and multiplies those cells' rows and writes them together). No per-pixel
-  Python work, no float32 copy of the eigenspace: memory beyond the arrays themselves is the
-  scratch buffer, the frame buffer and O(K) vectors.
+* The work is cut at construction into jobs that respect ``scratch_bytes``. `update` runs
+  *groups*: runs of consecutive cells whose largest cell's rows, cast to float32, plus one
+  float32 output row per cell fit the scratch budget (at the default budget, the whole frame
+  of a 256 or 512 px image in one or two groups). Per changed cell of a group: its int8 rows
+  are cast into the first rows of the group's cast area, which stays in the CPU's cache for
+  the one BLAS ``sgemv`` (``w_c @ E_c``) that reads them back into the cell's output row;
+  then the group's changed cells get their means added and are rounded, clipped and written
+  together straight into the frame buffer through a ``(n_cells_y, cell_h, n_cells_x, cell_w,
+  3)`` view. Each product runs over all of a cell's rows, its zero scores included: the
+  frame is the same bit for bit however the cells are grouped (a product over the non-zero
+  rows only sums the same terms in another order, so a value on a .5 tie may round
+  otherwise; gathering those rows costs about what casting them does, and at the 20-35 %
+  zeros of a changed cell's scores it was no faster). A cell too large for the scratch (e.g.
+  the single cell of a ``standard`` eigenspace) is cut into tiles of whole pixel rows of the
+  cell, accumulating over row chunks when even one tile of all its components does not fit.
+  No per-pixel Python work, no float32 copy of the eigenspace: memory beyond the arrays
+  themselves is the scratch buffer, the frame buffer and O(K) vectors.
 * With ``threads=2`` the jobs are split in two halves of equal row count, each with its own
   half of the scratch budget; numpy releases the GIL in the casts and in BLAS.
-* `Reconstructor.correct` runs the same jobs with a given frame in place of the mean:
+* `Reconstructor.correct` runs *batches* (runs of cells whose rows all fit the scratch at
+  once) with a given frame in place of the mean:
   ``clip(rint(synth_c + sum_j d_j * scales[j] * E[j]))`` for the cells whose ``d`` is not
   all zero, the device's own synthesized frame corrected by the host (a version-3 score
   packet, `protocol.scores`). It keeps that frame's cells (one frame of memory), so later
@@ -33,9 +40,9 @@ shown):
   int8 rows of its non-zero coefficients only (`numpy.take` into the scratch, then one cast)
   and multiplies each corrected cell's gathered rows; a batch with so many non-zero rows that
   gathering them (`GATHER_ROW_COST` each) costs at least a contiguous cast of all its rows
-  casts its corrected cells' rows whole instead (``w`` is zero elsewhere: the same sums, to
-  float rounding; host and device choose alike). Either way a batch adds, rounds and writes
-  only its corrected cells (a batch whose every cell is corrected: all of them at once).
+  blends its corrected cells' rows whole instead, as `update` does (``w`` is zero elsewhere:
+  the same sums, to float rounding; host and device choose alike). Either way a batch adds,
+  rounds and writes only its corrected cells, all at once.
   So a correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
   cells' rows, one while moving a few rows in a fraction of the cells (BENCHMARKS.md,
   "Device loop", section x).
@@ -76,19 +83,28 @@ _FLOAT_BYTES = 4
 
 
 @dataclass
-class _Batch:
-    """Consecutive cells [start, stop) whose rows fit the scratch at once."""
+class _Cells:
+    """Consecutive cells [start, stop) blended one at a time into consecutive output rows
+    (`Reconstructor._blend_cells`): each cell's int8 rows cast into the first rows of one
+    small cast area, then one BLAS product."""
 
     start: int
     stop: int
+    out: np.ndarray  # float32 (stop - start, d) view of the scratch
+    outs: list[np.ndarray]  # its rows
+    # per cell of [start, stop): (k, its int8 rows, its weights (views of ``_w``), the first
+    # k rows of the cast area)
+    calls: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]
+
+
+@dataclass
+class _Batch(_Cells):
+    """`Reconstructor.correct`: consecutive cells whose rows all fit the scratch at once
+    (a correction gathers a batch's non-zero rows into its first rows)."""
+
     row_start: int
     row_stop: int
     cast_dst: np.ndarray  # float32 (rows, d) view of the scratch
-    out: np.ndarray  # float32 (stop - start, d) view of the scratch
-    calls: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]  # (cell, w, rows, out row)
-    zero_rows: np.ndarray  # positions in `out` of 0-component cells
-    cell_y: np.ndarray
-    cell_x: np.ndarray
 
 
 @dataclass
@@ -144,7 +160,8 @@ class _Sparse:
 
 @dataclass
 class _Worker:
-    jobs: list[Any] = field(default_factory=list)
+    jobs: list[Any] = field(default_factory=list)  # `correct`: batches and big cells
+    groups: list[Any] = field(default_factory=list)  # `update`: groups and big cells
     rows: int = 0
 
 
@@ -263,6 +280,10 @@ class Reconstructor:
         self._w = np.zeros(n_coeff, dtype=np.float32)
         self._last_y = np.full(n_coeff, np.nan, dtype=np.float32)
         self._cum = np.zeros(n_coeff + 1, dtype=np.int64)
+        self._diff = np.zeros(n_coeff, dtype=bool)
+        self._changed = np.zeros(n_cells, dtype=bool)  # cells without components: never
+        self._filled = np.flatnonzero(self.n_components)
+        self._starts = self.offsets[self._filled]  # strictly increasing: reduceat's segments
         self._cell_y = np.arange(n_cells) // nx
         self._cell_x = np.arange(n_cells) % nx
         self.cells_recomputed = 0
@@ -297,7 +318,10 @@ class Reconstructor:
         )
 
     def _plan(self, budget_bytes: int) -> list[_Worker]:
-        """Cut the cells into jobs under the per-thread budget and split them among threads."""
+        """Cut the cells into jobs under the per-thread budget and split them among threads:
+        `correct`'s batches (all of a batch's rows fit the scratch at once) and `update`'s
+        groups (a cell's rows at a time: a group's output rows fit beside its largest cell's
+        rows); a cell whose rows do not fit is a big cell in both."""
         budget = budget_bytes // _FLOAT_BYTES
         values = self.cell_values
         scratches = [np.zeros(budget, dtype=np.float32) for _ in range(self.threads)]
@@ -335,7 +359,19 @@ class Reconstructor:
             )
             workers[index].jobs.append(job)
             workers[index].rows += rows
+        for worker, scratch in zip(workers, scratches):
+            worker.groups = self._make_groups(worker.jobs, scratch)
         return workers
+
+    def _calls(self, start: int, stop: int, cast: np.ndarray) -> list[tuple[int, np.ndarray,
+                                                                           np.ndarray, np.ndarray]]:
+        """Per cell of [start, stop): its component count, int8 rows, weights and the first
+        rows of the cast area ``cast`` (`_Cells.calls`)."""
+        calls = []
+        for c in range(start, stop):
+            a, b = int(self.offsets[c]), int(self.offsets[c + 1])
+            calls.append((b - a, self.eigenimages[a:b], self._w[a:b], cast[: b - a]))
+        return calls
 
     def _make_batch(self, start: int, stop: int, scratch: np.ndarray) -> _Batch:
         values = self.cell_values
@@ -343,26 +379,43 @@ class Reconstructor:
         rows = r1 - r0
         cast_dst = scratch[: rows * values].reshape(rows, values)
         out = scratch[rows * values : (rows + stop - start) * values].reshape(stop - start, values)
-        calls = []
-        zero_rows = []
-        for i, c in enumerate(range(start, stop)):
-            a, b = int(self.offsets[c]), int(self.offsets[c + 1])
-            if a == b:
-                zero_rows.append(i)
+        return _Batch(start, stop, out, list(out), self._calls(start, stop, cast_dst), r0, r1,
+                      cast_dst)
+
+    def _make_groups(self, jobs: list[Any], scratch: np.ndarray) -> list[Any]:
+        """`update`'s jobs for the cells of ``jobs`` (a worker's): runs of consecutive cells
+        whose largest cell's rows plus one output row per cell fit ``scratch``, and the big
+        cells as they are."""
+        values = self.cell_values
+        budget = scratch.size // values  # rows of the scratch
+        counts = self.n_components
+        groups: list[Any] = []
+
+        def close(start: int, stop: int, k_max: int) -> None:
+            cast = scratch[: k_max * values].reshape(k_max, values)
+            out = scratch[k_max * values : (k_max + stop - start) * values].reshape(
+                stop - start, values)
+            groups.append(_Cells(start, stop, out, list(out), self._calls(start, stop, cast)))
+
+        start = k_max = -1
+        for job in jobs:
+            if isinstance(job, _BigCell):
+                if start >= 0:
+                    close(start, job.cell, k_max)
+                    start = -1
+                groups.append(job)
                 continue
-            calls.append((c, self._w[a:b], cast_dst[a - r0 : b - r0], out[i]))
-        return _Batch(
-            start,
-            stop,
-            r0,
-            r1,
-            cast_dst,
-            out,
-            calls,
-            np.asarray(zero_rows, dtype=np.intp),
-            self._cell_y[start:stop],
-            self._cell_x[start:stop],
-        )
+            for c in range(job.start, job.stop):
+                k = int(counts[c])
+                if start >= 0 and max(k_max, k) + c + 1 - start > budget:
+                    close(start, c, k_max)
+                    start = -1
+                if start < 0:
+                    start, k_max = c, 0
+                k_max = max(k_max, k)
+        if start >= 0:  # the last job is a batch (a big cell closes the run)
+            close(start, jobs[-1].stop, k_max)
+        return groups
 
     def _make_big(self, c: int, scratch: np.ndarray) -> _BigCell:
         cell_h, cell_w = self.cell_shape
@@ -413,10 +466,10 @@ class Reconstructor:
             )
         if not np.all(np.isfinite(y)):
             raise ValueError("Reconstructor.update: y has NaN or infinite entries")
-        diff = y != self._last_y
-        np.cumsum(diff, out=self._cum[1:])
-        counts = self._cum[self.offsets[1:]] - self._cum[self.offsets[:-1]]
-        changed = counts > 0
+        changed = self._changed
+        if self._starts.size:  # per cell with components: did any of its scores change
+            np.not_equal(y, self._last_y, out=self._diff)
+            changed[self._filled] = np.logical_or.reduceat(self._diff, self._starts)
         n_changed = int(np.count_nonzero(changed))
         if n_changed == 0:
             self.cells_recomputed = 0
@@ -545,72 +598,62 @@ class Reconstructor:
             strips.soften(frame[p][box], frame[q][box], strips.base_jump[box], weight)
 
     def _run(self, worker: _Worker, changed: np.ndarray) -> int:
-        """Run a worker's jobs for the changed cells; return how many cells it computed."""
+        """Run a worker's jobs for the changed cells (`update`: its groups; `correct`: its
+        batches); return how many cells it computed."""
         done = 0
-        for job in worker.jobs:
-            if isinstance(job, _Batch):
-                done += self._run_batch(job, changed)
-            elif changed[job.cell]:
-                self._run_big(job)
-                done += 1
+        correcting = self._nz is not None
+        for job in worker.jobs if correcting else worker.groups:
+            if isinstance(job, _BigCell):
+                if changed[job.cell]:
+                    self._run_big(job)
+                    done += 1
+            elif correcting:
+                done += self._correct_batch(job, changed[job.start : job.stop])
+            else:
+                done += self._run_cells(job, changed[job.start : job.stop])
         return done
 
-    def _run_batch(self, job: _Batch, changed: np.ndarray) -> int:
-        flags = changed[job.start : job.stop]
-        n_flag = int(np.count_nonzero(flags))
-        if n_flag == 0:
-            return 0
-        if self._nz is not None:
-            return self._correct_batch(job, n_flag)
-        if n_flag == len(job.calls):  # every cell with components changed: the batch at once
-            self._whole_batch(job)
-            return n_flag
-        return self._partial_batch(job, flags, n_flag)
-
-    def _partial_batch(self, job: _Batch, flags: np.ndarray, n_flag: int) -> int:
-        """Some cells of a batch changed (cells whose scores are all zero, in a training
-        view or every neighbour of a blend, stay as they were; `correct`: the cells of a
-        dense batch that it corrects): each one's rows cast and multiplied into consecutive
-        output rows, then all written at once (written one by one, a 256 frame's update took
-        1.6x as long; casting the batch whole instead measured no faster)."""
-        offsets = self.offsets
-        out = job.out
-        i = 0
-        for c, w, rows, _ in job.calls:
-            if flags[c - job.start]:
-                np.copyto(rows, self.eigenimages[offsets[c] : offsets[c + 1]],
-                          casting="unsafe")
-                np.matmul(w, rows, out=out[i])
-                i += 1
+    def _run_cells(self, job: _Cells, flags: np.ndarray) -> int:
+        """The cells of ``job`` whose ``flags`` are set: each one blended on its own
+        (`_blend_cells`) into consecutive output rows, then all written at once."""
         cells = np.flatnonzero(flags)
+        n = cells.size
+        if n == 0:
+            return 0
+        self._blend_cells(job, cells.tolist())
         cells += job.start
-        self._write_cells(out[:n_flag], cells, (self._cell_y[cells], self._cell_x[cells]))
-        return n_flag
+        self._write_cells(job.out[:n], cells, (self._cell_y[cells], self._cell_x[cells]))
+        return n
 
-    def _whole_batch(self, job: _Batch) -> None:
-        """Every cell of a batch: one cast of all its rows, one product per cell."""
-        np.copyto(job.cast_dst, self.eigenimages[job.row_start : job.row_stop],
-                  casting="unsafe")
-        for _, w, rows, out in job.calls:
-            np.matmul(w, rows, out=out)
-        if job.zero_rows.size:
-            job.out[job.zero_rows] = 0.0
-        self._write_cells(job.out, slice(job.start, job.stop), (job.cell_y, job.cell_x))
+    @staticmethod
+    def _blend_cells(job: _Cells, positions: list[int]) -> None:
+        """Output row ``i`` of ``job``: ``w_c @ E_c`` of the cell ``job.start +
+        positions[i]``, its int8 rows cast into the first rows of the cast area (small
+        enough to stay in the CPU's cache for the product that reads them back) and one BLAS
+        product (`numpy.dot`: less overhead than `numpy.matmul`, the same call); a cell of
+        one component is the product ``w_0 * E_0`` that BLAS would compute."""
+        outs, calls = job.outs, job.calls
+        for i, p in enumerate(positions):
+            k, rows, w, cast = calls[p]
+            if k == 1:  # float32 math whatever numpy's promotion of an int8 row and a scalar
+                np.multiply(rows[0], w[0], out=outs[i], dtype=np.float32)
+            else:
+                np.copyto(cast, rows, casting="unsafe")
+                np.dot(w, cast, out=outs[i])
 
-    def _correct_batch(self, job: _Batch, n_flag: int) -> int:
+    def _correct_batch(self, job: _Batch, flags: np.ndarray) -> int:
         """`correct` on one batch: the cells whose ``delta`` is not all zero get ``base +
         sum_j w_j E_j`` over their non-zero coefficients only. Those rows are gathered
-        (`GATHER_ROW_COST` each) unless casting the corrected cells' rows whole costs less
-        (`_partial_batch`, or `_whole_batch` when every cell is corrected)."""
+        (`GATHER_ROW_COST` each) unless blending the corrected cells' rows whole costs less
+        (`_run_cells`)."""
         sp = self._nz
         lo, hi = sp.cum_nz[job.start], sp.cum_nz[job.stop]
         n = hi - lo
+        if n == 0:
+            return 0
         if n * GATHER_ROW_COST >= job.row_stop - job.row_start:
             # the changed cells' rows whole (w is 0 elsewhere); the others keep their pixels
-            if n_flag == len(job.calls):
-                self._whole_batch(job)
-                return n_flag
-            return self._partial_batch(job, sp.changed[job.start : job.stop], n_flag)
+            return self._run_cells(job, flags)
         values = self.cell_values
         flat = job.cast_dst.reshape(-1)
         rows = flat[: n * values].reshape(n, values)
@@ -628,10 +671,10 @@ class Reconstructor:
             if k == 1:
                 np.multiply(rows[pos], w[pos], out=out[i])
             else:
-                np.matmul(w[pos : pos + k], rows[pos : pos + k], out=out[i])
+                np.dot(w[pos : pos + k], rows[pos : pos + k], out=out[i])
             pos += k
         self._write_cells(out, None, (sp.cell_y[a:b], sp.cell_x[a:b]))
-        return n_flag
+        return b - a
 
     def _write_cells(self, out: np.ndarray, cells: Any,
                      where: tuple[np.ndarray, np.ndarray]) -> None:

@@ -158,6 +158,43 @@ def test_equal_bytes_search_returns_the_highest_quality_within_budget(codec):
         encode_within_budget(image, 0, codec=codec)
 
 
+@pytest.mark.parametrize("codec", ["jpeg", "webp", "avif"])
+def test_the_smallest_file_reaching_a_quality_reaches_it_and_the_setting_below_does_not(codec):
+    from host.evaluate import CodecLadder
+
+    image = _smooth_image(64)
+    measured = []
+
+    def measure(decoded, name):  # one call gives every value of a family
+        measured.append(name)
+        if name == "error":
+            return {"error": float(np.abs(decoded.astype(int) - image.astype(int)).mean())}
+        return {"ssim": structural_similarity(image, decoded),
+                "psnr": peak_signal_noise_ratio(image, decoded)}
+
+    ladder = CodecLadder(image, codec, measure)
+    low, best = ladder.value(1, "ssim"), ladder.value(100, "ssim")
+    assert low < best
+    for target in (low + 0.3 * (best - low), low + 0.8 * (best - low), best):
+        for hint in (None, 1, 40, 99):
+            coded = ladder.smallest(target, "ssim", hint=hint)
+            assert coded is not None and coded.codec == codec
+            # a real file of the image that reaches the target ...
+            assert structural_similarity(image, coded.decode()) >= target
+            assert coded.data == encode_image(image, codec, coded.quality).data
+            # ... where the setting below it misses (the bisection's bracket)
+            assert coded.quality == 1 or structural_similarity(
+                image, encode_image(image, codec, coded.quality - 1).decode()) < target
+    assert ladder.smallest(best + 1e-6, "ssim") is None  # out of reach: None, not the best
+    n = len(measured)
+    assert ladder.value(100, "psnr") > ladder.value(1, "psnr") and len(measured) == n
+    # lower is better: no larger an error than the file at quality 50, no larger a file
+    limit = ladder.value(50, "error")
+    coded = ladder.smallest(limit, "error", higher_is_better=False)
+    assert ladder.value(coded.quality, "error") <= limit
+    assert coded.size_bytes <= ladder.file(50).size_bytes
+
+
 # ----------------------------------------------------------------------------- nearest
 
 
@@ -463,13 +500,18 @@ def test_evaluate_reports_the_served_path_for_a_model_with_the_table(model_path,
         assert eq[codec]["min_bytes"] > 0
     html = (report / "index.html").read_text()
     assert "served at rest" in html and "blockiness" in html and "WebP bytes for" in html
+    # at rest, serve's layers to the exact frame: in the JSON, the plot and the strip
+    rest = summary["rest"]
+    assert rest["views"] == 3 and rest["stages"]["exact"]["x_webp_lossless"]["median"] > 0
+    assert all(v["rest"]["steps"][-1]["kind"] == "exact" for v in summary["per_view"])
+    assert (report / "rest.png").is_file() and "At rest: layers to the exact frame" in html
     table = _run("evaluate", str(model_path), "--views", "random:2", "--rd-views", "0",
                  "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0").stdout
     assert "pca_predict: served, at rest" in table and "score blend" in table
     plain = _run("evaluate", str(small_model), "--views", "random:2", "--json", "--rd-views",
                  "0", "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0")
     plain = json.loads(plain.stdout)
-    assert "pca_predict" not in plain and "pca_warp" not in plain
+    assert "pca_predict" not in plain and "pca_warp" not in plain and "rest" not in plain
     assert plain["pca"]["blockiness"] > 0
 
 
@@ -539,6 +581,129 @@ def test_served_frames_are_what_a_correcting_device_shows(served_model):
     frame, size = served.moving(*view)
     assert size == 0
     np.testing.assert_array_equal(frame, served.own_frame(*view))
+
+
+def test_the_resting_chain_is_what_serve_plans_from_what_serve_plans_it_from(served_model):
+    """`ServedFrames.rest` gives serve's planner serve's inputs (the view's full ray-cast, the
+    device's own frame, that frame with the decoded complete correction: `RestSender.start`)
+    and reports its plan step by step: the own frame, the correction where the plan sends
+    it, each layer's frame as the device decodes it, the exact frame = the ray-cast; the
+    bytes are cumulative."""
+    from device_runtime.orbit import canonical_view
+    from device_runtime.prediction import OwnFrames
+    from host.evaluate import ServedFrames
+    from host.fit.motion import MotionScores
+    from host.link.correction import CorrectionEncoder
+    from host.link.layers import RestPlanner
+    from protocol.scores import ScoreDecoder
+
+    _, model = served_model
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
+    served = ServedFrames(model, scene, planner=RestPlanner(model.digest))
+    assert ServedFrames(model, scene).rest(10.0, 5.0) is None  # no planner: no layers
+    source = MotionScores(model, scene, own=OwnFrames(model.image), strides=(1,), coarse=1.0,
+                          budget_s=3600.0)
+    planner, encoder = RestPlanner(model.digest), CorrectionEncoder(model)
+    decoder = ScoreDecoder(model.image.n_coefficients, model.digest,
+                           n_components=model.image.n_components)
+    for view in ((33.0, 12.0), (250.5, -41.0), (120.0, 60.0)):
+        view = canonical_view(*view)
+        rest = served.rest(*view)
+        step = source.frame(view)
+        truth, own = source.rest_images(view)
+        sent = encoder.encode(view, scores=step.scores, fine=True, weights=step.weights)
+        corrected = own if sent is None else source.own.corrected(
+            own, decoder.decode(sent.packet).y)
+        size = 0 if sent is None else len(sent.packet)
+        plan = planner.plan(view, truth, corrected, own, size,
+                            base_frame=0 if sent is None else sent.frame, first_frame=1)
+        np.testing.assert_array_equal(rest.truth, scene.render(*view)[0])
+        assert rest.correction_bytes == size
+        assert rest.skip_correction == (plan.skip_correction or sent is None)
+        kinds = [s.kind for s in rest.steps]
+        assert kinds == ["own", *([] if rest.skip_correction else ["correction"]),
+                         *("exact" if layer.exact else "layer" for layer in plan.layers)]
+        np.testing.assert_array_equal(rest.steps[0].frame, own)
+        if not rest.skip_correction:
+            np.testing.assert_array_equal(rest.steps[1].frame, corrected)
+        layers = rest.steps[len(kinds) - len(plan.layers):]
+        for ours, theirs in zip(layers, plan.layers, strict=True):
+            assert ours.step_bytes == theirs.size_bytes
+            # the same packets but for their frame numbers (bytes 4..12: frame, base frame)
+            assert [q[:4] + q[12:] for q in ours.packets] == [
+                q[:4] + q[12:] for q in theirs.packets]
+            np.testing.assert_array_equal(ours.frame, theirs.frame)
+        total = 0
+        for s in rest.steps:
+            total += s.step_bytes
+            assert s.bytes == total
+        assert rest.exact is rest.steps[-1]
+        np.testing.assert_array_equal(rest.exact.frame, truth)
+        # at_rest of the same view is the same correction, its ray-cast made once
+        frame, at_rest_size = served.at_rest(*view)
+        assert at_rest_size == size
+        np.testing.assert_array_equal(frame, corrected)
+
+
+def test_evaluate_measures_each_resting_step_against_the_codecs(model):
+    """evaluate's resting chain per view: each step's metrics against the ray-cast, the
+    cumulative bytes, on the sweep's views the smallest JPEG/WebP/AVIF reaching each lossy
+    step's object SSIM (real files: coded again they are the bytes, decoded they reach it),
+    and for the exact frame the ray-cast's optimized PNG and WebP lossless files."""
+    import io
+
+    from device_runtime.orbit import canonical_view
+    from host.evaluate import alpha_object_mask, evaluate_model
+    from host.link.layers import RestPlanner
+
+    scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what="m"))
+    views = [canonical_view(33.0, 12.0), canonical_view(250.5, -41.0)]
+    result = evaluate_model(model, scene, views, rd_views=1, sample_views=1, metric_workers=0,
+                            progress=False, nearest=False, webp_db_quality=None,
+                            motion_deadline_s=None, rd_pca=False,
+                            rest_planner=RestPlanner(model.digest))
+    assert result.info["rest"]["targets"] == [0.95]
+    for i, (view, record) in enumerate(zip(views, result.views, strict=True)):
+        truth, alpha = scene.render(*view)
+        mask = alpha_object_mask(alpha)
+        rest = record["rest"]
+        steps = rest["steps"]
+        assert steps[0]["kind"] == "own" and steps[0]["bytes"] == 0
+        assert steps[0]["ssim_object"] == pytest.approx(record["pca_warp"]["ssim_object"])
+        assert steps[-1]["kind"] == "exact" and steps[-1]["ssim_object"] == 1.0
+        assert steps[-1]["flip"] == 0.0
+        assert [s["bytes"] for s in steps] == list(np.cumsum([s["step_bytes"] for s in steps]))
+        png, webp = io.BytesIO(), io.BytesIO()
+        Image.fromarray(truth).save(png, "PNG", optimize=True)
+        Image.fromarray(truth).save(webp, "WEBP", lossless=True, exact=True)
+        assert steps[-1]["png_bytes"] == len(png.getvalue())
+        assert steps[-1]["webp_lossless_bytes"] == len(webp.getvalue())
+        lossy = [s for s in steps if s["kind"] != "exact"]
+        if i >= 1:  # past the sweep's views: no codec searches
+            assert not any("codecs" in s for s in lossy)
+            continue
+        for s in lossy:
+            for codec in ("jpeg", "webp", "avif"):
+                eq = s["codecs"][codec]
+                coded = encode_image(truth, codec, eq["quality"])
+                assert coded.size_bytes == eq["bytes"]
+                got = structural_similarity(truth, coded.decode(), mask=mask)
+                assert got == pytest.approx(eq["ssim_object"]) and got >= s["ssim_object"]
+                assert eq["bytes_same_ssim"] is None or eq["bytes_same_ssim"] > 0
+                assert eq["bytes_same_flip"] is None or eq["bytes_same_flip"] > 0
+    summary = result.summary()["rest"]
+    assert summary["views"] == 2 and set(summary["stages"]) >= {"own", "exact"}
+    exact = summary["stages"]["exact"]
+    assert exact["x_webp_lossless"]["median"] > 0 and exact["png_bytes"] > 0
+    # the report's strip: each layer, then the exact frame (the ray-cast) with its bytes
+    from host.evaluate.report import _rest_panels
+
+    sample = result.samples[0]
+    panels = _rest_panels(sample)
+    layers = [s for s in result.views[0]["rest"]["steps"] if s["kind"] in ("layer", "exact")]
+    assert len(panels) == len(layers) and panels[-1][0].startswith("exact at rest")
+    assert f"{layers[-1]['bytes']} B" in panels[-1][0]
+    np.testing.assert_array_equal(panels[-1][1], scene.render(*views[0])[0])
 
 
 def test_the_deadline_picks_the_stride_a_drag_settles_on(model, monkeypatch):
@@ -614,12 +779,13 @@ def _report_evaluation():
                          ("avif", [f"q={q}" for q in range(10, 100, 10)])):
         for i, label in enumerate(labels):
             rd.append({"kind": kind, "label": label, "bytes_per_view": 60.0 * 1.4 ** i,
-                       "ssim": 0.8 + 0.02 * i, "flip": 0.1 - 0.008 * i})
+                       "ssim": 0.8 + 0.02 * i, "flip": 0.1 - 0.008 * i,
+                       "ssim_object": 0.78 + 0.02 * i})
     rd += [{"kind": "pca", "label": f"step x{2 ** i}", "bytes_per_view": 150.0 / 2 ** i,
             "ssim": 0.88 - 0.02 * i, "flip": 0.07 + 0.01 * i} for i in range(1, 5)]
     rd.append({"kind": "projection", "label": "oracle", "bytes_per_view": 180.0, "ssim": 0.94,
                "flip": 0.04})
-    point = {"bytes_per_view": 170.0, "ssim": 0.9, "flip": 0.07}
+    point = {"bytes_per_view": 170.0, "ssim": 0.9, "flip": 0.07, "ssim_object": 0.88}
     summary = {m: dict(point) for m in ("pca", "pca_render", "pca_motion", "pca_predict",
                                          "pca_warp", "jpeg", "webp", "avif")}
     summary["webp_db"] = {**point, "quality": 80, "storage_bytes": 58_000}
@@ -629,10 +795,23 @@ def _report_evaluation():
               **{m: {"ssim": float(rng.uniform(0.7, 1.0)), "flip": float(rng.uniform(0.02, 0.2))}
                  for m in methods}}
              for theta in rng.uniform(-85, 85, 24)]
+    for v in views:  # the resting chain: own frame, correction, a layer, exact
+        q = float(rng.uniform(0.75, 0.85))
+        steps = [("own", 0, q), ("correction", 400, q + 0.05), ("layer", 2000, 0.95),
+                 ("exact", 30000, 1.0)]
+        v["rest"] = {"skip_correction": False, "steps": [
+            {"kind": k, "bytes": b, "ssim_object": sq, "flip": (1.0 - sq) / 2}
+            for k, b, sq in steps]}
+    summary["rest"] = {"stages": {
+        "own": {"bytes": 0.0, "ssim_object": 0.8, "flip": 0.1},
+        "correction": {"bytes": 400.0, "ssim_object": 0.85, "flip": 0.075},
+        "layer1": {"bytes": 2000.0, "ssim_object": 0.95, "flip": 0.025},
+        "exact": {"bytes": 30000.0, "ssim_object": 1.0, "flip": 0.0, "png_bytes": 40000.0,
+                  "webp_lossless_bytes": 27000.0}}}
     return SimpleNamespace(rd=rd, views=views, info={"rd_views": 8}, summary=lambda: summary)
 
 
-@pytest.mark.parametrize("plot", ["_rd_plot", "_per_view_plot"])
+@pytest.mark.parametrize("plot", ["_rd_plot", "_per_view_plot", "_rest_plot"])
 def test_report_legends_cover_no_axis_title_and_no_data(plot, tmp_path, monkeypatch):
     """The legend covered the axis title in rd.png and data points in per_view.png: every
     legend lies outside both plots' data areas and clear of their axis titles."""

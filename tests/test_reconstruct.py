@@ -148,20 +148,21 @@ def test_partial_change_inside_one_batch_with_threads():
     rec.close()
 
 
-def test_a_batch_whose_cells_partly_changed_writes_each_to_its_own_place():
-    # every other cell with components changes: each batch holds changed and unchanged
+def test_a_group_whose_cells_partly_changed_writes_each_to_its_own_place():
+    # every other cell with components changes: each group holds changed and unchanged
     # cells, and the changed ones are written together
     space = make_space(64, 64, 8, 8, zero_fraction=0.2, seed=6)
-    rec = build(space, scratch_bytes=60_000)
+    rec = build(space, scratch_bytes=20_000)
     rng = np.random.default_rng(4)
     y = (rng.standard_normal(rec.n_coefficients) * 300).astype(np.float32)
     before = rec.update(y).copy()
     offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
     cells = np.flatnonzero(space["n_components"])[::2]
-    batches = [job for job in rec._workers[0].jobs if np.isin(cells, range(job.start, job.stop)
-                                                              ).sum() >= 2]
-    assert batches and all(len(job.calls) > np.isin(cells, range(job.start, job.stop)).sum()
-                           for job in batches)
+    groups = [job for job in rec._workers[0].groups
+              if np.isin(cells, range(job.start, job.stop)).sum() >= 2]
+    assert len(groups) > 1 and all(
+        np.count_nonzero(space["n_components"][job.start:job.stop])
+        > np.isin(cells, range(job.start, job.stop)).sum() for job in groups)
     for c in cells:
         y[offsets[c + 1] - 1] += 321.0
     frame = rec.update(y)
@@ -170,6 +171,67 @@ def test_a_batch_whose_cells_partly_changed_writes_each_to_its_own_place():
     moved = np.any(frame != before, axis=2)
     rows, cols = np.nonzero(moved)
     assert set((rows // 8 * 8 + cols // 8).tolist()) <= set(cells.tolist())
+
+
+def blend_bits(space, y):
+    """The blend's arithmetic, one cell at a time: ``w_c @ float32(E_c)`` with ``w = y *
+    scales`` (float32, one BLAS product per cell), plus the mean, rounded and clipped."""
+    offsets = np.concatenate([[0], np.cumsum(space["n_components"])])
+    w = y * space["scales"]
+    out = space["mean"].astype(np.float32)
+    for c in range(len(space["n_components"])):
+        a, b = offsets[c], offsets[c + 1]
+        if b > a:
+            out[c] = np.matmul(w[a:b], space["eigenimages"][a:b].astype(np.float32)) + out[c]
+    height, width = space["image_shape"]
+    cell_h, cell_w = space["cell_shape"]
+    ny, nx = -(-height // cell_h), -(-width // cell_w)
+    pixels = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    padded = pixels.reshape(ny, nx, cell_h, cell_w, 3).transpose(0, 2, 1, 3, 4)
+    return padded.reshape(ny * cell_h, nx * cell_w, 3)[:height, :width]
+
+
+@pytest.mark.parametrize("scratch,threads", [(1 << 20, 1), (20_000, 1), (20_000, 2)])
+def test_the_blend_is_its_per_cell_products_bit_for_bit(scratch, threads, monkeypatch):
+    """Every way `update` runs a cell that fits the scratch (one group or several, a cell of
+    one component, two threads, cells changing in part) computes one float32 BLAS product
+    per cell over all its rows, zero scores included, bit for bit (checked on the sums
+    themselves: another order of the same terms rounds them otherwise; on the frames
+    that is seen only where a value lies on a .5 tie), and its frames are those products'."""
+    space = make_space(45, 61, 8, 8, k_max=12, zero_fraction=0.2, seed=21)
+    counts = space["n_components"]
+    assert (counts == 1).any()
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    sums: list[tuple[np.ndarray, np.ndarray]] = []
+    write = Reconstructor._write_cells
+
+    def spy(self, out, cells, where):
+        sums.append((np.arange(self.n_cells)[cells], out.copy()))  # before the mean is added
+        write(self, out, cells, where)
+
+    monkeypatch.setattr(Reconstructor, "_write_cells", spy)
+    rec = build(space, scratch_bytes=scratch, threads=threads)
+    rng = np.random.default_rng(8)
+    y = (rng.standard_normal(rec.n_coefficients) * 300).astype(np.float32)
+    try:
+        for _ in range(6):
+            y[rng.random(y.size) < 0.4] = 0.0  # zero scores, as a quantized table has
+            sums.clear()
+            np.testing.assert_array_equal(rec.update(y), blend_bits(space, y))
+            w = y * space["scales"]
+            seen = 0
+            for cells, out in sums:
+                for c, row in zip(cells, out):
+                    a, b = offsets[c], offsets[c + 1]
+                    want = np.matmul(w[a:b], space["eigenimages"][a:b].astype(np.float32))
+                    np.testing.assert_array_equal(row, want)
+                    seen += 1
+            assert seen == rec.cells_recomputed > 0
+            cells = rng.choice(np.flatnonzero(counts), 5, replace=False)
+            for c in cells:  # some cells change, in part
+                y[offsets[c]:offsets[c + 1]] += rng.normal(0, 200, counts[c]).astype(np.float32)
+    finally:
+        rec.close()
 
 
 @pytest.mark.parametrize("share", [0.2, 0.6, 0.95])

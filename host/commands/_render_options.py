@@ -128,21 +128,26 @@ def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
     )
 
 
-def render_setup(args: argparse.Namespace, *, say: bool = False):
+def render_setup(args: argparse.Namespace):
     """Load the volume and transfer function and build the renderer: (volume, tf, renderer).
-
-    ``say``: print on stderr, in one line, which transfer function was chosen for which
-    modality and why (`describe_transfer_function`)."""
-    from host.render.transfer import describe_transfer_function, transfer_function_from_args
+    `say_transfer_function` says which transfer function that chose, once the command is
+    sure to render."""
+    from host.render.transfer import transfer_function_from_args
     from host.volume import volume_from_args
 
     volume = volume_from_args(args.volume, args)
     tf = transfer_function_from_args(args, volume)
     renderer = renderer_from_args(args, volume, tf)
-    if say:
-        print(describe_transfer_function(volume, tf, getattr(args, "tf", None)),
-              file=sys.stderr)
     return volume, tf, renderer
+
+
+def say_transfer_function(args: argparse.Namespace, volume, tf) -> None:  # noqa: ANN001
+    """Print on stderr, in one line, which transfer function was chosen for which modality
+    and why (`describe_transfer_function`): after every check of the command's options, so
+    an error stays one line."""
+    from host.render.transfer import describe_transfer_function
+
+    print(describe_transfer_function(volume, tf, getattr(args, "tf", None)), file=sys.stderr)
 
 
 def camera_settings(args: argparse.Namespace, volume, renderer) -> dict:  # noqa: ANN001

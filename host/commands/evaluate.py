@@ -13,11 +13,12 @@ from pathlib import Path
 from host.errors import EigencastError
 
 HELP = ("ray-cast novel views with the model's own render settings and compare what the device "
-        "shows (its own frame, served at rest and while moving) with equal-bytes JPEG/WebP/AVIF "
-        "and the nearest training view (PSNR, SSIM, FLIP, blockiness)")
+        "shows (its own frame, served at rest and while moving, and at rest each refinement "
+        "layer up to the exact frame) with JPEG/WebP/AVIF and the nearest training view "
+        "(PSNR, SSIM, FLIP, blockiness)")
 
 #: Files and folders a report folder holds; an existing folder with anything else is refused.
-REPORT_ENTRIES = {"index.html", "rd.png", "per_view.png", "summary.json", "views"}
+REPORT_ENTRIES = {"index.html", "rd.png", "per_view.png", "rest.png", "summary.json", "views"}
 _FOREIGN_ONLY = ("tf", "size", "projection", "fov", "background", "frame", "samples", "step",
                  "lighting")
 
@@ -161,11 +162,15 @@ def run(args: argparse.Namespace) -> int:
     looks = [model.look] if args.look is not None or not model.looks else list(model.looks)
     if report is not None:
         _check_report_folder(report, tuple(looks) if len(looks) > 1 else ())
+    from host.link.layers import RestPlanner
+
     summaries = {}
     for name in looks:
         if name != model.look:
             model = HostModel.load(args.model, key=key, look=name)
         scene = _scene(args, model)
+        # the resting views' layers as serve plans them (its default targets, exact at the end)
+        planner = RestPlanner(model.digest)
         evaluation = evaluate_model(
             model, scene, views.views, nearest=not args.no_nearest, rd_views=args.rd_views,
             sample_views=args.samples_shown if report is not None else 0,
@@ -173,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
             webp_db_quality=args.webp_db_quality or None,
             motion_deadline_s=args.motion_deadline / 1000.0 or None,
             motion_stride=args.motion_stride, motion_slowdown=args.motion_slowdown,
-            rd_pca=not args.rd_codecs_only,
+            rd_pca=not args.rd_codecs_only, rest_planner=planner,
             info={"view_spec": views.spec, **({"look": name} if name else {})},
         )
         folder = None
@@ -269,6 +274,20 @@ def _text_summary(s: dict) -> str:
                            if mo.get("slowdown", 1) != 1 else ""))
                      + "; bytes/view = as streamed"
                      + (f"; {_vs_own(mo)}" if "views_below_own" in mo else ""))
+    rest = s.get("rest")
+    if rest:
+        parts = []
+        for name, r in rest["stages"].items():
+            ratio = (r.get("x_webp") or {}).get("median")
+            parts.append(f"{name} {f(r['ssim_object'], 4)} at {f(r['bytes'], 0)} B"
+                         + (f" ({ratio:.2f}x WebP)" if ratio else ""))
+        exact = rest["stages"].get("exact")
+        if exact:
+            parts.append(f"exact {f((exact['x_webp_lossless'] or {}).get('median'), 2)}x "
+                         "WebP lossless")
+        lines.append(f"rest ({rest['views']} views, correction skipped on "
+                     f"{rest['correction_skipped']}; medians of object SSIM at cumulative "
+                     "bytes): " + "; ".join(parts))
     for m in ("pca_predict", "pca_motion"):
         eq = (s.get(m) or {}).get("equal_quality")
         if eq:

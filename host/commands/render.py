@@ -14,6 +14,7 @@ from host.commands._render_options import (
     camera_settings,
     parse_size,
     render_setup,
+    say_transfer_function,
 )
 from host.errors import CinemaError
 from host.progress import progress
@@ -127,7 +128,7 @@ def _depth_offset(args: argparse.Namespace, settings: dict, size: tuple[int, int
 def run(args: argparse.Namespace) -> int:
     width, height = parse_size(args.size)
     view_set = parse_view_set(args.views)
-    volume, tf, renderer = render_setup(args, say=True)
+    volume, tf, renderer = render_setup(args)
     camera_opts = camera_settings(args, volume, renderer)
     cameras = [
         orbit_camera(v, camera_opts["center_mm"], camera_opts["radius_mm"],
@@ -147,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
     from host.cluster import open_cluster, render_pngs
 
     cluster = open_cluster(args.scheduler)  # None: in-process threads
+    say_transfer_function(args, volume, tf)
     if cluster is None:
         views = _render_in_process(renderer, cameras, pending, width, height, depth_offset)
     else:

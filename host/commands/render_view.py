@@ -10,6 +10,7 @@ from host.commands._render_options import (
     camera_settings,
     parse_size,
     render_setup,
+    say_transfer_function,
 )
 from host.errors import EigencastError
 from host.render.camera import View, orbit_camera
@@ -36,14 +37,15 @@ def run(args: argparse.Namespace) -> int:
     if not -90.0 <= args.theta <= 90.0:
         raise EigencastError(f"--theta {args.theta}: elevation must be within [-90, 90]")
     width, height = parse_size(args.size)
-    volume, _tf, renderer = render_setup(args, say=True)
+    volume, tf, renderer = render_setup(args)
+    out = Path(args.output)
+    if not out.parent.exists():
+        raise EigencastError(f"{out.parent}: output folder does not exist")
+    say_transfer_function(args, volume, tf)
     framing = camera_settings(args, volume, renderer)
     camera = orbit_camera(View(args.phi % 360.0, args.theta), framing["center_mm"],
                           framing["radius_mm"], projection=args.projection, fov_deg=args.fov)
     image = renderer.render_rgb8(camera, width, height)
-    out = Path(args.output)
-    if not out.parent.exists():
-        raise EigencastError(f"{out.parent}: output folder does not exist")
     atomic_write_bytes(out, encode_png(image))
     print(f"wrote {out} ({width}x{height}, phi={args.phi:g}, theta={args.theta:g})")
     return 0

@@ -4,8 +4,10 @@ Owns the image metrics (``metrics.py``: PSNR, SSIM, FLIP, over the object's pixe
 object masks (``masks.py``), the baselines the eigenspace is compared with (``baselines.py``:
 equal-bytes JPEG/WebP, nearest training view, the on-device WebP image database), the
 device path (``device_path.py``: scores -> real score packet -> device reconstruction; the
-one served path's frames, the device's own frame and its corrections), the
-evaluation engine with its rate-distortion sweep (``engine.py``), the HTML report
+one served path's frames, the device's own frame and its corrections, and given ``serve``'s
+planner the resting views' layers), the resting steps measured against the codecs
+(``resting.py``), the evaluation engine with its rate-distortion sweep (``engine.py``), the
+HTML report
 (``report.py``) and the quality-target search of ``eigencast fit --target``
 (``target.py``: it picks the cheapest model whose frames, measured through the device path,
 reach a target, so it needs this stage and lives here rather than in `host.fit`), and, for
@@ -34,11 +36,14 @@ __all__ = [
     "TENT_MARGIN",
     "TENT_TIE",
     "TENT_VIEWS",
+    "CodecLadder",
     "CodedImage",
     "DevicePath",
     "Evaluation",
     "HeldOutViews",
     "ImageComparison",
+    "RestStep",
+    "RestSteps",
     "ServedFrames",
     "SlowRenderer",
     "Target",

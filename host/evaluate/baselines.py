@@ -8,6 +8,15 @@ file is not larger than a byte budget (JPEG: ``optimize=True``, 4:2:0; WebP: ``m
 keeps the invariant "quality lo fits, quality hi does not", so the answer's ``quality + 1``
 always exceeds the budget; if even quality 1 does not fit it says so (``within_budget`` False)
 and returns that file.
+
+Equal-quality codecs
+--------------------
+`CodecLadder` codes one image at any quality on demand (each file once) and finds the
+smallest file whose decoded image reaches a quality (`CodecLadder.smallest`; a measure of
+the caller's: object SSIM, SSIM, FLIP ...): a bisection over the quality setting keeping
+"lo misses, hi reaches", starting from a hint (the last view's answer) when given. A
+codec's quality is not strictly monotone in its setting, so the answer is the smallest file
+among the settings tried that reaches the target.
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from host.progress import progress as _progress
 __all__ = [
     "CODECS",
     "MAX_QUALITY",
+    "CodecLadder",
     "CodedImage",
     "TrainingImages",
     "WebPDatabase",
@@ -179,6 +189,87 @@ def encode_within_budget(
             hi = mid
     return at(max(lo, 1))
 
+class CodecLadder:
+    """One image coded by one codec at any quality on demand, and the smallest file whose
+    decoded image reaches a quality (module docstring).
+
+    Parameters
+    ----------
+    image : ndarray of shape (height, width, 3), uint8
+    codec : {"jpeg", "webp", "avif"}
+    measure : callable
+        ``measure(decoded, name) -> dict``: the value called ``name`` of a decoded file
+        (and any others computed on the way, e.g. whole-frame and object SSIM from one SSIM
+        map); each is kept per quality setting.
+    """
+
+    def __init__(self, image: np.ndarray, codec: str,
+                 measure: Any) -> None:
+        _check_codec(codec)
+        self.image = image
+        self.codec = codec
+        self.measure = measure
+        self._files: dict[int, CodedImage] = {}
+        self._decoded: dict[int, np.ndarray] = {}
+        self._values: dict[int, dict[str, float]] = {}
+
+    def file(self, quality: int) -> CodedImage:
+        """The file at ``quality`` (1..100), coded once."""
+        if quality not in self._files:
+            self._files[quality] = encode_image(self.image, self.codec, quality)
+        return self._files[quality]
+
+    def decoded(self, quality: int) -> np.ndarray:
+        """The file at ``quality`` decoded (Pillow), uint8 (height, width, 3)."""
+        if quality not in self._decoded:
+            self._decoded[quality] = self.file(quality).decode()
+        return self._decoded[quality]
+
+    def value(self, quality: int, name: str) -> float:
+        """``measure``'s ``name`` of the file at ``quality``."""
+        values = self._values.setdefault(quality, {})
+        if name not in values:
+            values.update(self.measure(self.decoded(quality), name))
+        return float(values[name])
+
+    def values(self, quality: int) -> dict[str, float]:
+        """Every value measured so far of the file at ``quality``."""
+        return dict(self._values.get(quality, {}))
+
+    def smallest(self, target: float, name: str, *, higher_is_better: bool = True,
+                 hint: int | None = None) -> CodedImage | None:
+        """The smallest file whose ``name`` reaches ``target`` (at least it, or at most it
+        where lower is better), or None when even quality 100 does not.
+
+        A bisection over the quality keeping "lo misses, hi reaches" (from ``hint`` and
+        ``hint - 8`` first when given), then the smallest of the files tried that reach it.
+        """
+        def reaches(q: int) -> bool:
+            v = self.value(q, name)
+            return v >= target if higher_is_better else v <= target
+
+        if not reaches(MAX_QUALITY):
+            return None
+        lo, hi = 0, MAX_QUALITY  # quality lo misses (0: none tried), hi reaches
+        if hint is not None and 1 <= hint < MAX_QUALITY:
+            if reaches(hint):
+                hi = hint
+                below = max(1, hint - 8)
+                if below < hint:
+                    if reaches(below):
+                        hi = below
+                    else:
+                        lo = below
+            else:
+                lo = hint
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if reaches(mid):
+                hi = mid
+            else:
+                lo = mid
+        tried = [q for q in self._values if name in self._values[q] and reaches(q)]
+        return min((self._files[q] for q in tried), key=lambda c: (c.size_bytes, c.quality))
 
 
 def nearest_training_view(

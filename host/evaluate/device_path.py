@@ -11,18 +11,28 @@ depth warp, or the blend of its predicted scores), that frame corrected at rest 
 correction at the model's step) and while moving (the sparse correction at the stride the
 frame deadline allows), each correction a real version-3 packet decoded by
 `protocol.scores.ScoreDecoder` and added by the device's own `Reconstructor.correct`.
+At rest, ``ServedFrames.rest`` gives the whole chain ``serve`` sends a resting view: the
+complete correction (when the plan sends it) and the refinement layers planned by the
+session's planner (``host.link.layers.RestPlanner``, handed in by the caller: evaluate and
+link never import each other) from the same inputs ``serve`` plans them from -- the view's
+full ray-cast, the device's own frame and that frame with the complete correction -- each
+step's frame as the device shows it (`RestSteps`).
+
 `SlowRenderer` makes a renderer's ray-casts slower, to see what the deadline does on a
 slower host.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 __all__ = [
     "DevicePath",
+    "RestStep",
+    "RestSteps",
     "ServedFrames",
     "SlowRenderer",
 ]
@@ -115,6 +125,73 @@ class DevicePath:
         return self.model.reconstruct(decoder.decode(packets[1]).y), len(packets[1])
 
 
+@dataclass
+class RestStep:
+    """One step of a resting view: what the device shows after it, and what it cost.
+
+    Attributes
+    ----------
+    kind : {"own", "correction", "layer", "exact"}
+        The device's own frame (nothing sent), its complete correction, a lossy refinement
+        layer, the exact layer.
+    frame : ndarray (height, width, 3) uint8
+        The device's frame once the step is applied (the exact step's is the ray-cast).
+    bytes : int
+        Packet bytes sent for the view up to and including this step (cumulative).
+    step_bytes : int
+        This step's own packet bytes (all its strips).
+    packets : list of bytes
+        Its packets as planned (a layer's strips, top to bottom; the correction's one; none
+        for the own frame).
+    codec : str or None
+        A layer's codec (``"webp"``, ``"webp-lossless"``, ``"png"``, or both joined by ``+``).
+    residual : bool
+        A layer coded against the device's frame (else the ray-cast's pixels).
+    planned_quality : float or None
+        The object SSIM the planner measured for a layer (its own measure: the ray-cast's
+        non-black pixels); evaluate's metrics are computed separately.
+    """
+
+    kind: str
+    frame: np.ndarray
+    bytes: int
+    step_bytes: int
+    packets: list[bytes] = field(default_factory=list)
+    codec: str | None = None
+    residual: bool = False
+    planned_quality: float | None = None
+
+
+@dataclass
+class RestSteps:
+    """What ``serve`` sends a resting view and what the device shows after each packet.
+
+    Attributes
+    ----------
+    view : (float, float)
+        The canonical view.
+    truth : ndarray (height, width, 3) uint8
+        The view's full ray-cast the plan refines to (serve's, of the canonical view).
+    correction_bytes : int
+        The complete correction's packet (0: nothing worth sending), sent or not.
+    skip_correction : bool
+        The plan sends no correction (it does not pay for itself, or there is none).
+    steps : list of RestStep
+        In order: the own frame, the correction when sent, each layer.
+    """
+
+    view: tuple[float, float]
+    truth: np.ndarray
+    correction_bytes: int
+    skip_correction: bool
+    steps: list[RestStep] = field(default_factory=list)
+
+    @property
+    def exact(self) -> RestStep | None:
+        """The exact step (None: the planner stops before it)."""
+        return next((s for s in self.steps if s.kind == "exact"), None)
+
+
 class _OwnOnce:
     """`OwnFrames` that makes each view's own frame once (the last view's is kept): the
     frame sources and evaluate ask for the same view's frame several times."""
@@ -146,6 +223,9 @@ class ServedFrames:
         With the standalone table (`host.fit.rate` ... ``can_predict``).
     scene : host.render.settings.ViewRenderer
         The model's renderer (the host's ray-caster).
+    planner : host.link.layers.RestPlanner, optional
+        Plans a resting view's refinement layers as ``serve`` does (`rest`); None: no
+        layers (`rest` says None).
 
     Attributes
     ----------
@@ -158,7 +238,7 @@ class ServedFrames:
         a moving frame is the own frame).
     """
 
-    def __init__(self, model: Any, scene: Any) -> None:
+    def __init__(self, model: Any, scene: Any, *, planner: Any = None) -> None:
         from device_runtime.prediction import OwnFrames
         from host.fit.motion import MotionScores
         from protocol.scores import ScoreDecoder
@@ -174,25 +254,41 @@ class ServedFrames:
                                   budget_s=UNBOUNDED_S)
         self._moving: Any = None
         self.stride: int | None = None
+        self.planner = planner
+        if planner is not None:  # its layers decode through pygame: no banner on stdout
+            import os
+
+            os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
         self._frame = 0
+        self._resting: tuple[tuple[float, float], Any, Any] | None = None  # view, step, packet
 
     def own_frame(self, phi_deg: float, theta_deg: float) -> np.ndarray:
         """The device's own frame of the view (uint8 (h, w, 3)): no bytes."""
         return self.own.frame(phi_deg, theta_deg)
 
-    def _shown(self, view: tuple[float, float], step: Any, *, fine: bool
-               ) -> tuple[np.ndarray, int]:
+    def _encode(self, view: tuple[float, float], step: Any, *, fine: bool) -> Any:
+        """The correction packet of ``step`` (`EncodedScores`; None: nothing worth sending)."""
         from host.fit.rate import encode_correction
 
-        synth = self.own.frame(*view)
         self._frame = (self._frame % 0xFFFFFFFF) + 1
-        encoded = (None if step.scores is None else
-                   encode_correction(self.model, step.scores, view, frame=self._frame,
-                                     fine=fine, weights=step.weights))
+        return (None if step.scores is None else
+                encode_correction(self.model, step.scores, view, frame=self._frame,
+                                  fine=fine, weights=step.weights))
+
+    def _shown(self, view: tuple[float, float], encoded: Any) -> tuple[np.ndarray, int]:
+        synth = self.own.frame(*view)
         if encoded is None:  # nothing worth sending: the device keeps its own frame
             return synth, 0
         decoded = self.decoder.decode(encoded.packet)
         return self.own.corrected(synth, decoded.y), len(encoded.packet)
+
+    def _rest_step(self, view: tuple[float, float]) -> tuple[Any, Any]:
+        """The resting view's full ray-cast step and its complete correction's packet (made
+        once per view: evaluate asks `at_rest` and `rest` of the same view)."""
+        if self._resting is None or self._resting[0] != view:
+            step = self._rest.frame(view)
+            self._resting = (view, step, self._encode(view, step, fine=True))
+        return self._resting[1], self._resting[2]
 
     def at_rest(self, phi_deg: float, theta_deg: float) -> tuple[np.ndarray, int]:
         """The frame a resting view converges to (its own frame plus the complete correction
@@ -200,7 +296,43 @@ class ServedFrames:
         from device_runtime.prediction import prediction_view
 
         view = prediction_view(phi_deg, theta_deg)
-        return self._shown(view, self._rest.frame(view), fine=True)
+        return self._shown(view, self._rest_step(view)[1])
+
+    def rest(self, phi_deg: float, theta_deg: float) -> RestSteps | None:
+        """Everything ``serve`` sends a resting view (its complete correction, unless the
+        plan skips it, then the refinement layers) and the device's frame after each
+        packet; None without a planner or when the view's full ray-cast is not at hand.
+
+        The plan is ``planner.plan`` of the same inputs ``serve``'s `RestSender` gives it:
+        the full ray-cast and own frame of the view (`MotionScores.rest_images`), the own
+        frame corrected by the decoded complete correction and that packet's size and frame
+        number."""
+        from device_runtime.prediction import prediction_view
+
+        if self.planner is None:
+            return None
+        view = prediction_view(phi_deg, theta_deg)
+        _, encoded = self._rest_step(view)
+        images = self._rest.rest_images(view)
+        if images is None:
+            return None
+        truth, own = (np.array(a, copy=True) for a in images)
+        corrected, size = self._shown(view, encoded)
+        base = 0 if encoded is None else encoded.frame
+        plan = self.planner.plan(view, truth, corrected, own, size, base_frame=base,
+                                 first_frame=self._frame + 1)
+        out = RestSteps(view, truth, size, plan.skip_correction or encoded is None,
+                        [RestStep("own", own, 0, 0)])
+        total = 0
+        if not out.skip_correction:
+            total = size
+            out.steps.append(RestStep("correction", corrected, size, size, [encoded.packet]))
+        for layer in plan.layers:
+            total += layer.size_bytes
+            out.steps.append(RestStep("exact" if layer.exact else "layer", layer.frame, total,
+                                      layer.size_bytes, list(layer.packets), layer.codec,
+                                      layer.residual, float(layer.quality)))
+        return out
 
     def pick_stride(self, deadline_s: float, start: tuple[float, float], *,
                     slowdown: float = 1.0) -> int:
@@ -243,7 +375,7 @@ class ServedFrames:
         view = prediction_view(phi_deg, theta_deg)
         if self._moving is None:
             return self.own.frame(*view), 0
-        return self._shown(view, self._moving.frame(view), fine=False)
+        return self._shown(view, self._encode(view, self._moving.frame(view), fine=False))
 
 
 class _SlowCaster:

@@ -6,7 +6,10 @@ frame from interpolated scores (``pca``) and from the ray-cast's own scores (``p
 for a model with the standalone table the one served path (`ServedFrames`: the device's own
 frame ``pca_warp``, that frame corrected at rest ``pca_predict`` and while moving
 ``pca_motion``, bit for bit what the device shows, with the bytes of the correction
-packets); the equal-bytes JPEG, WebP and AVIF, the angularly nearest training view and the
+packets, and given ``serve``'s planner the whole resting chain: the correction when sent, each
+refinement layer and the exact frame, with cumulative bytes, against the smallest codec files
+of the same quality: `host.evaluate.resting`); the equal-bytes JPEG, WebP and AVIF, the
+angularly nearest training view and the
 *WebP image database* (`WebPDatabase`: every training view stored as WebP on the device, the
 novel view blended from the decoded training images with the model's own interpolation
 weights; zero bytes per frame). Every frame also gets its cell-border figure
@@ -44,6 +47,7 @@ from host.evaluate.baselines import (
 from host.evaluate.device_path import MOTION_STEP_DEG, MOTION_WARMUP, DevicePath, ServedFrames
 from host.evaluate.masks import alpha_object_mask
 from host.evaluate.metrics import ImageComparison, blockiness, compare_images
+from host.evaluate.resting import measure_rest, rest_record, summarize_rest
 from host.progress import progress as _progress
 
 __all__ = [
@@ -100,7 +104,9 @@ class Evaluation:
         One record per novel view: ``phi_deg``, ``theta_deg``, ``object_fraction``,
         ``raycast_blockiness`` and, per method (`METHODS`), a dict of ``bytes_per_view``,
         ``blockiness`` and the metrics (plus ``quality``/``within_budget`` for codecs,
-        ``index``/``angle_deg`` for the nearest view, ``stride`` for ``pca_motion``).
+        ``index``/``angle_deg`` for the nearest view, ``stride`` for ``pca_motion``), and
+        given a planner ``rest`` (`host.evaluate.resting.rest_record`: each step of the
+        resting view with its cumulative bytes, metrics and codec equivalents).
     rd : list of dict
         Rate-distortion points: ``kind`` (pca/projection/jpeg/webp), ``label``, ``setting``,
         ``bytes_per_view``, ``psnr``, ``ssim``, ``flip``, ``components_per_cell``.
@@ -177,8 +183,10 @@ class Evaluation:
         ``pca_render``, ``jpeg``, ``webp``, ``avif``, ``nearest``, ``webp_db``, and for a
         model with the standalone table ``pca_warp`` (with ``own_frame``: ``"warp"`` or
         ``"blend"``) and ``pca_predict``; the served methods (`SERVED`) also with
-        `over_own` and `equal_quality`), ``raycast_blockiness``, the rate-distortion points,
-        the time per phase and the per-view records; non-finite floats are ``None``.
+        `over_own` and `equal_quality`), ``raycast_blockiness``, ``rest`` (the resting
+        chain's stages, `host.evaluate.resting.summarize_rest`; given a planner), the
+        rate-distortion points, the time per phase and the per-view records; non-finite
+        floats are ``None``.
         """
         info = self.info
         out = {
@@ -214,6 +222,9 @@ class Evaluation:
         for method in SERVED:
             if method in out and self.rd:
                 out[method]["equal_quality"] = self.equal_quality(method)
+        rest = summarize_rest(self.views)
+        if rest is not None:
+            out["rest"] = rest
         if "webp_db" in out:
             out["webp_db"]["storage_bytes"] = info.get("webp_db_storage_bytes")
             out["webp_db"]["storage_estimated"] = info.get("webp_db_storage_estimated")
@@ -364,10 +375,14 @@ class _Metrics:
                 "spawn"))
 
     def submit(self, *args: Any, **kwargs: Any) -> Future:
+        return self.call(_compare_job, *args, **kwargs)
+
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Future:
+        """``fn(*args, **kwargs)`` in a worker (a module-level function), or inline."""
         if self.pool is not None:
-            return self.pool.submit(_compare_job, *args, **kwargs)
+            return self.pool.submit(fn, *args, **kwargs)
         done: Future = Future()
-        done.set_result(_compare_job(*args, **kwargs))
+        done.set_result(fn(*args, **kwargs))
         return done
 
     def close(self) -> None:
@@ -405,6 +420,7 @@ def evaluate_model(
     motion_stride: int | None = None,
     motion_slowdown: float = 1.0,
     rd_pca: bool = True,
+    rest_planner: Any = None,
     metric_workers: int | None = None,
     progress: bool = True,
     info: dict | None = None,
@@ -448,6 +464,12 @@ def evaluate_model(
     rd_pca : bool
         The rate-distortion sweep includes the model's truncations and coarser steps (else
         only the codecs' curves: what ``equal_quality`` needs, in a fraction of the time).
+    rest_planner : host.link.layers.RestPlanner, optional
+        For a model with the standalone table: plan each view's refinement layers at rest
+        as ``serve`` does with this planner (`ServedFrames.rest`) and record every step
+        (``record["rest"]``); on the first ``rd_views`` views also the smallest JPEG, WebP
+        and AVIF of each lossy step's quality (`host.evaluate.resting.measure_rest`). None:
+        no layers.
     metric_workers : int, optional
         Processes computing the metrics (default `default_metric_workers`; 0: inline).
     progress : bool
@@ -489,9 +511,15 @@ def evaluate_model(
         webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
         timing["webp_db"] += time.perf_counter() - t0
         evaluation.info["webp_db_quality"] = webp_db.quality
-    served = ServedFrames(model, scene) if can_predict(model.image) else None
+    served = (ServedFrames(model, scene, planner=rest_planner) if can_predict(model.image)
+              else None)
     if served is not None:
         timing["served"] = 0.0
+        if rest_planner is not None:
+            timing["rest"] = 0.0
+            evaluation.info["rest"] = {"targets": list(rest_planner.targets),
+                                       "exact": rest_planner.exact,
+                                       "max_packet_bytes": rest_planner.max_packet_bytes}
         evaluation.info["own_frame"] = served.kind
         if model.image.synthesis is not None:
             evaluation.info["synthesis"] = model.image.synthesis.get("method")
@@ -518,15 +546,20 @@ def evaluate_model(
     rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
     metrics = _Metrics(workers)
     hints: dict[str, int | None] = {c: None for c in CODECS}
-    in_flight: list[tuple[int, dict, dict[str, Future], dict | None]] = []
+    rest_hints: dict[str, int] = {}
+    in_flight: list[tuple[int, dict, dict[str, Future], dict | None, Any]] = []
 
     def finish(bar: Any) -> None:
-        i, record, futures, sample = in_flight.pop(0)
+        i, record, futures, sample, rest_job = in_flight.pop(0)
         t0 = time.perf_counter()
         results = {name: f.result() for name, f in futures.items()}
+        rest_measured = rest_job[1].result() if rest_job is not None else None
         timing["metrics_wait"] += time.perf_counter() - t0
         for name, c in results.items():
             record[name].update(c.values())
+        if rest_measured is not None:
+            record["rest"] = rest_record(rest_job[0], rest_measured)
+            rest_hints.update(rest_measured["hints"])
         if sample is not None:
             sample.update({f"flip_{name}": results[name].flip_map
                            for name in ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp",
@@ -547,6 +580,7 @@ def evaluate_model(
                 t1 = time.perf_counter()
                 timing["raycast"] += t1 - t0
                 keep = i < sample_views
+                rest_job = None
                 frames: dict[str, np.ndarray] = {}
                 record: dict[str, Any] = {"phi_deg": phi, "theta_deg": theta,
                                           "object_fraction": float(mask.mean()),
@@ -565,6 +599,15 @@ def evaluate_model(
                     record["pca_predict"] = {"bytes_per_view": size}
                     t3 = time.perf_counter()
                     timing["served"] += t3 - t2
+                    rest = served.rest(phi, theta)
+                    if rest is not None:
+                        rest_job = (rest, metrics.call(
+                            measure_rest, rest.truth, mask, [s.frame for s in rest.steps],
+                            [s.kind for s in rest.steps], codecs=i < rd_views,
+                            hints=dict(rest_hints)))
+                        t4 = time.perf_counter()
+                        timing["rest"] += t4 - t3
+                        t3 = t4
                     if served.stride is not None:
                         frames["pca_motion"], size = served.moving(phi, theta)
                         record["pca_motion"] = {"bytes_per_view": size,
@@ -614,9 +657,11 @@ def evaluate_model(
                 if keep:
                     sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
                               **frames, "record": record}
+                    if rest_job is not None:  # the resting chain's frames, for the strip
+                        sample["rest_frames"] = [s.frame for s in rest_job[0].steps]
                 if i < rd_views:
                     rd_refs.append((truth, mask, phi, theta))
-                in_flight.append((i, record, futures, sample))
+                in_flight.append((i, record, futures, sample, rest_job))
                 while len(in_flight) > max(1, workers):
                     finish(bar)
             while in_flight:

@@ -8,10 +8,15 @@
   several settings (lower thresholds / fewer components, coarser score steps) and JPEG and
   WebP at several qualities, with the model's own point and the equal-bytes codec means marked;
 * ``per_view.png`` -- SSIM and FLIP of every view against its elevation;
+* ``rest.png`` -- for a model with the standalone table, given ``serve``'s planner: object
+  SSIM and FLIP against cumulative bytes of every step of the resting views (the own frame,
+  the correction, each layer, the exact frame) beside the JPEG, WebP and AVIF curves and the
+  ray-cast's PNG and WebP lossless files;
 * ``views/view_NN.png`` -- side by side: for a model with the standalone table the device's
-  own frame | that frame served at rest (corrected) | the ray-cast, then the other methods'
-  frames (served while moving, interpolated and ray-cast scores, equal-bytes codecs, ...) and
-  FLIP error maps (magma, 0..1);
+  own frame | that frame served at rest (corrected) | each refinement layer and the exact
+  frame (given a planner) | the ray-cast, then the other methods' frames (served while
+  moving, interpolated and ray-cast scores, equal-bytes codecs, ...) and FLIP error maps
+  (magma, 0..1);
 * ``summary.json`` -- `Evaluation.summary`.
 
 Plots use matplotlib's Agg backend (no display needed).
@@ -31,6 +36,11 @@ import numpy as np
 from host.evaluate.engine import METHODS
 
 __all__ = ["compose_side_by_side", "write_report"]
+
+#: The resting chain's stages in the report (colour, marker, name).
+_REST_KINDS = {"correction": ("#543005", "o", "own frame + complete correction"),
+               "layer": ("#1b7837", "s", "refinement layer"),
+               "exact": ("#000000", "*", "exact frame (the ray-cast)")}
 
 #: Side-by-side panels smaller than this are zoomed (nearest neighbour) to at least it.
 MIN_PANEL_HEIGHT = 256
@@ -234,6 +244,82 @@ def _rd_figure(evaluation: Any) -> Any:
     return fig
 
 
+def _rest_plot(evaluation: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig = _rest_figure(evaluation)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _rest_figure(evaluation: Any) -> Any:
+    """Object SSIM and FLIP against cumulative bytes of every resting view's steps (a thin
+    line per view from its first step sent to its exact frame, the medians marked), beside
+    the codecs' curves of the rate-distortion sweep, the ray-cast's PNG and WebP lossless
+    files and the own frame (0 bytes: a line)."""
+    from matplotlib.ticker import NullFormatter
+
+    plt = _pyplot()
+    summary = evaluation.summary()
+    rest = summary.get("rest") or {}
+    recs = [v["rest"] for v in evaluation.views if v.get("rest")]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 6.0), dpi=110, layout="constrained")
+    for ax, metric, label, perfect in ((axes[0], "ssim_object", "object SSIM (higher is better)",
+                                        1.0),
+                                       (axes[1], "flip", "FLIP, whole frame (lower is better)",
+                                        0.0)):
+        for r in recs:
+            sent = [s for s in r["steps"] if s["kind"] != "own"]
+            ax.plot([s["bytes"] for s in sent], [s[metric] for s in sent], color="#999999",
+                    linewidth=0.6, alpha=0.5, zorder=1)
+        for kind, (color, marker, name) in _REST_KINDS.items():
+            pts = [s for r in recs for s in r["steps"] if s["kind"] == kind]
+            if pts:
+                ax.scatter([s["bytes"] for s in pts], [s[metric] for s in pts], s=14,
+                           color=color, marker=marker, alpha=0.55, linewidths=0, zorder=3,
+                           label=f"{name} (each view)")
+        for stage, row in (rest.get("stages") or {}).items():
+            if stage == "own" or row.get("bytes") is None or row.get(metric) is None:
+                continue
+            kind = "layer" if stage.startswith("layer") else stage
+            ax.plot([row["bytes"]], [row[metric]], _REST_KINDS[kind][1], color="white",
+                    markeredgecolor=_REST_KINDS[kind][0], markersize=11, zorder=5,
+                    label=None)
+        for codec, marker in (("jpeg", "s"), ("webp", "^"), ("avif", "v")):
+            pts = sorted((p for p in evaluation.rd if p["kind"] == codec),
+                         key=lambda p: p["bytes_per_view"])
+            if pts and pts[0].get(metric) is not None:
+                ax.plot([p["bytes_per_view"] for p in pts], [p[metric] for p in pts],
+                        marker=marker, color=_COLORS[codec], linewidth=1.2, markersize=4,
+                        label=f"{codec.upper() if codec != 'webp' else 'WebP'} of the ray-cast "
+                              "(mean over the sweep's views)")
+        exact = (rest.get("stages") or {}).get("exact") or {}
+        for key, marker, name in (("png_bytes", "P", "PNG (optimized)"),
+                                  ("webp_lossless_bytes", "X", "WebP lossless")):
+            if exact.get(key):
+                ax.plot([exact[key]], [perfect], marker, color="#666666", markersize=10,
+                        zorder=4, label=f"{name} of the ray-cast (median)")
+        corrected = summary.get("pca_predict") or {}
+        if corrected.get("bytes_per_view") and corrected.get(metric) is not None:
+            ax.plot([corrected["bytes_per_view"]], [corrected[metric]], "D",
+                    color=_COLORS["pca_predict"], markerfacecolor="white", markersize=8,
+                    zorder=5, label="own frame + complete correction, sent or not (mean)")
+        own = (rest.get("stages") or {}).get("own") or {}
+        if own.get(metric) is not None:
+            ax.axhline(own[metric], color=_COLORS["pca_warp"], linestyle=":", linewidth=1.4,
+                       label="the device's own frame (0 B, median)")
+        ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # (minor labels collide)
+        ax.set_xlabel("bytes sent for the view (cumulative)")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncol=3, frameon=False)
+    fig.suptitle(f"At rest: quality against bytes, {len(recs)} views (large open markers: "
+                 "medians of each step)", fontsize=10)
+    return fig
+
+
 def _per_view_plot(evaluation: Any, path: Path) -> None:
     import matplotlib.pyplot as plt
 
@@ -276,14 +362,38 @@ def _panel(sample: dict, method: str, title: str) -> tuple[str, np.ndarray] | No
             f"FLIP {rec['flip']:.3f}", sample[method])
 
 
+def _rest_panels(sample: dict) -> list[tuple[str, np.ndarray]]:
+    """The resting chain's layers and exact frame, each with the bytes sent so far."""
+    rest = sample["record"].get("rest")
+    frames = sample.get("rest_frames")
+    if not rest or frames is None:
+        return []
+    panels, n = [], 0
+    for step, frame in zip(rest["steps"], frames):
+        if step["kind"] == "layer":
+            n += 1
+            what = "residual" if step["residual"] else "ray-cast"
+            panels.append((f"layer {n} ({what}), {step['bytes']} B in all\n"
+                           f"SSIM {step['ssim']:.3f} (obj. {step['ssim_object']:.3f})  "
+                           f"FLIP {step['flip']:.3f}", frame))
+        elif step["kind"] == "exact":
+            wll = step.get("webp_lossless_bytes")
+            ratio = f"  {step['bytes'] / wll:.2f}x WebP lossless" if wll else ""
+            panels.append((f"exact at rest, {step['bytes']} B in all\n"
+                           f"(= the ray-cast){ratio}", frame))
+    return panels
+
+
 def _sample_figure(sample: dict) -> np.ndarray:
     rec = sample["record"]
     truth = (f"ray-cast\nphi {sample['phi_deg']:.1f}, theta {sample['theta_deg']:.1f}",
              sample["raycast"])
     panels: list[tuple[str, np.ndarray] | None] = []
     if sample.get("pca_warp") is not None:  # the served path: own frame | corrected | truth
+        skipped = (rec.get("rest") or {}).get("skip_correction")
         panels += [_panel(sample, "pca_warp", "own frame"),
-                   _panel(sample, "pca_predict", "served at rest"), truth]
+                   _panel(sample, "pca_predict", "own + correction (not sent)" if skipped
+                          else "served at rest"), *_rest_panels(sample), truth]
         if "pca_motion" in rec:
             r = rec["pca_motion"]
             panels.append(_panel(sample, "pca_motion", f"served moving (s={r['stride']})"))
@@ -379,6 +489,47 @@ def _equal_quality_html(summary: dict) -> str:
               "outside the swept qualities.</p>")
 
 
+def _ratio(stats: dict | None) -> str:
+    if not stats or stats.get("median") is None:
+        return "–"
+    return f"{stats['median']:.2f} ({stats['worst']:.2f})"
+
+
+def _rest_html(summary: dict) -> str:
+    rest = summary.get("rest")
+    if not rest:
+        return ""
+    rows = []
+    for stage, r in rest["stages"].items():
+        rows.append([html.escape(stage), str(r["views"]), _bytes(r.get("bytes")),
+                     _fmt(r.get("ssim_object"), 4), _fmt(r.get("ssim"), 4),
+                     _fmt(r.get("flip"), 4), _ratio(r.get("x_webp")), _ratio(r.get("x_avif")),
+                     _ratio(r.get("x_jpeg"))])
+    exact = rest["stages"].get("exact")
+    exact_html = ""
+    if exact:
+        exact_html = (
+            f"<p>The exact frame costs {_bytes(exact.get('bytes'))} in all (median): "
+            f"{_ratio(exact.get('x_webp_lossless'))} times the ray-cast's WebP lossless file "
+            f"({_bytes(exact.get('webp_lossless_bytes'))}), {_ratio(exact.get('x_png'))} its "
+            f"optimized PNG ({_bytes(exact.get('png_bytes'))}); the exact layer alone "
+            f"{_ratio(exact.get('layer_x_webp_lossless'))} the WebP lossless file.</p>")
+    bar = rest.get("from_ssim_0.9") or {}
+    return ("<h2>At rest: layers to the exact frame</h2>"
+            f"<p class='note'>What <code>serve</code> sends a resting view after its own frame, "
+            f"{rest['views']} views (the complete correction skipped on "
+            f"{rest['correction_skipped']}: it did not pay for itself). Medians of the "
+            "cumulative bytes and of the metrics after each stage; ×codec: the cumulative "
+            "bytes over the smallest file of the ray-cast reaching the stage's object SSIM, "
+            "median (worst), on the sweep's views.</p>"
+            + _table(["stage", "views", "bytes in all", "SSIM obj.", "SSIM", "FLIP",
+                      "×WebP", "×AVIF", "×JPEG"], rows)
+            + exact_html
+            + f"<p class='note'>From object SSIM 0.9 up ({bar.get('steps', 0)} steps): "
+              f"×WebP {_ratio(bar.get('x_webp'))}, ×AVIF {_ratio(bar.get('x_avif'))}.</p>"
+            + "<img src='rest.png' alt='quality against bytes at rest'>")
+
+
 def write_report(evaluation: Any, folder: str | os.PathLike) -> Path:
     """Write the HTML report (and its PNGs and summary.json) into ``folder``; returns index.html."""
     out = Path(folder)
@@ -389,6 +540,8 @@ def write_report(evaluation: Any, folder: str | os.PathLike) -> Path:
     if evaluation.rd:
         _rd_plot(evaluation, out / "rd.png")
     _per_view_plot(evaluation, out / "per_view.png")
+    if summary.get("rest"):
+        _rest_plot(evaluation, out / "rest.png")
     figures = []
     for i, sample in enumerate(evaluation.samples):
         name = f"views/view_{i:02d}.png"
@@ -528,6 +681,7 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         f"pixels across cell borders over that inside cells (1: no seams); the ray-cast's own "
         f"is {_fmt(summary.get('raycast_blockiness'), 3)}.</p>",
         _equal_quality_html(summary),
+        _rest_html(summary),
         f"<p><b>int8 quantization</b>: {int8_text}.</p>",
     ]
     if evaluation.rd:
@@ -547,8 +701,9 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
     parts += ["<h2>Per view</h2>", "<img src='per_view.png' alt='per-view quality'>"]
     if figures:
         parts.append("<h2>Side by side</h2><p class='note'>the device's own frame | served at "
-                     "rest | ray-cast (a model with the standalone table), then the other "
-                     "methods; FLIP error maps (black 0, yellow 1)</p>")
+                     "rest | its refinement layers and exact frame | ray-cast (a model with "
+                     "the standalone table), then the other methods; FLIP error maps (black "
+                     "0, yellow 1)</p>")
         parts += [f"<p><a href='{f}'><img src='{f}' alt='view {i}'></a></p>"
                   for i, f in enumerate(figures)]
     parts += [
