@@ -32,6 +32,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -86,8 +87,9 @@ def _switch(model: Path, switches: int) -> dict:
     image = read_image(model)
     frames: list = []
     with_tmp = Path(sys.argv[0]).resolve().parent.parent / "bench-out" / "looks-flash"
+
     class Keys(HeadlessPresenter):  # the key presses of a window
-        queue: list = []
+        queue: ClassVar[list] = []
 
         def poll(self) -> list:
             out, Keys.queue = Keys.queue, []

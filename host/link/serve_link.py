@@ -38,6 +38,7 @@ class DeviceEvents:
         self.fresh = False
         self.keyframe = False
         self.look = 0
+        self.taken_look = 0
         self.stats = stats
         self.say = say
 
@@ -65,9 +66,11 @@ class DeviceEvents:
                 self._cond.wait(timeout_s)
 
     def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
-        """(view, sequence, fresh, keyframe wanted) and clear the flags."""
+        """(view, sequence, fresh, keyframe wanted) and clear the flags; ``taken_look`` is
+        then the look the taken request named."""
         with self._cond:
             out = (self.view, self.sequence, self.fresh, self.keyframe)
+            self.taken_look = self.look
             self.fresh = False
             self.keyframe = False
             return out

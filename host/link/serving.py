@@ -441,6 +441,8 @@ class _Serving:
         finally:
             self.deadline = None  # ends the watchdog
             self.sources.clear()
+            if self.looks is not None:
+                self.looks.close()
             if self.resting is not None:
                 self.resting.close()
         return self._finish()
@@ -640,7 +642,7 @@ class _Serving:
                 continue
             request = conn.events.take()
             if self.looks is not None:
-                self.looks.follow(self, conn.events.look)
+                self.looks.follow(self, conn.events.taken_look)
             self._check_sources()
             if conn.linger_until is not None and now >= conn.linger_until:
                 break
