@@ -5,7 +5,11 @@ format itself (version 2, the manifest's ``looks``): test_image.py."""
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import struct
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,6 +38,7 @@ from protocol.layers import is_layer
 from protocol.scores import decode_header
 
 NAMES = tuple(name for _, name in TINY_LOOKS)
+GOLDEN = Path(__file__).parent / "golden"
 
 
 @pytest.fixture(scope="module")
@@ -307,3 +312,29 @@ def test_a_device_that_predates_looks_refuses_the_image_in_one_line(looks_path, 
         with pytest.raises(Exception, match="format version 2 is not supported") as info:
             device.device.handle_image_begin(begin, None)
         assert info.value.code == m.ErrorCode.UNSUPPORTED_FORMAT
+
+
+#: sha256 of `_one_look_fit`'s image, made by the code before images had looks (the
+#: commit this branch started from; to check again: run `_one_look_fit` with that code).
+ONE_LOOK_SHA256 = (GOLDEN / "one_look_fit.sha256").read_text().split()[0]
+
+
+def _one_look_fit(folder) -> bytes:
+    """``eigencast fit`` of one small database (relative paths, the clock fixed: the bytes
+    depend on nothing else)."""
+    from unittest import mock
+
+    with contextlib.chdir(folder), mock.patch("time.time", return_value=1.7e9), \
+            mock.patch("time.time_ns", return_value=1_700_000_000_000_000_000):
+        assert eigencast(["render", "builtin:tooth", "-o", "db.cdb", "--views", "grid:16x5",
+                          "--size", "32", "--samples", "80"]) == 0
+        assert eigencast(["fit", "db.cdb", "-o", "one.ecs", "--cell", "12", "--threshold",
+                          "0.99", "--no-cache"]) == 0
+        return Path("one.ecs").read_bytes()
+
+
+def test_an_image_with_one_look_is_the_same_bytes_as_before_looks(tmp_path, capsys):
+    data = _one_look_fit(tmp_path)
+    assert hashlib.sha256(data).hexdigest() == ONE_LOOK_SHA256
+    assert struct.unpack_from("<H", data, 8)[0] == 1
+    assert "looks" not in read_manifest(tmp_path / "one.ecs")
