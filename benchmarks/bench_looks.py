@@ -189,6 +189,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{ms['switch_to_blend_s']:.1f} ms after the key; its warp "
               f"{ms['switch_to_warp_s']:.1f} ms (a moved view's warp in one look: "
               f"{ms['moved_to_warp_s']:.1f} ms)")
+        print(f"  ratios to one blend: the switch {switch['switch_s'] / switch['blend_s']:.2f}x "
+              f"(target < 1), the key to the new look's first frame "
+              f"{switch['switch_to_blend_s'] / switch['blend_s']:.2f}x (target < 2: one frame "
+              f"plus its first frame); the new look's warp / a moved view's warp "
+              f"{switch['switch_to_warp_s'] / switch['moved_to_warp_s']:.2f}x")
     if args.json:
         args.json.write_text(json.dumps(result, indent=1, default=float))
     return 0

@@ -14,7 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from provision_helpers import KEY, mem_name
-from runtime_helpers import TINY_LOOKS, RuntimeThread, tiny_looks_model, wait_until
+from runtime_helpers import (
+    TINY_LOOKS,
+    TINY_VIEWS,
+    RuntimeThread,
+    tiny_looks_model,
+    wait_until,
+)
 
 from device_runtime.device import DeviceConfig
 from device_runtime.display import CycleLook, HeadlessPresenter
@@ -338,3 +344,103 @@ def test_an_image_with_one_look_is_the_same_bytes_as_before_looks(tmp_path, caps
     assert hashlib.sha256(data).hexdigest() == ONE_LOOK_SHA256
     assert struct.unpack_from("<H", data, 8)[0] == 1
     assert "looks" not in read_manifest(tmp_path / "one.ecs")
+
+
+def test_the_window_key_l_switches_looks_on_the_real_window(looks_path, tmp_path):
+    """The real pygame window (SDL dummy driver): key ``l`` shows the next look at once --
+    the window's pixels become the new look's frame of the view (its blend or its warp),
+    never the old look's."""
+    from device_runtime.display import Window
+
+    image = read_image(looks_path, key=KEY)
+    window = Window(image.image_shape, screenshot_dir=tmp_path, zoom=1.0)
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
+                           standalone=True, view=(40.0, 10.0), log=_quiet, presenter=window)
+    try:
+        model = LoadedModel.build(image, slot="A", generation=1, test=False,
+                                  want_standalone=True)
+        device._decoder_model = model
+        device._models.put(model)
+        device.display_turn(None)
+        h, w = image.image_shape
+        before = window.window_pixels()[:h, :w]
+        window._pg.event.get()  # drop start-up events
+        window._pg.event.post(window._pg.event.Event(window._pg.KEYDOWN, key=window._pg.K_l,
+                                                     mod=0, unicode="l"))
+        device.display_turn(None)
+        assert device._model.look_name == "lamp" and model.warp_worker._thread.is_alive() \
+            is False
+        shown = window.window_pixels()
+        blend = Reconstructor.from_image(look_image(image, "lamp")).update(
+            device._model.own_scores(device.view))
+        warp = WarpFrames(HostModel.load(looks_path, look="lamp")).frame(*device.view)
+        # its blend, or already its warp when the worker made it within the turn
+        assert np.array_equal(shown, blend) or np.array_equal(shown, warp)
+        assert not np.array_equal(shown, before)
+    finally:
+        device.close_display()
+        device.close()
+
+
+def test_a_packet_for_the_look_left_is_never_shown(looks_path, tmp_path):
+    """A served device switches looks while host frames of the old look are on their way:
+    one decoded before the switch (its model closed) and one that arrives after (marked
+    with the old look) are both dropped; one for the new look is shown."""
+    from host.link.encoding import FrameEncoder
+
+    image = read_image(looks_path, key=KEY)
+    frames: list = []
+    device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
+                           predict=True, view=(40.0, 10.0), log=_quiet,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info))))
+    try:
+        model = LoadedModel.build(image, slot="A", generation=1, test=False,
+                                  want_predictor=True, on_warp=device._scores.wake)
+        device._decoder_model = model
+        device._models.put(model)
+        device.display_turn(None)
+        encoder = FrameEncoder(HostModel.load(looks_path, key=KEY, look="plain"))
+        device.on_scores(m.Scores(sequence=0, packet=encoder.encode(device.view,
+                                                                    key=True).packet))
+        early = device._scores.take()
+        assert early is not None and early.model is model
+        device.show_look("lamp")
+        shown = len(frames)
+        late = encoder.encode(device.view)
+        device.on_scores(m.Scores(sequence=0, packet=late.packet, look=0))
+        assert device.runtime_stats.other_look == 1 and device._scores.take() is None
+        device.display_turn(early)
+        host_frames = {i.get("frame") for _, i in frames[shown:]}
+        assert early.scores.frame not in host_frames and late.frame not in host_frames
+        right = FrameEncoder(HostModel.load(looks_path, key=KEY, look="lamp"))
+        device.on_scores(m.Scores(sequence=0, packet=right.encode(device.view,
+                                                                  key=True).packet, look=1))
+        item = device._scores.take()
+        assert item is not None and item.model is device._model
+        device.display_turn(item)
+        assert frames[-1][1].get("frame") == item.scores.frame
+    finally:
+        device.close_display()
+        device.close()
+
+
+def test_bad_look_input_is_one_line_with_an_exit_code(looks_path, tmp_path, capsys):
+    """Databases of other sizes, repeated look names, a --look the image lacks (evaluate,
+    the device): one line each, exit code 1."""
+    first = str(looks_path.parent / "look0.cdb")
+    small = tmp_path / "small.cdb"
+    assert eigencast(["render", "builtin:tooth", "-o", str(small), "--views", TINY_VIEWS,
+                      "--size", "24", "--samples", "40"]) == 0
+    capsys.readouterr()
+    cases = [
+        (["fit", first, str(small), "-o", str(tmp_path / "x.ecs")], "render the looks at one"),
+        (["fit", first, str(looks_path.parent / "look1.cdb"), "-o", str(tmp_path / "x.ecs"),
+          "--look-names", "a,a"], "look names repeat"),
+        (["evaluate", str(looks_path), "--look", "bone", "--rd-views", "0"],
+         "no look 'bone'"),
+    ]
+    for argv, needle in cases:
+        assert eigencast(argv) == 1, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], (argv, err)
+    assert not (tmp_path / "x.ecs").exists()
