@@ -444,3 +444,27 @@ def test_bad_look_input_is_one_line_with_an_exit_code(looks_path, tmp_path, caps
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0], (argv, err)
     assert not (tmp_path / "x.ecs").exists()
+
+
+def test_evaluate_takes_each_look_against_its_own_ray_casts_or_the_one_asked(
+        looks_path, tmp_path, capsys):
+    """``evaluate`` on an image with looks: every look in turn (own frame, moving, at rest,
+    the codecs), each against ray-casts with its own render settings, one report folder per
+    look; ``--look`` evaluates just that one, with the same figures."""
+    import json
+
+    common = ["--views", "grid:4x2", "--rd-views", "0", "--no-nearest", "--motion-deadline",
+              "0", "--webp-db-quality", "0", "--json"]
+    assert eigencast(["evaluate", str(looks_path), *common, "--report",
+                      str(tmp_path / "report")]) == 0
+    every = json.loads(capsys.readouterr().out)
+    assert every["look_names"] == list(NAMES)
+    for name in NAMES:
+        summary = every["looks"][name]
+        assert {"pca_warp", "pca_predict", "rest", "jpeg", "webp"} <= set(summary)
+        assert summary["pca_predict"]["psnr"] > 24.0, (name, summary["pca_predict"])
+        assert (tmp_path / "report" / name / "index.html").exists()
+    assert every["looks"]["lamp"]["pca"] != every["looks"]["plain"]["pca"]
+    assert eigencast(["evaluate", str(looks_path), *common, "--look", "lamp"]) == 0
+    one = json.loads(capsys.readouterr().out)
+    assert one["pca_predict"] == every["looks"]["lamp"]["pca_predict"]
