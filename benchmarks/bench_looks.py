@@ -17,7 +17,8 @@ the looks' order. Printed:
 * **switch** (a standalone device, this process, one core when run as above): at a resting
   view, `RuntimeDevice.show_look` of the next look, interleaved with a moved view's frame in
   the same look, ``--switches`` times: the switch's own cost (the new look's model:
-  reconstructors, synthesis, warp worker; the old one closed) beside one frame (the blend
+  reconstructors, synthesis, warp worker, its thread started only after the new look's
+  first frame) beside one frame (the blend
   of a moved view, what the display makes per tick), the first frame of the new look (its
   blend, shown by the switch) and the time until the new look's warp of the view is on show
   (its neighbours reconstructed afresh: the old look's cached views go with it) beside a
@@ -138,7 +139,8 @@ def _switch(model: Path, switches: int) -> dict:
                 time.sleep(0.005)
             old = device._model
             t0 = time.perf_counter()
-            new = old.for_look((old.look + 1) % n, on_warp=device._scores.wake)
+            new = old.for_look((old.look + 1) % n, on_warp=device._scores.wake,
+                               start_worker=False)  # as the switch builds it
             built = time.perf_counter() - t0
             new.close()
             Keys.queue.append(CycleLook())  # key l, read by the next display turn

@@ -182,17 +182,23 @@ class LoadedModel:
         names = self.looks
         return names[self.look] if names else None
 
-    def for_look(self, look: int, *, on_warp: Callable[[], None] | None = None) -> LoadedModel:
+    def for_look(self, look: int, *, on_warp: Callable[[], None] | None = None,
+                 start_worker: bool = True) -> LoadedModel:
         """The same image showing look ``look``: a new model with the look's reconstructor,
         synthesis and warp worker and a fresh `ShownState`, sharing this one's decoder,
         standalone table and predictor, slot and confirmation. This model stays as it is
-        (the caller closes it once the new one is on show)."""
+        (the caller closes it once the new one is on show, and makes no frame with it: the
+        new look's display reconstructor takes over its scratch). ``start_worker=False``: the warp
+        worker's thread is started by the caller (`WarpWorker.start`), after the new look's
+        first frame is on show (a thread's start costs a frame on a loaded core)."""
         if self.base is None:
             raise ValueError("the image has one look")
         image = look_image(self.base, look)
         table = self.standalone if self.standalone is not None else (
             self.predictor.standalone if self.predictor is not None else None)
-        reconstructor, synthesis, worker = _frames(image, table, on_warp)
+        reconstructor, synthesis, worker = _frames(image, table, on_warp,
+                                                   start_worker=start_worker,
+                                                   scratch_of=self.reconstructor)
         return LoadedModel(image, reconstructor, self.decoder, self.slot, self.generation,
                            self.test, self.standalone, confirmed=self.confirmed,
                            predictor=self.predictor, synthesis=synthesis, warp_worker=worker,
@@ -220,17 +226,20 @@ class LoadedModel:
 
 
 def _frames(image: EigenspaceImage, table: StandaloneScores | None,
-            on_warp: Callable[[], None] | None
+            on_warp: Callable[[], None] | None, *, start_worker: bool = True,
+            scratch_of: Reconstructor | None = None
             ) -> tuple[Reconstructor, ViewSynthesizer | None, WarpWorker | None]:
     """The display's reconstructor and, with a table and depth, the view synthesis on a
-    reconstructor of its own and its warp worker."""
-    reconstructor = Reconstructor.from_image(image, threads="auto")
+    reconstructor of its own and its warp worker (its thread started unless
+    ``start_worker`` is False); ``scratch_of``: the display's reconstructor of the look
+    left, whose scratch the new one takes over (the display makes no more frames of it)."""
+    reconstructor = Reconstructor.from_image(image, threads="auto", scratch_of=scratch_of)
     synthesis = worker = None
     try:
         if table is not None and image.synthesis is not None:
             synthesis = ViewSynthesizer(image, table, Reconstructor.from_image(
                 image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
-            worker = WarpWorker(synthesis, on_made=on_warp)
+            worker = WarpWorker(synthesis, on_made=on_warp, start=start_worker)
     except BaseException:
         reconstructor.close()
         raise

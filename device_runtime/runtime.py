@@ -575,15 +575,21 @@ class RuntimeDevice(FrameScheduler, Device):
         self.look = model.looks[index]
         if index == model.look:
             return True
-        new = model.for_look(index, on_warp=self._scores.wake)
+        # the new look's first frame first; then its warp worker's thread starts and the
+        # old look is closed
+        new = model.for_look(index, on_warp=self._scores.wake, start_worker=False)
         with self._decoder_lock:
             if self._decoder_model is model:
                 self._decoder_model = new
         self.runtime_stats.look_switches += 1
-        self._model = new  # the new look's first frame first, then the old look closed
+        self._model = new
         worker = new.warp_worker  # asked for the view's warp: it waits for the frame
-        with worker.display_first() if worker is not None else contextlib.nullcontext():
-            self._swap_model(new)
+        try:
+            with worker.display_first() if worker is not None else contextlib.nullcontext():
+                self._swap_model(new)
+        finally:
+            if worker is not None:
+                worker.start()
         model.close()
         return True
 
