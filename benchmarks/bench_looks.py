@@ -144,9 +144,11 @@ def _switch(model: Path, switches: int) -> dict:
             built = time.perf_counter() - t0
             new.close()
             Keys.queue.append(CycleLook())  # key l, read by the next display turn
+            first = len(frames)
             t0 = time.perf_counter()
             device.display_turn(None)
-            shown = frames[-1]["t"] - t0  # the new look's first frame presented
+            shown = frames[first]["t"] - t0  # the new look's first frame presented (the
+            # same turn may go on to show its warp when the worker makes it in time)
             out["switch_s"].append(built)
             out["switch_to_blend_s"].append(shown)
             out["switch_to_warp_s"].append(time.perf_counter() - t0 + rest())

@@ -14,8 +14,11 @@ look's own error budget).
 The adaptive rule keeps, per cell, the fewest joint components whose eigenvalues reach T of
 the joint variance (the sum of the looks'); the score step is the one whose rounding adds
 `DEFAULT_SCORE_MSE` to a look's mean cell (`score_step_for` on ``looks x cell_values``).
-docs/decisions.md ("Several looks in one image") has the measurements behind the choice of
-a joint eigenspace over one per look. The depth of looks that differ only in lighting is
+What it costs (BENCHMARKS.md, "Looks in one image"): the joint eigenspace needs more
+components than any one look (K 1016 for three looks of the built-in head at 128 px, against
+552-705 fitted one by one), and every look stores all of them, so the colour sections of
+three looks are about 1.5x those of three single-look images; the shared table and depth do
+not make that up. The depth of looks that differ only in lighting is
 the same bit for bit (lighting changes colours, never opacity): they share the first look's
 depth eigenspace; a look with other depth maps (another transfer function) gets its own
 (`add_look_depth`). Each look gets its own noise floor and splat filter (the command
