@@ -468,3 +468,32 @@ def test_evaluate_takes_each_look_against_its_own_ray_casts_or_the_one_asked(
     assert eigencast(["evaluate", str(looks_path), *common, "--look", "lamp"]) == 0
     one = json.loads(capsys.readouterr().out)
     assert one["pca_predict"] == every["looks"]["lamp"]["pca_predict"]
+
+
+def test_the_device_command_starts_on_the_look_named_or_refuses_one_it_lacks(
+        looks_path, tmp_path, capsys):
+    """``eigencast-device --look``: the frames are that look's (``eigencast view --look``);
+    a name the image lacks is one error line and exit code 1."""
+    from PIL import Image
+
+    from device_runtime.cli import main as device_main
+
+    flash = tmp_path / "flash"
+    name = mem_name("cli-look")
+    with RuntimeThread(flash, f"mem://{name}?end=b"):
+        provision(looks_path, f"mem://{name}?end=a", key=KEY, show_progress=False, log=_quiet)
+    capsys.readouterr()
+    frames = tmp_path / "frames"
+    assert device_main(["--flash", str(flash), "--standalone", "--headless", "--frames",
+                        str(frames), "--views", "30,15", "--look", "generic"]) == 0
+    want = tmp_path / "want.png"
+    assert eigencast(["view", str(looks_path), "--look", "generic", "--phi", "30", "--theta",
+                      "15", "-o", str(want)]) == 0
+    last = sorted(frames.glob("frame-*.png"))[-1]
+    assert np.array_equal(np.asarray(Image.open(last)), np.asarray(Image.open(want)))
+    capsys.readouterr()
+    assert device_main(["--flash", str(flash), "--standalone", "--headless", "--views",
+                        "30,15", "--look", "bone"]) == 1
+    errors = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
+    assert errors == ["eigencast-device: error: --look bone: no look 'bone' in the image "
+                      "(its looks: plain, lamp, generic)"]
