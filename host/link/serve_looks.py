@@ -12,6 +12,7 @@ ray-casters and sources of the looks shown are kept (a switch back costs nothing
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -45,19 +46,9 @@ class ServedLooks:
         self._models: dict[int, HostModel] = {first: model}
         self._renderers: dict[int, Any | None] = {first: renderer}
         self._sources: dict[int, dict] = {}
-        self._first = first
         self._load = load
         self._open_renderer = open_renderer
         self._refused: set[int] = set()
-
-    @property
-    def first_sources(self) -> dict:
-        """The frame sources of the first look served (the session's own dict)."""
-        return self._sources.get(self._first, {})
-
-    @first_sources.setter
-    def first_sources(self, sources: dict) -> None:
-        self._sources[self._first] = sources
 
     def follow(self, run: Any, look: int) -> bool:
         """Serve ``look`` from now on in ``run`` (a `host.link.serving._Serving`) when it is
@@ -80,6 +71,7 @@ class ServedLooks:
             self._renderers[look] = self._open_renderer(model)
         from host.link.serving import _Shown
 
+        self._sources.setdefault(run.look, run.sources)  # the look left keeps its sources
         run.encoder.model = model
         run.encoder.reset()
         run.renderer = self._renderers[look]
@@ -103,12 +95,13 @@ class ServedLooks:
             sources.clear()
 
 
-def served_looks(model: HostModel, load: Callable[[str], HostModel], renderer: Any | None,
-                 open_renderer: Callable[[HostModel], Any | None]) -> ServedLooks | None:
-    """The `ServedLooks` of ``model``'s image (None: it has one look); ``load(name)`` loads
-    another look of it."""
+def served_looks(model: HostModel, model_path: str | os.PathLike, key: bytes | None,
+                 renderer: Any | None, open_renderer: Callable[[HostModel], Any | None]
+                 ) -> ServedLooks | None:
+    """The `ServedLooks` of ``model`` (loaded from ``model_path``, verified with ``key``;
+    its ray-caster ``renderer``); None: its image has one look."""
     if not model.looks:
         return None
     names = tuple(model.looks)
-    return ServedLooks(names, names.index(model.look), model, renderer,
-                       lambda index: load(names[index]), open_renderer)
+    return ServedLooks(names, names.index(model.look), model, renderer, lambda index: (
+        HostModel.load(model_path, key=key, look=names[index])), open_renderer)

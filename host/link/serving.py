@@ -23,9 +23,8 @@ streams one SCORES packet per view:
   packets (one line says so), and a model whose volume cannot be ray-cast sends the
   training views' scores interpolated at the view (``HostModel.quantized_scores``, at the
   canonical view: bit-identical to ``eigencast view --blend``).
-* **Which look.** An image with several looks is served in the look the device's
-  VIEW_REQUESTs name, with its render settings (`host.link.serve_looks`); each SCORES says
-  the look it was made for.
+* **Which look.** An image with several looks is served in the look the device's requests
+  name (`host.link.serve_looks`); each SCORES says the look it was made for.
 * **A view that fails costs that view.** A view whose ray-cast (or coding) raises is sent as
   if it could not be ray-cast (the device keeps its own frame, or gets interpolated scores),
   counted (``ServeStats.failed_views``, said in one line), and the next one is corrected.
@@ -256,9 +255,6 @@ def serve(
     say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
     if renderer is None and scores != "interpolate":
         renderer = _open_renderer(model, volume, scores, say)
-    looks = served_looks(model, lambda look: HostModel.load(model_path, key=key, look=look),
-                         renderer, lambda m: (None if scores == "interpolate" else
-                                              _open_renderer(m, volume, scores, say)))
     from host.link.correction import CorrectionEncoder
 
     encoder = CorrectionEncoder(model, keyframe_interval=keyframe_interval)
@@ -281,10 +277,9 @@ def serve(
         sources={} if motion is None else {
             "correct" if getattr(motion, "corrects", False) else "motion": motion},
         rest=rest,
-        looks=looks,
+        looks=served_looks(model, model_path, key, renderer, lambda m: None if scores == (
+            "interpolate") else _open_renderer(m, volume, scores, say)),
     )
-    if looks is not None:
-        looks.first_sources = run.sources
     return run.run()
 
 
@@ -874,10 +869,9 @@ class _Serving:
             sent.set()
 
         try:
-            conn.session.send_scores(
-                m.Scores(sequence=frame.sequence, packet=encoded.packet,
-                         look=self.look if self.looks is not None else None),
-                after_sent=left)
+            look = self.look if self.looks is not None else None
+            conn.session.send_scores(m.Scores(sequence=frame.sequence, packet=encoded.packet,
+                                              look=look), after_sent=left)
         except ValueError as exc:  # the packet does not fit the device's frames
             kind = self.encoder.last_kind
             raise ServeError(
