@@ -26,7 +26,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 lint: $(STAMP)
-	$(BIN)/ruff check host protocol device_runtime tests benchmarks scripts
+	$(BIN)/ruff check host protocol device_runtime tests benchmarks scripts research
 
 # Debian's Xvfb for the real-window test; needs root (or an existing install).
 xvfb:

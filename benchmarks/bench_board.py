@@ -23,16 +23,22 @@ the in-process ``mem://`` line at 115200 baud) and ``tcp`` (a served device over
 loopback). The rest of the world runs S times faster too, so a served case keeps board
 time consistent: the line runs at 115200 x S baud and the host's frame deadline is 33 / S
 ms, its rate 60 x S packets per second (the host on core 1 is then S times weaker than the
-workstation it stands for: its moving corrections are sparser than a real host's).
+workstation it stands for: its moving corrections are sparser and its resting ones later
+than a real host's). The host is a real ``eigencast serve`` process on core 1 (it must not
+share the device's interpreter lock); for ``serial`` it reaches the ``mem://`` line through
+a relay that only carries bytes (the line's pacing and bounded buffers stay the line's).
 
 Printed per case, over the ticks from the trace's first move until 1 s of board time after
 it rests: ``on time``, the share of ticks at whose end the screen shows the view the input
 set at the tick's start (or a newer one); ``stall``, the longest run of ticks that were not,
 in board ms; ``warp``, the share of ticks whose frame on show is the view's warp or a
 corrected frame of it; ``rest->warp`` and ``rest->corr``, board ms from the last input to
-the first warp (or corrected frame) of the final view. The image needs depth and the
-standalone table (``fit``'s defaults); a served case ray-casts with the image's recorded
-render settings, so its volume must be where the database was rendered from.
+the first warp (or corrected frame, or refinement layer) of the final view. The image
+needs depth and the standalone table (``fit``'s defaults); a served case ray-casts with the
+image's recorded render settings, so its volume must be where the database was rendered
+from. ``rest->corr`` is waited for up to `CORRECTED_WAIT_S` seconds of this machine; at
+S > 1 most of it is the host's resting ray-cast and plan, which are not S times faster here:
+read it at S = 1 (in ms of this machine), the link's share of it at S > 1.
 """
 
 from __future__ import annotations
@@ -41,6 +47,9 @@ import argparse
 import math
 import os
 import shutil
+import signal
+import socket
+import subprocess
 import sys
 import threading
 import time
@@ -59,6 +68,8 @@ MOUSE_S = 0.008
 """Board seconds between two mouse events of the human trace."""
 AFTER_REST_S = 1.0
 """Board seconds measured after the trace rests."""
+CORRECTED_WAIT_S = 6.0
+"""Seconds (this machine's) a served case waits after that for the corrected frame."""
 START = (20.0, 15.0)
 
 
@@ -135,7 +146,8 @@ class TracePresenter:
     def present(self, frame: np.ndarray, info: dict | None = None, *,
                 overlay_lines: list[str] | None = None) -> bool:
         info = info or {}
-        kind = ("corrected" if info.get("corrected") else "warp" if info.get("synthesized")
+        refined = info.get("corrected") or info.get("layer") is not None
+        kind = ("corrected" if refined else "warp" if info.get("synthesized")
                 else "blend" if info.get("predicted") or not info.get("packet_bytes")
                 else "host")
         self.shown.append((time.monotonic(), (info.get("phi_deg"), info.get("theta_deg")),
@@ -184,12 +196,12 @@ def session(image_path: Path, flash0: Path, trace: str, slowdown: float, link: s
     holder["device"] = device
     stop = threading.Event()
     threads = [threading.Thread(target=device.run_display, args=(stop,), daemon=True)]
-    host_out: dict[str, Any] = {}
-    url_host = None
+    host: subprocess.Popen | None = None
+    relay: _SerialRelay | None = None
     if link != "standalone":
         if link == "serial":
             name = f"bench-board-{uuid.uuid4().hex[:8]}"
-            url_dev, url_host = f"mem://{name}?end=b", f"mem://{name}?end=a"
+            url_dev = f"mem://{name}?end=b"
         else:
             url_dev = "tcp-listen://127.0.0.1:0"
         ready = threading.Event()
@@ -206,35 +218,30 @@ def session(image_path: Path, flash0: Path, trace: str, slowdown: float, link: s
         t.start()
     if link != "standalone":
         ready.wait(10)
-        if url_host is None:
+        if link == "serial":
+            relay = _SerialRelay(f"mem://{name}?end=a", int(BAUD * slowdown))
+            url_host = f"socket://127.0.0.1:{relay.port}"
+        else:
             url_host = "socket://" + bound["url"].split("://", 1)[1]
-
-        def host() -> None:
-            from host.link.serving import serve
-
-            _pin({1})
-            try:
-                host_out["stats"] = serve(
-                    image_path, url_host, baud=int(BAUD * slowdown), insecure=True,
-                    deadline_s=0.033 / slowdown, fps=60.0 * slowdown, stop=stop,
-                    log=lambda line: None, stats_every_s=0)
-            except BaseException as exc:  # reported below
-                host_out["error"] = exc
-
-        threading.Thread(target=host, daemon=True).start()
+        host = _start_host(image_path, url_host, slowdown, work)
     try:
         # at rest on the first view, its best frame on show
         want = canonical_view(*START)
         best = ("warp",) if link == "standalone" else ("corrected",)
         if not wait_for(lambda: any(k in best and _same(want, v)
                                     for _, v, k in presenter.shown), 120):
-            raise RuntimeError(f"no {best[0]} frame of the first view ({host_out})")
+            raise RuntimeError(f"no {best[0]} frame of the first view"
+                               + (f" (serve: {_host_error(host, work)})" if host else ""))
         time.sleep(0.2)
         t0 = device._next_tick(time.monotonic())  # the trace starts on a tick
         presenter.play(trace, t0)
         t_rest = t0 + trace_rest_s(trace) / slowdown
         t_end = t_rest + AFTER_REST_S / slowdown
         time.sleep(max(0.0, t_end - time.monotonic()) + tick)
+        if link != "standalone":  # the host's resting work is not S times faster: wait on
+            final = canonical_view(*trace_view(trace, trace_rest_s(trace) + 1.0))
+            wait_for(lambda: any(k == "corrected" and t >= t_rest and _same(final, v)
+                                 for t, v, k in list(presenter.shown)), CORRECTED_WAIT_S)
         worker = device._model.warp_worker if device._model is not None else None
         workload = ({k: getattr(worker, k) for k in ("made", "ahead_made", "ahead_used",
                                                       "cancelled", "skipped", "dropped")}
@@ -244,13 +251,102 @@ def session(image_path: Path, flash0: Path, trace: str, slowdown: float, link: s
         for t in threads:
             t.join(10)
         device.close_display()
+        if host is not None:
+            host.send_signal(signal.SIGINT)
+            try:
+                host.wait(10)
+            except subprocess.TimeoutExpired:
+                host.kill()
+        if relay is not None:
+            relay.close()
         if link != "standalone":
             device.close()
         shutil.rmtree(flash, ignore_errors=True)
-    if "error" in host_out:
-        raise RuntimeError(f"serve failed: {host_out['error']!r}")
     return measure(presenter.shown, presenter.inputs, trace, t0, t_rest, t_end, tick,
                    slowdown, link) | {"worker": workload}
+
+
+def _start_host(image_path: Path, url: str, slowdown: float, work: Path) -> subprocess.Popen:
+    """``eigencast serve`` in a process of its own on core 1 (a host is another machine: it
+    must not share the device's interpreter lock), paced for a board S times slower."""
+    eigencast = Path(sys.executable).with_name("eigencast")
+    cmd = [str(eigencast), "serve", str(image_path), "--port", url,
+           "--baud", str(int(BAUD * slowdown)), "--deadline", f"{33.0 / slowdown:.3f}",
+           "--fps", f"{60.0 * slowdown:g}", "--stats-every", "0", "--quiet"]
+    if hasattr(os, "sched_setaffinity") and 1 in _cores():
+        cmd = ["taskset", "-c", "1", *cmd]
+    log = open(work / "serve.log", "wb")  # noqa: SIM115 - the process owns it
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+
+
+def _host_error(host: subprocess.Popen, work: Path) -> str:
+    state = "running" if host.poll() is None else f"exit {host.returncode}"
+    tail = (work / "serve.log").read_text(errors="replace").strip().splitlines()[-3:]
+    return f"{state}; " + " | ".join(tail)
+
+
+def _cores() -> set[int]:
+    return set(range(os.cpu_count() or 1))
+
+
+class _SerialRelay:
+    """The host process's end of the in-memory serial line: a TCP port that the host
+    connects to, relayed to and from ``mem://NAME?end=a`` (the line's pacing, bounded
+    buffers and partial reads stay the ``mem://`` line's; the relay only carries bytes)."""
+
+    def __init__(self, url: str, baud: int) -> None:
+        from protocol.transport import open_transport
+
+        self._line = open_transport(url, baud=baud, timeout_s=30.0)
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self.port = self._server.getsockname()[1]
+        self._closed = threading.Event()
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self) -> None:
+        from protocol.transport import TransportError
+
+        self._server.settimeout(0.2)
+        while not self._closed.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except (TimeoutError, OSError):
+                continue
+            conn.settimeout(0.01)
+            down = threading.Thread(target=self._down, args=(conn,), daemon=True)
+            down.start()
+            try:
+                while not self._closed.is_set():
+                    data = self._line.read(4096, 0.01)
+                    if data:
+                        conn.sendall(data)
+                    if not down.is_alive():
+                        break
+            except (OSError, TransportError):
+                pass
+            conn.close()
+
+    def _down(self, conn: socket.socket) -> None:
+        from protocol.transport import TransportError
+
+        while not self._closed.is_set():
+            try:
+                data = conn.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            try:
+                self._line.write(data)
+            except TransportError:
+                return
+
+    def close(self) -> None:
+        self._closed.set()
+        self._server.close()
+        self._line.close()
 
 
 def measure(shown: list, inputs: list, trace: str, t0: float, t_rest: float, t_end: float,

@@ -15,7 +15,7 @@ totals and their ratio (the bound: at most 2x). ``--stride N`` renders every N-t
 (and extrapolates nothing: the figures are for the views rendered).
 
 With ``--output DIR`` the databases ``DIR/NAME-headlight.cdb`` and ``DIR/NAME-cinematic.cdb``
-are kept (the input of ``scripts/lighting_warp.py``); the headlight one is what ``eigencast
+are kept (the input of ``research/lighting_warp.py``); the headlight one is what ``eigencast
 render VOLUME --size SIZE`` writes, byte for byte.
 """
 

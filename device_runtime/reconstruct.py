@@ -45,7 +45,7 @@ shown):
   rounds and writes only its corrected cells, all at once.
   So a correction costs about what its non-zero rows cost: a complete one at rest 0.3-0.4 of its
   cells' rows, one while moving a few rows in a fraction of the cells (BENCHMARKS.md,
-  "Device loop", section x).
+  "Correcting the own frame").
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ GATHER_ROW_COST = 1.5
 #: smoothed away (the pixel either side moves by a third of it towards the other). A
 #: correction is fitted cell by cell, so it steps at cell borders where the device's own
 #: frame does not; at 0.5 the frames' blockiness at borders is back to the uncorrected
-#: frame's, for at most 0.001 of object SSIM (docs/rate-distortion.md section 10). At most
+#: frame's, for at most 0.001 of object SSIM (docs/design-notes.md, "Cell seams"). At most
 #: 0.75 (the smoothing's int16 arithmetic).
 SEAM_STRENGTH = 0.5
 _FLOAT_BYTES = 4

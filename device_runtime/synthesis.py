@@ -2,7 +2,7 @@
 
 A standalone device used to show a novel view as the eigenspace reconstruction of the
 interpolated training scores: a weighted sum of the 4 neighbouring training views, 12 degrees
-apart, which shows every edge twice (docs/rate-distortion.md, section 9). An image fitted with
+apart, which shows every edge twice (docs/design-notes.md). An image fitted with
 ``eigencast fit --depth`` also carries a cell eigenspace of every training view's depth (the
 distance along each pixel's ray where the opacity crosses one half, at half resolution) and
 names the synthesis method in its manifest (``"synthesis": {"method": "warp-depth-1", ...}``,
@@ -29,11 +29,12 @@ for the volume; :data:`SYNTHESIS_METHOD_FLOOR` with that filter and the colour's
 
 Everything is numpy, float32, with no per-pixel Python loop. Memory is bounded by the frame
 size (:func:`synthesis_memory_bytes`) and kept to what a device's RAM bound allows
-(docs/rate-distortion.md 9.9): the warp works one view at a time on a grid it reuses, and a
+(BENCHMARKS.md, "The device's own frame"): the warp works one view at a time on a grid it
+reuses, and a
 standalone device reconstructs the neighbours with the display's reconstructor. A frame is a
 function of the image and the view only (not of the cache, the reconstructor or the thread):
 the same code makes the host's frames (``eigencast evaluate``'s ``pca_warp``), so host and
-device frames are identical, and ``scripts/warp_views.py`` (the go/no-go measurement)
+device frames are identical, and ``research/warp_views.py`` (the go/no-go measurement)
 imports it. A served device makes its warps on a thread of its own (:class:`WarpWorker`).
 
 Geometry: the orbit cameras of an eigencast database look at the bounding sphere's centre
@@ -156,7 +157,8 @@ CACHE_VIEWS = 4
 #: this, and faded in linearly from here to half (`row_weights`), so away from the rows'
 #: middle one row's two views are warped. Fewer, nearer sources blend fewer misaligned
 #: reconstructions: object SSIM +0.003 to +0.016 on every shared volume against all four
-#: (docs/rate-distortion.md 9.10), and a drag along a row reconstructs half the neighbours.
+#: (docs/design-notes.md, "Which neighbours"), and a drag along a row reconstructs half the
+#: neighbours.
 ROW_RAMP = 0.4
 #: Scratch of a predicting device's warp worker's own reconstructor (one thread): a third
 #: of the display's, for 1.5x its time per neighbour (a cache miss, ~0.8 per drag frame),
@@ -658,11 +660,20 @@ class WarpWorker:
     its warp starts (`hold_s`: two recent request intervals, at most a warp's time); a
     newer request in that time replaces it unstarted (``skipped``), and the warp starts
     once the view rests; every `PROBE_S` of holding one view's warp starts anyway and
-    measures a warp's time again (an estimate is not left stale by a motion that holds
-    every view). A view requested while a warp is in flight gives that warp up at
+    measures a warp's time again, to its end (an estimate is not left stale by a motion that
+    holds every view). Only warm warps set the estimate: one that made its neighbours (a
+    cold start, a cache miss) can only lower it, so a drag that begins cold is not held.
+    A view requested while a warp is in flight gives that warp up at
     its next check (`ViewSynthesizer.frame`'s ``cancel``: a neighbour already made stays
     cached). Where warps take less than the request interval every view's warp starts at
     once, as before.
+
+    A view led: while views are held on steady motion (requests come faster than a warp
+    takes), the worker warps the view the motion reaches as many steps ahead as a warp
+    takes intervals, plus one (`_lead_view`, at most `LEAD_STEPS`); a request on the way
+    there does not give it up, and its frame waits for its view like a view made ahead.
+    Its time measures a warp again, so a slow estimate left by other work does not hold a
+    quick motion's views.
 
     Any caller can always get the frame of a view: ``take(view, timeout_s)`` with a timeout
     asks for the view if it is neither asked nor made, starts it at once (no hold) and
@@ -695,9 +706,9 @@ class WarpWorker:
         Views warped ahead (made or begun; counted in ``made`` / ``cancelled`` too), and
         those asked for after all.
     warp_s : float or None
-        The recent time a warp takes (exponential average of the warps made, raised by a
-        warp given up later than that that made no neighbour, replaced by a probe's);
-        None until the first.
+        The recent time a warp takes (exponential average of the warps made that made no
+        neighbour, lowered by those that did, raised by a warp given up later than that that
+        made no neighbour, replaced by a probe's); None until the first warm one.
     """
 
     #: Request intervals longer than this are a view at rest, not a drag.
@@ -718,6 +729,9 @@ class WarpWorker:
     #: that will not be asked costs a warp); how far apart in time (of the interval).
     AHEAD_ANGLE_TOL = AHEAD_SNAP_DEG
     AHEAD_TIME_TOL = 1.0
+    #: The farthest (in request steps) a warp leads steady motion that requests views
+    #: faster than a warp takes (`_lead_view`).
+    LEAD_STEPS = 8
     #: The longest a warp waits at one check for the display to finish its frame, seconds.
     YIELD_S = 0.1
 
@@ -745,6 +759,7 @@ class WarpWorker:
         self._ahead: tuple[tuple[float, float], np.ndarray] | None = None  # made ahead
         self._guessed: tuple[float, float] | None = None  # the last view warped ahead
         self._speculative = False  # the warp in flight is a view made ahead
+        self._lead = False  # ... and leads the motion by more than a step (`_lead_view`)
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
         if start:
             self._thread.start()
@@ -785,6 +800,8 @@ class WarpWorker:
             self._last_request_t = now
             self._history = [*self._history[1 - self.AHEAD_VIEWS:], (now, *view)]
             ahead, self._ahead = self._ahead, None
+            if ahead is not None and ahead[0] != view and self._still_ahead(ahead[0]):
+                self._ahead, ahead = ahead, None  # a lead further on: kept for its view
             if ahead is not None and ahead[0] == view:  # made ahead: there at once
                 self.ahead_used += 1
                 self._pending, self._urgent = None, False
@@ -832,14 +849,14 @@ class WarpWorker:
             self._thread.join(timeout=10.0)
 
     @classmethod
-    def predicted_view(cls, history: list[tuple[float, float, float]]
+    def predicted_view(cls, history: list[tuple[float, float, float]], steps: int = 1
                        ) -> tuple[float, float] | None:
         """The next view of steady motion: ``history`` holds the last requests as (time,
         phi, theta), oldest first; when at least `AHEAD_VIEWS` of them lie on a straight
         line in angle (within `AHEAD_ANGLE_TOL`) with one step between each and evenly in
-        time (within `AHEAD_TIME_TOL` of the interval), the view one more step on, by the
-        least-squares line through them (its rounding averaged out: the device's views are
-        float32), canonical. None: no steady motion."""
+        time (within `AHEAD_TIME_TOL` of the interval), the view ``steps`` more steps on, by
+        the least-squares line through them (its rounding averaged out: the device's views
+        are float32), canonical. None: no steady motion."""
         if len(history) < cls.AHEAD_VIEWS:
             return None
         t, phi, theta = (np.asarray(a, dtype=np.float64) for a in zip(*history))
@@ -854,8 +871,8 @@ class WarpWorker:
             slope, icpt = np.polyfit(k, a, 1)
             if np.abs(icpt + slope * k - a).max() > cls.AHEAD_ANGLE_TOL:
                 return None
-            out.append(icpt + slope * len(a))
-        if abs(out[0] - phi[-1]) + abs(out[1] - theta[-1]) < 1e-6:
+            out.append(icpt + slope * (len(a) - 1 + steps))
+        if abs(out[0] - phi[-1]) + abs(out[1] - theta[-1]) < 1e-6 * steps:
             return None  # not moving
         return canonical_view(out[0], out[1])
 
@@ -873,6 +890,28 @@ class WarpWorker:
         `AHEAD_SNAP_DEG` (phi across 360)."""
         return all(abs((x - y + 180.0) % 360.0 - 180.0) <= cls.AHEAD_SNAP_DEG
                    for x, y in zip(a, b))
+
+    def _still_ahead(self, view: tuple[float, float]) -> bool:
+        """Whether ``view`` lies ahead on the line of the steady motion requested (one to
+        `LEAD_STEPS` steps on); under the lock, or read without it (a stale answer costs
+        one warp)."""
+        history = list(self._history)
+        return any(v is not None and self.same_view(v, view) for v in (
+            self.predicted_view(history, k) for k in range(1, self.LEAD_STEPS + 1)))
+
+    def _lead_view(self) -> tuple[float, float] | None:
+        """While requests come faster than a warp takes (a held view) on steady motion: the
+        view as many steps ahead as a warp takes intervals, plus one, so that its warp is
+        made before it is asked (under the lock). None: no steady motion, or that view is
+        made (or was begun) already."""
+        if self.warp_s is None or self.interval_s is None or not self.interval_s > 0:
+            return None
+        steps = min(self.LEAD_STEPS, math.ceil(self.warp_s / self.interval_s) + 1)
+        view = self.predicted_view(self._history, steps)
+        if view is None or view == self._guessed or (
+                self._ahead is not None and self._still_ahead(self._ahead[0])):
+            return None
+        return view
 
     def _ahead_view(self, now: float) -> tuple[float, float] | None:
         """The view to warp ahead now (under the lock), or None: only while the next request
@@ -905,8 +944,13 @@ class WarpWorker:
         lock: attribute reads, and a stale answer only delays the give-up to the next
         check."""
         self._display_idle.wait(self.YIELD_S)
-        pending = self._pending
-        return self._closed or (pending is not None and pending != self._current)
+        pending, current = self._pending, self._current
+        if self._closed:
+            return True
+        if pending is None or pending == current or self._probe:
+            return False  # (a probe measures a warp's time: it runs to its end)
+        # a lead stays wanted while the motion still comes its way
+        return not (self._lead and current is not None and self._still_ahead(current))
 
     def _next_view(self) -> tuple[tuple[float, float], bool] | None:
         """The view to warp next, once it has waited its hold, and whether it is made ahead
@@ -924,6 +968,12 @@ class WarpWorker:
                 continue
             hold = self.hold_s()
             wait = self._pending_t + hold - now
+            if hold > 0.0 and not self._urgent:
+                lead = self._lead_view()
+                if lead is not None:
+                    self._guessed = lead
+                    self._lead = True
+                    return lead, True
             probe = hold > 0.0 and now - self._started_t >= self.PROBE_S
             if self._urgent or wait <= 0.0 or probe:
                 view, self._pending, self._urgent = self._pending, None, False
@@ -957,27 +1007,36 @@ class WarpWorker:
                                                            or spent > self.warp_s):
                         self.warp_s = spent
                     self._current, self._speculative, self._probe = None, False, False
+                    self._lead = False
                 continue
             except Exception:  # the blend stays on show; a device must not stop on it
                 with self._cond:
                     self.errors += 1
                     self._current, self._speculative, self._probe = None, False, False
+                    self._lead = False
                     self._cond.notify_all()
                 continue
             spent = time.monotonic() - t0
+            warm = getattr(self.synthesis, "misses", 0) == misses
             with self._cond:
                 self.made += 1
-                # a probe's time replaces the estimate it was started to check
-                self.warp_s = spent if self.warp_s is None or self._probe else (
-                    self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                if warm:  # a probe's time replaces the estimate it was started to check
+                    self.warp_s = spent if self.warp_s is None or self._probe else (
+                        self.warp_s + self.SMOOTHING * (spent - self.warp_s))
+                elif self.warp_s is not None and spent < self.warp_s:
+                    # a warp that made its neighbours says how long a warp takes at most
+                    self.warp_s += self.SMOOTHING * (spent - self.warp_s)
                 self._probe = False
                 self._current = None
                 ahead, self._speculative = self._speculative, False
+                lead, self._lead = self._lead, False
                 made = False
                 if self._pending == view:
                     self._pending, self._urgent = None, False
                     self._result, made = (view, frame), True
                     self._cond.notify_all()
+                elif ahead and (self._pending is None or lead):
+                    self._ahead = (view, frame)  # until its view is asked
                 elif self._pending is None:
                     if ahead:
                         self._ahead = (view, frame)  # until its view is asked

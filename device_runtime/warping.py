@@ -7,7 +7,7 @@ the warp's working set; `forward_warp` projects the points of the source views i
 target camera, z-tests, blends by the views' weights, filters and fills the cracks
 (`fill_holes`). Numpy only, float32, no per-pixel Python loop, temporaries bounded by
 `CHUNK` points and the splats' rectangle. `device_runtime.synthesis` builds the frames a
-device shows on it (and re-exports these names); ``scripts/warp_views.py`` measures with it.
+device shows on it (and re-exports these names); ``research/warp_views.py`` measures with it.
 """
 
 from __future__ import annotations

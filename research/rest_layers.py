@@ -997,6 +997,162 @@ def overview(results: list[dict], timing_result: dict | None) -> list[str]:
     return lines
 
 
+def _md_candidates(r: dict, views: list[dict]) -> list[str]:
+    """A volume's lossy candidates: bytes to each target against WebP and AVIF."""
+    lines = []
+    s = summarize(r)
+    head = "| candidate | " + " | ".join(
+        f"{t} bytes | /WebP | /AVIF | n" for t in TARGETS) + " |"
+    lines += [head, "|" + "---|" * (1 + 4 * len(TARGETS))]
+    for name, row in s.items():
+        cells = []
+        for t in TARGETS:
+            e = row[str(t)]
+            med = f"{statistics.median(e['bytes']):.0f}" if e["bytes"] else "-"
+            cells.append(f"{med} | {_stats(e['webp'])} | {_stats(e['avif'])} | "
+                         f"{e['reached']}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    # how often best picks what
+    picks: dict[str, dict[str, int]] = {}
+    for t in TARGETS:
+        for v in views:
+            hit = v["lossy"]["best"][str(t)]
+            if hit:
+                picks.setdefault(str(t), {}).setdefault(hit["from"], 0)
+                picks[str(t)][hit["from"]] += 1
+    lines += ["", "`best` picks: " + "; ".join(
+        f"{t}: " + ", ".join(f"{k} {n}" for k, n in sorted(p.items()))
+        for t, p in picks.items()), ""]
+    return lines
+
+
+def _md_exact(views: list[dict]) -> list[str]:
+    """A volume's exact layers: bytes against WebP lossless of the ray-cast."""
+    wll = [v["exact"]["wll_R"] for v in views]
+    lines = ["Exact (bytes, median (worst) ratio to WebP lossless of R; `cumulative` "
+             "includes the lossy base):", "", "| coding | median bytes | /WLL(R) |",
+             "|---|---|---|"]
+    keys = [k for k in views[0]["exact"]]
+    for v in views[1:]:
+        keys += [k for k in v["exact"] if k not in keys]
+    for k in keys:
+        vals, ratios = [], []
+        for v, w in zip(views, wll):
+            e = v["exact"].get(k)
+            if e is None:
+                continue
+            b = e if isinstance(e, int) else e["cumulative"]
+            vals.append(b)
+            ratios.append(b / w)
+        if not vals:
+            continue
+        label = k if k in ("wll_R", "png_R", "zstd_R", "wll_resF", "zstd_resF") else \
+            f"{k} (cumulative)"
+        lines.append(f"| {label} | {statistics.median(vals):.0f} | {_stats(ratios)} |")
+        if not isinstance(views[0]["exact"].get(k, 0), int):
+            layer = [v["exact"][k]["layer"] / w for v, w in zip(views, wll)
+                     if k in v["exact"]]
+            lines.append(f"| {k} (layer alone) | - | {_stats(layer)} |")
+    return lines
+
+
+def _md_plans(views: list[dict]) -> list[str]:
+    """A volume's layer plans, stage by stage."""
+    lines = ["", "Layer plans (per step: median object SSIM @ median cumulative bytes, "
+             "then the cumulative bytes as median (worst) ratio to the smallest WebP of R "
+             "reaching that step's SSIM on that view / to the smallest AVIF; the exact "
+             "step to WebP lossless of R). Stages: before any layer (the correction, or "
+             "the own frame when none is sent) -> the first lossy layer (`reached`: the "
+             "frame already reaches the target, nothing sent) [-> a layer to 0.99: the "
+             "residual against the frame shown or WebP of R, the smaller] -> exact (WebP "
+             "lossless of R, or of (R - D) mod 256 after a WebP of R, the smaller). What "
+             "each stage was, per view, in brackets:", ""]
+    plan_names = []
+    for v in views:
+        plan_names += [p for p in v["plans"] if p not in plan_names]
+    for p in plan_names:
+        rows = [v for v in views if p in v["plans"]]
+        staged = [_stages(p, v["plans"][p], v) for v in rows]
+        n_steps = min(len(x) for x in staged)  # stages: before, layer 1[, 0.99], exact
+        parts = []
+        for k in range(n_steps):
+            st = [x[k] for x in staged]
+            rw = [x[1] / x[2] for x in st if x[2]]
+            ra = [x[1] / x[3] for x in st if x[3]]
+            kinds: dict[str, int] = {}
+            for x in st:
+                kinds[x[4]] = kinds.get(x[4], 0) + 1
+            what = ", ".join(f"{kk} {n}" for kk, n in sorted(kinds.items()))
+            tail = f" / {_stats(ra)}" if ra else ""
+            parts.append(f"{statistics.median(x[0] for x in st):.3f} @ "
+                         f"{statistics.median(x[1] for x in st):.0f} B = {_stats(rw)}"
+                         f"{tail} [{what}]")
+        lines.append(f"* `{p}` ({len(rows)} views): " + " -> ".join(parts))
+    return lines
+
+
+def _md_volume(r: dict) -> list[str]:
+    """One volume's section: correction, lossy candidates, exact layers, plans, tiles and
+    the decode agreement."""
+    views = r["per_view"]
+    lines = [f"## {r['name']} ({r['size']} px, {len(views)} views `{r['views']}`, own frame "
+             f"{r['own_frame']})", ""]
+    c = [v["correction_bytes"] for v in views]
+    lines.append(
+        f"Correction: median {statistics.median(c):.0f} B (max {max(c)}); object SSIM of "
+        f"own frame median {statistics.median(v['ssim_own'] for v in views):.3f}, of F "
+        f"{statistics.median(v['ssim_F'] for v in views):.3f} (min "
+        f"{min(v['ssim_F'] for v in views):.3f}). Device mask (F non-black, dilated "
+        f"{MASK_DILATE} px) misses median "
+        f"{100 * statistics.median(v['mask_misses_object'] for v in views):.2f} % of the "
+        "object's pixels.")
+    lines.append("")
+    lines += _md_candidates(r, views)
+    lines += _md_exact(views)
+    lines += _md_plans(views)
+    tiles: dict[str, list[float]] = {}
+    for v in views:
+        for k, x in v["tiles"].items():
+            tiles.setdefault(k, []).append(x)
+    lines += ["", "Tiles (bytes of n x n independent files / one file, median (worst)): "
+              + "; ".join(f"{k} {_stats(x)}" for k, x in tiles.items()), ""]
+    da = r["decode_agreement"]
+    lines += [f"Lossy WebP decode agreement ({da['files']} files, Pillow libwebp "
+              f"{da['pillow_libwebp']}, pygame {da['pygame']} libwebp "
+              f"{da.get('pygame_libwebp') or 'not recorded'}): files whose decode "
+              "differs from Pillow's "
+              f"{da['differs_from_pillow']}, largest difference "
+              f"{da['max_level_difference']}"
+              + (f"; dwebp: {da['dwebp_libwebp']}" if "dwebp_libwebp" in da else ""), ""]
+    return lines
+
+
+def _md_timing(timing_result: dict) -> list[str]:
+    """The device cost of a layer against the blend, one core."""
+    lines = ["## Device cost of a layer (one core)", "",
+             f"CPUs {timing_result['affinity']}, OPENBLAS_NUM_THREADS="
+             f"{timing_result['openblas']}, load {timing_result['load']:.1f}. Thread CPU "
+             "time, median; ratio to the blend (`Reconstructor.update` of a new view's "
+             "predicted scores) interleaved in the same run. Layer files per view: "
+             "`res1@t` the residual against F (`pixels3d`: added from a view of the "
+             "surface; `tobytes`: from a copy), `res1_jpeg@t` the same as JPEG 4:4:4, "
+             "`webp@t` / `wll_R` / `png_R` the ray-cast copied into the frame, "
+             "`wll_resD@t` / `zstd_resD@t` the mod-256 exact residual added to the "
+             "`webp@t` frame. `NAME-512proxy`: no 512 database was measured, so R is "
+             "ray-cast at 512 with the volume's settings, F is the 256 F upsampled "
+             "(bilinear; a rougher F, so larger residual layers) and the blend is "
+             "`benchmarks/bench_reconstruct.py`'s synthetic 512 eigenspace (as "
+             "`bench_device.py` times sizes without a model).", "",
+             "| volume | px | blend ms | layer: ms (x blend) |", "|---|---|---|---|"]
+    for name, v in timing_result["volumes"].items():
+        parts = [f"{k} {x['ms']:.2f} ({x['ratio']:.2f}x)" for k, x in v.items()
+                 if isinstance(x, dict)]
+        lines.append(f"| {name} | {v['size']} | {v['blend_ms']:.2f} | "
+                     + "; ".join(parts) + " |")
+    lines.append("")
+    return lines
+
+
 def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
                    command: str) -> None:
     lines = [
@@ -1017,135 +1173,9 @@ def write_markdown(results: list[dict], timing_result: dict | None, path: Path,
     ]
     lines += overview(results, timing_result)
     for r in results:
-        views = r["per_view"]
-        s = summarize(r)
-        lines += [f"## {r['name']} ({r['size']} px, {len(views)} views `{r['views']}`, own frame "
-                  f"{r['own_frame']})", ""]
-        c = [v["correction_bytes"] for v in views]
-        lines.append(
-            f"Correction: median {statistics.median(c):.0f} B (max {max(c)}); object SSIM of "
-            f"own frame median {statistics.median(v['ssim_own'] for v in views):.3f}, of F "
-            f"{statistics.median(v['ssim_F'] for v in views):.3f} (min "
-            f"{min(v['ssim_F'] for v in views):.3f}). Device mask (F non-black, dilated "
-            f"{MASK_DILATE} px) misses median "
-            f"{100 * statistics.median(v['mask_misses_object'] for v in views):.2f} % of the "
-            "object's pixels.")
-        lines.append("")
-        head = "| candidate | " + " | ".join(
-            f"{t} bytes | /WebP | /AVIF | n" for t in TARGETS) + " |"
-        lines += [head, "|" + "---|" * (1 + 4 * len(TARGETS))]
-        for name, row in s.items():
-            cells = []
-            for t in TARGETS:
-                e = row[str(t)]
-                med = f"{statistics.median(e['bytes']):.0f}" if e["bytes"] else "-"
-                cells.append(f"{med} | {_stats(e['webp'])} | {_stats(e['avif'])} | "
-                             f"{e['reached']}")
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-        # how often best picks what
-        picks: dict[str, dict[str, int]] = {}
-        for t in TARGETS:
-            for v in views:
-                hit = v["lossy"]["best"][str(t)]
-                if hit:
-                    picks.setdefault(str(t), {}).setdefault(hit["from"], 0)
-                    picks[str(t)][hit["from"]] += 1
-        lines += ["", "`best` picks: " + "; ".join(
-            f"{t}: " + ", ".join(f"{k} {n}" for k, n in sorted(p.items()))
-            for t, p in picks.items()), ""]
-        # exact
-        wll = [v["exact"]["wll_R"] for v in views]
-        lines += ["Exact (bytes, median (worst) ratio to WebP lossless of R; `cumulative` "
-                  "includes the lossy base):", "", "| coding | median bytes | /WLL(R) |",
-                  "|---|---|---|"]
-        keys = [k for k in views[0]["exact"]]
-        for v in views[1:]:
-            keys += [k for k in v["exact"] if k not in keys]
-        for k in keys:
-            vals, ratios = [], []
-            for v, w in zip(views, wll):
-                e = v["exact"].get(k)
-                if e is None:
-                    continue
-                b = e if isinstance(e, int) else e["cumulative"]
-                vals.append(b)
-                ratios.append(b / w)
-            if not vals:
-                continue
-            label = k if k in ("wll_R", "png_R", "zstd_R", "wll_resF", "zstd_resF") else \
-                f"{k} (cumulative)"
-            lines.append(f"| {label} | {statistics.median(vals):.0f} | {_stats(ratios)} |")
-            if not isinstance(views[0]["exact"].get(k, 0), int):
-                layer = [v["exact"][k]["layer"] / w for v, w in zip(views, wll)
-                         if k in v["exact"]]
-                lines.append(f"| {k} (layer alone) | - | {_stats(layer)} |")
-        # plans
-        lines += ["", "Layer plans (per step: median object SSIM @ median cumulative bytes, "
-                  "then the cumulative bytes as median (worst) ratio to the smallest WebP of R "
-                  "reaching that step's SSIM on that view / to the smallest AVIF; the exact "
-                  "step to WebP lossless of R). Stages: before any layer (the correction, or "
-                  "the own frame when none is sent) -> the first lossy layer (`reached`: the "
-                  "frame already reaches the target, nothing sent) [-> a layer to 0.99: the "
-                  "residual against the frame shown or WebP of R, the smaller] -> exact (WebP "
-                  "lossless of R, or of (R - D) mod 256 after a WebP of R, the smaller). What "
-                  "each stage was, per view, in brackets:", ""]
-        plan_names = []
-        for v in views:
-            plan_names += [p for p in v["plans"] if p not in plan_names]
-        for p in plan_names:
-            rows = [v for v in views if p in v["plans"]]
-            staged = [_stages(p, v["plans"][p], v) for v in rows]
-            n_steps = min(len(x) for x in staged)  # stages: before, layer 1[, 0.99], exact
-            parts = []
-            for k in range(n_steps):
-                st = [x[k] for x in staged]
-                rw = [x[1] / x[2] for x in st if x[2]]
-                ra = [x[1] / x[3] for x in st if x[3]]
-                kinds: dict[str, int] = {}
-                for x in st:
-                    kinds[x[4]] = kinds.get(x[4], 0) + 1
-                what = ", ".join(f"{kk} {n}" for kk, n in sorted(kinds.items()))
-                tail = f" / {_stats(ra)}" if ra else ""
-                parts.append(f"{statistics.median(x[0] for x in st):.3f} @ "
-                             f"{statistics.median(x[1] for x in st):.0f} B = {_stats(rw)}"
-                             f"{tail} [{what}]")
-            lines.append(f"* `{p}` ({len(rows)} views): " + " -> ".join(parts))
-        tiles: dict[str, list[float]] = {}
-        for v in views:
-            for k, x in v["tiles"].items():
-                tiles.setdefault(k, []).append(x)
-        lines += ["", "Tiles (bytes of n x n independent files / one file, median (worst)): "
-                  + "; ".join(f"{k} {_stats(x)}" for k, x in tiles.items()), ""]
-        da = r["decode_agreement"]
-        lines += [f"Lossy WebP decode agreement ({da['files']} files, Pillow libwebp "
-                  f"{da['pillow_libwebp']}, pygame {da['pygame']} libwebp "
-                  f"{da.get('pygame_libwebp') or 'not recorded'}): files whose decode "
-                  "differs from Pillow's "
-                  f"{da['differs_from_pillow']}, largest difference "
-                  f"{da['max_level_difference']}"
-                  + (f"; dwebp: {da['dwebp_libwebp']}" if "dwebp_libwebp" in da else ""), ""]
+        lines += _md_volume(r)
     if timing_result:
-        lines += ["## Device cost of a layer (one core)", "",
-                  f"CPUs {timing_result['affinity']}, OPENBLAS_NUM_THREADS="
-                  f"{timing_result['openblas']}, load {timing_result['load']:.1f}. Thread CPU "
-                  "time, median; ratio to the blend (`Reconstructor.update` of a new view's "
-                  "predicted scores) interleaved in the same run. Layer files per view: "
-                  "`res1@t` the residual against F (`pixels3d`: added from a view of the "
-                  "surface; `tobytes`: from a copy), `res1_jpeg@t` the same as JPEG 4:4:4, "
-                  "`webp@t` / `wll_R` / `png_R` the ray-cast copied into the frame, "
-                  "`wll_resD@t` / `zstd_resD@t` the mod-256 exact residual added to the "
-                  "`webp@t` frame. `NAME-512proxy`: no 512 database was measured, so R is "
-                  "ray-cast at 512 with the volume's settings, F is the 256 F upsampled "
-                  "(bilinear; a rougher F, so larger residual layers) and the blend is "
-                  "`benchmarks/bench_reconstruct.py`'s synthetic 512 eigenspace (as "
-                  "`bench_device.py` times sizes without a model).", "",
-                  "| volume | px | blend ms | layer: ms (x blend) |", "|---|---|---|---|"]
-        for name, v in timing_result["volumes"].items():
-            parts = [f"{k} {x['ms']:.2f} ({x['ratio']:.2f}x)" for k, x in v.items()
-                     if isinstance(x, dict)]
-            lines.append(f"| {name} | {v['size']} | {v['blend_ms']:.2f} | "
-                         + "; ".join(parts) + " |")
-        lines.append("")
+        lines += _md_timing(timing_result)
     head = ""
     if path.exists() and MARKER in path.read_text():  # the hand-written findings above it
         head = path.read_text().split(MARKER)[0]

@@ -1226,3 +1226,63 @@ def test_the_floor_of_a_cell_is_its_best_summed_gain_above_the_object_level():
     gains[2, 11] = -1.0
     gains[2, 12] = 1.0  # 5 again at 12: ties take the smaller level
     assert floor_from_gains(gains)[2] == 10
+
+
+def test_steady_motion_faster_than_a_warp_is_led_by_warps_made_ahead():
+    """Views come every 5 ms along a straight line and a warp takes 12 ms: a held view's
+    warp would be gone before it is shown, so the worker warps the view as many steps ahead
+    as a warp takes; those frames are there when their views are asked. (The old worker
+    held every view, and its probes were given up at the next request: no warp was seen
+    until the motion stopped.)"""
+    from device_runtime.synthesis import WarpWorker
+
+    synth = _Sleepy(0.012)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        assert worker.take((0.0, 10.0), timeout_s=10.0) is not None  # learns a warp's time
+        views = [(float(i), 10.0) for i in range(1, 201)]
+        used = 0
+        for view in views:
+            worker.request(view)
+            used += worker.take(view) is not None  # the display's tick
+            time.sleep(0.005)  # the motion's pace (the input being simulated)
+        assert worker.ahead_used >= 20 and used >= 20, (worker.ahead_used, used)
+        # every view warped (ahead or not) lay on the motion's line, one of its steps
+        assert all(abs(theta - 10.0) < 1e-3 and abs(phi - round(phi)) < 1e-3
+                   and 1 <= round(phi) <= 200 + WarpWorker.LEAD_STEPS
+                   for phi, theta in synth.started[1:]), synth.started
+    finally:
+        worker.close()
+
+
+def test_a_cold_warp_that_made_its_neighbours_does_not_hold_the_motion_after_it():
+    """The first warp makes its neighbours (60 ms); the warps after it take 1 ms. That cold
+    warp is no warp's time: views then asked every 5 ms are warped, not held. (The old worker
+    took 60 ms as a warp's time and held every view of an unsteady drag until a probe.)"""
+    from device_runtime.synthesis import WarpWorker
+
+    class ColdOnce(_Sleepy):
+        misses = 0
+
+        def frame(self, phi, theta, cancel=None):
+            if not self.misses:
+                self.misses += 1
+                time.sleep(0.06)  # making the neighbours (the work being simulated)
+            return super().frame(phi, theta, cancel)
+
+    synth = ColdOnce(0.001)
+    worker = WarpWorker(synth)
+    try:
+        worker.request((0.0, 10.0))
+        assert worker.take((0.0, 10.0), timeout_s=10.0) is not None
+        assert worker.warp_s is None
+        # an unsteady drag (no line to warp ahead on): growing steps
+        views = [(0.05 * i * i, 10.0) for i in range(1, 81)]
+        for view in views:
+            worker.request(view)
+            time.sleep(0.005)  # the drag's pace (the input being simulated)
+        assert len(synth.started) > 50 and worker.skipped < 20, (synth.started,
+                                                                   worker.skipped)
+    finally:
+        worker.close()

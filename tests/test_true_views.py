@@ -1,7 +1,7 @@
 """The scores of fresh ray-casts (``HostModel.project``, `TrueViewScores`) and what ``serve``
 does when it cannot ray-cast.
 
-Interpolated scores blend neighbouring training views (docs/rate-distortion.md); a host that
+Interpolated scores blend neighbouring training views (docs/design-notes.md); a host that
 holds the volume can instead ray-cast the view asked for and find the scores that best
 reproduce it on the device's own eigenimages (evaluate's ``pca_render``, and what every
 served frame converges to once its view rests).

@@ -1,4 +1,4 @@
-"""The forward warp of issue 15 (device_runtime/synthesis.py; scripts/warp_views.py, the
+"""The forward warp of issue 15 (device_runtime/synthesis.py; research/warp_views.py, the
 go/no-go measurement, imports it) on synthetic scenes.
 
 Warping a view to its own camera gives it back; a sphere rendered from one view and warped by
@@ -23,7 +23,7 @@ from host.render.raycast import Renderer
 from host.render.transfer import TransferFunction
 from host.volume import Volume
 
-_SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "warp_views.py"
+_SCRIPT = Path(__file__).resolve().parent.parent / "research" / "warp_views.py"
 
 
 @pytest.fixture(scope="module")

@@ -111,7 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         default="auto",
                         help="how novel views' scores are interpolated between training views "
                              "(auto: the measured best for the view set; see "
-                             "docs/rate-distortion.md)")
+                             "docs/design-notes.md)")
     parser.add_argument("--incomplete", action="store_true",
                         help="fit an interrupted render's views as they are (refused by "
                              "default: its views cover part of the view set, and views outside "

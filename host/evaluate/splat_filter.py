@@ -3,7 +3,7 @@ views.
 
 The device's depth warp spreads its splats by [1, c, 1] / (c + 2) in x and y
 (`device_runtime.warping.SPLAT_TENTS`). Which c suits an image depends on the volume and the
-size (docs/rate-distortion.md 9.10, "A splat filter for each image"), so the fit measures the
+size (docs/design-notes.md, "A splat filter for each image"), so the fit measures the
 device's own warp, with each filter, on training views warped from their row neighbours, and
 names the clearly better one in the image. It scores frames with this stage's metrics, so it
 lives here, like ``fit --target``'s search (`host.evaluate.target`).
@@ -30,7 +30,7 @@ __all__ = ["TENT_MARGIN", "TENT_TIE", "TENT_VIEWS", "choose_splat_tent", "pick_s
 TENT_VIEWS = 40
 #: Object SSIM by which another splat filter must beat the default on those views to be
 #: chosen: where the default was best on held-out views, the others came within +0.0005 of
-#: it on the training views (docs/rate-distortion.md 9.10).
+#: it on the training views (docs/design-notes.md).
 TENT_MARGIN = 0.002
 #: Filters within this object SSIM of the best on those views count as tied, and the one
 #: that spreads the splats most among them is taken: a view warped from its row neighbours

@@ -9,7 +9,7 @@ device's way: float16 means, int8 components with a float32 scale each, an int16
 every training view's scores (`device_runtime.synthesis.DepthEigenspace`). `add_depth`
 puts it into an image as the sections `device_runtime.synthesis.DEPTH_SECTIONS` and names the
 synthesis method in the manifest (``image.synthesis``). The research measurement
-(``scripts/warp_views.py``, docs/rate-distortion.md section 9) fits with the same code.
+(``research/warp_views.py``, docs/design-notes.md) fits with the same code.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ DEPTH_SCORE_MSE = 0.05
 #: ``fit --depth``'s depth table noise as a fraction of the squared z-test tolerance
 #: (``synthesis.z_tolerance_mm``, 2 % of the bounding-sphere diameter): the rounding noise's
 #: RMS is a fifth of the tolerance (0.44 mm^2 on the tooth, 1.8 mm^2 on the head, at any
-#: image size). docs/rate-distortion.md 9.7: it costs at most 0.003 object SSIM on both
+#: image size). docs/design-notes.md, "The depth eigenspace": it costs at most 0.003 object
+#: SSIM on both
 #: volumes at 256 and 512, where the depth sections lose 10-30 % of their bytes; the warp's
 #: sensitivity to depth noise scales with the volume, not with the pixel.
 DEPTH_SCORE_NOISE_Z2 = 0.04

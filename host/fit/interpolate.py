@@ -25,7 +25,7 @@ Methods (see `device_runtime.interpolation` for the exact rules):
     to the nearest boundary point).
 ``auto``
     `GRID_DEFAULT` when the views form a full grid, else ``barycentric``.
-    (Chosen by measurement on held-out views: ``docs/rate-distortion.md``.)
+    (Chosen by measurement on held-out views: ``docs/design-notes.md``.)
 
 Examples
 --------
@@ -183,7 +183,7 @@ METHODS: dict[str, Callable[[np.ndarray, np.ndarray], Any]] = {
 }
 
 #: The method ``auto`` uses on full grids. Measured on held-out views of the tooth and the
-#: head at 256 and 512 (docs/rate-distortion.md): ``bicubic`` lowers object-pixel FLIP by
+#: head at 256 and 512 (docs/design-notes.md): ``bicubic`` lowers object-pixel FLIP by
 #: 1-4.5 % but never raises object-pixel SSIM (the issue's target measure; -0.006 to +0.0001),
 #: and both are 0.2-0.3 SSIM below the oracle; ``bilinear`` stays, at 4 rows instead of 16.
 GRID_DEFAULT = "bilinear"

@@ -10,7 +10,7 @@ dense as the frame's time budget allows:
   (``BUDGET_SHARE`` of ``budget_s``); stride 1 is a full ray-cast and sends
   `HostModel.project` of it. The prior is the interpolated scores, or the previous frame's
   when the view moved less than ``prior_switch_deg`` since it (slow drags: docs/
-  rate-distortion.md section 6).
+  design-notes.md, "Sparse ray-casts while moving").
 * **Resting.** `refine` continues a view that was not replaced: each step ray-casts as many
   of the missing pixels as fit the budget, towards the next denser stride; once that
   stride's grid is complete its recovered scores are sent (cached factors, ~1 ms), and
@@ -112,7 +112,7 @@ class ResidualPrior:
     ``eigenvalue * clip((r + 0.5) / RANK_SCALE, RATIO_FLOOR, 1)``, and the residual outside
     the eigenspace (the noise the samples carry) variance `LAMBDA` per value.
 
-    Measured (docs/rate-distortion.md, section 10; 12 views each of the tooth and the head
+    Measured (docs/design-notes.md, "Serving"; 12 views each of the tooth and the head
     at 256): the median of (correction component)**2 / eigenvalue is 0.001-0.002 at rank 0,
     0.01 at ranks 2-3, 0.07-0.09 at 8-15, 0.16 at 16-31, 0.29-0.32 at 32-63 and 0.49-0.54
     beyond, on both volumes; with this prior the sparse correction gains at every stride

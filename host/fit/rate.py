@@ -48,7 +48,7 @@ __all__ = [
 
 #: ``lam = kappa * step**2`` (squared score units per bit): the Lagrangian that matches a
 #: uniform quantizer of that step (chosen from a sweep of 0.05-0.5 on the tooth at 256;
-#: docs/rate-distortion.md, section 8).
+#: docs/design-notes.md, "Rate-distortion quantization").
 DEFAULT_RD_KAPPA = 0.15
 #: A moving view's correction step in model score steps (bench_link: step x2 with kappa 0.15
 #: gave the best object SSIM over its drag and orbit traces at 115200 baud, issue 14).

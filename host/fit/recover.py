@@ -16,7 +16,7 @@ MAP estimate for ``x = mean + a B + noise`` with noise variance ``λ`` (squared 
 units per value) and the Gaussian prior ``a ~ N(a0, Σ)``: with every pixel sampled and
 ``λ -> 0`` it is `HostModel.project`'s least-squares projection; with few samples the prior
 keeps the components the samples cannot tell apart. λ is `DEFAULT_LAMBDA`
-(docs/rate-distortion.md, "Sparse ray-cast recovery").
+(docs/design-notes.md, "Sparse ray-casts while moving").
 
 Cost. Per sample pattern (`SamplePattern`: a stride with an offset, or a list of pixels),
 each cell's factor ``M = (B_S B_Sᵀ + λ Σ⁻¹)⁻¹ B_S``, ``G = I - M B_Sᵀ`` and ``m = M mean_S``
@@ -61,7 +61,7 @@ __all__ = [
 ]
 
 #: Default λ: the noise variance (squared 0..255 units per sampled value) the prior is
-#: weighed against. Tuned on the tooth and the head at 192 (docs/rate-distortion.md).
+#: weighed against. Tuned on the tooth and the head at 192 (docs/design-notes.md).
 DEFAULT_LAMBDA = 100.0
 
 #: Variance floor for components whose training scores never vary (avoids 1/0).

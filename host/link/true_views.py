@@ -25,7 +25,7 @@ class TrueViewScores:
     """Scores of freshly ray-cast views: ``model.project(renderer.render(view)[0])``.
 
     The frame a device makes from them is the eigenspace's best approximation of the true
-    view (the *projection*, docs/rate-distortion.md), with no view-interpolation error.
+    view (the *projection*, docs/design-notes.md), with no view-interpolation error.
     The last ``cache`` views are remembered (a device asking for a key frame, or going back
     and forth, costs no new ray-cast).
 

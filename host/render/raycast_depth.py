@@ -32,7 +32,7 @@ def render_depth_layers(renderer: object, camera: object, width: int, height: in
     opacity crosses 1/4 (`DEPTH_QUARTER`) and 3/4 (`DEPTH_THREE_QUARTERS`), linear within
     the crossing sample like the half-opacity depth, NaN where it never does. A
     translucent pixel's colour comes from the depths between them (a second depth layer
-    for view synthesis: docs/rate-distortion.md 9.10).
+    for view synthesis: docs/design-notes.md).
 
     Returns
     -------

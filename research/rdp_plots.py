@@ -1,6 +1,6 @@
 """Figures and tables of docs/rate-distortion-packets.md from the ``rdp_*.py`` JSON outputs.
 
-    .venv/bin/python scripts/rdp_plots.py --results /work/cache/h12 --docs docs/images
+    .venv/bin/python research/rdp_plots.py --results /work/cache/h12 --docs docs/images
 
 Reads ``packets-NAME.json``, ``table-NAME.json``, ``eigen-NAME.json`` and
 ``storage-NAME.json`` for every NAME found (e.g. ``tooth-256``) and writes

@@ -1,6 +1,6 @@
 """The device's own frames under each lighting look: evaluate's ``pca_warp`` per look.
 
-    .venv/bin/python scripts/lighting_warp.py --dbs DIR [--volumes builtin:head,tooth]
+    .venv/bin/python research/lighting_warp.py --dbs DIR [--volumes builtin:head,tooth]
         [--size 256] [--views grid:100x15] [--test-views random:20:15]
 
 For each volume and look (``headlight``, ``cinematic``) it uses ``DIR/NAME-LOOK.cdb`` (as
@@ -18,7 +18,7 @@ code, its depth eigenspace) of the *training images themselves* (the database's 
 place of their reconstructions), on the same views, against the same fresh ray-casts. It
 separates what the lighting does to the warp from what it does to the eigenspace.
 
-Produces: BENCHMARKS.md, "Lighting looks", the pca_warp table.
+Produces: BENCHMARKS.md, "Lighting looks", the pca_warp figures.
 """
 
 from __future__ import annotations

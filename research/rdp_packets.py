@@ -1,9 +1,9 @@
 """Score-packet rate-distortion experiments (issue 6 item 3; docs/rate-distortion-packets.md).
 
-    .venv/bin/python scripts/rdp_packets.py MODEL.ecs TEST.cdb -o OUT.json
+    .venv/bin/python research/rdp_packets.py MODEL.ecs TEST.cdb -o OUT.json
         [--views 100] [--factors 1,2,4,8,16,32] [--codec-views 40] [--flip]
 
-For the held-out views of TEST.cdb (object pixels, `scripts/rdp_common.py`) and a sweep of
+For the held-out views of TEST.cdb (object pixels, `research/rdp_common.py`) and a sweep of
 score steps (multiples of the model's own step, which `fit` chose from the 0.25 MSE rule):
 
 * **quantizers**: ``uniform`` (``rint(y / s)``, what eigencast sent so far) and ``waterfill``
@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zstandard as zstd
@@ -125,7 +126,7 @@ def entropy_bits(train_q: np.ndarray, test_q: np.ndarray, ranks: np.ndarray) -> 
     return total / test_q.shape[0]
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
     ap.add_argument("test_db")
@@ -139,15 +140,99 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flip", action="store_true", help="match FLIP too (slow)")
     ap.add_argument("--orbit-thetas", default="15,42")
     ap.add_argument("--dict-bytes", type=int, default=4096)
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def _orbit_sizes(q: np.ndarray, step: float, counts: np.ndarray) -> dict:
+    """Bytes per frame of one orbit's quantized scores ``q``: real key and delta packets,
+    and the old coding as deltas and as deltas against the linear prediction."""
+    comp = zstd.ZstdCompressor(level=LEVEL, write_content_size=True)
+
+    def size(v: np.ndarray, c: zstd.ZstdCompressor = comp) -> int:
+        p = zigzag_varints(v)
+        return HEADER_SIZE + min(len(p), len(c.compress(p)))
+
+    pred = [size(q[0]), size(q[1] - q[0])] + [
+        size(q[i] - 2 * q[i - 1] + q[i - 2]) for i in range(2, len(q))]
+    delta3 = [size(q[0])] + [size(q[i] - q[i - 1]) for i in range(1, len(q))]
+    key, delta, prev = [], [], None
+    for i, v in enumerate(q):
+        k = packet(v, step, counts, frame=i + 1)
+        key.append(len(k.packet))
+        d = k if prev is None else packet(v, step, counts, frame=i + 1, base=prev)
+        delta.append(len(d.packet))
+        prev = d
+    return {"key": float(np.mean(key)), "delta": float(np.mean(delta)),
+            "delta_v1_level3": float(np.mean(delta3)),
+            "pred2_v1_level3": float(np.mean(pred))}
+
+
+def _kind_entry(case: Any, step: float, z: np.ndarray | None, train_q: np.ndarray,
+                y_test: np.ndarray, orbit_y: dict, ctx: dict) -> dict:
+    """One quantizer at one step: quality, packet and layout sizes, entropy, orbits."""
+    model, perm, counts = case.model, ctx["perm"], ctx["counts"]
+    sizer = Sizer([payloads(q, perm) for q in train_q], ctx["dict_bytes"])
+    qs = np.stack([quantize(y, step, z) for y in y_test])
+    qual = [quality(case.truth[i], model.reconstruct((qs[i] * step).astype(np.float32)),
+                    case.masks[i]) for i in range(case.n_views)]
+    sizes = [sizer.sizes(payloads(q, perm)) for q in qs]
+    packet_v1 = [len(encode_scores(q * step, step=step, frame=1, view=(0.0, 0.0),
+                                   image_digest=bytes(4), level=3,
+                                   coding=0).packet) for q in qs]
+    pk = [len(packet(q, step, counts).packet) for q in qs]
+    entry = {
+        "quality": {k: float(np.mean([v[k] for v in qual])) for k in qual[0]},
+        "per_view_ssim": [v["ssim"] for v in qual],
+        "packet_bytes": float(np.mean(pk)),
+        "packet_bytes_v1_level3": float(np.mean(packet_v1)),
+        "layout_bytes": {k: float(np.mean([s[k] for s in sizes])) for k in sizes[0]},
+        "dict_sizes": sizer.dict_sizes,
+        "entropy_bytes": HEADER_SIZE + entropy_bits(train_q, qs, ctx["ranks"]) / 8,
+        "nonzero_per_view": float(np.mean(np.count_nonzero(qs, axis=1))),
+    }
+    entry["orbits"] = {str(th): _orbit_sizes(np.stack([quantize(y, step, z) for y in ys]),
+                                             step, counts)
+                       for th, ys in orbit_y.items()}
+    return entry
+
+
+def _codecs(case: Any, args: argparse.Namespace, row: dict, y_test: np.ndarray, step: float,
+            zero: np.ndarray) -> dict:
+    """The smallest WebP and JPEG files of equal object SSIM (and FLIP with --flip)."""
+    model = case.model
+    ref = row["waterfill"]["per_view_ssim"]
+    n = min(args.codec_views, case.n_views)
+    flips: list = [None] * n
+    if args.flip:
+        flips = [quality(case.truth[i], model.reconstruct(
+            (quantize(y_test[i], step, zero) * step).astype(np.float32)),
+            case.masks[i], flip=True)["flip"] for i in range(n)]
+    codecs = {}
+    for codec in ("webp", "jpeg"):
+        got = [smallest_codec_file(case.truth[i], case.masks[i], codec, ssim=ref[i],
+                                   flip=flips[i]) for i in range(n)]
+        codecs[codec] = {"bytes": float(np.mean([g[0] for g in got])),
+                         "quality": float(np.mean([g[1] for g in got])),
+                         "ssim": float(np.mean([g[2]["ssim"] for g in got]))}
+    codecs["views"] = n
+    if args.flip:
+        codecs["pca_flip_same_views"] = float(np.mean(flips))
+    codecs["pca_ssim_same_views"] = float(np.mean(ref[:n]))
+    codecs["pca_bytes_same_views"] = float(
+        np.mean([row["waterfill"]["packet_bytes"]]))
+    return codecs
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
     t = Timer()
     case = load_case(args.model, args.test_db, views=args.views)
     model = case.model
     img = model.image
     counts = np.asarray(img.n_components, np.int64)
     lam = np.asarray(model.eigenvalues, np.float64)
-    ranks = ranks_of(counts)
-    perm = component_major(counts)
+    ctx = {"counts": counts, "ranks": ranks_of(counts), "perm": component_major(counts),
+           "dict_bytes": args.dict_bytes}
     base_step = model.score_step
     t.say(f"{case.name}: {case.n_views} views, K={img.n_coefficients}, cells={img.n_cells}, "
           f"step={base_step:.4g}")
@@ -173,80 +258,17 @@ def main(argv: list[str] | None = None) -> int:
         theta_w = step * step / 12.0
         zero = lam < theta_w
         row: dict = {"factor": factor, "step": step, "zeroed_fraction": float(zero.mean())}
-        train_q = {kind: np.stack([quantize(model.training_scores[i], step, z)
-                                   for i in train_idx])
-                   for kind, z in (("uniform", None), ("waterfill", zero))}
         for kind, z in (("uniform", None), ("waterfill", zero)):
-            sizer = Sizer([payloads(q, perm) for q in train_q[kind]], args.dict_bytes)
-            qs = np.stack([quantize(y, step, z) for y in y_test])
-            qual = [quality(case.truth[i], model.reconstruct((qs[i] * step).astype(np.float32)),
-                            case.masks[i]) for i in range(case.n_views)]
-            sizes = [sizer.sizes(payloads(q, perm)) for q in qs]
-            packet_v1 = [len(encode_scores(q * step, step=step, frame=1, view=(0.0, 0.0),
-                                           image_digest=bytes(4), level=3,
-                                           coding=0).packet) for q in qs]
-            pk = [len(packet(q, step, counts).packet) for q in qs]
-            entry = {
-                "quality": {k: float(np.mean([v[k] for v in qual])) for k in qual[0]},
-                "per_view_ssim": [v["ssim"] for v in qual],
-                "packet_bytes": float(np.mean(pk)),
-                "packet_bytes_v1_level3": float(np.mean(packet_v1)),
-                "layout_bytes": {k: float(np.mean([s[k] for s in sizes])) for k in sizes[0]},
-                "dict_sizes": sizer.dict_sizes,
-                "entropy_bytes": HEADER_SIZE + entropy_bits(train_q[kind], qs, ranks) / 8,
-                "nonzero_per_view": float(np.mean(np.count_nonzero(qs, axis=1))),
-            }
-            orbits = {}
-            for th, ys in orbit_y.items():
-                q = np.stack([quantize(y, step, z) for y in ys])
-                comp = zstd.ZstdCompressor(level=LEVEL, write_content_size=True)
-
-                def size(v: np.ndarray, c: zstd.ZstdCompressor = comp) -> int:
-                    p = zigzag_varints(v)
-                    return HEADER_SIZE + min(len(p), len(c.compress(p)))
-
-                pred = [size(q[0]), size(q[1] - q[0])] + [
-                    size(q[i] - 2 * q[i - 1] + q[i - 2]) for i in range(2, len(q))]
-                delta3 = [size(q[0])] + [size(q[i] - q[i - 1]) for i in range(1, len(q))]
-                key, delta, prev = [], [], None
-                for i, v in enumerate(q):
-                    k = packet(v, step, counts, frame=i + 1)
-                    key.append(len(k.packet))
-                    d = k if prev is None else packet(v, step, counts, frame=i + 1, base=prev)
-                    delta.append(len(d.packet))
-                    prev = d
-                orbits[str(th)] = {"key": float(np.mean(key)), "delta": float(np.mean(delta)),
-                                   "delta_v1_level3": float(np.mean(delta3)),
-                                   "pred2_v1_level3": float(np.mean(pred))}
-            entry["orbits"] = orbits
+            train_q = np.stack([quantize(model.training_scores[i], step, z) for i in train_idx])
+            entry = _kind_entry(case, step, z, train_q, y_test, orbit_y, ctx)
             row[kind] = entry
             t.say(f"x{factor:g} {kind}: ssim {entry['quality']['ssim']:.4f} psnr "
                   f"{entry['quality']['psnr']:.2f} packet {entry['packet_bytes']:.0f} "
                   f"layouts {({k: round(v) for k, v in entry['layout_bytes'].items()})} "
-                  f"entropy {entry['entropy_bytes']:.0f} orbits {orbits}")
+                  f"entropy {entry['entropy_bytes']:.0f} orbits {entry['orbits']}")
         if codec_factors is None or factor in codec_factors:
-            ref = row["waterfill"]["per_view_ssim"]
-            n = min(args.codec_views, case.n_views)
-            flips: list = [None] * n
-            if args.flip:
-                flips = [quality(case.truth[i], model.reconstruct(
-                    (quantize(y_test[i], step, zero) * step).astype(np.float32)),
-                    case.masks[i], flip=True)["flip"] for i in range(n)]
-            codecs = {}
-            for codec in ("webp", "jpeg"):
-                got = [smallest_codec_file(case.truth[i], case.masks[i], codec, ssim=ref[i],
-                                           flip=flips[i]) for i in range(n)]
-                codecs[codec] = {"bytes": float(np.mean([g[0] for g in got])),
-                                 "quality": float(np.mean([g[1] for g in got])),
-                                 "ssim": float(np.mean([g[2]["ssim"] for g in got]))}
-            codecs["views"] = n
-            if args.flip:
-                codecs["pca_flip_same_views"] = float(np.mean(flips))
-            codecs["pca_ssim_same_views"] = float(np.mean(ref[:n]))
-            codecs["pca_bytes_same_views"] = float(
-                np.mean([row["waterfill"]["packet_bytes"]]))
-            row["codecs"] = codecs
-            t.say(f"x{factor:g} equal-SSIM codecs: {codecs}")
+            row["codecs"] = _codecs(case, args, row, y_test, step, zero)
+            t.say(f"x{factor:g} equal-SSIM codecs: {row['codecs']}")
         result["steps"].append(row)
         save_json(args.output, result)
     t.say(f"wrote {args.output}")

@@ -53,11 +53,11 @@ the neighbours' depths at 512 (~80 views per volume, cached) and the held-out vi
 
 Usage::
 
-    .venv/bin/python scripts/warp_views.py [--volumes tooth,vismale_head] [--sizes 256,512] \\
+    .venv/bin/python research/warp_views.py [--volumes tooth,vismale_head] [--sizes 256,512] \\
         [--views 20] [--seed 15] [--cache /work/cache/warp] [--images docs/images] \\
         [-o /work/cache/warp/results.json]
 
-Produces: docs/rate-distortion.md, section 9 "Depth-aware view synthesis (issue 15)" (the
+Produces: docs/design-notes.md, "The device's own frame is a depth warp" (the
 tables printed at the end, and the pictures ``docs/images/warp-<volume>.jpg``).
 """
 
@@ -318,99 +318,115 @@ def depth_pcas(vol: Volume, thresholds: list[float], variants: tuple[str, ...] =
     return out, report
 
 
-def run_case(vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace]],
-             threshold: float, views: np.ndarray, images: Path | None) -> dict:
-    model = vol.models[size]
-    db = vol.dbs[size]
-    st = vol.settings[size]
-    warper = Warper(st, st.width, st.height)
-    device = DevicePath(model)
-    training = TrainingImages(model, None)
-    training.db = db  # the model's provenance names the database relatively
-    webp = WebPDatabase(model, training, WEBP_QUALITY, encode_all=False)
-    step_rec: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+class _Case:
+    """One volume at one size for `run_case`: the model, its database, the warper and the
+    colour reconstructions made so far (each training view's once)."""
 
-    def rec_colour(i: int) -> np.ndarray:
-        if i not in step_rec:
-            y = model.quantize(model.training_scores[i])
-            step_rec[i] = (model.reconstruct(y), y)
-        return step_rec[i][0]
+    def __init__(self, vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace]],
+                 threshold: float) -> None:
+        self.vol, self.size, self.pcas, self.threshold = vol, size, pcas, threshold
+        self.model = vol.models[size]
+        self.db = vol.dbs[size]
+        st = vol.settings[size]
+        self.warper = Warper(st, st.width, st.height)
+        self.device = DevicePath(self.model)
+        training = TrainingImages(self.model, None)
+        training.db = self.db  # the model's provenance names the database relatively
+        self.webp = WebPDatabase(self.model, training, WEBP_QUALITY, encode_all=False)
+        self.step_rec: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.timing: dict[str, list[float]] = {"blend": [], "warp": [], "device_frame": [],
+                                               "colour_reconstructs": [],
+                                               "depth_reconstructs": []}
 
-    def rec_depth(i: int, variant: str, t: float = threshold) -> np.ndarray:
-        d = pcas[variant][t].reconstruct(i)
-        return upsample2(d) if size == 2 * DEPTH_SIZE else d
+    def rec_colour(self, i: int) -> np.ndarray:
+        if i not in self.step_rec:
+            y = self.model.quantize(self.model.training_scores[i])
+            self.step_rec[i] = (self.model.reconstruct(y), y)
+        return self.step_rec[i][0]
 
-    per_view = []
-    timing: dict[str, list[float]] = {"blend": [], "warp": [], "device_frame": [],
-                                      "colour_reconstructs": [], "depth_reconstructs": []}
-    picture = None
-    for k, (phi, theta) in enumerate(views):
-        phi, theta = float(phi), float(theta)
-        truth, alpha = vol.held_out(size, phi, theta, k)
-        mask = alpha_object_mask(alpha)
+    def rec_depth(self, i: int, variant: str, t: float | None = None) -> np.ndarray:
+        d = self.pcas[variant][self.threshold if t is None else t].reconstruct(i)
+        return upsample2(d) if self.size == 2 * DEPTH_SIZE else d
+
+    def view_frames(self, phi: float, theta: float, truth: np.ndarray) -> dict[str, np.ndarray]:
+        """Every method's frame of one held-out view (and the device frame's timing)."""
+        model, db, warper = self.model, self.db, self.warper
         idx, w = model.interpolator.weights(phi, theta)
         idx = np.asarray(idx).ravel().astype(int)
         w = np.asarray(w, dtype=np.float64).ravel()
         target = warper.camera(phi, theta)
         sources = [warper.camera(float(db.phi_deg[i]), float(db.theta_deg[i])) for i in idx]
         true_rgb = [db.read_image(int(i)) for i in idx]
-        true_d = [vol.view_depth(size, int(i)) for i in idx]
+        true_d = [self.vol.view_depth(self.size, int(i)) for i in idx]
         true_ok = [c.max(axis=2) > 0 for c in true_rgb]
-        rec_rgb = [rec_colour(int(i)) for i in idx]
+        rec_rgb = [self.rec_colour(int(i)) for i in idx]
         rec_ok = [c.max(axis=2) > OBJECT_LEVEL for c in rec_rgb]
         frames: dict[str, np.ndarray] = {}
         t0 = time.perf_counter()
         frames["blend"] = model.view(phi, theta)
-        timing["blend"].append(time.perf_counter() - t0)
-        frames["webp_db"] = webp.frame(phi, theta)
-        frames["oracle"], _ = device.projection_frame(truth)
-        for variant in pcas:
-            d = [variant_depth(x, variant) for x in true_d]
-            frames[f"warp_true_{variant}"] = warper.warp(true_rgb, d, true_ok, sources, w,
-                                                         target)
-            if variant == "half":
-                frames["warp_rec_half_truedepth"] = warper.warp(rec_rgb, d, rec_ok, sources, w,
-                                                                target)
-                if size == 2 * DEPTH_SIZE:
-                    low = [upsample2(fill_nearest(variant_depth(vol.view_depth(DEPTH_SIZE,
-                                                                               int(i)), variant)))
-                           for i in idx]
-                    frames["warp_true_half_d256"] = warper.warp(true_rgb, low, true_ok,
-                                                                sources, w, target)
-            rd = [rec_depth(int(i), variant) for i in idx]
-            t0 = time.perf_counter()
-            frames[f"warp_rec_{variant}"] = warper.warp(rec_rgb, rd, rec_ok, sources, w, target)
-            if variant == "half":
-                timing["warp"].append(time.perf_counter() - t0)
-                for t in pcas[variant]:
-                    if t != threshold:
-                        rd = [rec_depth(int(i), variant, t) for i in idx]
-                        frames[f"warp_rec_half_T{t}"] = warper.warp(rec_rgb, rd, rec_ok,
-                                                                    sources, w, target)
-        # the whole device frame: 4 colour + 4 depth reconstructions, upsampling, the warp
+        self.timing["blend"].append(time.perf_counter() - t0)
+        frames["webp_db"] = self.webp.frame(phi, theta)
+        frames["oracle"], _ = self.device.projection_frame(truth)
+        true = (true_rgb, true_ok)
+        rec = (rec_rgb, rec_ok)
+        for variant in self.pcas:
+            self._warp_variant(frames, variant, idx, true, true_d, rec, (sources, w, target))
+        self._time_device_frame(idx, sources, w, target)
+        return frames
+
+    def _warp_variant(self, frames: dict[str, np.ndarray], variant: str, idx: np.ndarray,
+                      true: tuple[list, list], true_d: list[np.ndarray], rec: tuple[list, list],
+                      geometry: tuple) -> None:
+        """The warps of one depth variant: from true images, from reconstructions."""
+        warper = self.warper
+        (true_rgb, true_ok), (rec_rgb, rec_ok) = true, rec
+        d = [variant_depth(x, variant) for x in true_d]
+        frames[f"warp_true_{variant}"] = warper.warp(true_rgb, d, true_ok, *geometry)
+        if variant == "half":
+            frames["warp_rec_half_truedepth"] = warper.warp(rec_rgb, d, rec_ok, *geometry)
+            if self.size == 2 * DEPTH_SIZE:
+                low = [upsample2(fill_nearest(variant_depth(self.vol.view_depth(DEPTH_SIZE,
+                                                                                int(i)), variant)))
+                       for i in idx]
+                frames["warp_true_half_d256"] = warper.warp(true_rgb, low, true_ok, *geometry)
+        rd = [self.rec_depth(int(i), variant) for i in idx]
         t0 = time.perf_counter()
-        cols = [model.reconstruct(step_rec[int(i)][1]) for i in idx]
+        frames[f"warp_rec_{variant}"] = warper.warp(rec_rgb, rd, rec_ok, *geometry)
+        if variant == "half":
+            self.timing["warp"].append(time.perf_counter() - t0)
+            for t in self.pcas[variant]:
+                if t != self.threshold:
+                    rd = [self.rec_depth(int(i), variant, t) for i in idx]
+                    frames[f"warp_rec_half_T{t}"] = warper.warp(rec_rgb, rd, rec_ok, *geometry)
+
+    def _time_device_frame(self, idx: np.ndarray, sources: list, w: np.ndarray,
+                           target: object) -> None:
+        """The whole device frame: 4 colour + 4 depth reconstructions, upsampling, the warp."""
+        t0 = time.perf_counter()
+        cols = [self.model.reconstruct(self.step_rec[int(i)][1]) for i in idx]
         t1 = time.perf_counter()
         oks = [c.max(axis=2) > OBJECT_LEVEL for c in cols]
-        ds = [rec_depth(int(i), "half") for i in idx]
+        ds = [self.rec_depth(int(i), "half") for i in idx]
         t2 = time.perf_counter()
-        warper.warp(cols, ds, oks, sources, w, target)
+        self.warper.warp(cols, ds, oks, sources, w, target)
         t3 = time.perf_counter()
-        timing["device_frame"].append(t3 - t0)
-        timing["colour_reconstructs"].append(t1 - t0)
-        timing["depth_reconstructs"].append(t2 - t1)
-        rec = {"phi_deg": phi, "theta_deg": theta, "object_fraction": float(mask.mean())}
-        for name, fr in frames.items():
-            c = compare_images(truth, fr, mask=mask)
-            rec[name] = {"ssim_object": c.ssim_object, "flip_object": c.flip_object,
-                         "psnr_object": c.psnr_object}
-        per_view.append(rec)
-        if k == 0:
-            picture = (truth, frames)
-        print(f"  {vol.name}-{size} view {k + 1}/{len(views)}: blend "
-              f"{rec['blend']['ssim_object']:.3f} warp_rec_half "
-              f"{rec['warp_rec_half']['ssim_object']:.3f} oracle "
-              f"{rec['oracle']['ssim_object']:.3f}", file=sys.stderr, flush=True)
+        self.timing["device_frame"].append(t3 - t0)
+        self.timing["colour_reconstructs"].append(t1 - t0)
+        self.timing["depth_reconstructs"].append(t2 - t1)
+
+
+def _view_record(phi: float, theta: float, truth: np.ndarray, mask: np.ndarray,
+                 frames: dict[str, np.ndarray]) -> dict:
+    rec = {"phi_deg": phi, "theta_deg": theta, "object_fraction": float(mask.mean())}
+    for name, fr in frames.items():
+        c = compare_images(truth, fr, mask=mask)
+        rec[name] = {"ssim_object": c.ssim_object, "flip_object": c.flip_object,
+                     "psnr_object": c.psnr_object}
+    return rec
+
+
+def _case_summary(case: _Case, per_view: list[dict]) -> dict:
+    """Means over the views, the share of the blend-to-oracle gap closed, median times."""
     names = list(per_view[0].keys() - {"phi_deg", "theta_deg", "object_fraction"})
     means = {m: {key: float(np.mean([v[m][key] for v in per_view]))
                  for key in ("ssim_object", "flip_object", "psnr_object")} for m in names}
@@ -420,14 +436,36 @@ def run_case(vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace
         gap[m] = {key: (means[m][key] - blend[key]) / (oracle[key] - blend[key])
                   if oracle[key] != blend[key] else math.nan
                   for key in ("ssim_object", "flip_object")}
-    ms = {k: 1e3 * float(np.median(v)) for k, v in timing.items()}
-    if images is not None and picture is not None:
-        save_picture(images / f"warp-{vol.name}-{size}.jpg", *picture)
-    return {"volume": vol.name, "size": size, "views": len(per_view), "means": means,
-            "colour_bytes": colour_bytes(model),
+    ms = {k: 1e3 * float(np.median(v)) for k, v in case.timing.items()}
+    return {"volume": case.vol.name, "size": case.size, "views": len(per_view), "means": means,
+            "colour_bytes": colour_bytes(case.model),
             "gap_closed": gap, "median_ms": ms,
             "ratio_to_blend": {k: ms[k] / ms["blend"] for k in ms},
-            "z_tolerance_mm": warper.tol_mm, "per_view": per_view}
+            "z_tolerance_mm": case.warper.tol_mm, "per_view": per_view}
+
+
+def run_case(vol: Volume, size: int, pcas: dict[str, dict[float, DepthEigenspace]],
+             threshold: float, views: np.ndarray, images: Path | None) -> dict:
+    case = _Case(vol, size, pcas, threshold)
+    per_view = []
+    picture = None
+    for k, (phi, theta) in enumerate(views):
+        phi, theta = float(phi), float(theta)
+        truth, alpha = vol.held_out(size, phi, theta, k)
+        mask = alpha_object_mask(alpha)
+        frames = case.view_frames(phi, theta, truth)
+        rec = _view_record(phi, theta, truth, mask, frames)
+        per_view.append(rec)
+        if k == 0:
+            picture = (truth, frames)
+        print(f"  {vol.name}-{size} view {k + 1}/{len(views)}: blend "
+              f"{rec['blend']['ssim_object']:.3f} warp_rec_half "
+              f"{rec['warp_rec_half']['ssim_object']:.3f} oracle "
+              f"{rec['oracle']['ssim_object']:.3f}", file=sys.stderr, flush=True)
+    summary = _case_summary(case, per_view)
+    if images is not None and picture is not None:
+        save_picture(images / f"warp-{vol.name}-{size}.jpg", *picture)
+    return summary
 
 
 def save_picture(path: Path, truth: np.ndarray, frames: dict[str, np.ndarray]) -> None:

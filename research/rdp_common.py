@@ -1,4 +1,4 @@
-"""Shared helpers of the ``scripts/rdp_*.py`` rate-distortion experiments (issue 6, part B).
+"""Shared helpers of the ``research/rdp_*.py`` rate-distortion experiments (issue 6, part B).
 
 A *case* is a fitted model (``.ecs`` with its annex) plus a database of held-out views
 rendered with the same settings (``/work/cache/rd/NAME-SIZE-test.cdb``). Quality is measured

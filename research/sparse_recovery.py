@@ -1,5 +1,5 @@
-"""Sparse ray-cast recovery on held-out views (docs/rate-distortion.md, "Sparse ray-cast
-recovery", issue 13).
+"""Sparse ray-cast recovery on held-out views (docs/design-notes.md, "Sparse ray-casts
+while moving", issue 13).
 
 For each fitted model (``.ecs`` whose render settings name the volume), on random
 off-grid views, every frame is the device's reconstruction of quantized scores (the
@@ -34,7 +34,7 @@ the factor's one-off build (a single run).
 
 Usage::
 
-    .venv/bin/python scripts/sparse_recovery.py MODEL.ecs [MODEL.ecs ...] \\
+    .venv/bin/python research/sparse_recovery.py MODEL.ecs [MODEL.ecs ...] \\
         [--views 10] [--seed 1] [--strides 2,4,8] [--lambdas 100] [--json out.json]
 """
 

@@ -1,9 +1,10 @@
 """Issue 15's storage question: what depth costs, and eigencast + depth against WebP + depth.
 
-docs/rate-distortion.md section 9.7. For the shared tooth and VisMale head at 256 and 512 (the
+docs/design-notes.md, "The depth eigenspace", "Storage against image databases". For the
+shared tooth and VisMale head at 256 and 512 (the
 cached databases and models ``/work/cache/{tooth,vismale_head}-{256,512}.{cdb,ecs}``, the
 paper's grid of 1500 views) and the 20 held-out views of sections 9.1 / 9.5
-(``random:20:15``, ray-cast truth cached by ``scripts/warp_views.py`` in ``--warp-cache``),
+(``random:20:15``, ray-cast truth cached by ``research/warp_views.py`` in ``--warp-cache``),
 every novel view is made by the product's warp (`device_runtime.synthesis.forward_warp`
 through `Warper.warp`: nearest splats, tent filter, z-test, hole filling) from the 4
 neighbours of the model's bilinear interpolation, and scored by object SSIM / FLIP:
@@ -41,7 +42,7 @@ neighbours the held-out views use are encoded as well, for their frames only).
 
 Usage::
 
-    nice -n 5 .venv/bin/python scripts/warp_storage.py [--volumes tooth,vismale_head] \\
+    nice -n 5 .venv/bin/python research/warp_storage.py [--volumes tooth,vismale_head] \\
         [--sizes 256,512] [--views 20] [--seed 15] [-o /work/cache/warpstore/results.json]
 
 Everything is cached under ``--cache`` (default ``/work/cache/warpstore``): the product depth
@@ -84,7 +85,7 @@ from host.fit.model import HostModel, add_standalone_table, score_step_for
 from host.render.camera import parse_view_set
 from host.render.cinema import CinemaDB
 from protocol.image import DEFAULT_LEVEL, HEADER_SIZE, image_size, write_image
-from scripts.warp_views import Volume, Warper, variant_depth
+from research.warp_views import Volume, Warper, variant_depth
 
 #: Depth score noise of the fit used to re-quantize at every ``--depth-mse`` (mm^2 / pixel):
 #: fine enough that rounding twice adds nothing measurable.
@@ -298,44 +299,54 @@ class WebPViews:
 # ----------------------------------------------------------------------------- one case
 
 
-def run_case(vol: Volume, size: int, views: np.ndarray, args: argparse.Namespace,
-             cache: Path) -> dict:
-    model0 = vol.models[size]
-    db = vol.dbs[size]
-    st = vol.settings[size]
-    warper = Warper(st, st.width, st.height)
-    n = db.n_views
-    order = np.lexsort((np.mod(db.phi_deg, 360.0), db.theta_deg))
-    raw, filled = product_depths(vol, size, cache)
-    t_col = model0.threshold or 0.98
-    d_ts = sorted({*args.depth_thresholds, t_col})
-    lower = args.colour_thresholds_for(vol.name, t_col)[1:]
-    # fit --depth's default noise for this framing (DEPTH_SCORE_NOISE_Z2 z-tolerances^2)
-    default_mse = round(DEPTH_SCORE_NOISE_Z2 * warper.tol_mm ** 2, 4)
-    mses = sorted({*args.depth_mse, default_mse})
-    all_t = sorted({*args.all_t_mse, default_mse})
-    t0 = time.perf_counter()
-    fine = fit_depth_eigenspaces(filled, sorted({*d_ts, *lower}), vol.distance, DEPTH_CELL,
-                                 score_mse=FINE_MSE)
-    fit_s = time.perf_counter() - t0
-    print(f"  {vol.name}-{size}: depth fit {fit_s:.0f} s", file=sys.stderr, flush=True)
-    # the held-out views and their neighbours
-    items = []
-    for k, (phi, theta) in enumerate(views):
-        phi, theta = float(phi), float(theta)
-        truth, alpha = vol.held_out(size, phi, theta, k)
-        idx, w = model0.interpolator.weights(phi, theta)
-        idx = np.asarray(idx).ravel().astype(int)
-        w = np.asarray(w, dtype=np.float64).ravel()
-        items.append({"truth": truth, "mask": alpha_object_mask(alpha), "idx": idx, "w": w,
-                      "target": warper.camera(phi, theta),
-                      "sources": [warper.camera(float(db.phi_deg[i]), float(db.theta_deg[i]))
-                                  for i in idx]})
-    neigh = sorted({int(i) for it in items for i in it["idx"]})
+class _StorageCase:
+    """One volume at one size for `run_case`: the depth eigenspaces fitted finely once, the
+    held-out views with their neighbours, and the scoring of a frame maker on them."""
 
-    def score(frames_for: Callable[[dict], np.ndarray]) -> dict:
+    def __init__(self, vol: Volume, size: int, views: np.ndarray, args: argparse.Namespace,
+                 cache: Path) -> None:
+        self.vol, self.size, self.args, self.cache = vol, size, args, cache
+        self.model0 = vol.models[size]
+        self.db = db = vol.dbs[size]
+        self.st = st = vol.settings[size]
+        self.warper = Warper(st, st.width, st.height)
+        self.n = db.n_views
+        self.order = np.lexsort((np.mod(db.phi_deg, 360.0), db.theta_deg))
+        self.raw, filled = product_depths(vol, size, cache)
+        self.t_col = t_col = self.model0.threshold or 0.98
+        self.d_ts = sorted({*args.depth_thresholds, t_col})
+        lower = args.colour_thresholds_for(vol.name, t_col)[1:]
+        # fit --depth's default noise for this framing (DEPTH_SCORE_NOISE_Z2 z-tolerances^2)
+        self.default_mse = round(DEPTH_SCORE_NOISE_Z2 * self.warper.tol_mm ** 2, 4)
+        self.mses = sorted({*args.depth_mse, self.default_mse})
+        self.all_t = sorted({*args.all_t_mse, self.default_mse})
+        t0 = time.perf_counter()
+        self.fine = fit_depth_eigenspaces(filled, sorted({*self.d_ts, *lower}), vol.distance,
+                                          DEPTH_CELL, score_mse=FINE_MSE)
+        self.fit_s = time.perf_counter() - t0
+        print(f"  {vol.name}-{size}: depth fit {self.fit_s:.0f} s", file=sys.stderr, flush=True)
+        self.items = self._held_out(views)
+        self.neigh = sorted({int(i) for it in self.items for i in it["idx"]})
+
+    def _held_out(self, views: np.ndarray) -> list[dict]:
+        """The held-out views, their truth and mask, and their neighbours' cameras."""
+        items = []
+        db, warper = self.db, self.warper
+        for k, (phi, theta) in enumerate(views):
+            phi, theta = float(phi), float(theta)
+            truth, alpha = self.vol.held_out(self.size, phi, theta, k)
+            idx, w = self.model0.interpolator.weights(phi, theta)
+            idx = np.asarray(idx).ravel().astype(int)
+            w = np.asarray(w, dtype=np.float64).ravel()
+            items.append({"truth": truth, "mask": alpha_object_mask(alpha), "idx": idx, "w": w,
+                          "target": warper.camera(phi, theta),
+                          "sources": [warper.camera(float(db.phi_deg[i]),
+                                                    float(db.theta_deg[i])) for i in idx]})
+        return items
+
+    def score(self, frames_for: Callable[[dict], np.ndarray]) -> dict:
         ss, ff = [], []
-        for it in items:
+        for it in self.items:
             fr = frames_for(it)
             c = compare_images(it["truth"], fr, mask=it["mask"])
             ss.append(c.ssim_object)
@@ -343,111 +354,143 @@ def run_case(vol: Volume, size: int, views: np.ndarray, args: argparse.Namespace
         return {"ssim_object": float(np.mean(ss)), "flip_object": float(np.mean(ff)),
                 "ssim_per_view": [float(s) for s in ss]}
 
-    out: dict = {"default_mse": default_mse, "volume": vol.name, "size": size,
-                 "views": len(items), "neighbours": len(neigh),
-                 "colour_threshold": t_col, "depth_fit_s": fit_s, "eigencast": [],
-                 "webp_depth": [], "webp_blend": []}
+    def settings(self) -> list[tuple[float, float, float]]:
+        """(colour T, depth T, table noise) measured: every depth T at the noises --all-t-mse
+        and the default, every noise at the colour's T, and the lower colour Ts (depth at the
+        model's T and at theirs) at the default noise."""
+        t_col, default_mse = self.t_col, self.default_mse
+        settings = [(t_col, td, mse) for td in self.d_ts for mse in self.all_t]
+        settings += [(t_col, t_col, mse) for mse in self.mses]
+        settings += [(tc, td, default_mse)
+                     for tc in self.args.colour_thresholds_for(self.vol.name, t_col)
+                     for td in (t_col, tc)]
+        return sorted(set(settings), key=lambda x: (-x[0], x[1], x[2]))
 
-    # --- eigencast: colour thresholds x depth thresholds x table noise
-    # bytes of every (depth T, noise); quality of: every depth T at the noises
-    # --all-t-mse and the default, every noise at the colour's T, and the lower colour Ts
-    # (depth at the model's T and at theirs) at the default noise
-    out["depth_bytes"] = []
-    for td in d_ts:
-        for mse in mses:
-            eig = quantize_depth_table(fine[td], mse)
-            out["depth_bytes"].append({"depth_threshold": td, "depth_mse": mse,
-                                       "components_per_cell": float(eig.counts.mean()),
-                                       **depth_section_bytes(eig, order)})
-    settings = [(t_col, td, mse) for td in d_ts for mse in all_t]
-    settings += [(t_col, t_col, mse) for mse in mses]
-    settings += [(tc, td, default_mse) for tc in args.colour_thresholds_for(vol.name, t_col)
-                 for td in (t_col, tc)]
-    settings = sorted(set(settings), key=lambda x: (-x[0], x[1], x[2]))
-    for tc in args.colour_thresholds_for(vol.name, t_col):
-        model = colour_setting(model0, tc)
-        cb = colour_bytes(model)
-        rec = {}
-        for i in neigh:
-            y = model.quantize(model.training_scores[i])
-            c = model.reconstruct(y)
-            rec[i] = (c, c.max(axis=2) > OBJECT_LEVEL)
-        for tc2, td, mse in settings:
-            if tc2 != tc:
-                continue
-            eig = quantize_depth_table(fine[td], mse)
-            db_bytes = depth_section_bytes(eig, order)
+    def depth_bytes(self) -> list[dict]:
+        """The depth sections' bytes of every (depth T, noise)."""
+        out = []
+        for td in self.d_ts:
+            for mse in self.mses:
+                eig = quantize_depth_table(self.fine[td], mse)
+                out.append({"depth_threshold": td, "depth_mse": mse,
+                            "components_per_cell": float(eig.counts.mean()),
+                            **depth_section_bytes(eig, self.order)})
+        return out
 
-            def frame(it: dict, eig: DepthEigenspace = eig, rec: dict = rec) -> np.ndarray:
-                cols = [rec[int(i)][0] for i in it["idx"]]
-                oks = [rec[int(i)][1] for i in it["idx"]]
-                ds = [upsample2(eig.reconstruct(int(i))) for i in it["idx"]]
-                return warper.warp(cols, ds, oks, it["sources"], it["w"], it["target"])
+    def eigencast(self) -> list[dict]:
+        """eigencast: colour thresholds x depth thresholds x table noise (`settings`)."""
+        out = []
+        settings = self.settings()
+        for tc in self.args.colour_thresholds_for(self.vol.name, self.t_col):
+            model = colour_setting(self.model0, tc)
+            cb = colour_bytes(model)
+            rec = {}
+            for i in self.neigh:
+                y = model.quantize(model.training_scores[i])
+                c = model.reconstruct(y)
+                rec[i] = (c, c.max(axis=2) > OBJECT_LEVEL)
+            for tc2, td, mse in settings:
+                if tc2 == tc:
+                    out.append(self._eigencast_entry(model, cb, rec, tc, td, mse))
+        return out
 
-            q = score(frame)
-            entry = {"colour_threshold": tc, "depth_threshold": td, "depth_mse": mse,
-                     "depth_step": eig.step, "colour": cb, "depth": db_bytes,
-                     "depth_components_per_cell": float(eig.counts.mean()),
-                     "total_delta": cb["image"] + cb["standalone_table"] + db_bytes[
-                         "total_delta"],
-                     "total_plain": cb["image"] + cb["standalone_table"] + db_bytes[
-                         "total_plain"], **q}
-            if td == t_col and mse in (DEPTH_SCORE_MSE, default_mse):
-                entry["ecs_bytes"] = write_ecs(model, eig, order)
-            out["eigencast"].append(entry)
-            print(f"  {vol.name}-{size} eigencast Tc={tc} Td={td} mse={mse}: depth "
-                  f"{db_bytes['total_delta'] / 1e6:.2f} MB (plain table "
-                  f"{db_bytes['total_plain'] / 1e6:.2f}), total {entry['total_delta'] / 1e6:.2f}"
-                  f" MB, SSIM {q['ssim_object']:.4f} FLIP {q['flip_object']:.4f}",
-                  file=sys.stderr, flush=True)
+    def _eigencast_entry(self, model: HostModel, cb: dict, rec: dict, tc: float, td: float,
+                         mse: float) -> dict:
+        warper = self.warper
+        eig = quantize_depth_table(self.fine[td], mse)
+        db_bytes = depth_section_bytes(eig, self.order)
 
-    # --- WebP + depth and today's WebP blend
-    sample = list(range(0, n, args.storage_stride))
-    lo = vol.distance - 1.05 * st.radius_mm
-    for qual in args.webp_qualities:
-        webp = WebPViews(db, qual, cache, f"{vol.name}-{size}")
-        colours = {i: webp.get(i) for i in neigh}
-        sizes = [webp.size(i) for i in sample]
-        webp.save()
-        colour_total = float(np.mean(sizes)) * n
+        def frame(it: dict, eig: DepthEigenspace = eig, rec: dict = rec) -> np.ndarray:
+            cols = [rec[int(i)][0] for i in it["idx"]]
+            oks = [rec[int(i)][1] for i in it["idx"]]
+            ds = [upsample2(eig.reconstruct(int(i))) for i in it["idx"]]
+            return warper.warp(cols, ds, oks, it["sources"], it["w"], it["target"])
 
-        def blend(it: dict, colours: dict = colours) -> np.ndarray:
-            acc = sum(colours[int(i)].astype(np.float32) * np.float32(wi)
-                      for i, wi in zip(it["idx"], it["w"]) if wi > 0)
-            return np.clip(np.rint(acc), 0, 255).astype(np.uint8)
+        q = self.score(frame)
+        entry = {"colour_threshold": tc, "depth_threshold": td, "depth_mse": mse,
+                 "depth_step": eig.step, "colour": cb, "depth": db_bytes,
+                 "depth_components_per_cell": float(eig.counts.mean()),
+                 "total_delta": cb["image"] + cb["standalone_table"] + db_bytes[
+                     "total_delta"],
+                 "total_plain": cb["image"] + cb["standalone_table"] + db_bytes[
+                     "total_plain"], **q}
+        if td == self.t_col and mse in (DEPTH_SCORE_MSE, self.default_mse):
+            entry["ecs_bytes"] = write_ecs(model, eig, self.order)
+        print(f"  {self.vol.name}-{self.size} eigencast Tc={tc} Td={td} mse={mse}: depth "
+              f"{db_bytes['total_delta'] / 1e6:.2f} MB (plain table "
+              f"{db_bytes['total_plain'] / 1e6:.2f}), total {entry['total_delta'] / 1e6:.2f}"
+              f" MB, SSIM {q['ssim_object']:.4f} FLIP {q['flip_object']:.4f}",
+              file=sys.stderr, flush=True)
+        return entry
 
-        q = score(blend)
-        out["webp_blend"].append({"quality": qual, "colour_bytes": colour_total, **q})
-        print(f"  {vol.name}-{size} webp blend q{qual}: {colour_total / 1e6:.2f} MB, SSIM "
-              f"{q['ssim_object']:.4f} FLIP {q['flip_object']:.4f}", file=sys.stderr, flush=True)
-        for dstep in args.db_depth_steps:
-            if qual != args.chosen_quality and dstep != args.chosen_db_step:
-                continue
-            dep = {}
-            for i in neigh:
-                dep[i] = db_depth_decode(db_depth_code(np.asarray(raw[i]), dstep, lo), dstep, lo)
-            files = [depth_file_bytes(db_depth_code(np.asarray(raw[i]), dstep, lo))
-                     for i in sample]
-            depth_total = float(np.mean([min(f.values()) for f in files])) * n
+    def webp(self, out: dict) -> None:
+        """WebP + depth and today's WebP blend, into ``out``."""
+        args, n, name = self.args, self.n, f"{self.vol.name}-{self.size}"
+        sample = list(range(0, n, args.storage_stride))
+        for qual in args.webp_qualities:
+            webp = WebPViews(self.db, qual, self.cache, name)
+            colours = {i: webp.get(i) for i in self.neigh}
+            sizes = [webp.size(i) for i in sample]
+            webp.save()
+            colour_total = float(np.mean(sizes)) * n
 
-            def warp(it: dict, colours: dict = colours, dep: dict = dep) -> np.ndarray:
-                cols = [colours[int(i)] for i in it["idx"]]
-                ds = [dep[int(i)][0] for i in it["idx"]]
-                oks = [(c.max(axis=2) > OBJECT_LEVEL) & dep[int(i)][1]
-                       for c, i in zip(cols, it["idx"])]
-                return warper.warp(cols, ds, oks, it["sources"], it["w"], it["target"])
+            def blend(it: dict, colours: dict = colours) -> np.ndarray:
+                acc = sum(colours[int(i)].astype(np.float32) * np.float32(wi)
+                          for i, wi in zip(it["idx"], it["w"]) if wi > 0)
+                return np.clip(np.rint(acc), 0, 255).astype(np.uint8)
 
-            q = score(warp)
-            entry = {"quality": qual, "depth_step_mm": dstep, "colour_bytes": colour_total,
-                     "depth_bytes": depth_total,
-                     **{f"depth_{k}": float(np.mean([f.get(k, np.nan) for f in files])) * n
-                        for k in files[0]},
-                     "total": colour_total + depth_total, **q}
-            out["webp_depth"].append(entry)
-            print(f"  {vol.name}-{size} webp+depth q{qual} step {dstep} mm: "
-                  f"{colour_total / 1e6:.2f} + {depth_total / 1e6:.2f} MB, SSIM "
+            q = self.score(blend)
+            out["webp_blend"].append({"quality": qual, "colour_bytes": colour_total, **q})
+            print(f"  {name} webp blend q{qual}: {colour_total / 1e6:.2f} MB, SSIM "
                   f"{q['ssim_object']:.4f} FLIP {q['flip_object']:.4f}", file=sys.stderr,
                   flush=True)
+            for dstep in args.db_depth_steps:
+                if qual != args.chosen_quality and dstep != args.chosen_db_step:
+                    continue
+                out["webp_depth"].append(self._webp_depth_entry(qual, dstep, colours,
+                                                                colour_total, sample))
+
+    def _webp_depth_entry(self, qual: int, dstep: float, colours: dict, colour_total: float,
+                          sample: list[int]) -> dict:
+        warper, raw, n = self.warper, self.raw, self.n
+        lo = self.vol.distance - 1.05 * self.st.radius_mm
+        dep = {}
+        for i in self.neigh:
+            dep[i] = db_depth_decode(db_depth_code(np.asarray(raw[i]), dstep, lo), dstep, lo)
+        files = [depth_file_bytes(db_depth_code(np.asarray(raw[i]), dstep, lo))
+                 for i in sample]
+        depth_total = float(np.mean([min(f.values()) for f in files])) * n
+
+        def warp(it: dict, colours: dict = colours, dep: dict = dep) -> np.ndarray:
+            cols = [colours[int(i)] for i in it["idx"]]
+            ds = [dep[int(i)][0] for i in it["idx"]]
+            oks = [(c.max(axis=2) > OBJECT_LEVEL) & dep[int(i)][1]
+                   for c, i in zip(cols, it["idx"])]
+            return warper.warp(cols, ds, oks, it["sources"], it["w"], it["target"])
+
+        q = self.score(warp)
+        entry = {"quality": qual, "depth_step_mm": dstep, "colour_bytes": colour_total,
+                 "depth_bytes": depth_total,
+                 **{f"depth_{k}": float(np.mean([f.get(k, np.nan) for f in files])) * n
+                    for k in files[0]},
+                 "total": colour_total + depth_total, **q}
+        print(f"  {self.vol.name}-{self.size} webp+depth q{qual} step {dstep} mm: "
+              f"{colour_total / 1e6:.2f} + {depth_total / 1e6:.2f} MB, SSIM "
+              f"{q['ssim_object']:.4f} FLIP {q['flip_object']:.4f}", file=sys.stderr,
+              flush=True)
+        return entry
+
+
+def run_case(vol: Volume, size: int, views: np.ndarray, args: argparse.Namespace,
+             cache: Path) -> dict:
+    case = _StorageCase(vol, size, views, args, cache)
+    out: dict = {"default_mse": case.default_mse, "volume": vol.name, "size": size,
+                 "views": len(case.items), "neighbours": len(case.neigh),
+                 "colour_threshold": case.t_col, "depth_fit_s": case.fit_s, "eigencast": [],
+                 "webp_depth": [], "webp_blend": []}
+    out["depth_bytes"] = case.depth_bytes()
+    out["eigencast"] = case.eigencast()
+    case.webp(out)
     return out
 
 
@@ -511,7 +554,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=0, help="only the first N held-out views")
     ap.add_argument("--cache", default="/work/cache/warpstore")
     ap.add_argument("--warp-cache", default="/work/cache/warp",
-                    help="scripts/warp_views.py's cache (training depths, held-out truth)")
+                    help="research/warp_views.py's cache (training depths, held-out truth)")
     ap.add_argument("--depth-thresholds", default="0.9,0.95,0.98,0.99")
     ap.add_argument("--depth-mse", default=f"{DEPTH_SCORE_MSE},0.5,2,8,32",
                     help="depth table noise, mm^2 per pixel (fit --depth's default for the "

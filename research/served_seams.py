@@ -1,6 +1,7 @@
 """Do corrections of the device's own frame add cell seams, and what does smoothing them buy?
 
-docs/rate-distortion.md section 10.4 (issue 23 item 6). For each model, on random views, the
+docs/design-notes.md, "Cell seams of a correction" (issue 23 item 6). For each model, on
+random views, the
 frames of the one served path (`host.evaluate.ServedFrames`: the own frame, at rest, while
 moving at ``--stride``) computed with the device's seam smoothing off
 (`Reconstructor.seam_strength` 0), and the same frames smoothed (`border_blend`, the device's
@@ -13,9 +14,9 @@ inside). Then the cost on one core of a correction (`Reconstructor.correct`) wit
 the smoothing against a blend (`Reconstructor.update`) of the same image, in the same run,
 and a check that the device's smoothing is `border_blend` bit for bit:
 
-    .venv/bin/python scripts/served_seams.py /work/cache/db/tooth-256.ecs --views 12
+    .venv/bin/python research/served_seams.py /work/cache/db/tooth-256.ecs --views 12
     OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 taskset -c 0 \\
-        .venv/bin/python scripts/served_seams.py /work/cache/db/tooth-256.ecs --cost-only
+        .venv/bin/python research/served_seams.py /work/cache/db/tooth-256.ecs --cost-only
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Bit allocation for the eigenimages (issue 6 item 4b; docs/rate-distortion-packets.md).
 
-    .venv/bin/python scripts/rdp_eigen.py MODEL.ecs TEST.cdb -o OUT.json [--views 60]
+    .venv/bin/python research/rdp_eigen.py MODEL.ecs TEST.cdb -o OUT.json [--views 60]
         [--budgets 0,0.05,0.1,0.2,0.4,0.8]
 
 Component ``j`` (eigenvalue ``lambda_j``) quantized with step ``s_j`` adds, in expectation,

@@ -1,6 +1,6 @@
 """Standalone score-table experiments (issue 6 item 4a; docs/rate-distortion-packets.md).
 
-    .venv/bin/python scripts/rdp_table.py MODEL.ecs TEST.cdb -o OUT.json [--views 100]
+    .venv/bin/python research/rdp_table.py MODEL.ecs TEST.cdb -o OUT.json [--views 100]
         [--factors 1,2,4,8,16] [--train-db TRAIN.cdb --webp-qualities 5,20,50,80]
 
 The training views' scores (the annex's float table, ``n_views x K``) are what a standalone

@@ -1,11 +1,12 @@
 """The colour standalone table's step against the warp's quality (issue 15).
 
-    .venv/bin/python scripts/warp_table_step.py IMAGE.ecs [IMAGE.ecs ...] \\
+    .venv/bin/python research/warp_table_step.py IMAGE.ecs [IMAGE.ecs ...] \\
         [--factors 1,2,4,8] [--views random:20:15] [--out /work/cache/tablestep]
 
 A standalone image with depth (``eigencast fit --standalone --depth``) stores the training
 views' colour scores at the packet step, and that table is its largest part
-(docs/rate-distortion.md 9.7: the reason a WebP + depth database is smaller). The warp blends
+(docs/design-notes.md, "Storage against image databases": the reason a WebP + depth
+database is smaller). The warp blends
 4 neighbours and filters its splats, so it may need less precision than the packet step.
 For each image and each factor, this writes the image again with the table re-quantized at
 factor x the packet step (`host.fit.model.add_standalone_table`, as ``fit --standalone``
@@ -25,9 +26,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
 from host.fit.model import HostModel, add_standalone_table
 from protocol.image import HEADER_SIZE, image_size, read_image, write_image
-from scripts.warp_storage import zsize
+from research.warp_storage import zsize
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -1,4 +1,4 @@
-"""Score interpolation, WebP database and cell seams on held-out views (docs/rate-distortion.md).
+"""Score interpolation, WebP database and cell seams on held-out views (docs/design-notes.md).
 
 For one fitted model (``.ecs`` from a grid training database) and a database of held-out test
 views rendered with the same settings, every novel view is made by several methods and
@@ -33,10 +33,10 @@ background is black, so a pixel is object when any channel is non-zero).
 
 Usage::
 
-    .venv/bin/python scripts/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
+    .venv/bin/python research/rd_interp.py MODEL.ecs TEST.cdb -o results.json \\
         [--webp-db-qualities 60,80,95] [--views N] [--workers 2]
 
-Produces: docs/rate-distortion.md, sections 2 "View interpolation" and 3 "Cell seams"
+Produces: docs/design-notes.md, "The blend's weights: bilinear" (and "Tried and not kept")
 (through rd_plots.py).
 """
 
@@ -186,7 +186,7 @@ def ls16_scores(cubic: ScoreInterpolator, phi: float, theta: float,
 # ----------------------------------------------------------------------------- main
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("model")
     ap.add_argument("test_db")
@@ -199,45 +199,104 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--webp-db-estimate", action="store_true",
                     help="encode only the training views the test views use and estimate the "
                          "database's storage from their mean size (fast at 512)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
-    model = HostModel.load(args.model)
-    test = CinemaDB.open(args.test_db)
-    n = test.n_views if args.views <= 0 else min(args.views, test.n_views)
-    views = model.image.views
-    tphi = np.asarray(views["phi_deg"], dtype=np.float64)
-    ttheta = np.asarray(views["theta_deg"], dtype=np.float64)
-    step = model.score_step
-    cell = tuple(int(v) for v in model.image.cell_shape)
-    methods = [m for m in args.methods.split(",") if m]
-    qualities = [int(q) for q in args.webp_db_qualities.split(",") if q]
-    interps = {}
-    for m in GRID_METHODS:
-        interps[m] = ScoreInterpolator(tphi, ttheta, model.training_scores, method=m)
-    default_method = model.interpolator.method_
-    device = DevicePath(model)
-    training = TrainingImages(model, None)
-    if training.db is None:
-        raise SystemExit("the model's training database is not available")
-    phis = np.mod(test.phi_deg[:n], 360.0)
-    thetas = test.theta_deg[:n]
-    precomputed = {m: interps[m](phis, thetas) for m in GRID_METHODS}
-    if "bspline" in methods:
-        precomputed["bspline"] = bspline_scores(interps["bilinear"], phis, thetas)
-    webp_dbs = {}
-    for q in qualities:
-        t0 = time.perf_counter()
-        webp_dbs[q] = WebPDatabase(model, training, q, progress=True,
-                                   encode_all=not args.webp_db_estimate)
-        print(f"webp db q{q}: {webp_dbs[q].storage_bytes / 1e6:.2f} MB "
-              f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
 
+class _Study:
+    """The model, the held-out views and every method's scores or database, set up once."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.model = model = HostModel.load(args.model)
+        self.test = test = CinemaDB.open(args.test_db)
+        self.n = n = test.n_views if args.views <= 0 else min(args.views, test.n_views)
+        views = model.image.views
+        tphi = np.asarray(views["phi_deg"], dtype=np.float64)
+        ttheta = np.asarray(views["theta_deg"], dtype=np.float64)
+        self.step = model.score_step
+        self.cell = tuple(int(v) for v in model.image.cell_shape)
+        self.methods = [m for m in args.methods.split(",") if m]
+        self.qualities = [int(q) for q in args.webp_db_qualities.split(",") if q]
+        self.interps = {}
+        for m in GRID_METHODS:
+            self.interps[m] = ScoreInterpolator(tphi, ttheta, model.training_scores, method=m)
+        self.default_method = model.interpolator.method_
+        self.device = DevicePath(model)
+        self.training = TrainingImages(model, None)
+        if self.training.db is None:
+            raise SystemExit("the model's training database is not available")
+        self.phis = np.mod(test.phi_deg[:n], 360.0)
+        self.thetas = test.theta_deg[:n]
+        self.precomputed = {m: self.interps[m](self.phis, self.thetas) for m in GRID_METHODS}
+        if "bspline" in self.methods:
+            self.precomputed["bspline"] = bspline_scores(self.interps["bilinear"], self.phis,
+                                                         self.thetas)
+        self.webp_dbs = {}
+        for q in self.qualities:
+            t0 = time.perf_counter()
+            self.webp_dbs[q] = WebPDatabase(model, self.training, q, progress=True,
+                                            encode_all=not args.webp_db_estimate)
+            print(f"webp db q{q}: {self.webp_dbs[q].storage_bytes / 1e6:.2f} MB "
+                  f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+        self.deblocked = [m for m in ("oracle", self.default_method, "bicubic")
+                          if m in self.methods]
+        self.names = list(self.methods) + [f"webp_db_q{q}" for q in self.qualities]
+        self.names += [f"{m}+deblock" for m in dict.fromkeys(self.deblocked)]
+        self.timing = {"reconstruct": 0.0, "deblock": 0.0, "frames": 0}
+
+    def frames(self, k: int, phi: float, theta: float,
+               truth: np.ndarray) -> dict[str, np.ndarray]:
+        """Every method's frame of held-out view ``k``."""
+        frames: dict[str, np.ndarray] = {}
+        oracle_y: list[np.ndarray | None] = [None]
+        for m in self.methods:
+            frames[m] = self._method_frame(m, k, phi, theta, truth, oracle_y)
+        for q in self.qualities:
+            frames[f"webp_db_q{q}"] = self.webp_dbs[q].frame(phi, theta)
+        for m in dict.fromkeys(self.deblocked):
+            t0 = time.perf_counter()
+            frames[f"{m}+deblock"] = deblock(frames[m], self.cell)
+            if m == self.default_method:
+                self.timing["deblock"] += time.perf_counter() - t0
+        return frames
+
+    def _method_frame(self, m: str, k: int, phi: float, theta: float, truth: np.ndarray,
+                      oracle_y: list[np.ndarray | None]) -> np.ndarray:
+        model, step = self.model, self.step
+        if m == "oracle":
+            frame, _ = self.device.projection_frame(truth)
+            return frame
+        if m in self.precomputed:
+            y = np.rint(self.precomputed[m][k] / step) * step
+            t0 = time.perf_counter()
+            frame = model.reconstruct(y.astype(np.float32))
+            if m == self.default_method:
+                self.timing["reconstruct"] += time.perf_counter() - t0
+                self.timing["frames"] += 1
+            return frame
+        if m == "ls16":
+            if oracle_y[0] is None:
+                oracle_y[0] = _projection_scores(model, truth)
+            y = ls16_scores(self.interps["bicubic"], phi, theta, oracle_y[0])
+            return model.reconstruct((np.rint(y / step) * step).astype(np.float32))
+        if m.startswith("blend_"):
+            idx, w = self.interps[m[len("blend_"):]].weights(phi, theta)
+            acc = np.zeros(truth.shape, np.float32)
+            for i, wi in zip(idx.tolist(), w.tolist()):
+                if wi != 0.0:
+                    acc += np.float32(wi) * self.training.db.read_image(int(i)).astype(
+                        np.float32)
+            return np.clip(np.rint(acc), 0, 255).astype(np.uint8)
+        raise SystemExit(f"unknown method {m}")
+
+
+def _measure_views(study: _Study, workers: int) -> tuple[list[dict], dict[str, np.ndarray]]:
+    """Every view's metrics per method (compared in ``workers`` processes) and seam sums."""
     pool = None
-    if args.workers > 0:
+    if workers > 0:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        pool = ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn"))
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
 
     def submit(truth: np.ndarray, frame: np.ndarray, mask: np.ndarray):
         if pool is None:
@@ -248,56 +307,21 @@ def main(argv: list[str] | None = None) -> int:
             return fut
         return pool.submit(compare_images, truth, frame, mask=mask)
 
-    names = list(methods) + [f"webp_db_q{q}" for q in qualities]
-    deblocked = [m for m in ("oracle", default_method, "bicubic") if m in methods]
-    names += [f"{m}+deblock" for m in dict.fromkeys(deblocked)]
     per_view: list[dict] = []
-    seams = {m: np.zeros(4) for m in names}
-    timing = {"reconstruct": 0.0, "deblock": 0.0, "frames": 0}
+    seams = {m: np.zeros(4) for m in study.names}
     pending = []
     t_start = time.perf_counter()
+    n = study.n
     for k in range(n):
-        phi, theta = float(phis[k]), float(thetas[k])
-        truth = test.read_image(k)
+        phi, theta = float(study.phis[k]), float(study.thetas[k])
+        truth = study.test.read_image(k)
         mask = truth.max(axis=2) > 0
-        frames: dict[str, np.ndarray] = {}
-        oracle_y = None
-        for m in methods:
-            if m == "oracle":
-                frames[m], _ = device.projection_frame(truth)
-            elif m in precomputed:
-                y = np.rint(precomputed[m][k] / step) * step
-                t0 = time.perf_counter()
-                frames[m] = model.reconstruct(y.astype(np.float32))
-                if m == default_method:
-                    timing["reconstruct"] += time.perf_counter() - t0
-                    timing["frames"] += 1
-            elif m == "ls16":
-                if oracle_y is None:
-                    oracle_y = _projection_scores(model, truth)
-                y = ls16_scores(interps["bicubic"], phi, theta, oracle_y)
-                frames[m] = model.reconstruct((np.rint(y / step) * step).astype(np.float32))
-            elif m.startswith("blend_"):
-                idx, w = interps[m[len("blend_"):]].weights(phi, theta)
-                acc = np.zeros(truth.shape, np.float32)
-                for i, wi in zip(idx.tolist(), w.tolist()):
-                    if wi != 0.0:
-                        acc += np.float32(wi) * training.db.read_image(int(i)).astype(np.float32)
-                frames[m] = np.clip(np.rint(acc), 0, 255).astype(np.uint8)
-            else:
-                raise SystemExit(f"unknown method {m}")
-        for q in qualities:
-            frames[f"webp_db_q{q}"] = webp_dbs[q].frame(phi, theta)
-        for m in dict.fromkeys(deblocked):
-            t0 = time.perf_counter()
-            frames[f"{m}+deblock"] = deblock(frames[m], cell)
-            if m == default_method:
-                timing["deblock"] += time.perf_counter() - t0
+        frames = study.frames(k, phi, theta, truth)
         for m, fr in frames.items():
-            seams[m] += seam_sums(truth, fr, mask, cell)
+            seams[m] += seam_sums(truth, fr, mask, study.cell)
         rec = {"phi_deg": phi, "theta_deg": theta, "object_fraction": float(mask.mean())}
         pending.append((rec, {m: submit(truth, fr, mask) for m, fr in frames.items()}))
-        while len(pending) > 2 * max(1, args.workers):
+        while len(pending) > 2 * max(1, workers):
             per_view.append(_finish(*pending.pop(0)))
         if (k + 1) % 10 == 0:
             el = time.perf_counter() - t_start
@@ -306,7 +330,10 @@ def main(argv: list[str] | None = None) -> int:
         per_view.append(_finish(*pending.pop(0)))
     if pool is not None:
         pool.shutdown()
+    return per_view, seams
 
+
+def _means(names: list[str], per_view: list[dict], seams: dict[str, np.ndarray]) -> dict:
     means = {}
     for m in names:
         vals = {}
@@ -319,25 +346,34 @@ def main(argv: list[str] | None = None) -> int:
         vals["inside_grad_err"] = float(s[2] / max(s[3], 1))
         vals["seam_ratio"] = vals["seam_grad_err"] / max(vals["inside_grad_err"], 1e-12)
         means[m] = vals
+    return means
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    study = _Study(args)
+    model, timing = study.model, study.timing
+    per_view, seams = _measure_views(study, args.workers)
     result = {
         "model": str(args.model),
         "test_db": str(args.test_db),
-        "views": n,
+        "views": study.n,
         "image_shape": list(model.image.image_shape),
-        "cell_shape": list(cell),
+        "cell_shape": list(study.cell),
         "components_per_cell": float(np.mean(model.image.n_components)),
         "threshold": model.threshold,
-        "score_step": step,
-        "default_method": default_method,
+        "score_step": study.step,
+        "default_method": study.default_method,
         "eigenspace_bytes": eigenspace_bytes(model),
         "standalone": standalone_scores(model.image) is not None,
-        "webp_db_storage_bytes": {str(q): webp_dbs[q].storage_bytes for q in qualities},
+        "webp_db_storage_bytes": {str(q): study.webp_dbs[q].storage_bytes
+                                  for q in study.qualities},
         "webp_db_storage_estimated": bool(args.webp_db_estimate),
         "timing_ms_per_frame": {
             "reconstruct": 1e3 * timing["reconstruct"] / max(timing["frames"], 1),
             "deblock": 1e3 * timing["deblock"] / max(timing["frames"], 1),
         },
-        "means": means,
+        "means": _means(study.names, per_view, seams),
         "per_view": per_view,
     }
     Path(args.output).write_text(json.dumps(_safe(result), indent=1))

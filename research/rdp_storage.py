@@ -1,6 +1,6 @@
 """Standalone device storage against quality (issue 6 item 4; docs/rate-distortion-packets.md).
 
-    .venv/bin/python scripts/rdp_storage.py MODEL.ecs TEST.cdb -o OUT.json [--views 60]
+    .venv/bin/python research/rdp_storage.py MODEL.ecs TEST.cdb -o OUT.json [--views 60]
         [--thresholds 0.9,0.95,0.98,0.99,0.995] [--bit-budgets 0,0.03,0.1]
         [--table-factors 1,2] [--tmp DIR]
 
@@ -11,7 +11,7 @@ image is written (`host.fit.model.add_standalone_table`, the smaller of the delt
 table) and its device image size read back; quality is that of ``HostModel.view`` on the
 held-out views (the frames a standalone device shows), object PSNR/SSIM against the
 ray-casts. With ``--train-db`` the WebP image database it competes with is measured on the
-same views (`scripts/rdp_table.py`'s ``_webp_db``).
+same views (`research/rdp_table.py`'s ``_webp_db``).
 
 Produces: docs/rate-distortion-packets.md, section 4 "Standalone device storage against the
 WebP image database".

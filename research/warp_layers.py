@@ -1,6 +1,6 @@
 """Where the depth warp loses against the projection, and whether a second depth layer pays.
 
-docs/rate-distortion.md section 9.10 (issue 22). For a standalone depth image (``fit
+docs/design-notes.md, "One depth layer" (issue 22). For a standalone depth image (``fit
 --standalone --depth``), its training database (``render --depth``) and a held-out database
 of the same volume and settings (``render --depth --views random:N:SEED``, whose stored
 images are the truth; object pixels: a channel above `OBJECT_LEVEL`), every held-out view is
@@ -32,7 +32,7 @@ pixels, the mean over the views, and the share of views where a variant beats th
 
 Usage::
 
-    .venv/bin/python scripts/warp_layers.py MODEL.ecs TRAIN.cdb TEST.cdb [--views 40] \\
+    .venv/bin/python research/warp_layers.py MODEL.ecs TRAIN.cdb TEST.cdb [--views 40] \\
         [--no-layers] [--json OUT.json]
 """
 

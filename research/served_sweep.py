@@ -1,4 +1,4 @@
-"""The one served path across volumes: docs/rate-distortion.md section 10 (issue 23).
+"""The one served path across volumes: docs/design-notes.md, "Serving" (issue 23).
 
 For every case (a model with depth and the standalone table) this runs
 
@@ -14,8 +14,8 @@ For every case (a model with depth and the standalone table) this runs
 and prints the tables of section 10 (markdown). Results are cached as JSON under ``--out``
 (one file per case and part), so an interrupted sweep resumes and ``--tables-only`` reprints.
 
-    .venv/bin/python scripts/served_sweep.py                      # every case (hours)
-    .venv/bin/python scripts/served_sweep.py --cases tooth-128 --views 8   # a quick look
+    .venv/bin/python research/served_sweep.py                      # every case (hours)
+    .venv/bin/python research/served_sweep.py --cases tooth-128 --views 8   # a quick look
 """
 
 from __future__ import annotations
