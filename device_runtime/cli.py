@@ -7,7 +7,8 @@ Usage::
                      [--device-id ID] [--max-frame BYTES] [--window FRAMES] [--auth-timeout S]
                      [--headless [--frames DIR [--every N]] | --display]
                      [--standalone] [--orbit SPEC | --views LIST] [--view PHI,THETA]
-                     [--max-frames N] [--stats FILE] [--screenshots DIR] [--zoom Z]
+                     [--look NAME] [--max-frames N] [--stats FILE] [--screenshots DIR]
+                     [--zoom Z]
     eigencast-device --standalone --flash DIR [display options]     (no host at all)
     eigencast-device --flash DIR --status [--json] [--key KEYFILE] [--ram-budget MB]
     eigencast-device --pair KEYFILE --flash DIR
@@ -15,9 +16,10 @@ Usage::
 
 The runtime (:mod:`device_runtime.runtime`) boots the active image from flash, shows it in
 a window (drag or arrow keys change the view, ``+``/``-`` zoom, ``h`` overlay, ``s``
-screenshot, ``Esc`` quits) or, with ``--headless``, writes every N-th frame as a PNG into
-``--frames DIR`` (with ``frames.csv``). Without ``--headless`` or ``--display`` it opens a
-window when it can and runs headless otherwise. ``--standalone`` interpolates scores
+screenshot, ``l`` the next look of an image with several, ``Esc`` quits) or, with
+``--headless``, writes every N-th frame as a PNG into ``--frames DIR`` (with
+``frames.csv``). Without ``--headless`` or ``--display`` it opens a window when it can and
+runs headless otherwise. ``--standalone`` interpolates scores
 locally from the image's table (``eigencast fit --standalone``), so no host is needed;
 ``--orbit`` / ``--views`` drive the view by themselves (standalone: locally; otherwise by
 view requests to the host) and the program exits when they are done.
@@ -219,6 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "'PHI,THETA;PHI,THETA;...' in degrees")
     show.add_argument("--view", metavar="PHI,THETA", type=_one_view,
                       help="initial view in degrees (default 30,15)")
+    show.add_argument("--look", metavar="NAME",
+                      help="the look to show first of an image with several (a name or an "
+                      "index; default the first; in a window 'l' shows the next)")
     show.add_argument("--max-frames", metavar="N", type=int,
                       help="exit after presenting N frames")
     show.add_argument("--fps", metavar="N", type=float,
@@ -476,10 +481,20 @@ def _serve(args: argparse.Namespace) -> int:
             views=args.views,
             request_rate_hz=args.request_rate,
             max_frames=args.max_frames,
+            look=args.look,
             log=_log,
         )
         # the window opens once, at the size of the image the device booted with
         loaded = device._decoder_model
+        if args.look is not None and loaded is not None:
+            from device_runtime.looks import look_index
+
+            try:
+                look_index(loaded.base or loaded.image, args.look)
+            except ValueError as exc:
+                device.close_display()
+                device.close()
+                raise _UsageError(f"--look {args.look}: {exc}") from None
         presenter, plan = _presenter(args, loaded.image.image_shape if loaded is not None
                                      else (256, 256))
         device.use_presenter(presenter, fps=args.fps)

@@ -10,8 +10,9 @@ and the ``overlay`` / ``zoom`` state) that :mod:`device_runtime.runtime` drives:
     A window at the image size (scaled down to fit the screen). Input becomes
     :class:`Action` values: mouse drag and the arrow keys change the view
     (:class:`ViewDelta`), ``+``/``-`` zoom the displayed image (:class:`Zoom`), ``h``
-    toggles a small overlay (fps, bytes per frame, link rate, view), ``s`` saves a
-    screenshot of the window, ``Esc`` or closing the window quits (:class:`Quit`).
+    toggles a small overlay (fps, bytes per frame, link rate, view, look), ``s`` saves a
+    screenshot of the window, ``l`` shows the image's next look (:class:`CycleLook`, an
+    image with several), ``Esc`` or closing the window quits (:class:`Quit`).
 :class:`HeadlessPresenter`
     Writes every ``every``-th presented frame as a PNG into a folder (keeping the last
     ``keep``), plus one line per written frame in ``frames.csv`` so the output can be
@@ -53,6 +54,7 @@ __all__ = [
     "KEY_STEP_DEG",
     "ZOOM_FACTOR",
     "Action",
+    "CycleLook",
     "HeadlessPresenter",
     "Quit",
     "Screenshot",
@@ -133,7 +135,12 @@ class Quit:
     """Leave the runtime (Esc or the window closed)."""
 
 
-Action = ViewDelta | Zoom | ToggleOverlay | Screenshot | Quit
+@dataclass(frozen=True)
+class CycleLook:
+    """Show the image's next look (the first after the last; nothing with one look)."""
+
+
+Action = ViewDelta | Zoom | ToggleOverlay | Screenshot | Quit | CycleLook
 
 
 # --------------------------------------------------------------------------- PNG
@@ -534,6 +541,8 @@ class Window:
             return ToggleOverlay()
         if key == pg.K_s:
             return Screenshot()
+        if key == pg.K_l:
+            return CycleLook()
         return None
 
     # ------------------------------------------------------------------ output

@@ -8,6 +8,13 @@ for its warp, the scores of the frame on show). Nothing about an image lives in 
 attribute of the runtime, so a live image swap cannot leave a frame of the old image to be
 corrected with the new image's scores. `ScoreItem` is a decoded packet bound to the model
 that decoded it: the display drops one whose model is no longer on show.
+
+An image with several looks (`device_runtime.looks`) is loaded as one of them: ``image`` is
+that look's single-look image, ``base`` the whole image. Showing another look is
+`LoadedModel.for_look`: a new model of the same image, replaced whole like any other (the
+display's reconstruction, the warp worker and its cached views of the old look go with the
+old model), that shares what the looks share: the score decoder (its delta bases are
+scores, the same for every look), the standalone table and the predictor.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from device_runtime.layers import RestFrame
+from device_runtime.looks import look_image, look_names
 from device_runtime.prediction import Predictor, can_predict
 from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import StandaloneScores
@@ -107,6 +115,11 @@ class LoadedModel:
         Makes the warps off the display thread (standalone and served alike).
     shown : ShownState
         What the display has made of this image.
+    base : EigenspaceImage or None
+        The whole image when it has several looks (``image`` is the look on show); None:
+        one look.
+    look : int
+        The look on show (0 for an image with one).
     """
 
     image: EigenspaceImage
@@ -121,21 +134,26 @@ class LoadedModel:
     synthesis: ViewSynthesizer | None = None
     warp_worker: WarpWorker | None = None
     shown: ShownState = field(default_factory=ShownState)
+    base: EigenspaceImage | None = None
+    look: int = 0
 
     @classmethod
     def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
               max_packet_bytes: int | None = None, want_standalone: bool = False,
               want_predictor: bool = False,
-              on_warp: Callable[[], None] | None = None) -> LoadedModel:
+              on_warp: Callable[[], None] | None = None, look: int = 0) -> LoadedModel:
         """Reconstructor, decoder (bounded by the image's K) and, if asked, standalone data
         and (``want_predictor``, when the image has a table) the predictor; with either and
         an image with depth, the view synthesis (sharing the table) and its warp worker
-        (``on_warp`` is called when a warp the display asked for is made).
+        (``on_warp`` is called when a warp the display asked for is made). An image with
+        several looks shows ``look`` (an index, `device_runtime.looks.look_index`).
 
         The display's reconstructor runs on two threads when the machine has two CPUs and
         the eigenspace is large (``threads="auto"``); its frames are the same bit for bit.
         The warp worker reconstructs the neighbours with a single-threaded one of its own.
         """
+        base = image if image.looks is not None else None
+        image = look_image(image, look)
         standalone = StandaloneScores(image) if want_standalone else None
         decoder = ScoreDecoder(
             image.n_coefficients,
@@ -148,18 +166,43 @@ class LoadedModel:
                      and can_predict(image) else None)
         table = standalone if standalone is not None else (
             predictor.standalone if predictor is not None else None)
-        reconstructor = Reconstructor.from_image(image, threads="auto")
-        synthesis = worker = None
-        try:
-            if table is not None and image.synthesis is not None:
-                synthesis = ViewSynthesizer(image, table, Reconstructor.from_image(
-                    image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
-                worker = WarpWorker(synthesis, on_made=on_warp)
-        except BaseException:
-            reconstructor.close()
-            raise
+        reconstructor, synthesis, worker = _frames(image, table, on_warp)
         return cls(image, reconstructor, decoder, slot, generation, test, standalone,
-                   predictor=predictor, synthesis=synthesis, warp_worker=worker)
+                   predictor=predictor, synthesis=synthesis, warp_worker=worker, base=base,
+                   look=look if base is not None else 0)
+
+    @property
+    def looks(self) -> tuple[str, ...]:
+        """The image's look names (``()``: one look)."""
+        return look_names(self.base) if self.base is not None else ()
+
+    @property
+    def look_name(self) -> str | None:
+        """The name of the look on show (None: the image has one)."""
+        names = self.looks
+        return names[self.look] if names else None
+
+    def for_look(self, look: int, *, on_warp: Callable[[], None] | None = None,
+                 start_worker: bool = True) -> LoadedModel:
+        """The same image showing look ``look``: a new model with the look's reconstructor,
+        synthesis and warp worker and a fresh `ShownState`, sharing this one's decoder,
+        standalone table and predictor, slot and confirmation. This model stays as it is
+        (the caller closes it once the new one is on show, and makes no frame with it: the
+        new look's display reconstructor takes over its scratch). ``start_worker=False``: the warp
+        worker's thread is started by the caller (`WarpWorker.start`), after the new look's
+        first frame is on show (a thread's start costs a frame on a loaded core)."""
+        if self.base is None:
+            raise ValueError("the image has one look")
+        image = look_image(self.base, look)
+        table = self.standalone if self.standalone is not None else (
+            self.predictor.standalone if self.predictor is not None else None)
+        reconstructor, synthesis, worker = _frames(image, table, on_warp,
+                                                   start_worker=start_worker,
+                                                   scratch_of=self.reconstructor)
+        return LoadedModel(image, reconstructor, self.decoder, self.slot, self.generation,
+                           self.test, self.standalone, confirmed=self.confirmed,
+                           predictor=self.predictor, synthesis=synthesis, warp_worker=worker,
+                           base=self.base, look=look)
 
     @property
     def own_frames(self) -> bool:
@@ -180,6 +223,27 @@ class LoadedModel:
         self.reconstructor.close()
         if self.synthesis is not None:
             self.synthesis.reconstructor.close()
+
+
+def _frames(image: EigenspaceImage, table: StandaloneScores | None,
+            on_warp: Callable[[], None] | None, *, start_worker: bool = True,
+            scratch_of: Reconstructor | None = None
+            ) -> tuple[Reconstructor, ViewSynthesizer | None, WarpWorker | None]:
+    """The display's reconstructor and, with a table and depth, the view synthesis on a
+    reconstructor of its own and its warp worker (its thread started unless
+    ``start_worker`` is False); ``scratch_of``: the display's reconstructor of the look
+    left, whose scratch the new one takes over (the display makes no more frames of it)."""
+    reconstructor = Reconstructor.from_image(image, threads="auto", scratch_of=scratch_of)
+    synthesis = worker = None
+    try:
+        if table is not None and image.synthesis is not None:
+            synthesis = ViewSynthesizer(image, table, Reconstructor.from_image(
+                image, threads=1, scratch_bytes=WORKER_SCRATCH_BYTES))
+            worker = WarpWorker(synthesis, on_made=on_warp, start=start_worker)
+    except BaseException:
+        reconstructor.close()
+        raise
+    return reconstructor, synthesis, worker
 
 
 @dataclass(frozen=True)

@@ -187,6 +187,11 @@ class Reconstructor:
     threads : int or "auto"
         1 or 2 worker threads; ``"auto"`` picks 2 when the process may run on at least 2
         CPUs (`usable_cpus`) and the eigenspace is larger than 8 MB.
+    scratch_of : Reconstructor, optional
+        Use this reconstructor's scratch buffers when they have the same size and threads
+        (another look of the same image, `device_runtime.loaded.LoadedModel.for_look`): the
+        first frame then finds their pages mapped. That reconstructor must not `update` or
+        `correct` again (its frames would race this one's).
 
     Attributes
     ----------
@@ -211,6 +216,7 @@ class Reconstructor:
         *,
         scratch_bytes: int = DEFAULT_SCRATCH_BYTES,
         threads: int | str = 1,
+        scratch_of: Reconstructor | None = None,
     ) -> None:
         height, width = (int(v) for v in image_shape)
         cell_h, cell_w = (int(v) for v in cell_shape)
@@ -288,7 +294,9 @@ class Reconstructor:
         self._cell_x = np.arange(n_cells) % nx
         self.cells_recomputed = 0
         self.total_cells_recomputed = 0
+        self._scratch_of = scratch_of
         self._workers = self._plan(self.scratch_bytes // self.threads)
+        self._scratch_of = None
         self._pool = ThreadPoolExecutor(1) if self.threads == 2 else None
         self._held: np.ndarray | None = None  # `correct`: the frame to correct (as _padded)
         self._zero_cells = np.flatnonzero(self.n_components == 0)
@@ -324,7 +332,13 @@ class Reconstructor:
         rows); a cell whose rows do not fit is a big cell in both."""
         budget = budget_bytes // _FLOAT_BYTES
         values = self.cell_values
-        scratches = [np.zeros(budget, dtype=np.float32) for _ in range(self.threads)]
+        shared = self._scratch_of
+        if (shared is not None and shared.threads == self.threads
+                and all(a.size == budget for a in shared._scratches)):
+            scratches = shared._scratches  # its pages are there already (a look switch)
+        else:
+            scratches = [np.zeros(budget, dtype=np.float32) for _ in range(self.threads)]
+        self._scratches = scratches
         # first pass: job boundaries (cells) and their row counts
         spans: list[tuple[str, int, int]] = []
         c = 0

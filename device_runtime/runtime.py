@@ -73,6 +73,7 @@ import numpy as np
 from device_runtime.device import Device, DeviceConfig
 from device_runtime.display import (
     Action,
+    CycleLook,
     HeadlessPresenter,
     Quit,
     Screenshot,
@@ -82,6 +83,7 @@ from device_runtime.display import (
 )
 from device_runtime.errors import DeviceError, FlashError
 from device_runtime.loaded import LayerItem, LoadedModel, ScoreItem
+from device_runtime.looks import look_index
 from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
 from device_runtime.scheduler import FrameScheduler
 from device_runtime.slots import LatestSlot, RequestLimiter
@@ -171,6 +173,9 @@ class RuntimeDevice(FrameScheduler, Device):
     fps : float, optional
         Display ticks per second: at most one blend per tick while the view moves, and a
         ``turn`` orbit's step. Default `DEFAULT_FPS` with a window, `HEADLESS_FPS` without.
+    look : str or int, optional
+        The look to show of an image with several (a name or an index; default the
+        first); `show_look` changes it, the window's ``l`` key shows the next.
     clock : callable, optional
         Monotonic seconds (tests pass a fake one).
     on_frame : callable, optional
@@ -191,6 +196,7 @@ class RuntimeDevice(FrameScheduler, Device):
         request_rate_hz: float = 60.0,
         max_frames: int | None = None,
         fps: float | None = None,
+        look: str | int | None = None,
         clock: Callable[[], float] = time.monotonic,
         on_frame: Callable[[np.ndarray, dict], None] | None = None,
         log: Callable[[str], None] | None = None,
@@ -200,6 +206,8 @@ class RuntimeDevice(FrameScheduler, Device):
                            fps=fps)
         self.standalone = standalone
         self.predict = predict
+        self.look = look
+        self._decoder_lock = threading.Lock()
         self.view = canonical_view(*view)
         self.orbit_spec = orbit
         self._script = collections.deque(canonical_view(*v) for v in (views or ()))
@@ -274,6 +282,12 @@ class RuntimeDevice(FrameScheduler, Device):
             # state; give it up for the other slot (MCUboot) and show nothing from it
             return (self.fall_back(why, slot, exc) is not None and depth == 0
                     and self._activate(why, depth=1))
+        look = 0
+        if self.look is not None:
+            try:
+                look = look_index(image, self.look)
+            except ValueError as exc:
+                self.log(f"{why}: slot {slot}: {exc}; showing its first look")
         try:
             model = LoadedModel.build(
                 image,
@@ -284,6 +298,7 @@ class RuntimeDevice(FrameScheduler, Device):
                 want_standalone=self.standalone,
                 want_predictor=self.predict,
                 on_warp=self._scores.wake,
+                look=look,
             )
         except (ProtocolError, DeviceError, OSError, ValueError) as exc:
             # this run's mode cannot use it (e.g. --standalone without a table): a test
@@ -303,10 +318,13 @@ class RuntimeDevice(FrameScheduler, Device):
             self.notice(2, f"slot {slot}: image failed to load; reverted",
                         {"event": "load-failed", "slot": slot})
             return depth == 0 and self._activate(why, depth=1)
+        looks = (f", looks {', '.join(model.looks)}: showing {model.look_name}"
+                 if model.looks else "")
         self.log(f"{why}: slot {slot}: image generation {model.generation} loaded "
                  f"({image.image_shape[1]}x{image.image_shape[0]}, K={image.n_coefficients}"
-                 f"{', test: confirmed after the first frame' if test else ''})")
-        self._decoder_model = model
+                 f"{looks}{', test: confirmed after the first frame' if test else ''})")
+        with self._decoder_lock:
+            self._decoder_model = model
         self._models.put(model)
         self._scores.wake()
         return True
@@ -380,6 +398,8 @@ class RuntimeDevice(FrameScheduler, Device):
             stats.dropped_no_image += 1
             return
         if is_layer(msg.packet):
+            if not self._for_look(model, msg):
+                return
             self._on_layer(model, msg.packet)
             return
         t0 = time.perf_counter()
@@ -410,6 +430,8 @@ class RuntimeDevice(FrameScheduler, Device):
         decode_s = time.perf_counter() - t0
         stats.decode_s.add(decode_s)
         self._need_key = False
+        if not self._for_look(model, msg):  # decoded all the same: delta chains stay whole
+            return
         if decoded.predicted or decoded.synthesized:
             stats.correction_packets += 1
         elif decoded.is_key:
@@ -418,6 +440,14 @@ class RuntimeDevice(FrameScheduler, Device):
             stats.delta_frames += 1
         stats._bytes_ring.append(decoded.packet_bytes)
         self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
+
+    def _for_look(self, model: LoadedModel, msg: m.Scores) -> bool:
+        """Whether a packet was made for the look ``model`` shows (absent: the first);
+        one for another look (the user switched while it was on its way) is counted."""
+        if (msg.look or 0) == model.look:
+            return True
+        self.runtime_stats.other_look += 1
+        return False
 
     def _on_layer(self, model: LoadedModel, packet: bytes) -> None:
         """A refinement layer (`protocol.layers`): its header and declared size checked here,
@@ -482,8 +512,10 @@ class RuntimeDevice(FrameScheduler, Device):
             return
         self._sequence = (self._sequence % 0xFFFFFFFF) + 1
         with contextlib.suppress(ProtocolError, ValueError):
+            model = self._model
+            look = model.look if model is not None and model.base is not None else None
             link.send(m.ViewRequest(phi_deg=view[0], theta_deg=view[1],
-                                    sequence=self._sequence))
+                                    sequence=self._sequence, look=look))
             self.runtime_stats.view_requests += 1
             self._request_times[self._sequence] = now_s
             while len(self._request_times) > 64:
@@ -519,9 +551,51 @@ class RuntimeDevice(FrameScheduler, Device):
                 self.log(f"screenshot saved to {path}")
         elif isinstance(action, Quit):
             self.stop_event.set()
+        elif isinstance(action, CycleLook):
+            model = self._model
+            if model is not None and model.looks:
+                self.show_look((model.look + 1) % len(model.looks))
+
+    def show_look(self, look: int | str) -> bool:
+        """Show another look of the image on show (display thread): its model
+        (`LoadedModel.for_look`) replaces the old look's whole, at once, and its own frame
+        of the view is shown (a served device asks the host for the view in the new look);
+        then the old look's model is closed (its warp worker stopped).
+        Returns False when there is no image or it has one look.
+
+        Raises
+        ------
+        ValueError
+            No such look.
+        """
+        model = self._model
+        if model is None or model.base is None:
+            return False
+        index = look_index(model.base, look)
+        self.look = model.looks[index]
+        if index == model.look:
+            return True
+        # the new look's first frame first; then its warp worker's thread starts and the
+        # old look is closed
+        new = model.for_look(index, on_warp=self._scores.wake, start_worker=False)
+        with self._decoder_lock:
+            if self._decoder_model is model:
+                self._decoder_model = new
+        self.runtime_stats.look_switches += 1
+        self._model = new
+        worker = new.warp_worker  # asked for the view's warp: it waits for the frame
+        try:
+            with worker.display_first() if worker is not None else contextlib.nullcontext():
+                self._swap_model(new)
+        finally:
+            if worker is not None:
+                worker.start()
+        model.close()
+        return True
 
     def overlay_lines(self) -> list[str]:
-        """The overlay's text: fps, bytes per frame, link rate, the current view."""
+        """The overlay's text: the look on show (an image with several), fps, bytes per
+        frame, link rate, the current view."""
         stats = self.runtime_stats
         link = self.link
         rate = 0.0
@@ -534,7 +608,11 @@ class RuntimeDevice(FrameScheduler, Device):
         mode = "standalone" if self.standalone else ("link up" if link else "no host")
         phi, theta = self.view
         fps = stats.fps()  # frames over the last second: 0 while the view rests
+        model = self._model
+        looks = ([f"look {model.look_name}  ({model.look + 1}/{len(model.looks)}, l: next)"]
+                 if model is not None and model.looks else [])
         return [
+            *looks,
             (f"{fps:5.1f} fps" if fps > 0 else " idle    ") + f"   frame {stats.frames_presented}",
             f"{stats.bytes_per_frame():6.0f} B/frame  key {stats.key_frames} "
             f"delta {stats.delta_frames}"
@@ -742,6 +820,7 @@ class RuntimeDevice(FrameScheduler, Device):
             model.image.n_coefficients,
             "eigenspace_bytes": int(model.image.eigenimages.nbytes + model.image.mean.nbytes
                                     + model.image.scales.nbytes),
+            "looks": list(model.looks), "look": model.look_name,
         }
         return out
 

@@ -90,6 +90,8 @@ class RuntimeStats:
     exact_frames: int = 0
     kept_exact: int = 0
     layer_retries: int = 0
+    look_switches: int = 0
+    other_look: int = 0
     decode_s: _Ema = field(default_factory=_Ema)
     correct_s: _Ema = field(default_factory=_Ema)
     layer_s: _Ema = field(default_factory=_Ema)
@@ -152,6 +154,8 @@ class RuntimeStats:
             "exact_frames": self.exact_frames,  # resting views shown exactly
             "kept_exact": self.kept_exact,  # host frames of an exact view not shown
             "layer_retries": self.layer_retries,  # views asked again after a lost layer
+            "look_switches": self.look_switches,  # another look shown (key l)
+            "other_look": self.other_look,  # packets made for a look no longer on show
             "fps": self.fps(),
             "bytes_per_frame": self.bytes_per_frame(),
             "decode_ms": ms(self.decode_s),

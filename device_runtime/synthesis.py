@@ -735,7 +735,8 @@ class WarpWorker:
     #: The longest a warp waits at one check for the display to finish its frame, seconds.
     YIELD_S = 0.1
 
-    def __init__(self, synthesis: Any, on_made: Callable[[], None] | None = None) -> None:
+    def __init__(self, synthesis: Any, on_made: Callable[[], None] | None = None, *,
+                 start: bool = True) -> None:
         self.synthesis = synthesis
         self._on_made = on_made
         self._cond = threading.Condition()
@@ -760,7 +761,14 @@ class WarpWorker:
         self._speculative = False  # the warp in flight is a view made ahead
         self._lead = False  # ... and leads the motion by more than a step (`_lead_view`)
         self._thread = threading.Thread(target=self._run, name="eigencast-warp", daemon=True)
-        self._thread.start()
+        if start:
+            self._thread.start()
+
+    def start(self) -> None:
+        """Start the thread of a worker made with ``start=False`` (views asked before wait
+        for it); nothing when it runs (or ran) already."""
+        if self._thread.ident is None:
+            self._thread.start()
 
     @staticmethod
     def hold_for(warp_s: float | None, interval_s: float | None) -> float:
@@ -837,7 +845,8 @@ class WarpWorker:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
-        self._thread.join(timeout=10.0)
+        if self._thread.ident is not None:
+            self._thread.join(timeout=10.0)
 
     @classmethod
     def predicted_view(cls, history: list[tuple[float, float, float]], steps: int = 1

@@ -1,10 +1,11 @@
 """The eigenspace image (``.ecs``): an authenticated container for a quantized eigenspace.
 
-File layout (format version 1; every integer little-endian)::
+File layout (format version 1, or 2 for an image with several looks; every integer
+little-endian)::
 
     offset  size  field
     0       8     magic  b"\\x89ECS\\r\\n\\x1a\\n"  (PNG-style: catches text-mode mangling)
-    8       2     format_version  u16 (1)
+    8       2     format_version  u16 (1; 2: the manifest has ``looks``)
     10      2     flags  u16: bit 0 = SIGNED (tag is an HMAC), other bits must be 0
     12      2     header_size  u16 (32 in version 1; the digest covers the whole header)
     14      2     reserved u16 = 0
@@ -35,7 +36,12 @@ view set); ``interpolation`` map or null (data for standalone score interpolatio
 ``provenance`` map (opaque: fit parameters, solver, sign convention, render settings, creation
 time); optional ``synthesis`` map (absent: the device blends; ``{"method": "warp-depth-1",
 ...}``: depth-aware view synthesis, see `device_runtime.synthesis`); ``annex`` null or
-``{"sha256": 32 bytes, "size": int}``; ``sections`` list of
+``{"sha256": 32 bytes, "size": int}``; ``looks`` (format version 2 only, and required there)
+a list of 2..`MAX_LOOKS` maps ``{"name": str, "sections": {standard name: section name},
+"synthesis": map (optional)}``: the image shows one look at a time, each the image with the
+sections its map names in place of the standard ones (`LOOK_SECTION_NAMES`; the first look
+usually names none) and its own ``synthesis`` record when it has one
+(`device_runtime.looks`); ``sections`` list of
 ``{"name", "dtype", "shape", "offset", "size", "raw_size"}`` where ``dtype`` is a numpy
 little-endian type string (``"|u1"``, ``"|i1"``, ``"<f4"`` ...), ``offset`` counts from the
 first byte after the manifest, ``size`` is the compressed and ``raw_size`` the decompressed byte
@@ -85,7 +91,11 @@ __all__ = [
     "FLAG_SIGNED",
     "FORMAT_VERSION",
     "HEADER_SIZE",
+    "LOOKS_FORMAT_VERSION",
+    "LOOK_SECTION_NAMES",
     "MAGIC",
+    "MAX_LOOKS",
+    "MAX_LOOK_NAME",
     "MAX_MANIFEST_BYTES",
     "MAX_SECTION_BYTES",
     "MAX_TOTAL_BYTES",
@@ -106,7 +116,21 @@ __all__ = [
 
 MAGIC = b"\x89ECS\r\n\x1a\n"
 FORMAT_VERSION = 1
-SUPPORTED_VERSIONS: tuple[int, ...] = (1,)
+#: The format version of an image with several looks (manifest ``looks``): a reader that
+#: predates looks refuses it in one line ("unsupported format version 2") instead of
+#: showing one of its looks as if it were the whole image.
+LOOKS_FORMAT_VERSION = 2
+SUPPORTED_VERSIONS: tuple[int, ...] = (1, LOOKS_FORMAT_VERSION)
+#: Most looks one image holds.
+MAX_LOOKS = 16
+#: Longest look name, in characters.
+MAX_LOOK_NAME = 32
+#: The sections a look may replace: the colour eigenspace's (the first four of every
+#: image) and the named extra sections a view synthesis reads. A look names, for each one it
+#: replaces, the image section that holds its own (e.g. ``{"mean": "look1_mean"}``).
+LOOK_SECTION_NAMES = frozenset({
+    "mean", "scales", "eigenimages", "noise_floor", "depth_counts", "depth_scales",
+    "depth_mean", "depth_components", "depth_scores", "depth_scores_delta"})
 FLAG_SIGNED = 0x0001
 _KNOWN_FLAGS = FLAG_SIGNED
 
@@ -203,6 +227,10 @@ class EigenspaceImage:
         How a device makes novel views from the training views beyond blending them
         (``{"method": "warp-depth-1", ...}``, `device_runtime.synthesis`); written to the
         manifest only when set, so images without it are byte-identical to older ones.
+    looks : list of dict or None
+        Several looks of the same views (``[{"name": ..., "sections": {...}}, ...]``, the
+        module docstring); written only when set, with format version 2 (None: one look,
+        format version 1, byte-identical to images that predate looks).
 
     Attributes
     ----------
@@ -228,6 +256,7 @@ class EigenspaceImage:
     provenance: dict = field(default_factory=dict)
     sections: dict[str, np.ndarray] = field(default_factory=dict)
     synthesis: dict | None = None
+    looks: list[dict] | None = None
     annex: dict[str, np.ndarray] | None = None
     digest: bytes | None = None
     signed: bool = False
@@ -282,6 +311,16 @@ class EigenspaceImage:
             raise ValueError(
                 f"EigenspaceImage: image_generation={self.image_generation!r} must be an int >= 0"
             )
+        if self.looks is not None:
+            problem = _looks_problem(self.looks, {"mean", "scales", "eigenimages",
+                                                  *self.sections})
+            if problem:
+                raise ValueError(f"EigenspaceImage: {problem}")
+
+    @property
+    def format_version(self) -> int:
+        """The format version this image is written with: 2 with looks, else 1."""
+        return LOOKS_FORMAT_VERSION if self.looks is not None else FORMAT_VERSION
 
 
 # --------------------------------------------------------------------------- header
@@ -442,6 +481,8 @@ def write_image(
             }
             if image.synthesis is not None:
                 manifest["synthesis"] = dict(image.synthesis)
+            if image.looks is not None:
+                manifest["looks"] = [dict(look) for look in image.looks]
             arrays = [
                 ("n_components", np.asarray(image.n_components, dtype=np.int32)),
                 ("scales", np.asarray(image.scales, dtype=np.float32)),
@@ -450,7 +491,8 @@ def write_image(
                 *image.sections.items(),
             ]
             digest, _ = _write_container(
-                out, manifest, arrays, key=key, level=level, tmp_dir=folder
+                out, manifest, arrays, key=key, level=level, tmp_dir=folder,
+                version=image.format_version,
             )
             if annex_file is not None:
                 annex_file.seek(0)
@@ -494,6 +536,7 @@ def _write_container(
     key: bytes | None,
     level: int,
     tmp_dir: Path,
+    version: int = FORMAT_VERSION,
 ) -> tuple[bytes, int]:
     """Write one complete container to ``out``; return (digest, size in bytes)."""
     cctx = zstd.ZstdCompressor(level=level, write_content_size=True, write_checksum=False)
@@ -531,7 +574,7 @@ def _write_container(
         size = HEADER_SIZE + len(manifest_bytes) + offset + _TRAILER_SIZE
         flags = FLAG_SIGNED if key is not None else 0
         head = _HEADER.pack(
-            MAGIC, FORMAT_VERSION, flags, HEADER_SIZE, 0, len(manifest_bytes), size, 0
+            MAGIC, version, flags, HEADER_SIZE, 0, len(manifest_bytes), size, 0
         )[:_CRC_SPAN]
         head += struct.pack("<I", zlib.crc32(head))
         hasher = hashlib.sha256()
@@ -818,6 +861,7 @@ def read_image(
         provenance=manifest["provenance"],
         sections=arrays,
         synthesis=manifest.get("synthesis"),
+        looks=manifest.get("looks"),
         annex=annex_arrays,
         digest=digest,
         signed=signed,
@@ -862,7 +906,8 @@ def _read_container(
     try:
         manifest = _decode_manifest(src.read_exact(header.manifest_size, "the manifest"), src)
         data_start = src.pos
-        table = _check_manifest(manifest, kind, body_end - data_start, limits, what)
+        table = _check_manifest(manifest, kind, body_end - data_start, limits, what,
+                                version=header.format_version)
         dctx = zstd.ZstdDecompressor(max_window_size=limits.window)
         arrays: dict[str, np.ndarray] = {}
         for entry in table:
@@ -982,7 +1027,8 @@ def _int_pair(manifest: dict, key: str, what: str) -> tuple[int, int]:
 
 
 def _check_manifest(
-    manifest: dict, kind: str, body_size: int, limits: _Limits, what: str
+    manifest: dict, kind: str, body_size: int, limits: _Limits, what: str,
+    *, version: int = FORMAT_VERSION,
 ) -> list[dict]:
     """Check the manifest and its section table against sizes and limits; return the table."""
     found = _field(manifest, "kind", str, what)
@@ -1055,6 +1101,10 @@ def _check_manifest(
         )
     if kind == "image":
         _check_image_manifest(manifest, table, what)
+        _check_looks_manifest(manifest, names, version, what)
+    elif version != FORMAT_VERSION:
+        raise ImageFormatError(f"read {what}: format version {version} (an annex is version "
+                               f"{FORMAT_VERSION})")
     else:
         meta = manifest.get("meta", {})
         if not isinstance(meta, dict):
@@ -1107,6 +1157,52 @@ def _check_image_manifest(manifest: dict, table: list[dict], what: str) -> None:
                 f"expected {dtype} {shape} for image {list(image_shape)} with cells "
                 f"{list(cell_shape)}"
             )
+
+
+def _check_looks_manifest(manifest: dict, names: set[str], version: int, what: str) -> None:
+    """``looks``: required by format version 2, refused by version 1; well formed, and
+    naming sections the image has."""
+    looks = manifest.get("looks")
+    if version == FORMAT_VERSION:
+        if "looks" in manifest:
+            raise ImageFormatError(f"read {what}: manifest 'looks' needs format version "
+                                   f"{LOOKS_FORMAT_VERSION} (the header says {version})")
+        return
+    if looks is None:
+        raise ImageFormatError(f"read {what}: format version {version} needs the manifest's "
+                               "'looks' list")
+    problem = _looks_problem(looks, names)
+    if problem:
+        raise ImageFormatError(f"read {what}: {problem}")
+
+
+def _looks_problem(looks: Any, sections: set[str]) -> str | None:
+    """What is wrong with a ``looks`` list (module docstring), or None."""
+    if not isinstance(looks, list) or not 2 <= len(looks) <= MAX_LOOKS:
+        return f"'looks' must be a list of 2..{MAX_LOOKS} maps"
+    seen: set[str] = set()
+    for i, look in enumerate(looks):
+        if not isinstance(look, dict):
+            return f"looks[{i}] is not a map"
+        name = look.get("name")
+        if (not isinstance(name, str) or not 1 <= len(name) <= MAX_LOOK_NAME
+                or not name.isprintable() or name in seen):
+            return (f"looks[{i}] needs a unique printable 'name' of 1..{MAX_LOOK_NAME} "
+                    "characters")
+        seen.add(name)
+        mapping = look.get("sections", {})
+        if not isinstance(mapping, dict):
+            return f"look '{name}': 'sections' must be a map"
+        for standard, section in mapping.items():
+            if standard not in LOOK_SECTION_NAMES:
+                return (f"look '{name}': section '{str(standard)[:_MAX_NAME_CHARS]}' cannot "
+                        f"be replaced (a look replaces {', '.join(sorted(LOOK_SECTION_NAMES))})")
+            if not isinstance(section, str) or section not in sections:
+                return (f"look '{name}': its '{standard}' names section "
+                        f"'{str(section)[:_MAX_NAME_CHARS]}', which the image lacks")
+        if not isinstance(look.get("synthesis"), (dict, type(None))):
+            return f"look '{name}': 'synthesis' must be a map or null"
+    return None
 
 
 def _check_n_components(counts: np.ndarray, table: list[dict], what: str) -> None:

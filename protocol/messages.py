@@ -15,7 +15,9 @@ class, or returns :class:`UnknownMessage` so a receiver can answer
 Mutating requests (``SIGNED = True``) carry a session counter (key 22) and a
 session tag (key 23), SCORES and IMAGE_CHUNK (``TAGGED``) an event tag; the maths
 (``sign``, ``verify``, ``tag_event``, ``derive_session_key``) is :mod:`protocol.auth`.
-The full wire specification is docs/protocol.md.
+The full wire specification is docs/protocol.md. The module stays one file: it is the
+catalogue of every message's declaration, which the golden lines and docs/protocol.md are
+checked against as one list.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from protocol.errors import (
     ReplayError,
 )
 from protocol.framing import Channel, Flags, Frame, Kind, encode_frame
+from protocol.image import MAX_LOOKS
 from protocol.records import MAX_DEPTH, U8, U16, U32, U64, Detail, Record, scan_cbor, wire
 
 __all__ = [
@@ -947,6 +950,8 @@ class Scores(TaggedEvent):
     """The VIEW_REQUEST/KEYFRAME_REQUEST sequence answered (0: unsolicited, e.g. orbit)."""
     packet: bytes = wire(1, min_len=1, max_len=MAX_PAYLOAD_BYTES, repr=False)
     """Opaque score packet, decoded by protocol.scores with the device's limits."""
+    look: int | None = wire(2, default=None, ge=0, le=MAX_LOOKS - 1)
+    """The look it was made for (absent: the first); a device showing another drops it."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -964,6 +969,8 @@ class ViewRequest(Message):
     """Elevation in degrees."""
     sequence: int = wire(2, ge=0, le=U32)
     """Increases with every request; SCORES echoes it."""
+    look: int | None = wire(3, default=None, ge=0, le=MAX_LOOKS - 1)
+    """The look on show (`protocol.image` ``looks``; absent: the first)."""
 
 
 @dataclass(frozen=True, kw_only=True)

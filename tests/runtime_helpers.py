@@ -55,6 +55,39 @@ def tiny_model(tmp_path_factory, *, name: str = "tiny", depth: bool = False) -> 
     return model
 
 
+#: The looks of `tiny_looks_model`: (render options, name); the first two differ only in
+#: lighting (same depth), the third in its transfer function (its own depth).
+TINY_LOOKS = ((("--lighting", "headlight"), "plain"), (("--lighting", "cinematic"), "lamp"),
+              (("--tf", "generic"), "generic"))
+
+
+def tiny_looks_model(tmp_path_factory) -> Path:
+    """A signed (``KEY``), standalone adaptive model with depth and three looks of the tooth
+    (`TINY_LOOKS`, 32 px, 16 x 5 views), fitted by ``eigencast fit A B C``; once per
+    session. Its databases lie beside it (``look0.cdb`` ...)."""
+    root = tmp_path_factory.getbasetemp() / "runtime-looks"
+    model = root / "looks.ecs"
+    if model.exists():
+        return model
+    root.mkdir(parents=True, exist_ok=True)
+    key_path = root / "device.key"
+    from protocol.keys import write_key
+
+    write_key(key_path, KEY, force=True)
+    dbs = []
+    for i, (options, _) in enumerate(TINY_LOOKS):
+        db = root / f"look{i}.cdb"
+        assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", TINY_VIEWS,
+                          "--size", "32", "--samples", "80", *options]) == 0
+        dbs.append(str(db))
+    tmp = root / "looks.tmp.ecs"
+    assert eigencast(["fit", *dbs, "-o", str(tmp), "--cell", "12", "--threshold", "0.99",
+                      "--look-names", ",".join(name for _, name in TINY_LOOKS),
+                      "--key", str(key_path)]) == 0
+    tmp.replace(model)
+    return model
+
+
 def key_file(model: Path) -> Path:
     """The key file written beside a :func:`tiny_model`."""
     return model.parent / "device.key"

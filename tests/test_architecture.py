@@ -38,6 +38,8 @@ LONG_MODULES = {
     "protocol/image.py": "the .ecs file format: its layout, writer and reader change together",
     "device_runtime/flash.py": "FlashStore: every method is a step of the one power-cut "
     "argument in its docstring (writer, formats, file seam and errors are modules of their own)",
+    "protocol/messages.py": "the catalogue of message declarations the golden lines and "
+    "docs/protocol.md are checked against (the records machinery is protocol/records.py)",
 }
 
 

@@ -442,7 +442,12 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ("image_abort", auth.sign(m.ImageAbort(), sk, 12), 13),
         ("scores",
          auth.tag_event(m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400")), sk, 3), 0),
+        ("scores_look",
+         auth.tag_event(m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400"), look=1),
+                        sk, 4), 0),
         ("view_request", m.ViewRequest(phi_deg=123.5, theta_deg=-12.0, sequence=42), 0),
+        ("view_request_look",
+         m.ViewRequest(phi_deg=123.5, theta_deg=-12.0, sequence=42, look=2), 0),
         ("keyframe_request", m.KeyframeRequest(sequence=43, last_frame=41), 0),
         ("notice", m.Notice(level=1, text="reverted to slot A at boot", detail={"slot": 0}), 0),
     ]

@@ -394,7 +394,10 @@ def test_bad_magic_version_flags_and_header():
     good = build_container(manifest, body)
     with pytest.raises(ImageFormatError, match=r"bad magic .*not an eigencast image"):
         read_image(io.BytesIO(b"GIF89a" + good[6:]))
-    with pytest.raises(ImageFormatError, match=r"unsupported format version 2 \(supported: 1\)"):
+    with pytest.raises(ImageFormatError,
+                       match=r"unsupported format version 3 \(supported: 1, 2\)"):
+        read_image(io.BytesIO(build_container(manifest, body, version=3)))
+    with pytest.raises(ImageFormatError, match="format version 2 needs the manifest's 'looks'"):
         read_image(io.BytesIO(build_container(manifest, body, version=2)))
     with pytest.raises(ImageFormatError, match="unknown header flags 0x0004"):
         read_image(io.BytesIO(build_container(manifest, body, flags=4)))
@@ -654,3 +657,61 @@ def test_keygen_command(tmp_path, capsys):
 
 if __name__ == "__main__" and "--regenerate" in sys.argv:  # pragma: no cover
     regenerate()
+
+
+# ----------------------------------------------------------------------------- looks
+
+
+def _looks_image(seed=11):
+    image = random_image(seed)
+    image.sections = {"look1_mean": image.mean[::-1].copy(),
+                      "look1_scales": image.scales * 2,
+                      "look1_eigenimages": -image.eigenimages}
+    image.looks = [{"name": "bone", "sections": {}},
+                   {"name": "skin", "sections": {k: f"look1_{k}"
+                                                 for k in ("mean", "scales", "eigenimages")}}]
+    return image
+
+
+def test_an_image_with_looks_is_format_version_2_and_round_trips(tmp_path):
+    """``looks`` is written (and only then) with format version 2, read back as written;
+    an image without it stays version 1 with no ``looks`` key."""
+    image = _looks_image()
+    path = tmp_path / "looks.ecs"
+    write_image(path, image, key=KEY)
+    assert struct.unpack_from("<H", path.read_bytes(), 8)[0] == 2
+    back = read_image(path, key=KEY, require_tag=True)
+    assert back.looks == image.looks
+    assert np.array_equal(back.sections["look1_eigenimages"], -image.eigenimages)
+    plain = tmp_path / "plain.ecs"
+    write_image(plain, random_image(11))
+    assert struct.unpack_from("<H", plain.read_bytes(), 8)[0] == 1
+    assert "looks" not in read_manifest(plain) and read_image(plain).looks is None
+
+
+@pytest.mark.parametrize("looks,match", [
+    ([{"name": "a"}], "list of 2..16 maps"),
+    ([{"name": "a"}, {"name": "a"}], "unique printable 'name'"),
+    ([{"name": "a"}, {"name": ""}], "unique printable 'name'"),
+    ([{"name": "a"}, {"name": "b", "sections": {"n_components": "look1_mean"}}],
+     "section 'n_components' cannot be replaced"),
+    ([{"name": "a"}, {"name": "b", "sections": {"mean": "nope"}}], "which the image lacks"),
+    ([{"name": "a"}, {"name": "b", "synthesis": 3}], "'synthesis' must be a map or null"),
+])
+def test_malformed_looks_are_refused_by_the_writer_and_the_reader(tmp_path, looks, match):
+    image = _looks_image()
+    image.looks = looks
+    with pytest.raises(ValueError, match=match):
+        write_image(tmp_path / "bad.ecs", image)
+    manifest, body = device_manifest(image)
+    manifest["looks"] = looks
+    with pytest.raises(ImageFormatError, match=match):
+        read_image(io.BytesIO(build_container(manifest, body, version=2)))
+
+
+def test_looks_in_a_version_1_manifest_are_refused():
+    image = random_image(12)
+    manifest, body = device_manifest(image)
+    manifest["looks"] = [{"name": "a"}, {"name": "b"}]
+    with pytest.raises(ImageFormatError, match="'looks' needs format version 2"):
+        read_image(io.BytesIO(build_container(manifest, body, version=1)))

@@ -39,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object with the results on stdout")
     parser.add_argument("--key", metavar="KEYFILE", help="verify the image's tag with this key")
+    parser.add_argument("--look", metavar="NAME",
+                        help="evaluate this look of an image with several (a name or an index; "
+                             "default: each look in turn, each against ray-casts with its own "
+                             "render settings)")
     parser.add_argument("--rd-views", type=int, default=8, metavar="N",
                         help="views used by the rate-distortion sweep (default 8; 0 skips it)")
     parser.add_argument("--rd-codecs-only", action="store_true",
@@ -74,11 +78,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(projection=None, fov=None, background=None, frame=None)
 
 
-def _check_report_folder(path: Path) -> None:
+def _check_report_folder(path: Path, looks: tuple[str, ...] = ()) -> None:
     if path.exists():
         if not path.is_dir():
             raise EigencastError(f"--report {path}: exists and is not a folder")
-        foreign = sorted(p.name for p in path.iterdir() if p.name not in REPORT_ENTRIES)
+        allowed = REPORT_ENTRIES | set(looks)
+        foreign = sorted(p.name for p in path.iterdir() if p.name not in allowed)
         if foreign:
             raise EigencastError(
                 f"--report {path}: the folder holds files that are not an eigencast report "
@@ -152,33 +157,49 @@ def run(args: argparse.Namespace) -> int:
         raise EigencastError(f"--metric-workers {args.metric_workers}: must be within 0..64")
     views = parse_view_set(args.views)
     report = Path(args.report) if args.report else None
+    key = load_key(args.key) if args.key else None
+    model = HostModel.load(args.model, key=key, look=args.look)
+    looks = [model.look] if args.look is not None or not model.looks else list(model.looks)
     if report is not None:
-        _check_report_folder(report)
-    model = HostModel.load(args.model, key=load_key(args.key) if args.key else None)
-    scene = _scene(args, model)
+        _check_report_folder(report, tuple(looks) if len(looks) > 1 else ())
     from host.link.layers import RestPlanner
 
-    # the resting views' layers as serve plans them (its default targets, exact at the end)
-    planner = RestPlanner(model.digest)
-    evaluation = evaluate_model(
-        model, scene, views.views, nearest=not args.no_nearest, rd_views=args.rd_views,
-        sample_views=args.samples_shown if report is not None else 0,
-        metric_workers=args.metric_workers,
-        webp_db_quality=args.webp_db_quality or None,
-        motion_deadline_s=args.motion_deadline / 1000.0 or None,
-        motion_stride=args.motion_stride, motion_slowdown=args.motion_slowdown,
-        rd_pca=not args.rd_codecs_only, rest_planner=planner,
-        info={"view_spec": views.spec},
-    )
-    if report is not None:
-        _write_report_atomically(evaluation, report)
-    summary = evaluation.summary()
-    if args.json:
-        print(json.dumps(summary, allow_nan=False))
-    else:
-        print(_text_summary(summary))
+    summaries = {}
+    for name in looks:
+        if name != model.look:
+            model = HostModel.load(args.model, key=key, look=name)
+        scene = _scene(args, model)
+        # the resting views' layers as serve plans them (its default targets, exact at the end)
+        planner = RestPlanner(model.digest)
+        evaluation = evaluate_model(
+            model, scene, views.views, nearest=not args.no_nearest, rd_views=args.rd_views,
+            sample_views=args.samples_shown if report is not None else 0,
+            metric_workers=args.metric_workers,
+            webp_db_quality=args.webp_db_quality or None,
+            motion_deadline_s=args.motion_deadline / 1000.0 or None,
+            motion_stride=args.motion_stride, motion_slowdown=args.motion_slowdown,
+            rd_pca=not args.rd_codecs_only, rest_planner=planner,
+            info={"view_spec": views.spec, **({"look": name} if name else {})},
+        )
+        folder = None
         if report is not None:
-            print(f"report: {report / 'index.html'}")
+            folder = report if len(looks) == 1 else report / name
+            if folder is not report:
+                report.mkdir(exist_ok=True)
+                _check_report_folder(folder)
+            _write_report_atomically(evaluation, folder)
+        summary = evaluation.summary()
+        summaries[name] = summary
+        if not args.json:
+            if name is not None:
+                print(f"look {name}:")
+            print(_text_summary(summary))
+            if folder is not None:
+                print(f"report: {folder / 'index.html'}")
+    if args.json:
+        out = (summaries[looks[0]] if len(looks) == 1 else
+               {"looks": summaries, "look_names": looks})
+        print(json.dumps(out, allow_nan=False))
     return 0
 
 

@@ -8,6 +8,10 @@ the device's path (`host.evaluate.target`). Held-out views, in order of preferen
 its volume can be loaded (``--volume`` or the recorded source); else views held out of the
 database itself (the search model is fitted without them, the written model is refitted on
 every view).
+
+Several databases of the same views (other transfer functions or lightings) make one image
+with a look per database (`host.fit.looks`: one joint eigenspace, one standalone table, the
+depth shared where the looks' depth is the same); ``--look-names`` names them.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from host.fit.model import (
     fit_database,
     save_model,
     stack_cache,
+    stack_for,
     subset_database,
     truncate_eigenspace,
 )
@@ -53,7 +58,13 @@ _VIEW_KEYS = ("views", "eigencast")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from host.volume import add_volume_arguments
 
-    parser.add_argument("database", metavar="DB.cdb", help="Cinema Spec D database folder")
+    parser.add_argument("database", metavar="DB.cdb", nargs="+",
+                        help="Cinema Spec D database folder; several databases of the same "
+                             "views (other transfer functions or lightings) make one image "
+                             "with a look per database, the first shown first")
+    parser.add_argument("--look-names", metavar="A,B,...",
+                        help="names of the looks, one per database (default: what sets the "
+                             "databases apart: their lighting or transfer function)")
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.ecs")
     parser.add_argument("--method", choices=("standard", "cell", "adaptive"), default="adaptive",
                         help="eigenspace layout (default adaptive)")
@@ -175,6 +186,11 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     out = Path(args.output)
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
+    if len(args.database) > 1:
+        return _fit_looks(args, cluster, threshold, target, key, out)
+    if args.look_names is not None:
+        raise EigencastError("--look-names names the looks of several databases; one was given")
+    args.database = args.database[0]
     db = CinemaDB.open(args.database)
     _check_complete(db, args)
     depth_threshold = args.depth_threshold if args.depth_threshold is not None else threshold
@@ -243,6 +259,113 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     )
     if not args.no_cache:
         _say_cache(db, args.cache)
+    return 0
+
+
+def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,  # noqa: ANN001
+               out: Path) -> int:
+    """``fit A.cdb B.cdb ...``: one image with a look per database (`host.fit.looks`)."""
+    from device_runtime.looks import look_image
+    from device_runtime.synthesis import DEPTH_DELTA_SECTION, DEPTH_SECTIONS, NOISE_FLOOR_SECTION
+    from host.fit.looks import (
+        add_look_sections,
+        build_looks_image,
+        check_same_views,
+        fit_looks,
+        look_names_for,
+        same_depth,
+    )
+
+    if target is not None:
+        raise EigencastError("--target chooses the setting of one database; fit the looks "
+                             "with --threshold (or --components)")
+    if cluster is not None:
+        raise EigencastError("--scheduler fits one database; fit several looks in-process")
+    dbs = [CinemaDB.open(path) for path in args.database]
+    check_same_views(dbs)
+    for db in dbs:
+        _check_complete(db, args)
+    names = look_names_for(dbs, args.look_names.split(",") if args.look_names else None)
+    depth_threshold = args.depth_threshold if args.depth_threshold is not None else threshold
+    want_depth = args.depth
+    for path, db in zip(args.database, dbs):
+        args.database, args.depth = path, want_depth
+        _choose_depth(args, db)
+        if not args.depth:
+            break
+    if args.depth_threshold is not None and not args.depth:
+        raise EigencastError("--depth-threshold is used only with depth (databases with "
+                             "depth maps, without --no-depth)")
+    if args.depth and not 0.0 < depth_threshold <= 1.0:
+        raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
+    method = args.method
+    cell_shape = (dbs[0].image_shape if method == "standard" else
+                  (min(args.cell, dbs[0].image_shape[0]), min(args.cell, dbs[0].image_shape[1])))
+    if args.cell < 1:
+        raise EigencastError(f"--cell {args.cell!r}: must be a positive integer")
+    stacks = [stack_for(db, cell_shape, cache_dir=(
+        None if args.cache is None else str(Path(args.cache) / f"look{i}")))
+        for i, db in enumerate(dbs)]
+    joint = fit_looks(stacks, method=method, cell=args.cell, components=args.components,
+                      threshold=threshold)
+    image, annex = build_looks_image(joint, stacks, dbs, names, score_step=args.score_step,
+                                     interpolation=args.interpolation,
+                                     bit_budget=args.bit_budget)
+    lines = []
+    if args.standalone:
+        from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
+
+        standalone = add_standalone_table(image, annex[ANNEX_SCORES],
+                                          eigenvalues=annex.get(ANNEX_EIGENVALUES))
+    if args.depth:
+        from host.evaluate.splat_filter import choose_splat_tent
+        from host.fit.depth import add_depth
+        from host.fit.floor import add_noise_floor
+
+        depth = add_depth(image, dbs[0], depth_threshold)
+        shared = [names[0]]
+        for look in range(1, len(dbs)):
+            if same_depth(dbs[0], dbs[look]):
+                shared.append(names[look])
+                continue
+            view = look_image(image, look, decode=False)
+            own = add_depth(view, dbs[look], depth_threshold)
+            add_look_sections(image, look, view, (*DEPTH_SECTIONS, DEPTH_DELTA_SECTION))
+            lines.append(f"look {names[look]}: its own depth (other depth maps than "
+                         f"{names[0]}'s): {own['components']} components")
+        lines.insert(0, f"depth: {depth['components']} components "
+                        f"({depth['components_per_cell']:.2f}/cell at T={depth['threshold']}) "
+                        f"shared by {', '.join(shared)}")
+        for look, db in enumerate(dbs):
+            view = image if look == 0 else look_image(image, look, decode=False)
+            floor = add_noise_floor(view, db).summary()
+            add_look_sections(image, look, view, (NOISE_FLOOR_SECTION,))
+            view = image if look == 0 else look_image(image, look, decode=False)
+            splat = choose_splat_tent(view, db)
+            add_look_sections(image, look, view, ())
+            lines.append(f"look {names[look]}: {_floor_line(floor)}")
+            lines.append(f"look {names[look]}: {_splat_line(splat)}")
+    save_model(out, image, annex, key=key)
+    if args.standalone:
+        print(_standalone_line(out, standalone))
+    for line in lines:
+        print(line)
+    device_bytes = image_device_bytes(out)
+    annex_bytes = out.stat().st_size - device_bytes
+    losses = [image.provenance["int8"]["train_loss_db"]] + [
+        r["int8"]["train_loss_db"] for r in image.provenance["looks"][1:]]
+    print(
+        f"wrote {out}: {len(dbs)} looks ({', '.join(names)}) of one joint eigenspace, "
+        f"{method}, {dbs[0].n_views} views at {dbs[0].image_shape[1]}x"
+        f"{dbs[0].image_shape[0]}, {joint.grid_shape_[0]}x{joint.grid_shape_[1]} cells, "
+        f"{joint.n_components_.mean():.2f} components/cell (K={int(joint.n_components_.sum())}"
+        f"), device image {device_bytes / 1e6:.2f} MB{', signed' if key else ''} + host annex "
+        f"{annex_bytes / 1e6:.2f} MB; score step {image.score_quantization['step']:.3g}; "
+        f"int8 loss {', '.join(f'{v:.3f}' for v in losses)} dB"
+    )
+    if not args.no_cache:
+        for i, db in enumerate(dbs):
+            _say_cache(db, None if args.cache is None else str(Path(args.cache) / f"look{i}"))
     return 0
 
 

@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="elevation, -90..90")
     parser.add_argument("-o", "--output", required=True, metavar="OUT.png")
     parser.add_argument("--key", metavar="KEYFILE", help="verify the image's tag with this key")
+    parser.add_argument("--look", metavar="NAME",
+                        help="the look to show of an image with several (a name or an index; "
+                             "default the first)")
     parser.add_argument("--blend", action="store_true",
                         help="the blend of the interpolated scores even for an image with depth "
                              "(what a device shows without the warp)")
@@ -43,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if not out.parent.exists():
         raise EigencastError(f"{out.parent}: output folder does not exist")
-    model = HostModel.load(args.model, key=load_key(args.key) if args.key else None)
+    model = HostModel.load(args.model, key=load_key(args.key) if args.key else None,
+                           look=args.look)
     phi, theta = canonical_view(args.phi, args.theta)  # the view as a device takes it
     warp = model.image.synthesis is not None and not args.blend
     if warp:
@@ -55,5 +59,6 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_bytes(out, encode_png(frame))
     h, w = model.image.image_shape
     print(f"wrote {out} ({w}x{h}, phi={args.phi:g}, theta={args.theta:g}; "
-          f"{'depth warp of the neighbouring views' if warp else 'blend of the scores'})")
+          f"{'depth warp of the neighbouring views' if warp else 'blend of the scores'}"
+          f"{f'; look {model.look}' if model.look else ''})")
     return 0

@@ -358,6 +358,7 @@ def build_image(
     extra_provenance: dict | None = None,
     measure_int8: bool = True,
     bit_budget: float = DEFAULT_BIT_BUDGET,
+    quantized: Any = None,
 ) -> tuple[EigenspaceImage, dict[str, np.ndarray]]:
     """Quantize ``model`` into an `EigenspaceImage` plus its host annex.
 
@@ -377,13 +378,16 @@ def build_image(
 
     ``bit_budget`` is `host.fit.quantize.quantize_eigenspace`'s bit allocation (a fraction of the
     model's residual MSE; 0: 8 bits for every component); the bits chosen are summarised in
-    ``provenance["eigen_bits"]`` and the int8 measurement covers them.
+    ``provenance["eigen_bits"]`` and the int8 measurement covers them. ``quantized`` (a
+    `QuantizedEigenspace` of ``model``) is used as it is instead (a look of a joint
+    eigenspace, `host.fit.looks.quantize_look`).
     """
     step = float(score_step) if score_step is not None else auto_score_step(model)
     if not step > 0:
         raise FitError(f"--score-step {score_step}: must be positive")
     interp = ScoreInterpolator(db.phi_deg, db.theta_deg, model.scores_, method=interpolation)
-    quantized = quantize_eigenspace(model, bit_budget=bit_budget)
+    if quantized is None:
+        quantized = quantize_eigenspace(model, bit_budget=bit_budget)
     bits = quantized.bits if quantized.bits is not None else np.zeros(0, np.int8)
     eigen_bits = {"bit_budget": float(bit_budget),
                   "mse_budget": float(bit_budget * residual_mse(model)),
@@ -488,6 +492,10 @@ class HostModel:
         Eigenvalue of each kept component (None for images written before the annex had it).
     total_variance : ndarray of shape (n_cells,), float64, or None
         Per-cell trace.
+    looks : tuple of str
+        The looks of the image it was loaded from (``()``: one look).
+    look : str or None
+        The look this model shows (None: the image has one).
     """
 
     image: EigenspaceImage
@@ -497,15 +505,37 @@ class HostModel:
     path: Path | None
     eigenvalues: np.ndarray | None = None
     total_variance: np.ndarray | None = None
+    looks: tuple[str, ...] = ()
+    look: str | None = None
 
     @classmethod
     def load(
-        cls, path: str | os.PathLike, *, key: bytes | None = None, interpolation: str | None = None
+        cls, path: str | os.PathLike, *, key: bytes | None = None, interpolation: str | None = None,
+        look: int | str | None = None,
     ) -> HostModel:
-        """Read ``path`` (with its annex; verified with ``key`` when given)."""
+        """Read ``path`` (with its annex; verified with ``key`` when given).
+
+        ``look`` (a name or an index; default the first) picks the look of an image with
+        several (`device_runtime.looks.look_image`): the model is that look's, with its render
+        settings; ``looks`` lists the image's look names and ``look`` the one loaded.
+
+        Raises
+        ------
+        FitError
+            No such look.
+        """
+        from device_runtime.looks import look_image, look_index, look_names
+
         image = read_model_image(path, key=key)
-        return cls.from_image(image, image.annex or {}, interpolation=interpolation,
-                              path=Path(path))
+        try:
+            index = look_index(image, look)
+        except ValueError as exc:
+            raise FitError(f"{path}: {exc}") from None
+        names = look_names(image)
+        model = cls.from_image(look_image(image, index), image.annex or {},
+                               interpolation=interpolation, path=Path(path))
+        model.looks, model.look = names, (names[index] if names else None)
+        return model
 
     @classmethod
     def from_image(

@@ -28,7 +28,8 @@ __all__ = ["Connection", "DeviceEvents", "device_opener"]
 
 
 class DeviceEvents:
-    """The host link's handler: newest VIEW_REQUEST, KEYFRAME_REQUESTs, NOTICEs."""
+    """The host link's handler: newest VIEW_REQUEST (and the look on show it names),
+    KEYFRAME_REQUESTs, NOTICEs."""
 
     def __init__(self, stats: ServeStats, say: Callable[[str], None]) -> None:
         self._cond = threading.Condition()
@@ -36,6 +37,8 @@ class DeviceEvents:
         self.sequence = 0
         self.fresh = False
         self.keyframe = False
+        self.look = 0
+        self.taken_look = 0
         self.stats = stats
         self.say = say
 
@@ -47,6 +50,7 @@ class DeviceEvents:
                     self.stats.coalesced += 1
                 self.view = canonical_view(msg.phi_deg, msg.theta_deg)
                 self.sequence = msg.sequence
+                self.look = msg.look or 0
                 self.fresh = True
             elif isinstance(msg, m.KeyframeRequest):
                 self.stats.keyframe_requests += 1
@@ -62,9 +66,11 @@ class DeviceEvents:
                 self._cond.wait(timeout_s)
 
     def take(self) -> tuple[tuple[float, float] | None, int, bool, bool]:
-        """(view, sequence, fresh, keyframe wanted) and clear the flags."""
+        """(view, sequence, fresh, keyframe wanted) and clear the flags; ``taken_look`` is
+        then the look the taken request named."""
         with self._cond:
             out = (self.view, self.sequence, self.fresh, self.keyframe)
+            self.taken_look = self.look
             self.fresh = False
             self.keyframe = False
             return out

@@ -50,6 +50,9 @@ class ServeStats:
         reach their first quality in fewer bytes.
     stride_frames : dict
         Moving frames per stride (str keys; "0": none fitted the budget).
+    look_switches : int
+        Times the device switched to another look of an image with several (each served
+        in its own look from then on).
     sessions, reconnects : int
     stream_seconds : float
         Time spent streaming (sessions, not connecting).
@@ -89,6 +92,7 @@ class ServeStats:
     layer_bytes: int = 0
     exact_views: int = 0
     skipped_corrections: int = 0
+    look_switches: int = 0
     stride_frames: dict = field(default_factory=dict)
     views: list = field(default_factory=list, repr=False)
 

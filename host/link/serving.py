@@ -23,6 +23,8 @@ streams one SCORES packet per view:
   packets (one line says so), and a model whose volume cannot be ray-cast sends the
   training views' scores interpolated at the view (``HostModel.quantized_scores``, at the
   canonical view: bit-identical to ``eigencast view --blend``).
+* **Which look.** An image with several looks is served in the look the device's requests
+  name (`host.link.serve_looks`); each SCORES says the look it was made for.
 * **A view that fails costs that view.** A view whose ray-cast (or coding) raises is sent as
   if it could not be ray-cast (the device keeps its own frame, or gets interpolated scores),
   counted (``ServeStats.failed_views``, said in one line), and the next one is corrected.
@@ -71,6 +73,7 @@ from host.link.layers import EncodedLayer
 from host.link.serve_link import Connection as _Connection
 from host.link.serve_link import DeviceEvents as _DeviceEvents
 from host.link.serve_link import device_opener as _device_opener
+from host.link.serve_looks import ServedLooks, served_looks
 from host.link.serve_stats import ServeStats
 from host.link.true_views import open_true_view_scores
 from protocol import messages as m
@@ -274,6 +277,8 @@ def serve(
         sources={} if motion is None else {
             "correct" if getattr(motion, "corrects", False) else "motion": motion},
         rest=rest,
+        looks=served_looks(model, model_path, key, renderer, lambda m: None if scores == (
+            "interpolate") else _open_renderer(m, volume, scores, say)),
     )
     return run.run()
 
@@ -403,6 +408,9 @@ class _Serving:
     failed_view: tuple[float, float] | None = None  # its refinement is not tried again
     failure_said: float | None = None  # when a failed view was last said (monotonic)
     score_room: int = 1 << 30  # the device's frame less the SCORES message around a packet
+    looks: ServedLooks | None = None  # an image with several looks
+    look: int = 0  # the look the device shows (the one served)
+    hello: m.HelloReply | None = None
 
     def run(self) -> ServeStats:
         """Serve sessions until done; reconnect after a lost link (or give up)."""
@@ -429,6 +437,8 @@ class _Serving:
         finally:
             self.deadline = None  # ends the watchdog
             self.sources.clear()
+            if self.looks is not None:
+                self.looks.close()
             if self.resting is not None:
                 self.resting.close()
         return self._finish()
@@ -530,6 +540,7 @@ class _Serving:
             threading.Thread(target=self._watch_deadline, daemon=True,
                              name="serve-deadline").start()
         self.streaming = True
+        self.hello = hello
         what = self._pick(hello)
         self.say(f"serving {Path(self.settings.model_path).name} to device '{hello.device_id}' "
                  f"({'orbit ' + orbit.spec if orbit else 'view requests'}; "
@@ -627,6 +638,8 @@ class _Serving:
             if not self._may_send(conn, now):
                 continue
             request = conn.events.take()
+            if self.looks is not None:
+                self.looks.follow(self, conn.events.taken_look)
             self._check_sources()
             if conn.linger_until is not None and now >= conn.linger_until:
                 break
@@ -865,8 +878,9 @@ class _Serving:
             sent.set()
 
         try:
-            conn.session.send_scores(m.Scores(sequence=frame.sequence, packet=encoded.packet),
-                                     after_sent=left)
+            look = self.look if self.looks is not None else None
+            conn.session.send_scores(m.Scores(sequence=frame.sequence, packet=encoded.packet,
+                                              look=look), after_sent=left)
         except ValueError as exc:  # the packet does not fit the device's frames
             kind = self.encoder.last_kind
             raise ServeError(
