@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from device_runtime.orbit import canonical_view
 from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import StandaloneScores
-from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
+from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer
+from device_runtime.warp_worker import WarpWorker
 from protocol.image import read_image
 
 TICK_S = 1.0 / 60.0

@@ -197,7 +197,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
     from bench_link import quality
 
     from device_runtime.orbit import canonical_view
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
     from host.link.serving import serve
 
     scores, predict = SESSION_MODES[mode]

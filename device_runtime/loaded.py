@@ -30,7 +30,8 @@ from device_runtime.looks import look_image, look_names
 from device_runtime.prediction import Predictor, can_predict
 from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import StandaloneScores
-from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer, WarpWorker
+from device_runtime.synthesis import WORKER_SCRATCH_BYTES, ViewSynthesizer
+from device_runtime.warp_worker import WarpWorker
 from protocol.image import EigenspaceImage
 from protocol.layers import LayerAssembly, LayerChunk
 from protocol.scores import DecodedScores, ScoreDecoder, score_bound

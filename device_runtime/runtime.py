@@ -13,7 +13,7 @@ HELLO, provisioning and every other request) that also shows frames. Threads::
         the frame the policy picks (device_runtime.scheduler) -> present
         view changes -> VIEW_REQUEST through a rate limiter (latest wins) -> link writer
     warp worker thread: the depth warp of the view on show, or of the next view of steady
-        motion (device_runtime.synthesis.WarpWorker)
+        motion (device_runtime.warp_worker.WarpWorker)
 
 * The display never waits for the link: the dispatcher decodes every packet (so delta
   chains stay intact) and leaves only the newest in a one-item slot; the display loop

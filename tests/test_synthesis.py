@@ -700,7 +700,8 @@ def test_a_warp_superseded_by_a_newer_view_is_given_up(depth_model):
     asking the same view again does not restart it."""
     import threading
 
-    from device_runtime.synthesis import WarpCancelled, WarpWorker
+    from device_runtime.warp_worker import WarpWorker
+    from device_runtime.warping import WarpCancelled
 
     first, second = (10.0, 5.0), (40.0, -20.0)
     started = threading.Event()
@@ -748,7 +749,7 @@ def test_a_warp_superseded_by_a_newer_view_is_given_up(depth_model):
 
 
 def test_the_warp_worker_holds_a_view_only_while_views_come_faster_than_warps():
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     hold = WarpWorker.hold_for
     assert hold(None, 0.016) == 0.0 and hold(0.04, None) == 0.0  # first warp; at rest
@@ -780,7 +781,7 @@ def test_a_fast_drag_starts_no_warps_nobody_would_see_and_the_last_view_is_made(
     """Views asked every 2 ms of warps that take 60 ms: after the first warps tell the
     worker how long a warp takes, the requests are replaced before theirs start; once the
     drag stops, the last view's warp is made."""
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     synth = _Sleepy(0.06)
     worker = WarpWorker(synth)
@@ -805,7 +806,8 @@ def test_a_drag_that_begins_while_the_neighbours_are_made_is_warped_once_they_ar
     """The first warp of a drag makes neighbours and is given up late for the next view:
     that is no warp's time (the neighbours stay cached), so the views after it are not
     held but warped (the worker used to hold every view of the drag until it stopped)."""
-    from device_runtime.synthesis import WarpCancelled, WarpWorker
+    from device_runtime.warp_worker import WarpWorker
+    from device_runtime.warping import WarpCancelled
 
     class Cold(_Sleepy):
         misses = 0
@@ -840,7 +842,7 @@ def test_a_held_drag_measures_a_warp_again_and_warps_once_warps_are_quick():
     views then come every 5 ms and each warp takes 1 ms. Held views are replaced unstarted,
     but a probe starts every `PROBE_S`, measures a quick warp, and the views after it are
     warped (the worker used to hold every view until the motion stopped)."""
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     synth = _Sleepy(0.001)
     worker = WarpWorker(synth)
@@ -862,7 +864,7 @@ def test_a_held_drag_measures_a_warp_again_and_warps_once_warps_are_quick():
 def test_take_with_a_timeout_gets_a_held_or_unasked_view_at_once():
     """A caller that needs a view's frame (a host correction for it arrived) does not wait
     out the hold, and gets a view nobody asked for too."""
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     synth = _Sleepy(0.0)
     worker = WarpWorker(synth)
@@ -885,7 +887,7 @@ def test_the_next_view_of_steady_motion_is_predicted_exactly():
     across 360 and at steps float32 cannot hold); a hand's uneven drag, a pause or a view
     at rest predict nothing."""
     from device_runtime.orbit import canonical_view
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     predict = WarpWorker.predicted_view
 
@@ -909,7 +911,7 @@ def test_an_idle_worker_warps_the_next_view_of_steady_motion_ahead(depth_model):
     show: asked for, it is there at once, bit for bit the view's frame; a view asked that
     was not predicted gives the guess up and is made as before."""
     from device_runtime.orbit import canonical_view
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     image = read_image(depth_model, key=KEY)
     fresh = ViewSynthesizer(image, StandaloneScores(image), Reconstructor.from_image(image))
@@ -1234,7 +1236,7 @@ def test_steady_motion_faster_than_a_warp_is_led_by_warps_made_ahead():
     as a warp takes; those frames are there when their views are asked. (The old worker
     held every view, and its probes were given up at the next request: no warp was seen
     until the motion stopped.)"""
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     synth = _Sleepy(0.012)
     worker = WarpWorker(synth)
@@ -1260,7 +1262,7 @@ def test_a_cold_warp_that_made_its_neighbours_does_not_hold_the_motion_after_it(
     """The first warp makes its neighbours (60 ms); the warps after it take 1 ms. That cold
     warp is no warp's time: views then asked every 5 ms are warped, not held. (The old worker
     took 60 ms as a warp's time and held every view of an unsteady drag until a probe.)"""
-    from device_runtime.synthesis import WarpWorker
+    from device_runtime.warp_worker import WarpWorker
 
     class ColdOnce(_Sleepy):
         misses = 0
