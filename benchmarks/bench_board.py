@@ -210,14 +210,16 @@ def session(image_path: Path, flash0: Path, trace: str, slowdown: float, link: s
             url_host = "socket://" + bound["url"].split("://", 1)[1]
 
         def host() -> None:
+            from host.link.options import ServeOptions, ServeParts
             from host.link.serving import serve
 
             _pin({1})
             try:
-                host_out["stats"] = serve(
-                    image_path, url_host, baud=int(BAUD * slowdown), insecure=True,
-                    deadline_s=0.033 / slowdown, fps=60.0 * slowdown, stop=stop,
-                    log=lambda line: None, stats_every_s=0)
+                host_out["stats"] = serve(image_path, url_host,
+                                          ServeOptions(baud=int(BAUD * slowdown), insecure=True,
+                                                       deadline_s=0.033 / slowdown,
+                                                       fps=60.0 * slowdown, stats_every_s=0),
+                                          ServeParts(stop=stop, log=lambda line: None))
             except BaseException as exc:  # reported below
                 host_out["error"] = exc
 

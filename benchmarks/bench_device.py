@@ -116,7 +116,6 @@ from protocol.scores import ScoreDecoder, encode_scores  # noqa: E402
 MB = 1e6
 MAX_FRAME = 65536
 """Device frame limit on the paced line (``eigencast-device --max-frame 65536``)."""
-QUIET = {"show_progress": False, "log": lambda line: None}
 
 
 # --------------------------------------------------------------------------- models
@@ -487,6 +486,7 @@ def print_tag_cost(r: dict) -> None:
 
 def provisioned_flash(case: Case, work: Path) -> Path:
     """A flash folder holding ``case``'s image (provisioned over TCP once, then reused)."""
+    from host.link.options import ProvisionOptions, ProvisionParts
     from host.link.provisioning import provision
     from protocol.keys import load_key
 
@@ -501,7 +501,8 @@ def provisioned_flash(case: Case, work: Path) -> Path:
                            str(max(64, int(2 * case.path.stat().st_size / MB) + 8)),
                            key_file=keyf)
     try:
-        provision(case.path, device.url, key=load_key(keyf), **QUIET)
+        provision(case.path, device.url, ProvisionOptions(key=load_key(keyf), show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     finally:
         device.stop()
     marker.write_text(digest)
@@ -522,6 +523,7 @@ def host_compute_ms(case: Case, views: list[tuple[float, float]]) -> float:
 
 
 def section_latency(case: Case, work: Path, n_views: int, frame: dict | None) -> dict:
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
     from protocol.keys import load_key
 
@@ -539,8 +541,9 @@ def section_latency(case: Case, work: Path, n_views: int, frame: dict | None) ->
                            key_file=keyf)
     t0 = time.perf_counter()
     try:
-        serve(case.path, device.url, key=load_key(keyf), fps=0, reconnect=False,
-              stats_every_s=0, log=lambda line: None, model=case.model)
+        serve(case.path, device.url,
+              ServeOptions(key=load_key(keyf), fps=0, reconnect=False, stats_every_s=0),
+              ServeParts(log=lambda line: None, model=case.model))
     finally:
         rc = device.stop()
     wall = time.perf_counter() - t0
@@ -624,6 +627,7 @@ def print_bytes(r: dict) -> None:
 
 
 def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
     from protocol.keys import load_key
 
@@ -659,9 +663,10 @@ def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
 
         watcher = threading.Thread(target=watch, daemon=True)
         watcher.start()
-        serve(case.path, device.url, key=load_key(keyf), orbit=parse_orbit("turn:12:15"),
-              fps=400, reconnect=False, stats_every_s=0, log=lambda line: None,
-              model=case.model)
+        serve(case.path, device.url,
+              ServeOptions(key=load_key(keyf), orbit=parse_orbit("turn:12:15"), fps=400,
+                           reconnect=False, stats_every_s=0),
+              ServeParts(log=lambda line: None, model=case.model))
     finally:
         rc = device.stop()
         done.set()
@@ -707,6 +712,7 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
 
     from device_runtime.device import DeviceConfig
     from device_runtime.orbit import parse_orbit
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
     from protocol.keys import load_key
 
@@ -723,10 +729,11 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
                                   max_frame_bytes=MAX_FRAME)
             rt = RuntimeThread(flash, f"mem://{name}?end=b", baud=baud, config=config)
             try:
-                stats = serve(case.path, f"mem://{name}?end=a", baud=baud, key=key,
-                              orbit=parse_orbit("turn:12:15"), fps=0, keyframe_interval=interval,
-                              duration_s=seconds, stats_every_s=0, log=lambda line: None,
-                              model=case.model, reconnect=False)
+                stats = serve(case.path, f"mem://{name}?end=a",
+                              ServeOptions(baud=baud, key=key, orbit=parse_orbit("turn:12:15"),
+                                           fps=0, keyframe_interval=interval, duration_s=seconds,
+                                           stats_every_s=0, reconnect=False),
+                              ServeParts(log=lambda line: None, model=case.model))
                 presented = rt.device.runtime_stats.frames_presented
             finally:
                 rt.stop()
@@ -828,6 +835,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     depth; else the blend) and corrects (`Reconstructor.correct`)."""
     from device_runtime.image_receiver import required_ram_bytes
     from device_runtime.synthesis import synthesis_memory_bytes
+    from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
     from host.link.provisioning import provision
     from protocol.image import read_image, read_manifest
 
@@ -838,7 +846,8 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     device = DeviceProcess(flash, "--headless", "--insecure", "--ram-budget", "1024",
                            "--flash-size", str(max(64, int(2 * path.stat().st_size / MB) + 8)))
     try:
-        provision(path, device.url, insecure=True, **QUIET)
+        provision(path, device.url, ProvisionOptions(insecure=True, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     finally:
         device.stop()
     image = read_image(path, read_annex=False)
@@ -861,6 +870,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     served_stats: list[Any] = []  # serve's statistics (served)
     if served:
         from device_runtime.orbit import parse_orbit
+        from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
         from host.link.serving import serve
 
         device = DeviceProcess(flash, "--insecure", *run)
@@ -870,9 +880,11 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
 
         def host() -> None:
             try:
-                served_stats.append(serve(path, device.url, insecure=True, reconnect=False,
-                                          orbit=parse_orbit("turn:12:15:1"), stop=stop,
-                                          stats_every_s=0, log=lambda line: None))
+                served_stats.append(serve(path, device.url,
+                                          ServeOptions(insecure=True, reconnect=False,
+                                                       orbit=parse_orbit("turn:12:15:1"),
+                                                       stats_every_s=0),
+                                          ServeParts(stop=stop, log=lambda line: None)))
             except BaseException as exc:  # reported below
                 failed.append(exc)
 

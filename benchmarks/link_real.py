@@ -11,7 +11,7 @@ The trace's view is set on the device at each tick (as a drag in the window does
   corrections of exactly that frame (sparse while the view moves, complete at rest);
 * ``served-blend``: the same with the same database fitted ``--no-depth`` (``--blend-cache``
   holds ``VOLUME-SIZE.ecs``): the device's own frame is the blend of its predicted scores;
-* ``motion``: what an older device gets: ``serve(..., scores="motion")`` (absolute scores
+* ``motion``: what an older device gets: ``ServeOptions(scores="motion")`` (absolute scores
   of a sparse ray-cast, key and delta packets) to a device that does not predict;
 * ``webp`` (``webpN``: N line ticks): a stream of WebP files, each the highest quality
   whose frame takes at most N ticks of the line (``webp`` = ``webp1``: one per tick, so it
@@ -132,6 +132,7 @@ def wait_for(predicate: Any, timeout_s: float) -> bool:
 
 def provisioned_flash(model_path: Path, work: Path) -> Path:
     """A flash folder holding ``model_path``'s image (provisioned once, unpaced)."""
+    from host.link.options import ProvisionOptions, ProvisionParts
     from host.link.provisioning import provision
 
     flash = work / f"flash-{model_path.parent.name}-{model_path.stem}"
@@ -142,8 +143,9 @@ def provisioned_flash(model_path: Path, work: Path) -> Path:
     dev = DeviceThreads(flash, f"mem://{name}?end=b&pace=0", 115200, predict=False,
                         view=(0.0, 0.0), record=False)
     try:
-        provision(model_path, f"mem://{name}?end=a&pace=0", insecure=True, show_progress=False,
-                  log=lambda line: None)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(insecure=True, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     finally:
         dev.stop()
     (flash / ".done").write_text("ok")
@@ -198,6 +200,7 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
 
     from device_runtime.orbit import canonical_view
     from device_runtime.synthesis import WarpWorker
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
 
     scores, predict = SESSION_MODES[mode]
@@ -212,11 +215,13 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
 
     def host() -> None:
         try:
-            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
-                                 scores=scores, stop=stop, log=lambda line: None,
-                                 model=case.model, renderer=case.renderer, stats_every_s=0,
-                                 motion=source,
-                                 on_frame=lambda enc, view: sent.append(time.monotonic()))
+            out["stats"] = serve(model_path, f"mem://{name}?end=a",
+                                 ServeOptions(baud=baud, insecure=True, scores=scores,
+                                              stats_every_s=0),
+                                 ServeParts(stop=stop, log=lambda line: None, model=case.model,
+                                            renderer=case.renderer, motion=source,
+                                            on_frame=lambda enc, view: sent.append(
+                                                time.monotonic())))
         except BaseException as exc:  # reported below
             out["error"] = exc
 
@@ -530,6 +535,7 @@ def rest_session(case: Any, model_path: Path, flash0: Path, views: list[tuple[fl
 
     from device_runtime.orbit import canonical_view
     from host.link.layers import EncodedLayer
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
 
     flash = work / f"flash-rest-{uuid.uuid4().hex[:8]}"
@@ -549,10 +555,11 @@ def rest_session(case: Any, model_path: Path, flash0: Path, views: list[tuple[fl
 
     def host() -> None:
         try:
-            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
-                                 stop=stop, log=lambda line: None, model=case.model,
-                                 renderer=case.renderer, stats_every_s=0, motion=source,
-                                 on_frame=queued)
+            out["stats"] = serve(model_path, f"mem://{name}?end=a",
+                                 ServeOptions(baud=baud, insecure=True, stats_every_s=0),
+                                 ServeParts(stop=stop, log=lambda line: None, model=case.model,
+                                            renderer=case.renderer, motion=source,
+                                            on_frame=queued))
         except BaseException as exc:  # reported below
             out["error"] = exc
 

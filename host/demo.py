@@ -236,6 +236,7 @@ def run_demo(
     """
     from host.cli import main as eigencast
     from host.fit.model import HostModel
+    from host.link.options import ProvisionOptions, ServeOptions, ServeParts
     from host.link.provisioning import provision
     from host.link.serving import serve
     from protocol.keys import load_key, write_key
@@ -295,7 +296,7 @@ def run_demo(
                  f"listening on tcp-listen://127.0.0.1:{device.port}; the host connects to "
                  f"{device.url} (log: {work / 'device.log'})")
         _step(4, f"provision {model_path.name} on the device")
-        result = provision(model_path, device.url, key=key, show_progress=True)
+        result = provision(model_path, device.url, ProvisionOptions(key=key, show_progress=True))
         summary["provision"] = result.outcome
         print(f"      {result.outcome}: {result.size_bytes} bytes in slot {result.slot}",
               file=sys.stderr)
@@ -308,8 +309,9 @@ def run_demo(
                      "warps its own frame of each view, the host corrects it from a sparse "
                      "ray-cast within the frame deadline; the device writes every "
                      f"{settings.every}th frame to {frames}")
-            stats = serve(model_path, device.url, key=key, orbit=orbit, fps=60, model=model,
-                          stats_every_s=0, log=lambda line: None)
+            stats = serve(model_path, device.url,
+                          ServeOptions(key=key, orbit=orbit, fps=60, stats_every_s=0),
+                          ServeParts(model=model, log=lambda line: None))
             time.sleep(1.2)  # the device's statistics file is refreshed every second
         else:
             _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
@@ -323,8 +325,9 @@ def run_demo(
                 stop.set()
 
             threading.Thread(target=watch, daemon=True).start()
-            stats = serve(model_path, device.url, key=key, model=model, stop=stop,
-                          stats_every_s=10.0, max_reconnects=3)
+            stats = serve(model_path, device.url,
+                          ServeOptions(key=key, stats_every_s=10.0, max_reconnects=3),
+                          ServeParts(model=model, stop=stop))
         summary["serve"] = stats.as_dict()
     finally:
         device.stop()
