@@ -485,10 +485,7 @@ def evaluate_model(
     """
     pairs = _view_pairs(model, scene, views)
     workers = default_metric_workers() if metric_workers is None else int(metric_workers)
-    run = _Evaluating(model, scene, Evaluation(info={**model_info(model), **(info or {})},
-                                               views=[]),
-                      _Metrics(workers), workers, nearest, sample_views, rd_views, on_view)
-    run.evaluation.info["metric_workers"] = workers
+    run = _Evaluating(model, scene, info, workers, nearest, sample_views, rd_views, on_view)
     try:  # (the metric workers start with the first view's metrics)
         run.open_baselines(webp_db_quality, rest_planner, progress)
         if motion_deadline_s is not None:
@@ -501,20 +498,10 @@ def evaluate_model(
             while run.in_flight:
                 run.finish(bar)
         if run.rd_refs:
-            t0 = time.perf_counter()
-            run.evaluation.rd = _rate_distortion(model, run.rd_refs, thresholds, step_factors,
-                                                 qualities, run.metrics, progress=progress,
-                                                 pca=rd_pca)
-            run.timing["rate_distortion"] = time.perf_counter() - t0
-            run.evaluation.info["rd_views"] = len(run.rd_refs)
+            run.rate_distortion(thresholds, step_factors, qualities, progress, rd_pca)
     finally:
         run.metrics.close()
-    evaluation = run.evaluation
-    if run.webp_db is not None:
-        evaluation.info["webp_db_storage_bytes"] = run.webp_db.storage_bytes
-        evaluation.info["webp_db_storage_estimated"] = run.webp_db.storage_estimated
-    evaluation.timing_s = {k: round(v, 3) for k, v in run.timing.items()}
-    return evaluation
+    return run.result()
 
 
 def _view_pairs(model: Any, scene: Any, views: Any) -> list[tuple[float, float]]:
@@ -544,10 +531,13 @@ class _Evaluating:
     (:meth:`_codec_frames`), the baselines' (:meth:`_baseline_frames`), and the metrics
     submitted; :meth:`finish` collects a view's metrics in order."""
 
-    def __init__(self, model: Any, scene: Any, evaluation: Evaluation, metrics: _Metrics,
-                 workers: int, nearest: bool, sample_views: int, rd_views: int,
+    def __init__(self, model: Any, scene: Any, info: dict | None, workers: int, nearest: bool,
+                 sample_views: int, rd_views: int,
                  on_view: Callable[[int, dict], None] | None) -> None:
-        self.model, self.scene, self.evaluation, self.metrics = model, scene, evaluation, metrics
+        self.model, self.scene = model, scene
+        self.evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
+        self.evaluation.info["metric_workers"] = workers
+        self.metrics = _Metrics(workers)
         self.workers, self.nearest, self.sample_views = workers, nearest, sample_views
         self.rd_views, self.on_view = rd_views, on_view
         self.timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "motion": 0.0,
@@ -731,6 +721,25 @@ class _Evaluating:
             self.timing["nearest"] += time.perf_counter() - t3
             record["nearest"] = {"bytes_per_view": png_bytes, "index": index,
                                  "angle_deg": angle}
+
+    def rate_distortion(self, thresholds: Sequence[float], step_factors: Sequence[float],
+                        qualities: Sequence[int], progress: bool, pca: bool) -> None:
+        """The rate-distortion sweep on the first ``rd_views`` views."""
+        t0 = time.perf_counter()
+        self.evaluation.rd = _rate_distortion(self.model, self.rd_refs, thresholds,
+                                              step_factors, qualities, self.metrics,
+                                              progress=progress, pca=pca)
+        self.timing["rate_distortion"] = time.perf_counter() - t0
+        self.evaluation.info["rd_views"] = len(self.rd_refs)
+
+    def result(self) -> Evaluation:
+        """The evaluation, with the WebP database's storage and the timings."""
+        evaluation = self.evaluation
+        if self.webp_db is not None:
+            evaluation.info["webp_db_storage_bytes"] = self.webp_db.storage_bytes
+            evaluation.info["webp_db_storage_estimated"] = self.webp_db.storage_estimated
+        evaluation.timing_s = {k: round(v, 3) for k, v in self.timing.items()}
+        return evaluation
 
     def finish(self, bar: Any) -> None:
         """Collect the oldest view's metrics into its record (and sample), in order."""
