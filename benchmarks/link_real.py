@@ -196,8 +196,6 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
     driven by ``trace``; each tick's frame is the one on show ``sample_delay_s`` after the
     tick's view was set, scored against ``case.render`` of the tick's view. ``source``:
     the host's sparse source (`prepared_source`; default: serve builds a fresh one)."""
-    from bench_link import quality
-
     from device_runtime.orbit import canonical_view
     from device_runtime.synthesis import WarpWorker
     from host.link.options import ServeOptions, ServeParts
@@ -262,22 +260,8 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
         shutil.rmtree(flash, ignore_errors=True)
     stats = out.get("stats")
     shown = dev.shown
-    ssims, flips, new = [], [], 0
-    kinds: dict[str, list[float]] = {}  # what was on show at the samples: SSIMs per kind
-    prev = None
-    for i, view in enumerate(trace):
-        t_tick = min(t0 + i * dt + sample_delay_s, t_end)
-        k = max((j for j, (t, _, _) in enumerate(shown) if t <= t_tick), default=None)
-        if k is None:
-            continue
-        if prev is not None and k != prev:
-            new += 1
-        prev = k
-        rgb, mask = case.render(view)
-        s_, f_ = quality(rgb, shown[k][1], mask)
-        ssims.append(s_)
-        flips.append(f_)
-        kinds.setdefault(frame_kind(shown[k][2], views_set[i]), []).append(s_)
+    ticks = [min(t0 + i * dt + sample_delay_s, t_end) for i in range(len(trace))]
+    ssims, flips, new, kinds = _score_ticks(case, trace, shown, views_set, ticks)
     seconds = len(trace) * dt
     packets = counts[0]
     # from each view change to the first frame of that view on show (own or host's)
@@ -304,6 +288,31 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
             "host_gap_s": max_gap([t for t in sent if t0 <= t <= t_end], t0, t_end),
             "unchanged": stats.unchanged_frames if stats else 0,
             "converged": stats.converged_frames if stats else 0}
+
+
+def _score_ticks(case: Any, trace: list[tuple[float, float]], shown: list, views_set: list,
+                 ticks: list[float]) -> tuple[list[float], list[float], int, dict]:
+    """Score the frame on show at each tick's sample time against ``case.render`` of the
+    tick's view: (SSIMs, FLIPs, how many times a new frame was on show, SSIMs per kind of
+    frame, `frame_kind`)."""
+    from bench_link import quality
+
+    ssims, flips, new = [], [], 0
+    kinds: dict[str, list[float]] = {}  # what was on show at the samples: SSIMs per kind
+    prev = None
+    for i, view in enumerate(trace):
+        k = max((j for j, (t, _, _) in enumerate(shown) if t <= ticks[i]), default=None)
+        if k is None:
+            continue
+        if prev is not None and k != prev:
+            new += 1
+        prev = k
+        rgb, mask = case.render(view)
+        s_, f_ = quality(rgb, shown[k][1], mask)
+        ssims.append(s_)
+        flips.append(f_)
+        kinds.setdefault(frame_kind(shown[k][2], views_set[i]), []).append(s_)
+    return ssims, flips, new, kinds
 
 
 def frame_kind(info: dict, view: tuple[float, float]) -> str:
