@@ -127,7 +127,7 @@ class _RenderJob:
 CONFIGS = ("threads", "local1", "local2")
 
 
-def main() -> int:
+def _parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--volume", default="builtin:tooth")
     ap.add_argument("--views", default="fibonacci:1500")
@@ -142,7 +142,11 @@ def main() -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--estimate-1080", type=int, metavar="N", default=0,
                     help="only time N views at 1080x1080 of the shared tooth and head")
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> int:
+    args = _parse_args()
     if args.estimate_1080:
         return _estimate_1080(args.estimate_1080)
     if args.quick:

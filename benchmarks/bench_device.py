@@ -116,7 +116,6 @@ from protocol.scores import ScoreDecoder, encode_scores  # noqa: E402
 MB = 1e6
 MAX_FRAME = 65536
 """Device frame limit on the paced line (``eigencast-device --max-frame 65536``)."""
-QUIET = {"show_progress": False, "log": lambda line: None}
 
 
 # --------------------------------------------------------------------------- models
@@ -487,6 +486,7 @@ def print_tag_cost(r: dict) -> None:
 
 def provisioned_flash(case: Case, work: Path) -> Path:
     """A flash folder holding ``case``'s image (provisioned over TCP once, then reused)."""
+    from host.link.options import ProvisionOptions, ProvisionParts
     from host.link.provisioning import provision
     from protocol.keys import load_key
 
@@ -501,7 +501,8 @@ def provisioned_flash(case: Case, work: Path) -> Path:
                            str(max(64, int(2 * case.path.stat().st_size / MB) + 8)),
                            key_file=keyf)
     try:
-        provision(case.path, device.url, key=load_key(keyf), **QUIET)
+        provision(case.path, device.url, ProvisionOptions(key=load_key(keyf), show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     finally:
         device.stop()
     marker.write_text(digest)
@@ -522,6 +523,7 @@ def host_compute_ms(case: Case, views: list[tuple[float, float]]) -> float:
 
 
 def section_latency(case: Case, work: Path, n_views: int, frame: dict | None) -> dict:
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
     from protocol.keys import load_key
 
@@ -539,8 +541,9 @@ def section_latency(case: Case, work: Path, n_views: int, frame: dict | None) ->
                            key_file=keyf)
     t0 = time.perf_counter()
     try:
-        serve(case.path, device.url, key=load_key(keyf), fps=0, reconnect=False,
-              stats_every_s=0, log=lambda line: None, model=case.model)
+        serve(case.path, device.url,
+              ServeOptions(key=load_key(keyf), fps=0, reconnect=False, stats_every_s=0),
+              ServeParts(log=lambda line: None, model=case.model))
     finally:
         rc = device.stop()
     wall = time.perf_counter() - t0
@@ -624,6 +627,7 @@ def print_bytes(r: dict) -> None:
 
 
 def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
     from protocol.keys import load_key
 
@@ -659,9 +663,10 @@ def section_rss(case: Case, work: Path, frames: int, bare: int) -> dict:
 
         watcher = threading.Thread(target=watch, daemon=True)
         watcher.start()
-        serve(case.path, device.url, key=load_key(keyf), orbit=parse_orbit("turn:12:15"),
-              fps=400, reconnect=False, stats_every_s=0, log=lambda line: None,
-              model=case.model)
+        serve(case.path, device.url,
+              ServeOptions(key=load_key(keyf), orbit=parse_orbit("turn:12:15"), fps=400,
+                           reconnect=False, stats_every_s=0),
+              ServeParts(log=lambda line: None, model=case.model))
     finally:
         rc = device.stop()
         done.set()
@@ -707,6 +712,7 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
 
     from device_runtime.device import DeviceConfig
     from device_runtime.orbit import parse_orbit
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
     from protocol.keys import load_key
 
@@ -723,10 +729,11 @@ def section_serial(case: Case, work: Path, seconds: float, baud: int) -> dict:
                                   max_frame_bytes=MAX_FRAME)
             rt = RuntimeThread(flash, f"mem://{name}?end=b", baud=baud, config=config)
             try:
-                stats = serve(case.path, f"mem://{name}?end=a", baud=baud, key=key,
-                              orbit=parse_orbit("turn:12:15"), fps=0, keyframe_interval=interval,
-                              duration_s=seconds, stats_every_s=0, log=lambda line: None,
-                              model=case.model, reconnect=False)
+                stats = serve(case.path, f"mem://{name}?end=a",
+                              ServeOptions(baud=baud, key=key, orbit=parse_orbit("turn:12:15"),
+                                           fps=0, keyframe_interval=interval, duration_s=seconds,
+                                           stats_every_s=0, reconnect=False),
+                              ServeParts(log=lambda line: None, model=case.model))
                 presented = rt.device.runtime_stats.frames_presented
             finally:
                 rt.stop()
@@ -815,6 +822,25 @@ def section_warp(path: Path, frames: int) -> dict:
             "required_ram_bytes": required_ram_bytes(manifest)}
 
 
+def _unkeyed_flash_holding(path: Path, work: Path) -> Path:
+    """A fresh flash folder under ``work`` holding ``path``'s image, provisioned to an
+    unkeyed device over loopback (the image need not be signed: memory, not trust)."""
+    from host.link.options import ProvisionOptions, ProvisionParts
+    from host.link.provisioning import provision
+
+    work.mkdir(parents=True, exist_ok=True)
+    flash = work / f"flash-rss-{path.stem}"
+    shutil.rmtree(flash, ignore_errors=True)
+    device = DeviceProcess(flash, "--headless", "--insecure", "--ram-budget", "1024",
+                           "--flash-size", str(max(64, int(2 * path.stat().st_size / MB) + 8)))
+    try:
+        provision(path, device.url, ProvisionOptions(insecure=True, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
+    finally:
+        device.stop()
+    return flash
+
+
 def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
                      served: bool = False) -> dict:
     """(w, memory): peak RSS of a real ``eigencast-device --standalone`` process showing
@@ -828,19 +854,9 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     depth; else the blend) and corrects (`Reconstructor.correct`)."""
     from device_runtime.image_receiver import required_ram_bytes
     from device_runtime.synthesis import synthesis_memory_bytes
-    from host.link.provisioning import provision
     from protocol.image import read_image, read_manifest
 
-    work.mkdir(parents=True, exist_ok=True)
-    flash = work / f"flash-rss-{path.stem}"
-    shutil.rmtree(flash, ignore_errors=True)
-    # an unkeyed device over loopback: the image need not be signed (memory, not trust)
-    device = DeviceProcess(flash, "--headless", "--insecure", "--ram-budget", "1024",
-                           "--flash-size", str(max(64, int(2 * path.stat().st_size / MB) + 8)))
-    try:
-        provision(path, device.url, insecure=True, **QUIET)
-    finally:
-        device.stop()
+    flash = _unkeyed_flash_holding(path, work)
     image = read_image(path, read_annex=False)
     manifest = read_manifest(path)
     eig = eigenspace_bytes(image)
@@ -861,6 +877,7 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
     served_stats: list[Any] = []  # serve's statistics (served)
     if served:
         from device_runtime.orbit import parse_orbit
+        from host.link.options import ServeOptions, ServeParts
         from host.link.serving import serve
 
         device = DeviceProcess(flash, "--insecure", *run)
@@ -870,9 +887,11 @@ def section_warp_rss(path: Path, work: Path, frames: int, bare: int,
 
         def host() -> None:
             try:
-                served_stats.append(serve(path, device.url, insecure=True, reconnect=False,
-                                          orbit=parse_orbit("turn:12:15:1"), stop=stop,
-                                          stats_every_s=0, log=lambda line: None))
+                served_stats.append(serve(path, device.url,
+                                          ServeOptions(insecure=True, reconnect=False,
+                                                       orbit=parse_orbit("turn:12:15:1"),
+                                                       stats_every_s=0),
+                                          ServeParts(stop=stop, log=lambda line: None)))
             except BaseException as exc:  # reported below
                 failed.append(exc)
 
@@ -981,7 +1000,7 @@ def parse_sizes(text: str) -> list[int]:
     return [int(s) for s in text.split(",") if s.strip()]
 
 
-def main() -> int:
+def _parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: tiny models, few frames")
     parser.add_argument("--work", type=Path, default=REPO / "bench-out" / "device")
@@ -1011,31 +1030,41 @@ def main() -> int:
                         help="section x: comma-separated standalone images (.ecs with annex)")
     parser.add_argument("--correction-stride", type=int, default=4,
                         help="section x: the moving corrections' sample stride")
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def main_warp(args: argparse.Namespace) -> int:
+    """Section w: the standalone frame, synthesized vs blended (and the devices' peak RSS
+    with --rss-frames)."""
+    frames = args.frames or 40
+    print(f"(w) standalone frame: synthesized (warp by depth) vs blended, median of "
+          f"{frames} drag frames; load {os.getloadavg()[0]:.1f}", flush=True)
+    row = section_warp(args.warp_image, frames)
+    print_warp(row)
+    out: dict[str, Any] = {"warp": row}
+    if args.rss_frames:
+        bare = bare_rss_bytes()
+        rows = []
+        for served in (False, True) if args.served_rss else (False,):
+            print(f"(w) device peak RSS, {'served' if served else 'standalone'} process, "
+                  f"{args.rss_frames} orbit frames", flush=True)
+            for path in [args.warp_image, *([args.warp_baseline] if args.warp_baseline
+                                            else [])]:
+                rows.append(section_warp_rss(path, args.work, args.rss_frames, bare,
+                                             served=served))
+                print_warp_rss(rows[-1])
+        out["warp_rss"] = rows
+    if args.json:
+        print(json.dumps(out))
+    return 0
+
+
+def main() -> int:
+    args = _parse_args()
     if args.sections == "x":
         return main_correction(args)
     if args.warp_image is not None and args.sections == "w":
-        frames = args.frames or 40
-        print(f"(w) standalone frame: synthesized (warp by depth) vs blended, median of "
-              f"{frames} drag frames; load {os.getloadavg()[0]:.1f}", flush=True)
-        row = section_warp(args.warp_image, frames)
-        print_warp(row)
-        out: dict[str, Any] = {"warp": row}
-        if args.rss_frames:
-            bare = bare_rss_bytes()
-            rows = []
-            for served in (False, True) if args.served_rss else (False,):
-                print(f"(w) device peak RSS, {'served' if served else 'standalone'} process, "
-                      f"{args.rss_frames} orbit frames", flush=True)
-                for path in [args.warp_image, *([args.warp_baseline] if args.warp_baseline
-                                                else [])]:
-                    rows.append(section_warp_rss(path, args.work, args.rss_frames, bare,
-                                                 served=served))
-                    print_warp_rss(rows[-1])
-            out["warp_rss"] = rows
-        if args.json:
-            print(json.dumps(out))
-        return 0
+        return main_warp(args)
     q = args.quick
     volume = args.volume or ("builtin:head" if q else default_volume())
     views = args.views or ("grid:12x4" if q else "grid:36x7")

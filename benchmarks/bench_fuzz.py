@@ -90,6 +90,7 @@ from runtime_helpers import RuntimeThread, read_frames, tiny_model, wait_until  
 from device_runtime.device import DeviceConfig  # noqa: E402
 from device_runtime.runtime import parse_orbit  # noqa: E402
 from host.link import provision, serve  # noqa: E402
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts  # noqa: E402
 from protocol import messages as m  # noqa: E402
 from protocol.transport import open_transport  # noqa: E402
 
@@ -228,8 +229,9 @@ def fuzz(open_peer, restart, n_inputs: int, *, seed: int, batch: int, k: int,
 
 
 def _served(url: str, model_path: Path, frames: Path, theta: float) -> None:
-    serve(model_path, url, key=KEY, orbit=parse_orbit(f"steps:1:{theta:g}"), fps=0,
-          log=_quiet, reconnect=False, stats_every_s=60)
+    serve(model_path, url,
+          ServeOptions(key=KEY, orbit=parse_orbit(f"steps:1:{theta:g}"), fps=0, reconnect=False,
+                       stats_every_s=60), ServeParts(log=_quiet))
     wait_until(lambda: any((float(r["phi_deg"]), float(r["theta_deg"])) == (0.0, theta)
                            for r in read_frames(frames)), 30, f"the served view (0, {theta})")
 
@@ -239,7 +241,8 @@ def run_tcp(work: Path, model_path: Path, args: argparse.Namespace, k: int,
     flash, frames = work / "tcp-flash", work / "tcp-frames"
     keyf = model_path.parent / "device.key"
     device = DeviceProcess(flash, "--headless", "--frames", str(frames), key_file=keyf)
-    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
     assert device.stop() == 0
     stats_file = work / "tcp-stats.json"
     box = {"device": DeviceProcess(flash, "--headless", "--frames", str(frames), "--stats",
@@ -287,7 +290,8 @@ def run_mem(work: Path, model_path: Path, args: argparse.Namespace, k: int,
     config = DeviceConfig(flash_dir=flash, key=KEY)
     box = {"device": RuntimeThread(flash, f"mem://{line}?end=b&pace=0", frames=frames,
                                    config=config)}
-    provision(model_path, url_a, key=KEY, show_progress=False, log=_quiet)
+    provision(model_path, url_a, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
 
     def alive() -> str | None:
         dev = box["device"]
@@ -339,7 +343,8 @@ def _keyed_device(work: Path, name: str, model_path: Path, *extra: str) -> Devic
     """A keyed device process holding ``model_path`` (signed with ``KEY``)."""
     flash = work / f"{name}-flash"
     device = DeviceProcess(flash, "--headless", *extra, key_file=KEY_FILE)
-    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
     return device
 
 
@@ -574,7 +579,8 @@ def _dragged_device(flash: Path, model_path: Path, seconds: float, *,
                            config=DeviceConfig(flash_dir=flash, key=KEY))
     wait_until(lambda: device.device.transport is not None, 10, "the device listening")
     url = f"socket://127.0.0.1:{device.device.transport.port}"
-    provision(model_path, url, key=KEY, show_progress=False, log=_quiet)
+    provision(model_path, url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
 
     def drag() -> None:
         end = time.monotonic() + seconds

@@ -332,30 +332,29 @@ class Sent:
     ident: int
 
 
-def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int, mode: str,
-             *, rd: tuple[float, float], budget: int | None = None) -> dict[str, float]:
-    """Run one mode over one trace on one line; per-tick quality and frames shown."""
-    m = case.model
-    rate = baud / 10.0
-    dt = 1.0 / fps
-    f, kappa = rd
-    s_rd = m.score_step * f
-    # state of the host's coder
-    base: EncodedScores | None = None
-    base_y: np.ndarray | None = None
-    hint: int | None = None
-    frame_no = 1
-    sent_bytes = 0
-    n_sent = 0
+class _HostCoder:
+    """The host's coder in `simulate`: the frame it sends for a view in one mode, and the
+    state that carries from frame to frame (the delta base, the codec's quality hint)."""
 
-    def make(view: tuple[float, float]) -> tuple[np.ndarray | None, int, Any]:
+    def __init__(self, case: Case, mode: str, rd: tuple[float, float], budget: int | None
+                 ) -> None:
+        self.case, self.mode, self.budget = case, mode, budget
+        f, self.kappa = rd
+        self.s_rd = case.model.score_step * f
+        self.base: EncodedScores | None = None
+        self.base_y: np.ndarray | None = None
+        self.hint: int | None = None
+        self.frame_no = 1
+
+    def make(self, view: tuple[float, float]) -> tuple[np.ndarray | None, int, Any]:
         """(shown image or None for pc, payload bytes, extra) of the frame for ``view``."""
-        nonlocal base, base_y, hint, frame_no
-        frame_no += 1
+        case, m, mode, s_rd, kappa = self.case, self.case.model, self.mode, self.s_rd, self.kappa
+        self.frame_no += 1
+        frame_no = self.frame_no
         if mode in CODECS:
             rgb, _ = case.render(view)
-            c = encode_within_budget(rgb, max(1, budget), codec=mode, hint=hint)
-            hint = c.quality
+            c = encode_within_budget(rgb, max(1, self.budget), codec=mode, hint=self.hint)
+            self.hint = c.quality
             return decode_image(c.data), c.size_bytes, None
         if mode == "interp":
             y, s = m.quantized_scores(*view), m.score_step
@@ -366,34 +365,47 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
                 y, s = m.quantize(p), m.score_step
             elif mode in ("rd", "extrap"):
                 w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
-                y, s = rd_delta(m, p, base_y, step=s_rd, kappa=kappa, weights=w), s_rd
+                y, s = rd_delta(m, p, self.base_y, step=s_rd, kappa=kappa, weights=w), s_rd
             else:  # pc, pc-blend: a correction from the device's prediction, coded alone
                 w = ssim_cell_weights(rgb, m.image.cell_shape, mask)
                 pred = m.quantized_scores(*view)
                 corr = rd_quantize(m, p - pred, step=s_rd, kappa=kappa, weights=w)
                 enc = case.packet(corr, s_rd, frame=frame_no, predicted=True)
                 return None, len(enc.packet), corr
-        enc = case.packet(y, s, base=base, frame=frame_no)
-        base, base_y = enc, y.astype(np.float64)
+        enc = case.packet(y, s, base=self.base, frame=frame_no)
+        self.base, self.base_y = enc, y.astype(np.float64)
         if mode == "extrap":  # the device keeps the scores and extrapolates them per tick
             return None, len(enc.packet), y.astype(np.float64)
         return m.reconstruct(y), len(enc.packet), None
 
+
+def _extrapolated(m: Any, tick_of: dict[int, int], frames: list[Sent], tick: int
+                  ) -> tuple[np.ndarray, float]:
+    """Scores extrapolated linearly in time from the last two frames' views (``extrap``):
+    y2 + a (y2 - y1), a = ticks since frame 2's view / ticks between the two views,
+    clamped to [0, EXTRAP_MAX] (no extrapolation at rest or from one frame)."""
+    y2 = frames[-1].image
+    if len(frames) < 2:
+        return m.reconstruct(y2), 0.0
+    t1, t2 = tick_of[frames[0].ident], tick_of[frames[1].ident]
+    a = 0.0 if t2 <= t1 else min(EXTRAP_MAX, max(0.0, (tick - t2) / (t2 - t1)))
+    if frames[0].view == frames[1].view:
+        a = 0.0
+    return m.reconstruct((y2 + a * (y2 - frames[0].image)).astype(np.float32)), a
+
+
+def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int, mode: str,
+             *, rd: tuple[float, float], budget: int | None = None) -> dict[str, float]:
+    """Run one mode over one trace on one line; per-tick quality and frames shown."""
+    m = case.model
+    rate = baud / 10.0
+    dt = 1.0 / fps
+    coder = _HostCoder(case, mode, rd, budget)
+    make = coder.make
+    sent_bytes = 0
+    n_sent = 0
     tick_of: dict[int, int] = {0: 0}  # extrap: frame ident -> the trace tick of its view
     held: list[Sent] = []  # extrap: the last two frames received
-
-    def extrapolated(frames: list[Sent], tick: int) -> tuple[np.ndarray, float]:
-        """Scores extrapolated linearly in time from the last two frames' views (``extrap``):
-        y2 + a (y2 - y1), a = ticks since frame 2's view / ticks between the two views,
-        clamped to [0, EXTRAP_MAX] (no extrapolation at rest or from one frame)."""
-        y2 = frames[-1].image
-        if len(frames) < 2:
-            return m.reconstruct(y2), 0.0
-        t1, t2 = tick_of[frames[0].ident], tick_of[frames[1].ident]
-        a = 0.0 if t2 <= t1 else min(EXTRAP_MAX, max(0.0, (tick - t2) / (t2 - t1)))
-        if frames[0].view == frames[1].view:
-            a = 0.0
-        return m.reconstruct((y2 + a * (y2 - frames[0].image)).astype(np.float32)), a
 
     n = len(trace)
     # at t = 0 the device already shows view 0 (steady state before the trace), for free
@@ -458,7 +470,7 @@ def simulate(case: Case, trace: list[tuple[float, float]], fps: float, baud: int
             else:
                 img, key = m.reconstruct(pred + corr), ("corr", view)
         elif mode == "extrap":
-            img, a = extrapolated(held, i)
+            img, a = _extrapolated(m, tick_of, held, i)
             key = (shown.ident, i) if a > 0 else shown.ident  # a new frame each moving tick
         else:
             img, key = shown.image, shown.ident
@@ -569,7 +581,7 @@ def cells_part(cache: Path, work: Path, volumes: list[str], sizes: list[int],
 # --------------------------------------------------------------------------- main
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache", type=Path, default=Path("/work/cache"))
     ap.add_argument("--work", type=Path, default=Path("/work/cache/ratelink"),
@@ -616,6 +628,11 @@ def main(argv: list[str] | None = None) -> int:
         args.sizes, args.volumes, args.traces, args.bauds = "128", "tooth", "drag", "115200"
         args.seconds, args.fps, args.key_views, args.rd = 2.0, 5.0, 2, "2:0,2:0.2"
         args.parts = ",".join(p for p in args.parts.split(",") if p != "cells") or "key"
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
     parts = args.parts.split(",")
     volumes = args.volumes.split(",")
     rd = rd_settings(args.rd)

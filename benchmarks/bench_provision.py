@@ -47,6 +47,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name  # noqa: E402
 
+from host.link.options import ProvisionOptions, ProvisionParts  # noqa: E402
 from host.link.provisioning import provision  # noqa: E402
 from protocol import messages as m  # noqa: E402
 from protocol.host_session import HostSession  # noqa: E402
@@ -57,7 +58,7 @@ from protocol.link import CHUNK_OVERHEAD_BYTES, Link  # noqa: E402
 from protocol.transport import open_transport  # noqa: E402
 
 MB = 1_000_000
-QUIET = {"show_progress": False, "log": lambda line: None}
+QUIET = ProvisionParts(log=lambda line: None)
 
 
 def eigenspace_bytes(path: Path) -> int:
@@ -137,8 +138,10 @@ def bench_mem(baud: int, size: int, compressible: bool, tmp: Path, *, faults: st
     make_image(path, size_bytes=size, compressible=compressible)
     name = mem_name("bench")
     with DeviceThread(f"mem://{name}?end=b", tmp / f"flash-{name}", baud=baud):
-        result = provision(path, f"mem://{name}?end=a{faults}", baud=baud, key=KEY,
-                           retransmit=retransmit, **QUIET)
+        result = provision(path, f"mem://{name}?end=a{faults}",
+                           ProvisionOptions(baud=baud, key=KEY, retransmit=retransmit,
+                                            show_progress=False),
+                           QUIET)
     return {
         "size_bytes": result.size_bytes,
         "eigenspace_bytes": eigenspace_bytes(path),
@@ -156,7 +159,8 @@ def bench_tcp(size: int, compressible: bool, tmp: Path) -> dict:
     dev = DeviceProcess(tmp / f"flash-tcp-{compressible}-{size}",
                         key_file=tmp / f"tcp-{compressible}-{size}.key")
     try:
-        result = provision(path, dev.url, key=KEY, **QUIET)
+        result = provision(path, dev.url, ProvisionOptions(key=KEY, show_progress=False),
+                           QUIET)
     finally:
         dev.stop()
     return {

@@ -112,7 +112,47 @@ def time_renders(renderer: Renderer, cameras: list, size: int) -> list[float]:
     return times
 
 
-def main(argv: list[str] | None = None) -> int:
+def _rows(results: dict, dims: tuple, fast_times: list, grid_times: list
+          ) -> list[tuple[str, str]]:
+    """The table ``main`` prints: (what, value) per line."""
+    numba_, ref, grid = results["numba"], results["reference"], results["paper_grid"]
+    rate_size, fast_rate = numba_["image"], numba_["ray_samples_per_s"]
+    ref_size, ref_rate, ref_s = ref["image"], ref["ray_samples_per_s"], ref["seconds"]
+    setup_s, empty = results["renderer_setup_s"], results["empty_block_fraction"]
+    per_view_s, total_s = grid["per_view_s_mean"], grid["total_s"]
+    how = (
+        f"measured in full ({grid['views_measured']} views)"
+        if not grid["extrapolated"]
+        else f"extrapolated from {grid['views_measured']} views"
+    )
+    return [
+        ("volume", f"vismale_head {dims} via {results['volume']['loader']}"),
+        ("transfer function", results["transfer_function"]),
+        ("threads", str(results["threads"])),
+        ("compile / cache load", f"{results['compile_or_cache_load_s']:.2f} s"),
+        (
+            "renderer setup",
+            f"{setup_s:.2f} s  ({100 * empty:.0f} % of blocks empty)",
+        ),
+        (
+            f"numba, {rate_size}x{rate_size}, {SAMPLES} samples",
+            f"{fast_rate / 1e6:8.1f} M ray samples/s  ({np.mean(fast_times):.3f} s/view)",
+        ),
+        (
+            f"numpy reference, {ref_size}x{ref_size}",
+            f"{ref_rate / 1e6:8.2f} M ray samples/s  ({ref_s:.2f} s/view)",
+        ),
+        ("speedup vs reference", f"{fast_rate / ref_rate:8.1f} x  (target >= 20 x)"),
+        ("max |numba - reference|", f"{ref['max_abs_diff_vs_numba']:.2e}"),
+        (
+            f"paper grid {PAPER_GRID} at {PAPER_SIZE}x{PAPER_SIZE}",
+            f"{per_view_s:.3f} s/view mean ({np.min(grid_times):.3f}..{np.max(grid_times):.3f})",
+        ),
+        ("  1500 views total", f"{total_s / 60:.1f} min, {how}  (target <= 10 min)"),
+    ]
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: small sizes, few views")
     parser.add_argument(
@@ -126,12 +166,21 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PRESET",
         help="a host.render.transfer preset instead of the fixed skin+bone function",
     )
-    args = parser.parse_args(argv)
-    tf = SKIN_BONE
-    if args.tf is not None:
-        from host.render.transfer import load_transfer_function
+    return parser.parse_args(argv)
 
-        tf = load_transfer_function(args.tf)
+
+def _transfer_function(preset: str | None) -> TransferFunction:
+    """The fixed skin+bone function, or a `host.render.transfer` preset."""
+    if preset is None:
+        return SKIN_BONE
+    from host.render.transfer import load_transfer_function
+
+    return load_transfer_function(preset)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    tf = _transfer_function(args.tf)
 
     rate_size, ref_size, rate_views, grid_sample = (
         (96, 12, 2, 6) if args.quick else (256, 40, 4, 30)
@@ -221,36 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(results, indent=2))
         return 0
 
-    how = (
-        f"measured in full ({len(chosen)} views)"
-        if args.full
-        else f"extrapolated from {len(chosen)} views"
-    )
-    rows = [
-        ("volume", f"vismale_head {volume.dims} via {loader}"),
-        ("transfer function", tf.name),
-        ("threads", str(threads)),
-        ("compile / cache load", f"{compile_s:.2f} s"),
-        (
-            "renderer setup",
-            f"{setup_s:.2f} s  ({100 * renderer.empty_block_fraction:.0f} % of blocks empty)",
-        ),
-        (
-            f"numba, {rate_size}x{rate_size}, {SAMPLES} samples",
-            f"{fast_rate / 1e6:8.1f} M ray samples/s  ({np.mean(fast_times):.3f} s/view)",
-        ),
-        (
-            f"numpy reference, {ref_size}x{ref_size}",
-            f"{ref_rate / 1e6:8.2f} M ray samples/s  ({ref_s:.2f} s/view)",
-        ),
-        ("speedup vs reference", f"{fast_rate / ref_rate:8.1f} x  (target >= 20 x)"),
-        ("max |numba - reference|", f"{max_abs:.2e}"),
-        (
-            f"paper grid {PAPER_GRID} at {PAPER_SIZE}x{PAPER_SIZE}",
-            f"{per_view_s:.3f} s/view mean ({np.min(grid_times):.3f}..{np.max(grid_times):.3f})",
-        ),
-        ("  1500 views total", f"{total_s / 60:.1f} min, {how}  (target <= 10 min)"),
-    ]
+    rows = _rows(results, volume.dims, fast_times, grid_times)
     width = max(len(name) for name, _ in rows)
     print("bench_render" + ("  [--quick]" if args.quick else ""))
     for name, value in rows:

@@ -11,7 +11,7 @@ The trace's view is set on the device at each tick (as a drag in the window does
   corrections of exactly that frame (sparse while the view moves, complete at rest);
 * ``served-blend``: the same with the same database fitted ``--no-depth`` (``--blend-cache``
   holds ``VOLUME-SIZE.ecs``): the device's own frame is the blend of its predicted scores;
-* ``motion``: what an older device gets: ``serve(..., scores="motion")`` (absolute scores
+* ``motion``: what an older device gets: ``ServeOptions(scores="motion")`` (absolute scores
   of a sparse ray-cast, key and delta packets) to a device that does not predict;
 * ``webp`` (``webpN``: N line ticks): a stream of WebP files, each the highest quality
   whose frame takes at most N ticks of the line (``webp`` = ``webp1``: one per tick, so it
@@ -132,6 +132,7 @@ def wait_for(predicate: Any, timeout_s: float) -> bool:
 
 def provisioned_flash(model_path: Path, work: Path) -> Path:
     """A flash folder holding ``model_path``'s image (provisioned once, unpaced)."""
+    from host.link.options import ProvisionOptions, ProvisionParts
     from host.link.provisioning import provision
 
     flash = work / f"flash-{model_path.parent.name}-{model_path.stem}"
@@ -142,8 +143,9 @@ def provisioned_flash(model_path: Path, work: Path) -> Path:
     dev = DeviceThreads(flash, f"mem://{name}?end=b&pace=0", 115200, predict=False,
                         view=(0.0, 0.0), record=False)
     try:
-        provision(model_path, f"mem://{name}?end=a&pace=0", insecure=True, show_progress=False,
-                  log=lambda line: None)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(insecure=True, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     finally:
         dev.stop()
     (flash / ".done").write_text("ok")
@@ -194,10 +196,9 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
     driven by ``trace``; each tick's frame is the one on show ``sample_delay_s`` after the
     tick's view was set, scored against ``case.render`` of the tick's view. ``source``:
     the host's sparse source (`prepared_source`; default: serve builds a fresh one)."""
-    from bench_link import quality
-
     from device_runtime.orbit import canonical_view
     from device_runtime.warp_worker import WarpWorker
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
 
     scores, predict = SESSION_MODES[mode]
@@ -212,11 +213,13 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
 
     def host() -> None:
         try:
-            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
-                                 scores=scores, stop=stop, log=lambda line: None,
-                                 model=case.model, renderer=case.renderer, stats_every_s=0,
-                                 motion=source,
-                                 on_frame=lambda enc, view: sent.append(time.monotonic()))
+            out["stats"] = serve(model_path, f"mem://{name}?end=a",
+                                 ServeOptions(baud=baud, insecure=True, scores=scores,
+                                              stats_every_s=0),
+                                 ServeParts(stop=stop, log=lambda line: None, model=case.model,
+                                            renderer=case.renderer, motion=source,
+                                            on_frame=lambda enc, view: sent.append(
+                                                time.monotonic())))
         except BaseException as exc:  # reported below
             out["error"] = exc
 
@@ -257,22 +260,8 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
         shutil.rmtree(flash, ignore_errors=True)
     stats = out.get("stats")
     shown = dev.shown
-    ssims, flips, new = [], [], 0
-    kinds: dict[str, list[float]] = {}  # what was on show at the samples: SSIMs per kind
-    prev = None
-    for i, view in enumerate(trace):
-        t_tick = min(t0 + i * dt + sample_delay_s, t_end)
-        k = max((j for j, (t, _, _) in enumerate(shown) if t <= t_tick), default=None)
-        if k is None:
-            continue
-        if prev is not None and k != prev:
-            new += 1
-        prev = k
-        rgb, mask = case.render(view)
-        s_, f_ = quality(rgb, shown[k][1], mask)
-        ssims.append(s_)
-        flips.append(f_)
-        kinds.setdefault(frame_kind(shown[k][2], views_set[i]), []).append(s_)
+    ticks = [min(t0 + i * dt + sample_delay_s, t_end) for i in range(len(trace))]
+    ssims, flips, new, kinds = _score_ticks(case, trace, shown, views_set, ticks)
     seconds = len(trace) * dt
     packets = counts[0]
     # from each view change to the first frame of that view on show (own or host's)
@@ -299,6 +288,31 @@ def real_session(case: Any, model_path: Path, flash0: Path, trace: list[tuple[fl
             "host_gap_s": max_gap([t for t in sent if t0 <= t <= t_end], t0, t_end),
             "unchanged": stats.unchanged_frames if stats else 0,
             "converged": stats.converged_frames if stats else 0}
+
+
+def _score_ticks(case: Any, trace: list[tuple[float, float]], shown: list, views_set: list,
+                 ticks: list[float]) -> tuple[list[float], list[float], int, dict]:
+    """Score the frame on show at each tick's sample time against ``case.render`` of the
+    tick's view: (SSIMs, FLIPs, how many times a new frame was on show, SSIMs per kind of
+    frame, `frame_kind`)."""
+    from bench_link import quality
+
+    ssims, flips, new = [], [], 0
+    kinds: dict[str, list[float]] = {}  # what was on show at the samples: SSIMs per kind
+    prev = None
+    for i, view in enumerate(trace):
+        k = max((j for j, (t, _, _) in enumerate(shown) if t <= ticks[i]), default=None)
+        if k is None:
+            continue
+        if prev is not None and k != prev:
+            new += 1
+        prev = k
+        rgb, mask = case.render(view)
+        s_, f_ = quality(rgb, shown[k][1], mask)
+        ssims.append(s_)
+        flips.append(f_)
+        kinds.setdefault(frame_kind(shown[k][2], views_set[i]), []).append(s_)
+    return ssims, flips, new, kinds
 
 
 def frame_kind(info: dict, view: tuple[float, float]) -> str:
@@ -530,6 +544,7 @@ def rest_session(case: Any, model_path: Path, flash0: Path, views: list[tuple[fl
 
     from device_runtime.orbit import canonical_view
     from host.link.layers import EncodedLayer
+    from host.link.options import ServeOptions, ServeParts
     from host.link.serving import serve
 
     flash = work / f"flash-rest-{uuid.uuid4().hex[:8]}"
@@ -549,10 +564,11 @@ def rest_session(case: Any, model_path: Path, flash0: Path, views: list[tuple[fl
 
     def host() -> None:
         try:
-            out["stats"] = serve(model_path, f"mem://{name}?end=a", baud=baud, insecure=True,
-                                 stop=stop, log=lambda line: None, model=case.model,
-                                 renderer=case.renderer, stats_every_s=0, motion=source,
-                                 on_frame=queued)
+            out["stats"] = serve(model_path, f"mem://{name}?end=a",
+                                 ServeOptions(baud=baud, insecure=True, stats_every_s=0),
+                                 ServeParts(stop=stop, log=lambda line: None, model=case.model,
+                                            renderer=case.renderer, motion=source,
+                                            on_frame=queued))
         except BaseException as exc:  # reported below
             out["error"] = exc
 

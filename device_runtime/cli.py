@@ -450,27 +450,66 @@ def _write_stats(path: Path, device: Any) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from device_runtime.runtime import DEFAULT_VIEW, RuntimeDevice
-
     _check_runtime_args(args)
     config = _config(args)
-    url = None
-    transport = None
-    if args.port or args.listen:
-        url = args.port if args.port else f"tcp-listen://{args.listen}"
-        transport = open_transport(
-            url, baud=args.baud, max_frame_bytes=config.max_frame_bytes
-        )  # a bad URL fails here, before the flash folder is touched
-        if config.insecure:
-            _log("WARNING: --insecure: ANYONE who can reach this device can install images on "
-                 "it and change what it shows (no authentication, unsigned images and "
-                 "untagged scores accepted)")
-        elif config.key is None:
-            _log("no key: provisioning is refused (pair one with --pair KEYFILE, or --insecure)")
-        else:
-            _log(f"key fingerprint {key_fingerprint(config.key)}")
+    url, transport = _open_port(args, config)
+    device, presenter, plan = _start_device(args, config, transport)
+    if args.standalone and url is None and device._decoder_model is None:
+        device.close()
+        presenter.close()
+        raise _UsageError(
+            f"--standalone: no image to show in {args.flash} (provision one made with "
+            "eigencast fit --standalone, serving --port/--listen meanwhile)"
+        )
+    if plan is not None:
+        _log(plan)
+    stop = threading.Event()
+    interrupted: list[int] = []
+    if threading.current_thread() is threading.main_thread():
+
+        def on_signal(signum: int, frame: Any) -> None:
+            if signum == signal.SIGINT:  # Ctrl-C: exit 130; SIGTERM (a service's stop): 0
+                interrupted.append(signum)
+            stop.set()
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+    failure = _run_until_stopped(args, device, url, transport, stop)
+    if failure:
+        raise failure[0]
+    stats = device.runtime_stats
+    _log(f"presented {stats.frames_presented} frames; decoded {stats.key_frames} key, "
+         f"{stats.delta_frames} delta and {stats.correction_packets} correction packets"
+         + (f" ({stats.stale_dropped} for views already left)" if stats.stale_dropped else ""))
+    _log("interrupted" if interrupted else "stopped")
+    return 130 if interrupted else 0
+
+
+def _open_port(args: argparse.Namespace, config: DeviceConfig) -> tuple[str | None, Any]:
+    """The host's port, opened (a bad URL fails here, before the flash folder is touched),
+    and one line on what it accepts; (None, None) without --port/--listen."""
+    if not (args.port or args.listen):
+        return None, None
+    url = args.port if args.port else f"tcp-listen://{args.listen}"
+    transport = open_transport(url, baud=args.baud, max_frame_bytes=config.max_frame_bytes)
+    if config.insecure:
+        _log("WARNING: --insecure: ANYONE who can reach this device can install images on "
+             "it and change what it shows (no authentication, unsigned images and "
+             "untagged scores accepted)")
+    elif config.key is None:
+        _log("no key: provisioning is refused (pair one with --pair KEYFILE, or --insecure)")
+    else:
+        _log(f"key fingerprint {key_fingerprint(config.key)}")
+    return url, transport
+
+
+def _start_device(args: argparse.Namespace, config: DeviceConfig, transport: Any
+                  ) -> tuple[Any, Any, str | None]:
+    """The runtime device (it boots from its flash), its presenter and the presenter's
+    plan line. A failure closes the transport and the presenter."""
+    from device_runtime.runtime import DEFAULT_VIEW, RuntimeDevice
+
     presenter = None
-    device = None
     try:
         device = RuntimeDevice(
             config,
@@ -504,26 +543,14 @@ def _serve(args: argparse.Namespace) -> int:
         if presenter is not None:
             presenter.close()
         raise
-    if args.standalone and url is None and device._decoder_model is None:
-        device.close()
-        presenter.close()
-        raise _UsageError(
-            f"--standalone: no image to show in {args.flash} (provision one made with "
-            "eigencast fit --standalone, serving --port/--listen meanwhile)"
-        )
-    if plan is not None:
-        _log(plan)
-    stop = threading.Event()
-    interrupted: list[int] = []
-    if threading.current_thread() is threading.main_thread():
+    return device, presenter, plan
 
-        def on_signal(signum: int, frame: Any) -> None:
-            if signum == signal.SIGINT:  # Ctrl-C: exit 130; SIGTERM (a service's stop): 0
-                interrupted.append(signum)
-            stop.set()
 
-        signal.signal(signal.SIGTERM, on_signal)
-        signal.signal(signal.SIGINT, on_signal)
+def _run_until_stopped(args: argparse.Namespace, device: Any, url: str | None, transport: Any,
+                       stop: threading.Event) -> list[BaseException]:
+    """Serve the host on a thread (with a port), write the statistics file every second
+    (--stats), run the display on this thread until ``stop``; what the device thread
+    raised."""
 
     def ready(transport: Any) -> None:
         if args.listen:
@@ -568,14 +595,7 @@ def _serve(args: argparse.Namespace) -> int:
             with contextlib.suppress(OSError, ValueError):
                 _write_stats(args.stats, device)
         device.close_display()
-    if failure:
-        raise failure[0]
-    stats = device.runtime_stats
-    _log(f"presented {stats.frames_presented} frames; decoded {stats.key_frames} key, "
-         f"{stats.delta_frames} delta and {stats.correction_packets} correction packets"
-         + (f" ({stats.stale_dropped} for views already left)" if stats.stale_dropped else ""))
-    _log("interrupted" if interrupted else "stopped")
-    return 130 if interrupted else 0
+    return failure
 
 
 def main(argv: Sequence[str] | None = None) -> int:

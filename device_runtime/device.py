@@ -436,12 +436,7 @@ class Device(ImageReceiver):
         if listening and (self.door is None or self.door.listener is not transport.listener):
             self.door = BusyDoor(transport.listener, log=self._log_limited)
         if listening and keyed:
-            if self.lobby is None or self.lobby.transport is not transport:
-                self.lobby = Lobby(transport, self, auth_timeout_s=self.config.auth_timeout_s,
-                                   log=self._log_limited)
-            for sock, address in self.door.release():
-                self.lobby.hold(sock, address, time.monotonic())
-            admitted = self.lobby.admit(stop)
+            admitted = self._admit(transport, stop)
             if admitted is None:
                 return
             self.session = admitted.session
@@ -456,24 +451,7 @@ class Device(ImageReceiver):
         def on_frame(frame: Frame) -> None:
             last_frame[0] = time.monotonic()
 
-        link = Link(
-            transport,
-            name=f"device {self.config.device_id}",
-            handler=self.handle,
-            error_mapper=self._map_error,
-            rx_max_frame_bytes=self.max_frame_bytes,
-            tx_max_frame_bytes=self.max_frame_bytes,
-            inbox_frames=self.config.rx_window_frames + 16,
-            image_inbox_frames=self.config.rx_window_frames,
-            on_frame=on_frame,
-        )
-        self.link = link
-        if admitted is not None:  # the AUTH_CHALLENGE (and what followed) read by the lobby
-            for frame in admitted.frames:
-                link.handle_frame(frame)
-            for frame in link.decoder.feed(admitted.partial):
-                link.handle_frame(frame)
-        link.start()
+        link = self._open_link(transport, admitted, on_frame)
         unauth_since: float | None = None  # keyed TCP: since when this peer is not authenticated
         try:
             while not stop.is_set() and not self._end_session.is_set():
@@ -509,25 +487,64 @@ class Device(ImageReceiver):
                                       f"{self.config.auth_timeout_s:g} s; dropped")
                     break
         finally:
-            error = link.error
-            link.close(flush_timeout_s=1.0)
-            self.link = None
-            self._cancel_baud_timer()
-            if listening:
-                transport.disconnect()
-            had_session = self.session.hello_done
-            authenticated = self.session.authenticated
-            self.session = _Session()
-            with contextlib.suppress(FlashError):
-                self.store.close()  # flush: a resumed transfer keeps what was received
-            if had_session or error is not None:
-                why = ""
-                if error is not None and "disconnected" not in str(error):
-                    why = f" ({_one_line(str(error), 120)})"
-                if authenticated:
-                    self.log(f"host disconnected{why}")
-                else:  # any peer can cause this one: at most one a few seconds
-                    self._log_limited("disconnected", f"host disconnected{why}")
+            self._end_connection(link, transport, listening)
+
+    def _admit(self, transport: Any, stop: threading.Event) -> Any:
+        """A keyed TCP device: the lobby (with those the busy door held) until a connection
+        authenticates; that one (None: ``stop``)."""
+        if self.lobby is None or self.lobby.transport is not transport:
+            self.lobby = Lobby(transport, self, auth_timeout_s=self.config.auth_timeout_s,
+                               log=self._log_limited)
+        for sock, address in self.door.release():
+            self.lobby.hold(sock, address, time.monotonic())
+        return self.lobby.admit(stop)
+
+    def _open_link(self, transport: Any, admitted: Any, on_frame: Callable[[Frame], None]
+                   ) -> Link:
+        """The session's link engine (``self.link``), started after it handled what the
+        lobby already read (the AUTH_CHALLENGE and what followed)."""
+        link = Link(
+            transport,
+            name=f"device {self.config.device_id}",
+            handler=self.handle,
+            error_mapper=self._map_error,
+            rx_max_frame_bytes=self.max_frame_bytes,
+            tx_max_frame_bytes=self.max_frame_bytes,
+            inbox_frames=self.config.rx_window_frames + 16,
+            image_inbox_frames=self.config.rx_window_frames,
+            on_frame=on_frame,
+        )
+        self.link = link
+        if admitted is not None:
+            for frame in admitted.frames:
+                link.handle_frame(frame)
+            for frame in link.decoder.feed(admitted.partial):
+                link.handle_frame(frame)
+        link.start()
+        return link
+
+    def _end_connection(self, link: Link, transport: Any, listening: bool) -> None:
+        """Close the link and the connection, forget the session, flush the flash, and say
+        why the host left (at most a line every few seconds for an unauthenticated peer)."""
+        error = link.error
+        link.close(flush_timeout_s=1.0)
+        self.link = None
+        self._cancel_baud_timer()
+        if listening:
+            transport.disconnect()
+        had_session = self.session.hello_done
+        authenticated = self.session.authenticated
+        self.session = _Session()
+        with contextlib.suppress(FlashError):
+            self.store.close()  # flush: a resumed transfer keeps what was received
+        if had_session or error is not None:
+            why = ""
+            if error is not None and "disconnected" not in str(error):
+                why = f" ({_one_line(str(error), 120)})"
+            if authenticated:
+                self.log(f"host disconnected{why}")
+            else:  # any peer can cause this one: at most one a few seconds
+                self._log_limited("disconnected", f"host disconnected{why}")
 
     # ------------------------------------------------------------------ dispatch
     def _map_error(self, exc: BaseException, where: str) -> m.Error:

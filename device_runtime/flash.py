@@ -272,6 +272,35 @@ class BootResult:
         return self.slot is not None
 
 
+def _boot_check_active(slots: list[SlotInfo], active: int,
+                       check: Callable[[int], tuple[bool, str]], notes: list[str]
+                       ) -> tuple[int | None, bool]:
+    """`FlashStore.boot`'s step 2: an active slot that cannot boot or does not verify is
+    marked BAD (in ``slots``) and the other takes over if it is CONFIRMED and verifies (else
+    it is BAD too, or no image is active); (the active slot, whether it fell back)."""
+    good, detail = (False, f"state {slots[active].state.label} cannot boot")
+    if slots[active].bootable:
+        good, detail = check(active)
+    if good:
+        return active, False
+    bad, other = active, 1 - active
+    slots[bad] = dataclasses.replace(
+        slots[bad], state=SlotState.BAD, bad_reason=BadReason.DIGEST_MISMATCH)
+    note = f"slot {SLOT_NAMES[bad]}: {detail}"
+    if slots[other].state is not SlotState.CONFIRMED:
+        notes.append(f"{note}; slot {SLOT_NAMES[other]} is "
+                     f"{slots[other].state.label}; no bootable image")
+        return None, False
+    other_good, other_detail = check(other)
+    if other_good:
+        notes.append(f"{note}; fell back to slot {SLOT_NAMES[other]}")
+        return other, True
+    slots[other] = dataclasses.replace(
+        slots[other], state=SlotState.BAD, bad_reason=BadReason.DIGEST_MISMATCH)
+    notes.append(f"{note}; slot {SLOT_NAMES[other]}: {other_detail}; no bootable image")
+    return None, False
+
+
 class FlashStore:
     """A folder standing in for flash: two slots, a state record, a transfer journal.
 
@@ -452,30 +481,7 @@ class FlashStore:
                              "booting it again")
 
         if active is not None:
-            good, detail = (False, f"state {slots[active].state.label} cannot boot")
-            if slots[active].bootable:
-                good, detail = check(active)
-            if not good:
-                bad, other = active, 1 - active
-                slots[bad] = dataclasses.replace(
-                    slots[bad], state=SlotState.BAD, bad_reason=BadReason.DIGEST_MISMATCH)
-                note = f"slot {SLOT_NAMES[bad]}: {detail}"
-                if slots[other].state is SlotState.CONFIRMED:
-                    other_good, other_detail = check(other)
-                    if other_good:
-                        active, fell_back = other, True
-                        notes.append(f"{note}; fell back to slot {SLOT_NAMES[other]}")
-                    else:
-                        slots[other] = dataclasses.replace(
-                            slots[other], state=SlotState.BAD,
-                            bad_reason=BadReason.DIGEST_MISMATCH)
-                        active = None
-                        notes.append(f"{note}; slot {SLOT_NAMES[other]}: {other_detail}; "
-                                     "no bootable image")
-                else:
-                    active = None
-                    notes.append(f"{note}; slot {SLOT_NAMES[other]} is "
-                                 f"{slots[other].state.label}; no bootable image")
+            active, fell_back = _boot_check_active(slots, active, check, notes)
 
         if active is not None and slots[active].state is SlotState.TEST:
             slots[active] = dataclasses.replace(

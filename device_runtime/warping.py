@@ -54,6 +54,7 @@ MAX_WARP_PIXELS = 1 << 24
 #: upsampling, the warp's passes): bounds the temporaries to a few hundred kilobytes
 #: whatever the frame size.
 CHUNK = 1 << 15
+f32 = np.float32  # the warp's passes cast many scalars to float32
 #: Hole filling: passes of a 3x3 normalised average over covered neighbours, for holes with
 #: at least HOLE_NEIGHBOURS of their 8 neighbours covered (cracks, not the silhouette).
 HOLE_PASSES = 2
@@ -388,22 +389,58 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         ``cancel`` returned True.
     """
     h, wd = w.height, w.width
-    w2 = wd + 2
-    p_t, r_t = target
-    f32 = np.float32
     used = [(pts, rgb, src, float(wv)) for (pts, rgb), src, wv in zip(clouds, sources, weights)
             if wv > 0.0 and pts.shape[1] > 0]
     frame = np.zeros((h, wd, 3), dtype=np.uint8)
     if not used:
         return frame
+    idx = w.splats(sum(u[0].shape[1] for u in used))
+    zgrid, zbuf, acc, cover = w.grid()  # the z-buffer clean (inf), flat; scratch
+    w.dirty = (0, h + 2, 0, wd + 2, zbuf.size)  # until pass 2 ends (a cancelled warp: all)
+    pieces = _pieces(w, used, target)
+    landed = _land(w, pieces, idx, zbuf, cancel)  # pass 1
+    rect = _rectangle(w, landed)
+    _hide(w, pieces, idx, zbuf, rect, cancel)  # pass 2
+    r0, r1, c0, c1 = rect
+    rh, rw = r1 - r0, c1 - c0
+    n = rh * rw
+    cov = cover[:n]
+    np.isfinite(zgrid[r0:r1, c0:c1], out=cov.reshape(rh, rw))
+    w.dirty = (r0, r1, c0, c1, n + 1)  # the z-buffer's run holds the weights now
+    flat_w, flat_acc = _blend(pieces, idx, zbuf, acc, n, cancel)  # pass 3
+    wb, pb = flat_w[:n], flat_acc[:, :n]
+    _empty_grid_border((cov, wb, *pb), rect, h + 2, wd + 2)
+    _give_up_if(cancel)
+    if SPLAT_TENT:
+        _tent(pb, rw, w.tent)
+        _tent(wb[None], rw, w.tent)
+    np.divide(f32(1.0), wb, out=wb, where=cov)
+    np.multiply(wb, cov, out=wb)  # 1 / weight where covered, else 0
+    pb *= wb
+    _fill_holes_padded(flat_acc, cov, rw)
+    # rounded by truncation: every value is a mean of colours in 0..255 with positive
+    # weights (to float32's precision), so none leaves 0..255.5 and the cast needs no clip
+    pb += f32(0.5)
+    _copy_into_frame(frame, pb, rect)
+    return frame
+
+
+#: A chunk of one source's points: (slice of the warper's splat indices, the points and
+#: colours there, the view's projection m (3, 3) and b (3,) into padded pixel coordinates,
+#: its interpolation weight).
+_Piece = tuple[slice, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.float32]
+
+
+def _pieces(w: Warper, used: list, target: tuple[np.ndarray, np.ndarray]) -> list[_Piece]:
+    """Cut every used source into chunks of `CHUNK` points (small temporaries), each with
+    its view's projection into the target camera's padded pixel coordinates."""
+    h, wd = w.height, w.width
+    p_t, r_t = target
     # target camera -> padded pixel coordinates: col + 1 = x / z * sx + ox, row + 1 = ...,
     # as one projective 3 x 3 (x' / z, y' / z are the padded column and row)
     sx = 0.5 * h / w.half
     scale = np.array([[sx, 0.0, 0.5 * wd + 1.0], [0.0, -sx, 0.5 * h + 1.0], [0.0, 0.0, 1.0]])
-    idx = w.splats(sum(u[0].shape[1] for u in used))
-    zgrid, zbuf, acc, cover = w.grid()  # the z-buffer clean (inf), flat; scratch
-    w.dirty = (0, h + 2, 0, w2, zbuf.size)  # until pass 2 ends (a cancelled warp: all)
-    pieces = []  # (slice of idx, the points and colours there, the view's m, b and weight)
+    pieces = []
     o = 0
     for pts, col, (p_s, r_s), wv in used:
         m = scale @ (r_t.T @ r_s)
@@ -417,8 +454,17 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
             e = min(a + CHUNK, k)
             pieces.append((slice(o + a, o + e), pts[:, a:e], col[:, a:e], m, b, f32(wv)))
         o += k
-    x0, x1, y0, y1 = w2, 0.0, h + 2.0, 0.0  # the rectangle the splats land in
-    for s, pts, _, m, b, _ in pieces:  # pass 1: where each splat lands, the z-buffer
+    return pieces
+
+
+def _land(w: Warper, pieces: list[_Piece], idx: np.ndarray, zbuf: np.ndarray,
+          cancel: Callable[[], bool] | None) -> tuple[float, float, float, float]:
+    """Pass 1: the padded pixel each splat lands in (into ``idx``), the z-buffer (nearest
+    forward distance per pixel, into ``zbuf``); returns the rectangle the splats landed in,
+    (x0, x1, y0, y1) in padded pixel coordinates."""
+    h, w2 = w.height, w.width + 2
+    x0, x1, y0, y1 = w2, 0.0, h + 2.0, 0.0
+    for s, pts, _, m, b, _ in pieces:
         _give_up_if(cancel)
         # einsum, not matmul: (3, 3) @ (3, n) float32 through BLAS is ~50x slower here
         xyz = np.einsum("ij,jk->ik", m, pts)
@@ -453,17 +499,30 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         idx[s] = at
         np.minimum.at(zbuf, at, z)
         del xyz, cx, cy, z, at
-    # from here on the rectangle the splats landed in, 3 pixels to spare on every side (what
-    # the filter and hole filling reach), as a compact grid of its own: each plane one
-    # contiguous run (rows of a rectangle inside the grid are strided: 4x slower per pixel)
-    r0, r1 = max(0, int(y0) - 3), min(h + 2, int(y1) + 4)
-    c0, c1 = max(0, int(x0) - 3), min(w2, int(x1) + 4)
-    rh, rw = r1 - r0, c1 - c0
-    n = rh * rw
+    return x0, x1, y0, y1
+
+
+def _rectangle(w: Warper, landed: tuple[float, float, float, float]
+               ) -> tuple[int, int, int, int]:
+    """The rows and columns ``(r0, r1, c0, c1)`` of the padded grid the rest of the warp
+    works on: the rectangle the splats landed in, 3 pixels to spare on every side (what the
+    filter and hole filling reach), as a compact grid of its own: each plane one contiguous
+    run (rows of a rectangle inside the grid are strided: 4x slower per pixel)."""
+    x0, x1, y0, y1 = landed
+    r0, r1 = max(0, int(y0) - 3), min(w.height + 2, int(y1) + 4)
+    c0, c1 = max(0, int(x0) - 3), min(w.width + 2, int(x1) + 4)
+    return r0, r1, c0, c1
+
+
+def _hide(w: Warper, pieces: list[_Piece], idx: np.ndarray, zbuf: np.ndarray,
+          rect: tuple[int, int, int, int], cancel: Callable[[], bool] | None) -> None:
+    """Pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
+    the compact grid's spare last pixel (n) so the blend needs no per-splat weight; the
+    others to their pixel in the compact grid (``idx`` rewritten in place)."""
+    r0, r1, c0, c1 = rect
+    w2, rw = w.width + 2, c1 - c0
+    n = (r1 - r0) * rw
     shift, base = w2 - rw, r0 * rw + c0
-    # pass 2: a splat beyond the z tolerance of its pixel's nearest is hidden; it moves to
-    # the compact grid's spare last pixel (n) so the blend needs no per-splat weight; the
-    # others to their pixel in the compact grid
     tol = f32(w.tol_mm)
     for s, pts, _, m, b, _ in pieces:
         _give_up_if(cancel)
@@ -480,49 +539,53 @@ def forward_warp(w: Warper, clouds: list[tuple[np.ndarray, np.ndarray]],
         at -= base
         at[hidden] = n
         del hidden
-    cov = cover[:n]
-    np.isfinite(zgrid[r0:r1, c0:c1], out=cov.reshape(rh, rw))
-    w.dirty = (r0, r1, c0, c1, n + 1)  # the z-buffer's run holds the weights now
-    flat_w = zbuf[:n + 1]  # the z-buffer is done with: it accumulates the blend weights
+
+
+def _blend(pieces: list[_Piece], idx: np.ndarray, zbuf: np.ndarray, acc: np.ndarray, n: int,
+           cancel: Callable[[], bool] | None) -> tuple[np.ndarray, np.ndarray]:
+    """Pass 3: the blend weights (n + 1,) and weighted colours (3, n + 1) accumulated on the
+    compact grid, float32 in place; the z-buffer is done with and holds the weights."""
+    flat_w = zbuf[:n + 1]
     flat_w[...] = 0.0
     flat_acc = acc[:3 * (n + 1)].reshape(3, n + 1)
     flat_acc[...] = 0.0
-    for s, _, col, _, _, wv in pieces:  # pass 3: the blend
+    for s, _, col, _, _, wv in pieces:
         _give_up_if(cancel)
         at = idx[s].astype(np.intp)  # converted once, not by each of the four calls
         np.add.at(flat_w, at, wv)
         for c in range(3):
             np.add.at(flat_acc[c], at, np.multiply(col[c], wv, dtype=f32))
-    wb, pb = flat_w[:n], flat_acc[:, :n]
-    # the grid's border (clamped strays) emptied where the rectangle meets it
-    for a_ in (cov, wb, *pb):
-        a2 = a_.reshape(rh, rw)
+    return flat_w, flat_acc
+
+
+def _empty_grid_border(planes: tuple[np.ndarray, ...], rect: tuple[int, int, int, int],
+                       grid_h: int, grid_w: int) -> None:
+    """Empty the padded grid's border (clamped strays) in each compact plane, where the
+    rectangle meets it."""
+    r0, r1, c0, c1 = rect
+    for a_ in planes:
+        a2 = a_.reshape(r1 - r0, c1 - c0)
         if r0 == 0:
             a2[0] = 0
-        if r1 == h + 2:
+        if r1 == grid_h:
             a2[-1] = 0
         if c0 == 0:
             a2[:, 0] = 0
-        if c1 == w2:
+        if c1 == grid_w:
             a2[:, -1] = 0
-    _give_up_if(cancel)
-    if SPLAT_TENT:
-        _tent(pb, rw, w.tent)
-        _tent(wb[None], rw, w.tent)
-    np.divide(f32(1.0), wb, out=wb, where=cov)
-    np.multiply(wb, cov, out=wb)  # 1 / weight where covered, else 0
-    pb *= wb
-    _fill_holes_padded(flat_acc, cov, rw)
-    # rounded by truncation: every value is a mean of colours in 0..255 with positive
-    # weights (to float32's precision), so none leaves 0..255.5 and the cast needs no clip
-    pb += f32(0.5)
-    # the frame's pixels inside the rectangle (padded pixel (y, x) is the frame's
-    # (y - 1, x - 1))
+
+
+def _copy_into_frame(frame: np.ndarray, pb: np.ndarray, rect: tuple[int, int, int, int]
+                     ) -> None:
+    """Cast the compact grid's colours (3, n) into the frame's pixels inside the rectangle
+    (padded pixel (y, x) is the frame's (y - 1, x - 1))."""
+    h, wd = frame.shape[:2]
+    r0, r1, c0, c1 = rect
+    rh, rw = r1 - r0, c1 - c0
     fr0, fr1, fc0, fc1 = max(r0, 1), min(r1, h + 1), max(c0, 1), min(c1, wd + 1)
     out = frame[fr0 - 1:fr1 - 1, fc0 - 1:fc1 - 1]
     for c in range(3):
         out[..., c] = pb[c].reshape(rh, rw)[fr0 - r0:fr1 - r0, fc0 - c0:fc1 - c0]
-    return frame
 
 
 def _give_up_if(cancel: Callable[[], bool] | None) -> None:

@@ -189,7 +189,7 @@ def open_cluster(address: str | None) -> Cluster | None:
 
 
 def scene_recipe(args: argparse.Namespace) -> argparse.Namespace:
-    """The options a worker rebuilds the renderer from (`host.commands._render_options`).
+    """The options a worker rebuilds the renderer from (`host.render.scene.render_setup`).
 
     File paths (the volume, a ``--tf`` file) are made absolute, so workers started in
     another folder read the same files.
@@ -224,7 +224,7 @@ def _scene(recipe: argparse.Namespace, fingerprint: str) -> Any:
     renderer = _SCENES.get(fingerprint)
     if renderer is not None:
         return renderer
-    from host.commands._render_options import render_setup
+    from host.render.scene import render_setup
 
     volume, tf, renderer = render_setup(recipe)
     if scene_fingerprint(volume, tf, renderer) != fingerprint:

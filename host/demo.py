@@ -234,23 +234,64 @@ def run_demo(
         ``model``, ``device_url``, ``provision`` outcome, serving statistics and, headless,
         the device's statistics and the quality comparison (``quality``).
     """
-    from host.cli import main as eigencast
     from host.fit.model import HostModel
+    from host.link.options import ProvisionOptions
     from host.link.provisioning import provision
-    from host.link.serving import serve
-    from protocol.keys import load_key, write_key
 
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     name = settings.volume.split(":", 1)[-1] if settings.volume.startswith("builtin:") else (
         Path(settings.volume).stem or "volume")
     name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)
+    if headless is None:
+        headless = not display_available()
+    model_path, key_path, key = _render_and_fit(work, name, settings)
+
+    frames = work / "frames"
+    if headless and frames.is_dir():  # this run's frames only (frames.csv is appended to)
+        shutil.rmtree(frames)
+    stats_path = work / "device-stats.json"
+    device_args = ["--flash", str(work / "flash"), "--key", str(key_path), "--stats",
+                   str(stats_path)]
+    if headless:
+        device_args += ["--headless", "--frames", str(frames), "--every", str(settings.every)]
+    else:
+        device_args += ["--display", "--screenshots", str(work)]
+    device = _DeviceProcess(device_args, work / "device.log")
+    summary: dict[str, Any] = {"model": str(model_path), "device_url": device.url,
+                               "headless": headless}
+    try:
+        _step(3, f"device runtime started as a separate process (pid {device.proc.pid}), "
+                 f"listening on tcp-listen://127.0.0.1:{device.port}; the host connects to "
+                 f"{device.url} (log: {work / 'device.log'})")
+        _step(4, f"provision {model_path.name} on the device")
+        result = provision(model_path, device.url, ProvisionOptions(key=key, show_progress=True))
+        summary["provision"] = result.outcome
+        print(f"      {result.outcome}: {result.size_bytes} bytes in slot {result.slot}",
+              file=sys.stderr)
+        model = HostModel.load(model_path, key=key)
+        stats = _serve_the_device(device, model_path, key, model, settings, headless, frames)
+        summary["serve"] = stats.as_dict()
+    finally:
+        device.stop()
+    if stats_path.exists():
+        summary["device"] = json.loads(stats_path.read_text())
+    if headless:
+        summary["quality"] = _quality(settings, model, frames)
+        _print_summary(summary, frames)
+    return summary
+
+
+def _render_and_fit(work: Path, name: str, settings: DemoSettings
+                    ) -> tuple[Path, Path, bytes]:
+    """Steps 1 and 2: render the database (resumes) and fit the model (kept when this
+    database and these settings made it); (model path, key path, key)."""
+    from host.cli import main as eigencast
+    from protocol.keys import load_key, write_key
+
     db = work / f"{name}.cdb"
     model_path = work / f"{name}.ecs"
     key_path = work / "device.key"
-    if headless is None:
-        headless = not display_available()
-
     _step(1, f"render {settings.volume} from {settings.views} at {settings.size} px, with "
              f"depth, into {db} (resumes; skipped when complete)")
     code = eigencast(["render", settings.volume, "-o", str(db), "--views", settings.views,
@@ -276,64 +317,43 @@ def run_demo(
         if code != 0:
             raise EigencastError(f"fitting {db} failed (exit {code})")
         stamp_path.write_text(stamp)
+    return model_path, key_path, key
 
-    frames = work / "frames"
-    if headless and frames.is_dir():  # this run's frames only (frames.csv is appended to)
-        shutil.rmtree(frames)
-    stats_path = work / "device-stats.json"
-    device_args = ["--flash", str(work / "flash"), "--key", str(key_path), "--stats",
-                   str(stats_path)]
+
+def _serve_the_device(device: _DeviceProcess, model_path: Path, key: bytes, model: Any,
+                      settings: DemoSettings, headless: bool, frames: Path) -> Any:
+    """Step 5: serve an orbit (headless) or the window's views until it closes; the
+    serving statistics."""
+    from host.link.options import ServeOptions, ServeParts
+    from host.link.serving import serve
+
     if headless:
-        device_args += ["--headless", "--frames", str(frames), "--every", str(settings.every)]
-    else:
-        device_args += ["--display", "--screenshots", str(work)]
-    device = _DeviceProcess(device_args, work / "device.log")
-    summary: dict[str, Any] = {"model": str(model_path), "device_url": device.url,
-                               "headless": headless}
-    try:
-        _step(3, f"device runtime started as a separate process (pid {device.proc.pid}), "
-                 f"listening on tcp-listen://127.0.0.1:{device.port}; the host connects to "
-                 f"{device.url} (log: {work / 'device.log'})")
-        _step(4, f"provision {model_path.name} on the device")
-        result = provision(model_path, device.url, key=key, show_progress=True)
-        summary["provision"] = result.outcome
-        print(f"      {result.outcome}: {result.size_bytes} bytes in slot {result.slot}",
-              file=sys.stderr)
-        model = HostModel.load(model_path, key=key)
-        if headless:
-            from device_runtime.runtime import parse_orbit
+        from device_runtime.runtime import parse_orbit
 
-            orbit = parse_orbit(settings.orbit)
-            _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s at most): the device "
-                     "warps its own frame of each view, the host corrects it from a sparse "
-                     "ray-cast within the frame deadline; the device writes every "
-                     f"{settings.every}th frame to {frames}")
-            stats = serve(model_path, device.url, key=key, orbit=orbit, fps=60, model=model,
-                          stats_every_s=0, log=lambda line: None)
-            time.sleep(1.2)  # the device's statistics file is refreshed every second
-        else:
-            _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
-                     "s screenshot, Esc quits; the device shows its own frame of each view at "
-                     "once, the host corrects it, and a view you stop on sharpens to the "
-                     "ray-cast's best")
-            stop = threading.Event()
+        orbit = parse_orbit(settings.orbit)
+        _step(5, f"serve an orbit ({settings.orbit}, 60 frames/s at most): the device "
+                 "warps its own frame of each view, the host corrects it from a sparse "
+                 "ray-cast within the frame deadline; the device writes every "
+                 f"{settings.every}th frame to {frames}")
+        stats = serve(model_path, device.url,
+                      ServeOptions(key=key, orbit=orbit, fps=60, stats_every_s=0),
+                      ServeParts(model=model, log=lambda line: None))
+        time.sleep(1.2)  # the device's statistics file is refreshed every second
+        return stats
+    _step(5, "serve: drag the window or use the arrow keys; +/- zoom, h overlay, "
+             "s screenshot, Esc quits; the device shows its own frame of each view at "
+             "once, the host corrects it, and a view you stop on sharpens to the "
+             "ray-cast's best")
+    stop = threading.Event()
 
-            def watch() -> None:
-                device.proc.wait()
-                stop.set()
+    def watch() -> None:
+        device.proc.wait()
+        stop.set()
 
-            threading.Thread(target=watch, daemon=True).start()
-            stats = serve(model_path, device.url, key=key, model=model, stop=stop,
-                          stats_every_s=10.0, max_reconnects=3)
-        summary["serve"] = stats.as_dict()
-    finally:
-        device.stop()
-    if stats_path.exists():
-        summary["device"] = json.loads(stats_path.read_text())
-    if headless:
-        summary["quality"] = _quality(settings, model, frames)
-        _print_summary(summary, frames)
-    return summary
+    threading.Thread(target=watch, daemon=True).start()
+    return serve(model_path, device.url,
+                 ServeOptions(key=key, stats_every_s=10.0, max_reconnects=3),
+                 ServeParts(model=model, stop=stop))
 
 
 #: What the demo's summary compares, in the order it prints them.

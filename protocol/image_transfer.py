@@ -204,214 +204,284 @@ def send_image(
             f"chunk_bytes={chunk_bytes} does not fit max_frame_bytes={link.tx_max_frame_bytes} "
             f"(at most {link.tx_max_frame_bytes - CHUNK_OVERHEAD_BYTES})"
         )
-    view = memoryview(data).cast("B")
-    size = len(view)
-    state = _AckState(first_ack.next_offset, first_ack.credits, first_ack.window_bytes)
-    stats = TransferStats(
-        start_offset=first_ack.next_offset, size_bytes=size, chunk_bytes=chunk_bytes
-    )
-    selective = retransmit == "selective"
-    max_chunk = chunk_bytes
-    min_chunk = max(1, min(min_chunk_bytes, chunk_bytes))
-    chunk = max_chunk if initial_chunk_bytes is None else max(
-        min_chunk, min(initial_chunk_bytes, max_chunk)
-    )
-    sent_at: dict[int, float] = {}  # chunk start -> send time, first transmissions only
-    sent_end: dict[int, int] = {}  # chunk start -> end of the last chunk sent from there
-    last_resend: dict[int, float] = {}
-    srtt: float | None = None
-    rttvar = 0.0
-    rto = initial_rto_s
-    acked = next_send = state.next_offset
-    started = last_progress = last_ack_seen = time.monotonic()
-    acks_seen = 0
-    in_recovery, recover = False, 0
-    epoch_chunks = epoch_resent = 0
-    recent_new: collections.deque[int] = collections.deque(maxlen=4 * IMAGE_QUEUE_FRAMES)
+    sender = _Sender(link, memoryview(data).cast("B"), transfer_id, first_ack, chunk_bytes,
+                     min_chunk_bytes, initial_chunk_bytes, initial_rto_s, min_rto_s, max_rto_s,
+                     retransmit == "selective", tag)
+    link.add_listener(transfer_id, sender.state.on_message)
+    try:
+        sender.run(inactivity_timeout_s, on_progress)
+    finally:
+        link.remove_listener(transfer_id)
+    return sender.finish()
 
-    def transmit(offset: int, *, front: bool = False, resend: bool = False) -> int:
-        nonlocal epoch_chunks, epoch_resent
-        end = min(offset + chunk, size)
-        chunk_msg: m.Message = m.ImageChunk(offset=offset, data=view[offset:end])
-        if tag is not None:
-            chunk_msg = tag(chunk_msg)  # type: ignore[arg-type]
-        wire = link._encode(chunk_msg, transfer_id)
-        if resend or offset in sent_end:
-            stats.retransmitted_chunks += 1
-            epoch_resent += 1
-            sent_at.pop(offset, None)
+
+class _Sender:
+    """One run of :func:`send_image`: its state and the steps of each turn of its loop
+    (:meth:`run`): take the acks (:meth:`_take_acks`), learn from them (:meth:`_absorb`,
+    :meth:`_after_progress`), adapt the chunk size (:meth:`_adapt_chunk`), give up when
+    stuck (:meth:`_check_stuck`), recover a loss (:meth:`_recover`), fill the window
+    (:meth:`_fill`) and wait (:meth:`_wait`)."""
+
+    def __init__(self, link: Link, view: memoryview, transfer_id: int, first_ack: m.ImageAck,
+                 chunk_bytes: int, min_chunk_bytes: int, initial_chunk_bytes: int | None,
+                 initial_rto_s: float, min_rto_s: float, max_rto_s: float, selective: bool,
+                 tag: Callable[[m.ImageChunk], m.Message] | None) -> None:
+        self.link, self.view, self.size = link, view, len(view)
+        self.transfer_id, self.tag, self.selective = transfer_id, tag, selective
+        self.state = _AckState(first_ack.next_offset, first_ack.credits, first_ack.window_bytes)
+        self.stats = TransferStats(
+            start_offset=first_ack.next_offset, size_bytes=self.size, chunk_bytes=chunk_bytes
+        )
+        self.max_chunk = chunk_bytes
+        self.min_chunk = max(1, min(min_chunk_bytes, chunk_bytes))
+        self.chunk = self.max_chunk if initial_chunk_bytes is None else max(
+            self.min_chunk, min(initial_chunk_bytes, self.max_chunk)
+        )
+        self.sent_at: dict[int, float] = {}  # chunk start -> send time, first transmissions
+        self.sent_end: dict[int, int] = {}  # chunk start -> end of the last chunk from there
+        self.last_resend: dict[int, float] = {}
+        self.srtt: float | None = None
+        self.rttvar = 0.0
+        self.rto = initial_rto_s
+        self.min_rto_s, self.max_rto_s = min_rto_s, max_rto_s
+        self.acked = self.next_send = self.state.next_offset
+        self.started = self.last_progress = self.last_ack_seen = time.monotonic()
+        self.acks_seen = 0
+        self.in_recovery, self.recover = False, 0
+        self.epoch_chunks = self.epoch_resent = 0
+        self.recent_new: collections.deque[int] = collections.deque(
+            maxlen=4 * IMAGE_QUEUE_FRAMES)
+
+    def run(self, inactivity_timeout_s: float, on_progress: Callable[[int], None] | None
+            ) -> None:
+        """Send until everything is acked."""
+        while self.acked < self.size:
+            credits, window, dup, events = self._take_acks()
+            now = time.monotonic()
+            progressed = self._absorb(events)
+            gap = (self.srtt if self.srtt is not None else self.min_rto_s) * 1.5 + 0.005
+            if progressed:
+                self._forget_acked()
+                if on_progress is not None:
+                    on_progress(self.acked)
+                if self.acked >= self.size:
+                    break
+                dup = self._after_progress(now, dup)
+            self._adapt_chunk(now)
+            if self.next_send < self.acked:
+                self.next_send = self.acked
+            self._check_stuck(now, inactivity_timeout_s)
+            self._recover(now, dup, gap)
+            limit = self._fill(now, credits, window)
+            if self.link.closed:
+                raise self.link._error_copy()
+            self._wait(now, credits, limit, dup, gap)
+
+    def finish(self) -> TransferStats:
+        """The statistics of the finished transfer."""
+        stats = self.stats
+        stats.acks = self.state.acks
+        stats.seconds = time.monotonic() - self.started
+        stats.srtt_s = self.srtt or 0.0
+        stats.final_chunk_bytes = self.chunk
+        return stats
+
+    # ------------------------------------------------------------------ one turn's steps
+
+    def _take_acks(self) -> tuple[int, int, int, list[tuple[float, int]]]:
+        """The latest credits, window, duplicate acks and the advancing acks since the last
+        turn (raises the device's error)."""
+        state = self.state
+        with state.cond:
+            if state.error is not None:
+                raise state.error
+            credits, window, dup = state.credits, state.window_bytes, state.dup_acks
+            events = list(state.events)
+            state.events.clear()
+            if state.acks != self.acks_seen:
+                self.acks_seen = state.acks
+                self.last_ack_seen = time.monotonic()
+        return credits, window, dup, events
+
+    def _absorb(self, events: list[tuple[float, int]]) -> bool:
+        """Take the round-trip samples and the new acked offset from ``events``; whether
+        the acked offset advanced."""
+        progressed = False
+        for when, offset in events:
+            # RTT sample (RFC 6298, Karn): the chunk that was at the head of the line,
+            # if it was sent once; a hole before it cannot have delayed this ack.
+            sample_from = self.sent_at.pop(self.acked, None) if offset > self.acked else None
+            if sample_from is not None:
+                sample = max(when - sample_from, 1e-4)
+                if self.srtt is None:
+                    self.srtt, self.rttvar = sample, sample / 2
+                else:
+                    self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - sample)
+                    self.srtt = 0.875 * self.srtt + 0.125 * sample
+                self.rto = min(max(self.srtt + 4 * self.rttvar, self.min_rto_s), self.max_rto_s)
+            if offset > self.acked:
+                self.acked, self.last_progress, progressed = offset, when, True
+        return progressed
+
+    def _forget_acked(self) -> None:
+        for start in [s for s in self.sent_at if s < self.acked]:
+            del self.sent_at[start]
+        for start in [s for s in self.sent_end if s < self.acked]:
+            del self.sent_end[start]
+
+    def _after_progress(self, now: float, dup: int) -> int:
+        """Leave recovery once past it, else (selective) resend the next hole a partial ack
+        names; the duplicate acks still counted."""
+        if self.in_recovery:
+            if self.acked >= self.recover:
+                self.in_recovery = False
+            elif self.selective:  # partial ack: the next hole
+                self._resend_hole(now)
+                with self.state.cond:
+                    self.state.dup_acks = 0
+                dup = 0
+        return dup
+
+    def _adapt_chunk(self, now: float) -> None:
+        """Every 16 chunks: adapt the chunk size to the loss rate."""
+        if self.epoch_chunks >= 16:
+            if self.epoch_resent * 4 > self.epoch_chunks and self.chunk > self.min_chunk:
+                self._shrink(now)
+            elif self.epoch_resent * 20 < self.epoch_chunks and self.chunk < self.max_chunk:
+                self.chunk = min(self.max_chunk, self.chunk + self.chunk // 2 + 1)
+            self.epoch_chunks = self.epoch_resent = 0
+
+    def _check_stuck(self, now: float, inactivity_timeout_s: float) -> None:
+        if now - self.last_progress > inactivity_timeout_s:
+            raise TransportTimeout(
+                f"{self.link.name}: image transfer made no progress for "
+                f"{inactivity_timeout_s:.0f} s (stuck at offset {self.acked} of {self.size}); "
+                "the device stopped acknowledging"
+            )
+
+    def _recover(self, now: float, dup: int, gap: float) -> None:
+        """Loss recovery: the RTO expired, a hole's resend is overdue, or duplicate acks."""
+        acked, selective, tid = self.acked, self.selective, self.transfer_id
+        outstanding = self.next_send > acked
+        if outstanding and now - self.last_ack_seen > self.rto:
+            _logger.debug("transfer %d: RTO %.2f s at offset %d", tid, self.rto, acked)
+            self.stats.timeouts += 1
+            self.rto = min(self.rto * 2, self.max_rto_s)
+            self.last_ack_seen = now
+            if selective:
+                self._resend_hole(now)
+            else:
+                self._go_back(now)
+        elif (
+            selective
+            and self.in_recovery
+            and outstanding
+            and now - self.last_resend.get(acked, -math.inf) > max(2 * gap, self.min_rto_s)
+        ):
+            _logger.debug("transfer %d: hole at %d still open; resending", tid, acked)
+            self.stats.timeouts += 1
+            if self.chunk > self.min_chunk:  # the hole's resend was lost as well
+                self._shrink(now)
+            else:
+                self._resend_hole(now)
+        elif (
+            outstanding
+            and dup >= 2
+            and not (selective and self.in_recovery)
+            and now - self.last_resend.get(acked, -math.inf) > gap
+        ):
+            _logger.debug("transfer %d: %d duplicate acks at offset %d", tid, dup, acked)
+            with self.state.cond:
+                self.state.dup_acks = 0
+            self.stats.fast_retransmits += 1
+            if selective:
+                self._resend_hole(now)
+            else:
+                self._go_back(now)
+
+    def _fill(self, now: float, credits: int, window: int) -> int:
+        """Send new chunks while the window, the credits and the link's queue allow; the
+        window's end."""
+        if self.next_send == self.acked:
+            self.last_ack_seen = max(self.last_ack_seen, now)  # the RTO runs from the first send
+        limit = min(self.acked + window, self.size)
+        while (
+            self.next_send < limit
+            and -(-(self.next_send - self.acked) // self.chunk) < credits
+            and min(self.next_send + self.chunk, self.size) <= limit
+            and self.link.image_queue_depth() < IMAGE_QUEUE_FRAMES
+        ):
+            self.next_send = self._transmit(self.next_send)
+        return limit
+
+    def _wait(self, now: float, credits: int, limit: int, dup: int, gap: float) -> None:
+        """Wait: for queue space if the window allows more, else for an ack or a timer."""
+        acked, selective, state = self.acked, self.selective, self.state
+        window_full = (
+            self.next_send >= limit
+            or -(-(self.next_send - acked) // self.chunk) >= credits
+            or min(self.next_send + self.chunk, self.size) > limit
+        )
+        timer = self.rto - (time.monotonic() - self.last_ack_seen)
+        if self.in_recovery and selective:
+            timer = min(timer, max(2 * gap, self.min_rto_s)
+                        - (now - self.last_resend.get(acked, now)))
+        if dup >= 2 and not (selective and self.in_recovery):
+            timer = min(timer, gap - (now - self.last_resend.get(acked, -math.inf)))
+        timer = max(0.001, min(timer, 0.05))
+        if not window_full:
+            self.link.wait_image_space(timer)
         else:
-            sent_at[offset] = time.monotonic()
-        sent_end[offset] = end
+            with state.cond:
+                if not state.events and state.error is None and state.acks == self.acks_seen:
+                    state.cond.wait(timer)
+
+    # ------------------------------------------------------------------ sending
+
+    def _transmit(self, offset: int, *, front: bool = False, resend: bool = False) -> int:
+        stats = self.stats
+        end = min(offset + self.chunk, self.size)
+        chunk_msg: m.Message = m.ImageChunk(offset=offset, data=self.view[offset:end])
+        if self.tag is not None:
+            chunk_msg = self.tag(chunk_msg)  # type: ignore[arg-type]
+        wire = self.link._encode(chunk_msg, self.transfer_id)
+        if resend or offset in self.sent_end:
+            stats.retransmitted_chunks += 1
+            self.epoch_resent += 1
+            self.sent_at.pop(offset, None)
+        else:
+            self.sent_at[offset] = time.monotonic()
+        self.sent_end[offset] = end
         if not resend:
-            recent_new.append(end - offset)
-        epoch_chunks += 1
+            self.recent_new.append(end - offset)
+        self.epoch_chunks += 1
         stats.chunks_sent += 1
         stats.data_bytes_sent += end - offset
         stats.wire_bytes_sent += len(wire)
-        link.send_chunk(wire, front=front)
+        self.link.send_chunk(wire, front=front)
         return end
 
-    def resend_hole(now: float) -> None:
+    def _resend_hole(self, now: float) -> None:
         # Everything already written goes out before the resend (it jumps the queue, not
         # the wire); chunks still queued go after it, so they are not part of this round.
-        nonlocal in_recovery, recover
-        queued = list(recent_new)[-link.image_queue_depth():] if link.image_queue_depth() else []
-        written_end = next_send - sum(queued)
-        last_resend[acked] = now
-        transmit(acked, front=True, resend=True)
-        recover = max(recover, written_end) if in_recovery else written_end
-        in_recovery = True
+        depth = self.link.image_queue_depth()
+        queued = list(self.recent_new)[-depth:] if depth else []
+        written_end = self.next_send - sum(queued)
+        self.last_resend[self.acked] = now
+        self._transmit(self.acked, front=True, resend=True)
+        self.recover = max(self.recover, written_end) if self.in_recovery else written_end
+        self.in_recovery = True
 
-    def go_back(now: float) -> None:
-        nonlocal next_send, in_recovery
-        last_resend[acked] = now
-        link.drop_queued_chunks()
-        next_send = acked
-        in_recovery = False
+    def _go_back(self, now: float) -> None:
+        self.last_resend[self.acked] = now
+        self.link.drop_queued_chunks()
+        self.next_send = self.acked
+        self.in_recovery = False
 
-    def shrink(now: float) -> None:
+    def _shrink(self, now: float) -> None:
         # Frames this long do not get through: send shorter ones, and send again what
         # is in flight (it went out in frames of the failing length).
-        nonlocal chunk, epoch_chunks, epoch_resent
-        chunk = max(min_chunk, chunk // 2)
-        epoch_chunks = epoch_resent = 0
-        _logger.debug("transfer %d: chunk size now %d", transfer_id, chunk)
-        go_back(now)
-
-    link.add_listener(transfer_id, state.on_message)
-    try:
-        while acked < size:
-            with state.cond:
-                if state.error is not None:
-                    raise state.error
-                credits, window, dup = state.credits, state.window_bytes, state.dup_acks
-                events = list(state.events)
-                state.events.clear()
-                if state.acks != acks_seen:
-                    acks_seen = state.acks
-                    last_ack_seen = time.monotonic()
-            now = time.monotonic()
-            progressed = False
-            for when, offset in events:
-                # RTT sample (RFC 6298, Karn): the chunk that was at the head of the line,
-                # if it was sent once; a hole before it cannot have delayed this ack.
-                sample_from = sent_at.pop(acked, None) if offset > acked else None
-                if sample_from is not None:
-                    sample = max(when - sample_from, 1e-4)
-                    if srtt is None:
-                        srtt, rttvar = sample, sample / 2
-                    else:
-                        rttvar = 0.75 * rttvar + 0.25 * abs(srtt - sample)
-                        srtt = 0.875 * srtt + 0.125 * sample
-                    rto = min(max(srtt + 4 * rttvar, min_rto_s), max_rto_s)
-                if offset > acked:
-                    acked, last_progress, progressed = offset, when, True
-            gap = (srtt if srtt is not None else min_rto_s) * 1.5 + 0.005
-            if progressed:
-                for start in [s for s in sent_at if s < acked]:
-                    del sent_at[start]
-                for start in [s for s in sent_end if s < acked]:
-                    del sent_end[start]
-                if on_progress is not None:
-                    on_progress(acked)
-                if acked >= size:
-                    break
-                if in_recovery:
-                    if acked >= recover:
-                        in_recovery = False
-                    elif selective:  # partial ack: the next hole
-                        resend_hole(now)
-                        with state.cond:
-                            state.dup_acks = 0
-                        dup = 0
-            if epoch_chunks >= 16:  # adapt the chunk size to the loss rate
-                if epoch_resent * 4 > epoch_chunks and chunk > min_chunk:
-                    shrink(now)
-                elif epoch_resent * 20 < epoch_chunks and chunk < max_chunk:
-                    chunk = min(max_chunk, chunk + chunk // 2 + 1)
-                epoch_chunks = epoch_resent = 0
-            if next_send < acked:
-                next_send = acked
-            if now - last_progress > inactivity_timeout_s:
-                raise TransportTimeout(
-                    f"{link.name}: image transfer made no progress for "
-                    f"{inactivity_timeout_s:.0f} s (stuck at offset {acked} of {size}); "
-                    "the device stopped acknowledging"
-                )
-            outstanding = next_send > acked
-            # Loss recovery.
-            if outstanding and now - last_ack_seen > rto:
-                _logger.debug("transfer %d: RTO %.2f s at offset %d", transfer_id, rto, acked)
-                stats.timeouts += 1
-                rto = min(rto * 2, max_rto_s)
-                last_ack_seen = now
-                if selective:
-                    resend_hole(now)
-                else:
-                    go_back(now)
-            elif (
-                selective
-                and in_recovery
-                and outstanding
-                and now - last_resend.get(acked, -math.inf) > max(2 * gap, min_rto_s)
-            ):
-                _logger.debug("transfer %d: hole at %d still open; resending", transfer_id, acked)
-                stats.timeouts += 1
-                if chunk > min_chunk:  # the hole's resend was lost as well
-                    shrink(now)
-                else:
-                    resend_hole(now)
-            elif (
-                outstanding
-                and dup >= 2
-                and not (selective and in_recovery)
-                and now - last_resend.get(acked, -math.inf) > gap
-            ):
-                _logger.debug("transfer %d: %d duplicate acks at offset %d", transfer_id, dup,
-                              acked)
-                with state.cond:
-                    state.dup_acks = 0
-                stats.fast_retransmits += 1
-                if selective:
-                    resend_hole(now)
-                else:
-                    go_back(now)
-            # Fill the window.
-            if next_send == acked:
-                last_ack_seen = max(last_ack_seen, now)  # the RTO runs from the first send
-            limit = min(acked + window, size)
-            while (
-                next_send < limit
-                and -(-(next_send - acked) // chunk) < credits
-                and min(next_send + chunk, size) <= limit
-                and link.image_queue_depth() < IMAGE_QUEUE_FRAMES
-            ):
-                next_send = transmit(next_send)
-            if link.closed:
-                raise link._error_copy()
-            # Wait: for queue space if the window allows more, else for an ack or a timer.
-            window_full = (
-                next_send >= limit
-                or -(-(next_send - acked) // chunk) >= credits
-                or min(next_send + chunk, size) > limit
-            )
-            timer = rto - (time.monotonic() - last_ack_seen)
-            if in_recovery and selective:
-                timer = min(timer, max(2 * gap, min_rto_s) - (now - last_resend.get(acked, now)))
-            if dup >= 2 and not (selective and in_recovery):
-                timer = min(timer, gap - (now - last_resend.get(acked, -math.inf)))
-            timer = max(0.001, min(timer, 0.05))
-            if not window_full:
-                link.wait_image_space(timer)
-            else:
-                with state.cond:
-                    if not state.events and state.error is None and state.acks == acks_seen:
-                        state.cond.wait(timer)
-    finally:
-        link.remove_listener(transfer_id)
-    stats.acks = state.acks
-    stats.seconds = time.monotonic() - started
-    stats.srtt_s = srtt or 0.0
-    stats.final_chunk_bytes = chunk
-    return stats
+        self.chunk = max(self.min_chunk, self.chunk // 2)
+        self.epoch_chunks = self.epoch_resent = 0
+        _logger.debug("transfer %d: chunk size now %d", self.transfer_id, self.chunk)
+        self._go_back(now)

@@ -301,23 +301,7 @@ def scan_cbor(body: bytes, *, max_depth: int = MAX_DEPTH, where: str = "decode")
         if stack:
             parent = stack[-1]
             if parent[1] and parent[0] % 2 == 0:
-                if major in (0, 1):
-                    key_id: Any = (major, arg)
-                elif major == 3:
-                    if arg > n - pos:
-                        raise MalformedMessage(
-                            f"{where}: CBOR text of {arg} bytes at offset {start} runs past "
-                            f"the end of {n}"
-                        )
-                    key_id = (3, body[pos : pos + arg])
-                else:
-                    raise MalformedMessage(
-                        f"{where}: CBOR map key at offset {start} is major type {major} "
-                        "(only ints and text strings allowed)"
-                    )
-                if key_id in parent[2]:
-                    raise MalformedMessage(f"{where}: CBOR duplicate map key at offset {start}")
-                parent[2].add(key_id)
+                _check_map_key(body, pos, start, major, arg, parent[2], where)
             parent[0] -= 1
         else:
             root_left -= 1
@@ -354,6 +338,30 @@ def scan_cbor(body: bytes, *, max_depth: int = MAX_DEPTH, where: str = "decode")
             break
     if pos != n:
         raise MalformedMessage(f"{where}: {n - pos} trailing byte(s) after the CBOR item")
+
+
+def _check_map_key(body: bytes, pos: int, start: int, major: int, arg: int, seen: set,
+                   where: str) -> None:
+    """The item at ``start`` (its argument read up to ``pos``) is a map's key: an int or a
+    text string within ``body``, not one of the map's keys ``seen`` before (added)."""
+    n = len(body)
+    if major in (0, 1):
+        key_id: Any = (major, arg)
+    elif major == 3:
+        if arg > n - pos:
+            raise MalformedMessage(
+                f"{where}: CBOR text of {arg} bytes at offset {start} runs past "
+                f"the end of {n}"
+            )
+        key_id = (3, body[pos : pos + arg])
+    else:
+        raise MalformedMessage(
+            f"{where}: CBOR map key at offset {start} is major type {major} "
+            "(only ints and text strings allowed)"
+        )
+    if key_id in seen:
+        raise MalformedMessage(f"{where}: CBOR duplicate map key at offset {start}")
+    seen.add(key_id)
 
 
 # --------------------------------------------------------------------------- Record

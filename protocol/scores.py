@@ -444,45 +444,15 @@ def encode_scores(
     EncodedScores
         The packet plus the quantized ``q`` the host keeps as a future base.
     """
-    y = np.asarray(y)
-    if y.ndim != 1:
-        raise ValueError(f"encode_scores: y must be 1-D (n_coefficients,), got shape {y.shape}")
-    if not np.all(np.isfinite(y)):
-        raise ValueError("encode_scores: y has NaN or infinite entries")
-    if not 0 <= frame <= 0xFFFFFFFF:
-        raise ValueError(f"encode_scores: frame={frame} must be in 0..2**32-1")
-    if len(image_digest) < 4:
-        raise ValueError("encode_scores: image_digest must have at least 4 bytes")
-    phi_deg, theta_deg = (float(v) for v in view)
-    if not (np.isfinite(phi_deg) and np.isfinite(theta_deg)):
-        raise ValueError(f"encode_scores: view={view!r} must be finite")
+    y, phi_deg, theta_deg, counts = _checked_scores(y, frame, view, image_digest, n_components)
     n_coeff = y.shape[0]
-    counts = None if n_components is None else np.asarray(n_components, dtype=np.int64)
-    if counts is not None and counts.sum() != n_coeff:
-        raise ValueError(
-            f"encode_scores: n_components sums to {counts.sum()}, y has {n_coeff} entries"
-        )
     mode, header_step, step_sent, per_coeff = _steps_array(step, n_coeff, counts, per_cell)
-    ratio = y.astype(np.float64) / per_coeff
-    if ratio.size and np.abs(ratio).max() > _INT32_MAX:
-        raise ValueError(
-            f"encode_scores: |y / step| reaches {np.abs(ratio).max():.3g}, over the int32 "
-            "range; use a larger step"
-        )
-    q = np.rint(ratio).astype(np.int32)
+    q = _quantized(y, per_coeff)
     flags = mode << _STEP_SHIFT
     base_frame = 0
     coded = q.astype(np.int64)
     kept_step: float | np.ndarray = header_step if step_sent is None else step_sent
-    if predicted and synthesized:
-        raise ValueError("encode_scores: a packet corrects the prediction or the synthesized "
-                         "frame, not both")
-    if (predicted or synthesized) and base is not None:
-        raise ValueError("encode_scores: a correction has no delta base")
-    if predicted:
-        flags |= FLAG_PREDICTED
-    if synthesized:
-        flags |= FLAG_SYNTHESIZED
+    flags |= _correction_flags(predicted, synthesized, base)
     if base is not None:
         if base.q.shape != q.shape or not _same_step(base.step, kept_step):
             raise ValueError(
@@ -492,23 +462,9 @@ def encode_scores(
         flags |= FLAG_DELTA
         base_frame = base.frame
         coded = coded - base.q.astype(np.int64)
-    if coding not in (None, CODING_VARINT, CODING_EOB):
-        raise ValueError(f"encode_scores: coding={coding!r} must be None, 0 or 1")
-    if coding == CODING_EOB and counts is None:
-        raise ValueError("encode_scores: end-of-block coding needs n_components")
-    tries = [coding] if coding is not None else (
-        [CODING_VARINT] if counts is None else [CODING_VARINT, CODING_EOB])
     prefix = b"" if step_sent is None else step_sent.astype("<f4").tobytes()
-    best: tuple[int, bytes] | None = None
-    for mode_ in tries:
-        ints = coded if mode_ == CODING_VARINT else _eob_integers(coded, counts)
-        raw = prefix + zigzag_varints(ints)
-        for zflag, body in ((0, raw), (FLAG_ZSTD, _compressor(level).compress(raw))):
-            if best is None or len(body) < len(best[1]):
-                best = (zflag | (mode_ << _CODING_SHIFT), body)
-    assert best is not None
-    flags |= best[0]
-    payload = best[1]
+    coding_flags, payload = _smallest_payload(coded, counts, coding, prefix, level)
+    flags |= coding_flags
     header = _HEADER.pack(
         MAGIC,
         3 if synthesized else 2 if predicted else 1,
@@ -522,6 +478,73 @@ def encode_scores(
         header_step,
     )
     return EncodedScores(packet=header + payload, q=q, frame=frame, step=kept_step)
+
+
+def _checked_scores(y: np.ndarray, frame: int, view: tuple[float, float], image_digest: bytes,
+                    n_components: np.ndarray | None
+                    ) -> tuple[np.ndarray, float, float, np.ndarray | None]:
+    """`encode_scores`' inputs checked: (y as an array, phi, theta, the per-cell component
+    counts as int64 or None)."""
+    y = np.asarray(y)
+    if y.ndim != 1:
+        raise ValueError(f"encode_scores: y must be 1-D (n_coefficients,), got shape {y.shape}")
+    if not np.all(np.isfinite(y)):
+        raise ValueError("encode_scores: y has NaN or infinite entries")
+    if not 0 <= frame <= 0xFFFFFFFF:
+        raise ValueError(f"encode_scores: frame={frame} must be in 0..2**32-1")
+    if len(image_digest) < 4:
+        raise ValueError("encode_scores: image_digest must have at least 4 bytes")
+    phi_deg, theta_deg = (float(v) for v in view)
+    if not (np.isfinite(phi_deg) and np.isfinite(theta_deg)):
+        raise ValueError(f"encode_scores: view={view!r} must be finite")
+    counts = None if n_components is None else np.asarray(n_components, dtype=np.int64)
+    if counts is not None and counts.sum() != y.shape[0]:
+        raise ValueError(
+            f"encode_scores: n_components sums to {counts.sum()}, y has {y.shape[0]} entries"
+        )
+    return y, phi_deg, theta_deg, counts
+
+
+def _quantized(y: np.ndarray, per_coeff: np.ndarray) -> np.ndarray:
+    """``y / step`` rounded to int32 (an error beyond its range)."""
+    ratio = y.astype(np.float64) / per_coeff
+    if ratio.size and np.abs(ratio).max() > _INT32_MAX:
+        raise ValueError(
+            f"encode_scores: |y / step| reaches {np.abs(ratio).max():.3g}, over the int32 "
+            "range; use a larger step"
+        )
+    return np.rint(ratio).astype(np.int32)
+
+
+def _correction_flags(predicted: bool, synthesized: bool, base: EncodedScores | None) -> int:
+    """FLAG_PREDICTED / FLAG_SYNTHESIZED of a correction (which has no delta base)."""
+    if predicted and synthesized:
+        raise ValueError("encode_scores: a packet corrects the prediction or the synthesized "
+                         "frame, not both")
+    if (predicted or synthesized) and base is not None:
+        raise ValueError("encode_scores: a correction has no delta base")
+    return (FLAG_PREDICTED if predicted else 0) | (FLAG_SYNTHESIZED if synthesized else 0)
+
+
+def _smallest_payload(coded: np.ndarray, counts: np.ndarray | None, coding: int | None,
+                      prefix: bytes, level: int) -> tuple[int, bytes]:
+    """The smallest payload among the codings tried (``coding``, or both where the
+    component counts allow end-of-block coding), raw or zstd: (its flags, its bytes)."""
+    if coding not in (None, CODING_VARINT, CODING_EOB):
+        raise ValueError(f"encode_scores: coding={coding!r} must be None, 0 or 1")
+    if coding == CODING_EOB and counts is None:
+        raise ValueError("encode_scores: end-of-block coding needs n_components")
+    tries = [coding] if coding is not None else (
+        [CODING_VARINT] if counts is None else [CODING_VARINT, CODING_EOB])
+    best: tuple[int, bytes] | None = None
+    for mode_ in tries:
+        ints = coded if mode_ == CODING_VARINT else _eob_integers(coded, counts)
+        raw = prefix + zigzag_varints(ints)
+        for zflag, body in ((0, raw), (FLAG_ZSTD, _compressor(level).compress(raw))):
+            if best is None or len(body) < len(best[1]):
+                best = (zflag | (mode_ << _CODING_SHIFT), body)
+    assert best is not None
+    return best
 
 
 def _same_step(a: float | np.ndarray, b: float | np.ndarray) -> bool:

@@ -108,7 +108,7 @@ def read_frames(folder: Path) -> list[dict]:
 
 def check_frames(model, folder: Path, rows: list[dict] | None = None) -> int:
     """Assert every written frame equals ``model.view`` at its view (the interpolated scores
-    ``serve(..., scores="interpolate")`` sends); return how many."""
+    ``ServeOptions(scores="interpolate")`` sends); return how many."""
     rows = read_frames(folder) if rows is None else rows
     for row in rows:
         got = np.asarray(Image.open(Path(folder) / row["file"]))

@@ -217,3 +217,85 @@ def test_the_import_parser_sees_function_level_and_relative_imports():
     assert (1, "host.render.camera") in [
         (line, m) for line, m in _imports_source("from .camera import Camera\n", fake)
     ]
+
+
+# ----------------------------------------------------------------------------- circles
+
+
+def _host_import_graph() -> dict[str, set[str]]:
+    """Module -> the host modules it imports (function-level too); ``from host.link import
+    serving`` is an edge to ``host.link.serving``, ``from host.link.serving import serve`` one
+    to ``host.link.serving``."""
+    paths = {_name(path): path for path in _modules("host")}
+    graph: dict[str, set[str]] = {name: set() for name in paths}
+    for name, path in paths.items():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                targets = [f"{node.module}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            for target in targets:
+                while target and target not in paths:  # a name in a module: the module
+                    target = target.rpartition(".")[0]
+                if target and target != name:
+                    graph[name].add(target)
+    return graph
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of ``graph`` with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def _folder(module: str) -> str:
+    """The folder of host/ a module's file is in: ``host/link`` for ``host.link.serving``,
+    ``host`` for ``host.cluster`` (a package's ``__init__`` is in its own folder)."""
+    path = REPO / Path(*module.split("."))
+    return str((path if path.is_dir() else path.parent).relative_to(REPO))
+
+
+def test_no_import_circle_crosses_a_folder_of_host():
+    # a circle within one folder is one idea split into files; one across folders means a
+    # lower layer reaches up (e.g. the cluster's workers into the command line)
+    crossing = [c for c in _circles(_host_import_graph()) if len({_folder(m) for m in c}) > 1]
+    assert not crossing, "import circles across folders of host/ (move what both need below "\
+        "both):\n" + "\n".join(" <-> ".join(c) for c in crossing)
+
+
+def test_the_circle_finder_sees_a_circle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert _circles(graph) == [["a", "b", "c"]]
+    assert _folder("host.link.serving") == "host/link" and _folder("host.cluster") == "host"
+    assert _folder("host.link") == "host/link"

@@ -60,6 +60,7 @@ from device_runtime.device import DeviceConfig
 from device_runtime.lobby import PEER_CPU
 from device_runtime.runtime import parse_orbit
 from host.link import FrameEncoder, provision, serve
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import FrameDecoder
@@ -161,9 +162,10 @@ class Target:
     def serves(self, what: str) -> None:
         """A real host streams one view (a fresh elevation each time) and it is shown."""
         theta = -60.0 + next(_checks)
-        stats = serve(self.model_path, self.host_url(), key=self.host_key,
-                      orbit=parse_orbit(f"steps:1:{theta:g}"), fps=0, log=_quiet,
-                      reconnect=False, stats_every_s=60)
+        stats = serve(self.model_path, self.host_url(),
+                      ServeOptions(key=self.host_key, orbit=parse_orbit(f"steps:1:{theta:g}"),
+                                   fps=0, reconnect=False, stats_every_s=60),
+                      ServeParts(log=_quiet))
         assert stats.frames == 1, f"{self.name}: after {what}: {stats}"
         wait_until(lambda: self.shown((0.0, theta)) > 0, 20,
                    f"{self.name}: after {what} (seed {SEED}), the host's view (0, {theta})")
@@ -183,8 +185,9 @@ class ProcessTarget(Target):
         self.device = DeviceProcess(self.flash, *args,
                                     key_file=key_file(model_path) if keyed else None)
         self.pid = self.device.proc.pid
-        provision(model_path, self.device.url, key=self.host_key, show_progress=False,
-                  log=_quiet)
+        provision(model_path, self.device.url,
+                  ProvisionOptions(key=self.host_key, show_progress=False),
+                  ProvisionParts(log=_quiet))
 
     def peer(self) -> RawPeer:
         return RawPeer(open_transport(self.device.url, timeout_s=5))
@@ -226,8 +229,9 @@ class MemTarget(Target):
                               insecure=not keyed)
         self.device = RuntimeThread(self.flash, f"mem://{self.line}?end=b&pace=0",
                                     frames=self.frames, config=config)
-        provision(model_path, self.host_url(), key=self.host_key, show_progress=False,
-                  log=_quiet)
+        provision(model_path, self.host_url(),
+                  ProvisionOptions(key=self.host_key, show_progress=False),
+                  ProvisionParts(log=_quiet))
 
     def peer(self) -> RawPeer:
         return RawPeer(open_transport(self.host_url(), timeout_s=5))
@@ -541,9 +545,10 @@ def test_replayed_authenticated_frames_are_not_shown_or_stored(targets, name, tm
         return make
 
     theta = 77.0
-    stats = serve(target.model_path, target.host_url(), key=KEY,
-                  orbit=parse_orbit(f"steps:4:{theta:g}"), fps=0, log=_quiet,
-                  reconnect=False, transport_factory=factory(4), stats_every_s=60)
+    stats = serve(target.model_path, target.host_url(),
+                  ServeOptions(key=KEY, orbit=parse_orbit(f"steps:4:{theta:g}"), fps=0,
+                               reconnect=False, stats_every_s=60),
+                  ServeParts(log=_quiet, transport_factory=factory(4)))
     assert stats.frames == 4
     target.check("an orbit with a replayed SCORES", since, decoded=4)
     assert recorders[0].replayed
@@ -551,8 +556,9 @@ def test_replayed_authenticated_frames_are_not_shown_or_stored(targets, name, tm
     other = tmp_path / "other.ecs"
     make_image(other, size_bytes=30_000, seed=SEED)
     for image in (other, target.model_path):
-        provision(image, target.host_url(), key=KEY, force=True, show_progress=False,
-                  log=_quiet, transport_factory=factory(None))
+        provision(image, target.host_url(),
+                  ProvisionOptions(key=KEY, force=True, show_progress=False),
+                  ProvisionParts(log=_quiet, transport_factory=factory(None)))
     stored_after = flash_fingerprint(target.flash)
     captured = [wire for rec in recorders for t, wire in rec.frames
                 if t not in (m.MessageType.HELLO, m.MessageType.AUTH_CHALLENGE,
@@ -616,9 +622,9 @@ def test_replayed_corrections_are_not_applied(targets):
         return json.loads(target.stats.read_text())["correction_packets"]
 
     before = corrections()
-    stats = serve(target.model_path, target.host_url(), key=KEY,
-                  orbit=parse_orbit("steps:3:66"), fps=0, log=_quiet, reconnect=False,
-                  transport_factory=make, stats_every_s=60)
+    stats = serve(target.model_path, target.host_url(),
+                  ServeOptions(key=KEY, orbit=parse_orbit("steps:3:66"), fps=0, reconnect=False,
+                               stats_every_s=60), ServeParts(log=_quiet, transport_factory=make))
     assert stats.frames == 3 and stats.correction_frames >= 2, stats
     assert recorders[0].replayed
     after = corrections()
@@ -705,7 +711,8 @@ def test_a_connection_that_does_not_authenticate_is_dropped(tmp_path, model_path
             finally:
                 stop.set()
                 peer.close()
-        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
     finally:
         assert device.stop() == 0, "\n".join(device.lines[-10:])
 
@@ -725,7 +732,8 @@ def guarded(tmp_path_factory, model_path):
     """A keyed device process holding the model, for the availability tests."""
     device = DeviceProcess(tmp_path_factory.mktemp("guarded") / "flash", "--headless",
                            "--auth-timeout", f"{AUTH_TIMEOUT_S:g}", key_file=key_file(model_path))
-    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
     yield device
     assert device.stop() == 0, "\n".join(device.lines[-20:])
 
@@ -741,8 +749,9 @@ def test_keyless_peers_cannot_lock_the_key_holder_out(guarded, model_path, mode,
     try:
         for attempt in range(5):
             t0 = time.monotonic()
-            result = provision(model_path, guarded.url, key=KEY, show_progress=False,
-                               log=_quiet)
+            result = provision(model_path, guarded.url,
+                               ProvisionOptions(key=KEY, show_progress=False),
+                               ProvisionParts(log=_quiet))
             took = time.monotonic() - t0
             assert result.outcome == "already-active", result
             assert took <= bound, f"{mode} x{threads}: provision {attempt} took {took:.1f} s"
@@ -751,8 +760,10 @@ def test_keyless_peers_cannot_lock_the_key_holder_out(guarded, model_path, mode,
              str(key_file(model_path))], bound, cwd=str(REPO))
         assert ok, f"{mode} x{threads}: provision --key: {took:.1f} s: {tail}"
         t0 = time.monotonic()
-        stats = serve(model_path, guarded.url, key=KEY, orbit=parse_orbit("steps:1:20"), fps=0,
-                      log=_quiet, reconnect=False, stats_every_s=0, scores="interpolate")
+        stats = serve(model_path, guarded.url,
+                      ServeOptions(key=KEY, orbit=parse_orbit("steps:1:20"), fps=0,
+                                   reconnect=False, stats_every_s=0, scores="interpolate"),
+                      ServeParts(log=_quiet))
         assert stats.frames == 1 and time.monotonic() - t0 <= bound
     finally:
         counts = keyless_peers.finish(peers)

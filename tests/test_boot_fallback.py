@@ -23,6 +23,7 @@ from device_runtime.device import Device, DeviceConfig
 from device_runtime.flash import FlashStore, SlotState
 from device_runtime.image_receiver import required_ram_bytes
 from host.link import provision, serve
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from protocol.image import read_manifest
 from protocol.keys import write_key
 
@@ -114,8 +115,9 @@ def test_the_issue_scenario_pair_unsigned_commit_boot_falls_back_and_status_tell
     assert device_main(["--pair", str(tmp_path / "k.key"), "--flash", str(flash)]) == 0
     name = mem_name("pair")
     with RuntimeThread(flash, f"mem://{name}?end=b&pace=0", frames=tmp_path / "f0"):
-        result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                           show_progress=False, log=_quiet)
+        result = provision(model_path, f"mem://{name}?end=a&pace=0",
+                           ProvisionOptions(key=KEY, show_progress=False),
+                           ProvisionParts(log=_quiet))
     assert result.confirmed and result.slot == "A"
     unsigned = make_image(tmp_path / "u.ecs", size_bytes=20_000, key=None, generation=1 << 40)
     assert commit_image(flash, unsigned, generation=1 << 40) == "B"
@@ -136,8 +138,9 @@ def test_the_issue_scenario_pair_unsigned_commit_boot_falls_back_and_status_tell
         assert any("fell back to slot A" in line for line in device.lines), device.lines
         from device_runtime.orbit import parse_orbit
 
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      scores="interpolate", orbit=parse_orbit("steps:3:10"), log=_quiet)
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:3:10")),
+                      ServeParts(log=_quiet))
         assert stats.frames == 3
         wait_until(lambda: len(read_frames(frames)) >= 1, 10, "a frame of slot A")
     assert check_frames(model, frames) >= 1  # the signed image's frames, nothing else

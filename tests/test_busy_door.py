@@ -17,6 +17,7 @@ from runtime_helpers import key_file, wait_until
 
 from device_runtime import busy_door
 from host.link import provision
+from host.link.options import ProvisionOptions, ProvisionParts
 from protocol import messages as m
 from protocol.errors import RemoteBusy
 from protocol.host_session import HostSession
@@ -117,7 +118,8 @@ def test_a_second_serve_says_busy_in_one_line(tmp_path, model_path):
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     key = str(key_file(model_path))
     try:
-        provision(model_path, device.url, key=KEY, show_progress=False, log=lambda line: None)
+        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
         first = subprocess.Popen([sys.executable, "-m", "host.cli", "serve", str(model_path),
                                   "--port", device.url, "--key", key, "--duration", "60"],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,

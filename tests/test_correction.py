@@ -32,6 +32,7 @@ from host.fit.model import HostModel
 from host.fit.motion import MotionScores, ResidualPrior
 from host.fit.rate import rd_quantize
 from host.link.correction import CorrectionEncoder, can_correct, cannot_correct
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
@@ -416,7 +417,8 @@ def test_hello_says_the_device_reads_version_3_and_whether_it_predicts(tmp_path,
         url = f"mem://{name}{predict}?end=%s&pace=0"
         device = RuntimeThread(tmp_path / f"flash-{predict}", url % "b", predict=predict)
         with device:
-            provision(model_path, url % "a", key=KEY, show_progress=False, log=_quiet)
+            provision(model_path, url % "a", ProvisionOptions(key=KEY, show_progress=False),
+                      ProvisionParts(log=_quiet))
             wait_until(lambda d=device: d.device._model is not None, 10, "the image loaded")
             link = Link(open_transport(url % "a", timeout_s=5), owns_transport=True).start()
             try:
@@ -437,7 +439,8 @@ def _provisioned_device(tmp_path, name: str, image_path, frames: list) -> Runtim
     ``image_path``, appending each frame it shows and its info to ``frames``."""
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
-    provision(image_path, f"mem://{name}?end=a", key=KEY, show_progress=False, log=_quiet)
+    provision(image_path, f"mem://{name}?end=a", ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
     return device
 
 
@@ -468,9 +471,10 @@ def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
 
     def host():
         # rest="correction": the corrections themselves (layers after them: test_rest_exact)
-        result["stats"] = serve(depth_model_path, f"mem://{name}?end=a", key=KEY, stop=stop,
-                                log=lines.append, rest="correction",
-                                on_frame=lambda enc, view: sent.append((enc, view)))
+        result["stats"] = serve(depth_model_path, f"mem://{name}?end=a",
+                                ServeOptions(key=KEY, rest="correction"),
+                                ServeParts(stop=stop, log=lines.append,
+                                           on_frame=lambda enc, view: sent.append((enc, view))))
 
     thread = threading.Thread(target=host, daemon=True)
     target = canonical_view(47.0, 23.0)
@@ -561,12 +565,13 @@ def test_serve_sends_ray_cast_scores_to_a_device_that_does_not_synthesize(
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", predict=False)
     lines: list[str] = []
     with device:
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=_quiet)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
         from device_runtime.orbit import parse_orbit
 
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      orbit=parse_orbit("steps:3:10"), fps=0, log=lines.append)
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, orbit=parse_orbit("steps:3:10"), fps=0),
+                      ServeParts(log=lines.append))
     notices = [ln for ln in lines if "instead of corrections" in ln]
     assert len(notices) == 1 and "does not synthesize" in notices[0]
     assert stats.frames == 3 and stats.correction_frames == 0 and stats.motion_frames == 3
@@ -580,10 +585,10 @@ def _orbit_session(tmp_path, model_path, tag: str, orbit: str, log, then=None):
     name = mem_name(tag)
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", predict=True)
     with device:
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=_quiet)
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      orbit=parse_orbit(orbit), fps=0, log=log)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, orbit=parse_orbit(orbit), fps=0), ServeParts(log=log))
         if then is not None:
             then(device)
     return stats, device
@@ -673,9 +678,10 @@ def _serve_until_rest(url: str, image_path, target, frames: list) -> list:
     model = HostModel.load(image_path)
     sent: list = []
     stop = threading.Event()
-    thread = threading.Thread(target=lambda: serve(
-        image_path, url, key=KEY, stop=stop, log=_quiet, rest="correction",
-        on_frame=lambda enc, view: sent.append((enc, view))), daemon=True)
+    parts = ServeParts(stop=stop, log=_quiet, on_frame=lambda enc, view: sent.append((enc, view)))
+    thread = threading.Thread(target=lambda: serve(image_path, url,
+                                                   ServeOptions(key=KEY, rest="correction"), parts),
+                              daemon=True)
     thread.start()
     try:
         wait_until(lambda: any(v == target and _fine(e, model) for e, v in sent), 60,
@@ -704,7 +710,8 @@ def test_a_live_image_swap_at_rest_shows_the_new_images_corrected_frame(
         device.device.set_view(*target)
         _serve_until_rest(url, depth_model_path, target, frames)
         dropped = device.device.runtime_stats.stale_dropped
-        provision(second_depth_model_path, url, key=KEY, show_progress=False, log=_quiet)
+        provision(second_depth_model_path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         wait_until(lambda: device.device._model is not None
                    and device.device._model.image.digest == read_image(
                        second_depth_model_path, key=KEY).digest, 30, "image B on show")

@@ -10,6 +10,7 @@ import pytest
 from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name
 
 from device_runtime.cli import KEY_FILE_NAME, USAGE, build_parser, main
+from host.link.options import ProvisionOptions, ProvisionParts
 from host.link.provisioning import provision
 from protocol.keys import key_fingerprint, load_key, write_key
 
@@ -32,8 +33,9 @@ def provisioned(tmp_path):
     image = make_image(path, size_bytes=30_000)
     name = mem_name("cli")
     with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash"):
-        provision(path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=lambda line: None)
+        provision(path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     return tmp_path / "flash", image
 
 
@@ -75,7 +77,8 @@ def test_pair_installs_the_key_with_mode_0600_and_the_device_uses_it(tmp_path, c
     try:
         path = tmp_path / "m.ecs"
         make_image(path, size_bytes=20_000)
-        result = provision(path, dev.url, key=KEY, show_progress=False, log=lambda s: None)
+        result = provision(path, dev.url, ProvisionOptions(key=KEY, show_progress=False),
+                           ProvisionParts(log=lambda s: None))
     finally:
         assert dev.stop() == 0
     assert result.outcome == "installed"
@@ -175,7 +178,8 @@ def test_auth_timeout_drops_an_unauthenticated_hog_of_the_tcp_slot(tmp_path):
         link.close()
         path = tmp_path / "m.ecs"
         make_image(path, size_bytes=20_000)
-        result = provision(path, dev.url, key=KEY, show_progress=False, log=lambda s: None)
+        result = provision(path, dev.url, ProvisionOptions(key=KEY, show_progress=False),
+                           ProvisionParts(log=lambda s: None))
         assert result.outcome == "installed"
     finally:
         assert dev.stop() == 0
@@ -196,7 +200,8 @@ def test_the_window_opens_once_at_the_size_of_the_image(tmp_path, tmp_path_facto
     model_path = tiny_model(tmp_path_factory)
     flash = tmp_path / "flash"
     device = DeviceProcess(flash, "--headless", key_file=key_file(model_path))
-    provision(model_path, device.url, key=KEY, show_progress=False, log=lambda line: None)
+    provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=lambda line: None))
     assert device.stop() == 0
     made, resized, ticks = [], [], []
 

@@ -22,6 +22,7 @@ from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import check_frames, key_file, read_frames, wait_until
 
 from device_runtime.orbit import parse_orbit
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from protocol.transport import FdTransport, open_pty_pair
@@ -89,12 +90,14 @@ def test_pty_pair_provision_and_stream(tmp_path, model_path, model):
                            max_frame_bytes=4096)
 
     try:
-        result = provision(model_path, pty.slave_path, key=KEY, show_progress=False,
-                           log=_quiet, transport_factory=master)
+        result = provision(model_path, pty.slave_path,
+                           ProvisionOptions(key=KEY, show_progress=False),
+                           ProvisionParts(log=_quiet, transport_factory=master))
         assert result.outcome == "installed" and result.confirmed
-        stats = serve(model_path, pty.slave_path, key=KEY,
-                      scores="interpolate", orbit=parse_orbit("steps:10:-20"),
-                      fps=0, log=_quiet, transport_factory=master)
+        stats = serve(model_path, pty.slave_path,
+                      ServeOptions(key=KEY, scores="interpolate",
+                                   orbit=parse_orbit("steps:10:-20"), fps=0),
+                      ServeParts(log=_quiet, transport_factory=master))
         assert stats.frames == 10
         wait_until(lambda: _has_view(frames, 324.0, -20.0), 20, "the orbit's last frame")
     finally:
@@ -155,7 +158,8 @@ class CuttingProxy:
 def _provisioned_process(tmp_path, model_path, frames):
     device = DeviceProcess(tmp_path / "flash", "--headless", "--frames", str(frames),
                            key_file=key_file(model_path))
-    provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+    provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
     return device
 
 
@@ -173,8 +177,9 @@ def test_link_cut_mid_stream_recovers_with_a_key_frame(tmp_path, model_path, mod
 
     stats_box: dict = {}
     try:
-        stats = serve(model_path, f"socket://127.0.0.1:{proxy.port}", key=KEY, scores="interpolate",
-                      orbit=parse_orbit("steps:40:30"), fps=40, log=_quiet, on_frame=on_frame)
+        stats = serve(model_path, f"socket://127.0.0.1:{proxy.port}",
+                      ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:40:30"),
+                                   fps=40), ServeParts(log=_quiet, on_frame=on_frame))
         wait_until(lambda: _has_view(frames, 351.0, 30.0), 20, "the orbit's last frame")
     finally:
         proxy.close()
@@ -205,8 +210,9 @@ def test_device_restarted_mid_stream_boots_from_flash_and_resumes(tmp_path, mode
                                                 key_file=key_file(model_path))
 
     try:
-        stats = serve(model_path, f"socket://127.0.0.1:{port}", key=KEY, scores="interpolate",
-                      orbit=parse_orbit("steps:36:-5"), fps=30, log=_quiet, on_frame=on_frame)
+        stats = serve(model_path, f"socket://127.0.0.1:{port}",
+                      ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:36:-5"),
+                                   fps=30), ServeParts(log=_quiet, on_frame=on_frame))
         wait_until(lambda: _has_view(frames2, 350.0, -5.0), 20, "the orbit's last frame")
     finally:
         device.stop()
@@ -321,7 +327,8 @@ def test_an_overflowing_score_packet_does_not_kill_the_device_process(tmp_path, 
     device = DeviceProcess(tmp_path / "flash", "--insecure", "--headless", "--frames",
                            str(frames), "--stats", str(stats))
     try:
-        provision(model_path, device.url, key=None, show_progress=False, log=_quiet)
+        provision(model_path, device.url, ProvisionOptions(key=None, show_progress=False),
+                  ProvisionParts(log=_quiet))
         # item 2: a packet from a peer that never sent HELLO is not shown
         stranger = Link(open_transport(device.url, timeout_s=5), owns_transport=True).start()
         stray = encode_scores(model.quantized_scores(44.0, 0.0), step=model.score_step,

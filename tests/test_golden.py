@@ -338,7 +338,13 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
     (case_auth,) = AUTH_CASES
     sk = bytes.fromhex(case_auth["session_key"])
     digest = hashlib.sha256(b"eigencast golden image").digest()
-    slots = (
+    return [*_session_messages(case_auth, sk, _golden_slots(digest)),
+            *_image_messages(sk, digest), *_stream_messages(sk)]
+
+
+def _golden_slots(digest: bytes) -> tuple[m.SlotInfo, m.SlotInfo]:
+    """Slot A confirmed and active with the golden image, slot B empty."""
+    return (
         m.SlotInfo(
             slot=0,
             state=m.SlotState.CONFIRMED,
@@ -351,6 +357,11 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
             slot=1, state=m.SlotState.EMPTY, active=False, generation=0, size_bytes=0, digest=b""
         ),
     )
+
+
+def _session_messages(case_auth: dict, sk: bytes, slots: tuple[m.SlotInfo, m.SlotInfo]
+                      ) -> list[tuple[str, m.Message, int]]:
+    """The session's messages: handshake, AUTH, PING, errors, BYE, signed requests, slots."""
     return [
         (
             "hello",
@@ -413,6 +424,12 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ("slot_set",
          auth.sign(m.SlotSet(action=m.SlotAction.ACTIVATE, slot=1, force=True), sk, 9), 8),
         ("slot_status", m.SlotStatus(slots=slots), 8),
+    ]
+
+
+def _image_messages(sk: bytes, digest: bytes) -> list[tuple[str, m.Message, int]]:
+    """An image transfer's messages, IMAGE_BEGIN to IMAGE_ABORT."""
+    return [
         (
             "image_begin",
             auth.sign(
@@ -440,6 +457,12 @@ def _golden_messages() -> list[tuple[str, m.Message, int]]:
         ),
         ("image_commit", auth.sign(m.ImageCommit(digest=digest), sk, 11), 12),
         ("image_abort", auth.sign(m.ImageAbort(), sk, 12), 13),
+    ]
+
+
+def _stream_messages(sk: bytes) -> list[tuple[str, m.Message, int]]:
+    """Serving's messages: SCORES, requests, NOTICE."""
+    return [
         ("scores",
          auth.tag_event(m.Scores(sequence=42, packet=bytes.fromhex("28b52ffd0400")), sk, 3), 0),
         ("scores_look",

@@ -34,6 +34,7 @@ from host.errors import FitError
 from host.evaluate.warp import WarpFrames
 from host.fit.model import HostModel
 from host.link import provision, serve
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import ProvisionError
 from host.render.cinema import CinemaDB
 from protocol import image as image_format
@@ -226,7 +227,8 @@ def test_serve_corrects_the_look_on_show(looks_path, tmp_path):
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            presenter=keys,
                            on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
-    provision(looks_path, f"mem://{name}?end=a", key=KEY, show_progress=False, log=_quiet)
+    provision(looks_path, f"mem://{name}?end=a", ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
     packets: dict = {}
     original = device.device.on_scores
 
@@ -241,8 +243,9 @@ def test_serve_corrects_the_look_on_show(looks_path, tmp_path):
     result: dict = {}
     lines: list[str] = []
     thread = threading.Thread(target=lambda: result.setdefault("stats", serve(
-        looks_path, f"mem://{name}?end=a", key=KEY, stop=stop, log=lines.append,
-        rest="correction", stats_every_s=0)), daemon=True)
+        looks_path, f"mem://{name}?end=a",
+        ServeOptions(key=KEY, rest="correction", stats_every_s=0),
+        ServeParts(stop=stop, log=lines.append))), daemon=True)
     lamp = HostModel.load(looks_path, look="lamp")
     with device:
         thread.start()
@@ -310,8 +313,8 @@ def test_a_device_that_predates_looks_refuses_the_image_in_one_line(looks_path, 
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b") as device:
         with pytest.raises(ProvisionError, match="reads image format versions 1; this image "
                            "is version 2") as info:
-            provision(looks_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
-                      log=_quiet)
+            provision(looks_path, f"mem://{name}?end=a",
+                      ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
         assert "\n" not in str(info.value)
         begin = m.ImageBegin(digest=bytes(32), size_bytes=4096, image_tag=bytes(32),
                              format_version=2, generation=1)
@@ -481,7 +484,8 @@ def test_the_device_command_starts_on_the_look_named_or_refuses_one_it_lacks(
     flash = tmp_path / "flash"
     name = mem_name("cli-look")
     with RuntimeThread(flash, f"mem://{name}?end=b"):
-        provision(looks_path, f"mem://{name}?end=a", key=KEY, show_progress=False, log=_quiet)
+        provision(looks_path, f"mem://{name}?end=a",
+                  ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     capsys.readouterr()
     frames = tmp_path / "frames"
     assert device_main(["--flash", str(flash), "--standalone", "--headless", "--frames",

@@ -28,6 +28,7 @@ from provision_helpers import (
 from device_runtime.device import Device, DeviceConfig
 from device_runtime.flash import FlashStore
 from host.cli import main as cli_main
+from host.link.options import ProvisionOptions, ProvisionParts
 from host.link.provisioning import ProvisionError, choose_chunk_bytes, inspect_image, provision
 from protocol import auth
 from protocol import messages as m
@@ -49,7 +50,7 @@ from protocol.keys import write_key
 from protocol.link import Link
 from protocol.transport import open_pty_pair, open_transport
 
-QUIET = {"show_progress": False, "log": lambda line: None}
+QUIET = ProvisionParts(log=lambda line: None)
 
 
 def _check_device_holds(flash_dir, image: bytes, *, slot: str | None = None) -> None:
@@ -80,8 +81,12 @@ def test_provision_over_the_mem_line_verifies_and_confirms(tmp_path, model):
     path, image = model
     name = mem_name("prov")
     with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash") as dev:
-        result = provision(path, f"mem://{name}?end=a&pace=0", key=KEY, **QUIET)
-        again = provision(path, f"mem://{name}?end=a&pace=0", key=KEY, **QUIET)
+        result = provision(path, f"mem://{name}?end=a&pace=0",
+                           ProvisionOptions(key=KEY, show_progress=False),
+                           QUIET)
+        again = provision(path, f"mem://{name}?end=a&pace=0",
+                          ProvisionOptions(key=KEY, show_progress=False),
+                          QUIET)
     assert result.outcome == "installed" and result.verified and result.confirmed
     assert result.slot == "A" and result.size_bytes == len(image)
     assert result.digest == hashlib.sha256(image).hexdigest()
@@ -97,7 +102,9 @@ def test_provision_over_a_pty_pair_through_pyserial(tmp_path, model):
     try:
         with DeviceThread(pty.slave_path, tmp_path / "flash"):
             master = pty.master_transport()
-            result = provision(path, "pty", key=KEY, transport_factory=lambda n: master, **QUIET)
+            result = provision(path, "pty", ProvisionOptions(key=KEY, show_progress=False),
+                               ProvisionParts(transport_factory=lambda n: master,
+                                              log=lambda line: None))
     finally:
         pty.close()
     assert result.outcome == "installed" and result.verified
@@ -109,7 +116,8 @@ def test_provision_over_tcp_to_a_separate_device_process(tmp_path, model):
     write_key(tmp_path / "dev.key", KEY)
     dev = DeviceProcess(tmp_path / "flash", key_file=tmp_path / "dev.key")
     try:
-        result = provision(path, dev.url, key=KEY, **QUIET)
+        result = provision(path, dev.url, ProvisionOptions(key=KEY, show_progress=False),
+                           QUIET)
     finally:
         assert dev.stop() == 0
     assert result.outcome == "installed" and result.verified and result.confirmed
@@ -159,8 +167,9 @@ def test_provision_completes_verified_under_line_faults(tmp_path, faults):
     image = make_image(path, size_bytes=100_000)
     name = mem_name("noisy")
     with DeviceThread(f"mem://{name}?end=b&pace=0&{faults[1:]}", tmp_path / "flash"):
-        result = provision(path, f"mem://{name}?end=a&pace=0{faults}", key=KEY,
-                           request_timeout_s=0.3, **QUIET)
+        result = provision(path, f"mem://{name}?end=a&pace=0{faults}",
+                           ProvisionOptions(key=KEY, request_timeout_s=0.3, show_progress=False),
+                           QUIET)
     assert result.outcome == "installed" and result.verified
     assert result.retransmitted_chunks > 0  # the faults did hit the transfer
     _check_device_holds(tmp_path / "flash", image)
@@ -178,7 +187,8 @@ def test_resume_after_a_disconnect_at_a_random_offset(tmp_path, seed):
         return open_transport(f"mem://{name}?end=a&pace=0{extra}", timeout_s=5)
 
     with DeviceThread(f"mem://{name}?end=b&pace=0", tmp_path / "flash"):
-        result = provision(path, "mem", key=KEY, transport_factory=factory, **QUIET)
+        result = provision(path, "mem", ProvisionOptions(key=KEY, show_progress=False),
+                           ProvisionParts(transport_factory=factory, log=lambda line: None))
     assert result.reconnects >= 1
     assert result.resume_offsets[0] == 0
     resumed = result.resume_offsets[1]
@@ -212,8 +222,9 @@ def test_resume_after_the_device_process_is_killed_and_restarted(tmp_path):
             )
 
     try:
-        result = provision(path, dev.url, key=KEY, on_progress=on_progress,
-                           request_timeout_s=0.5, **QUIET)
+        result = provision(path, dev.url,
+                           ProvisionOptions(key=KEY, request_timeout_s=0.5, show_progress=False),
+                           ProvisionParts(on_progress=on_progress, log=lambda line: None))
     finally:
         for d in state["devices"]:
             d.stop()
@@ -236,7 +247,8 @@ def test_power_cuts_during_writing_and_committing_always_boot_old_or_new(tmp_pat
     flash = tmp_path / "flash"
     dev = DeviceProcess(flash, key_file=tmp_path / "dev.key")
     try:
-        provision(old_path, dev.url, key=KEY, **QUIET)
+        provision(old_path, dev.url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     finally:
         dev.stop()
     rng = random.Random(7)
@@ -259,8 +271,11 @@ def test_power_cuts_during_writing_and_committing_always_boot_old_or_new(tmp_pat
                 killer["timer"] = timer
 
         try:
-            provision(new_path, dev.url, key=KEY, on_progress=on_progress, on_stage=on_stage,
-                      max_reconnects=0, request_timeout_s=0.3, confirm_timeout_s=0.5, **QUIET)
+            provision(new_path, dev.url,
+                      ProvisionOptions(key=KEY, max_reconnects=0, request_timeout_s=0.3,
+                                       confirm_timeout_s=0.5, show_progress=False),
+                      ProvisionParts(on_progress=on_progress, on_stage=on_stage,
+                                     log=lambda line: None))
             finished = True
         except Exception:  # the link drops in some way; which one does not matter here
             finished = False
@@ -277,7 +292,8 @@ def test_power_cuts_during_writing_and_committing_always_boot_old_or_new(tmp_pat
     # And after all that, a clean run installs the new image.
     dev = DeviceProcess(flash, key_file=tmp_path / "dev.key")
     try:
-        result = provision(new_path, dev.url, key=KEY, **QUIET)
+        result = provision(new_path, dev.url, ProvisionOptions(key=KEY, show_progress=False),
+                           QUIET)
     finally:
         dev.stop()
     assert result.outcome in ("installed", "already-active", "activated")
@@ -331,7 +347,8 @@ def test_no_common_protocol_version_is_one_clear_error(device):
 def test_host_without_the_key_is_refused_before_sending(device, model):
     url, _ = device()
     with pytest.raises(AuthenticationError, match="holds a key"):
-        provision(model[0], url, key=None, precheck=False, **QUIET)
+        provision(model[0], url, ProvisionOptions(key=None, precheck=False, show_progress=False),
+                  QUIET)
 
 
 def test_unauthenticated_signed_request_is_refused_not_authenticated(device):
@@ -349,7 +366,9 @@ def test_unauthenticated_signed_request_is_refused_not_authenticated(device):
 def test_wrong_key_is_refused_auth_failed(device, model):
     url, dev = device()
     with pytest.raises(RemoteAuthFailed):
-        provision(model[0], url, key=OTHER_KEY, precheck=False, **QUIET)
+        provision(model[0], url,
+                  ProvisionOptions(key=OTHER_KEY, precheck=False, show_progress=False),
+                  QUIET)
     assert any("auth failed" in line for line in dev.lines)
 
 
@@ -382,9 +401,11 @@ def test_device_without_a_key_refuses_provisioning_unless_insecure(device, tmp_p
     image = make_image(path, size_bytes=30_000, key=None)
     url, _ = device(key=None)
     with pytest.raises(RemoteNotAuthenticated, match="no key"):
-        provision(path, url, key=None, **QUIET)
+        provision(path, url, ProvisionOptions(key=None, show_progress=False),
+                  QUIET)
     url, dev = device(key=None, insecure=True)
-    result = provision(path, url, key=None, **QUIET)
+    result = provision(path, url, ProvisionOptions(key=None, show_progress=False),
+                       QUIET)
     assert result.outcome == "installed" and result.confirmed
     _check_device_holds(dev.config.flash_dir, image)
 
@@ -415,11 +436,13 @@ def test_a_host_with_a_key_refuses_a_device_that_says_it_has_none(device, model)
     url, dev = device(key=None, insecure=True)  # answers HELLO_REPLY has_key=false
     seen = _record_received(dev, *_IMAGE_TYPES)
     with pytest.raises(AuthenticationError, match=r"says it holds no key.*--insecure"):
-        provision(path, url, key=KEY, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     assert seen == []
     assert FlashStore.open(dev.config.flash_dir).active_slot is None
     lines: list[str] = []
-    result = provision(path, url, key=KEY, insecure=True, show_progress=False, log=lines.append)
+    result = provision(path, url, ProvisionOptions(key=KEY, insecure=True, show_progress=False),
+                       ProvisionParts(log=lines.append))
     assert result.outcome == "installed" and result.confirmed
     assert m.MessageType.IMAGE_CHUNK in seen
     _check_device_holds(dev.config.flash_dir, image)
@@ -488,7 +511,8 @@ def test_provision_validates_the_file_as_view_does_before_sending(device, tmp_pa
     url, dev = device()
     seen = _record_received(dev, *_IMAGE_TYPES)
     with pytest.raises(ProvisionError, match=f"{text}.*nothing was installed"):
-        provision(path, url, key=KEY, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     write_key(tmp_path / "k.key", KEY)
     rc = cli_main(["provision", str(path), "--port", url, "--key", str(tmp_path / "k.key")])
     err = capsys.readouterr().err.strip()
@@ -500,7 +524,8 @@ def test_provision_validates_the_file_as_view_does_before_sending(device, tmp_pa
 def test_provision_sends_an_intact_image_with_its_annex(device, tmp_path):
     path = _with_annex(tmp_path, "none")
     url, dev = device()
-    result = provision(path, url, key=KEY, **QUIET)
+    result = provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+                       QUIET)
     assert result.outcome == "installed" and result.confirmed
     size = struct.unpack_from("<Q", path.read_bytes(), 20)[0]
     _check_device_holds(dev.config.flash_dir, path.read_bytes()[:size])  # not the annex
@@ -513,7 +538,8 @@ def test_image_signed_with_another_key_is_refused_at_verify(device, tmp_path):
         inspect_image(path, key=KEY)
     url, dev = device()
     with pytest.raises(RemoteTagMismatch):
-        provision(path, url, key=KEY, precheck=False, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
+                  QUIET)
     store = FlashStore.open(dev.config.flash_dir)
     assert store.active_slot is None  # nothing was committed
     assert store.status()["journal"] is None  # and the transfer was discarded
@@ -523,9 +549,11 @@ def test_ram_budget_is_enforced_by_host_and_device(device, model):
     path, _ = model
     url, _ = device(ram_budget_bytes=1 << 20)
     with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_RAM"):
-        provision(path, url, key=KEY, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     with pytest.raises(RemoteTooLargeForRam, match=r"budget is 1048576") as info:
-        provision(path, url, key=KEY, precheck=False, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
+                  QUIET)
     assert info.value.detail["limit_bytes"] == 1 << 20
 
 
@@ -533,9 +561,11 @@ def test_flash_size_is_enforced_by_host_and_device(device, model):
     path, _ = model
     url, _ = device(slot_size_bytes=100_000)
     with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_FLASH"):
-        provision(path, url, key=KEY, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     with pytest.raises(RemoteTooLargeForFlash):
-        provision(path, url, key=KEY, precheck=False, **QUIET)
+        provision(path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
+                  QUIET)
 
 
 def test_unsupported_format_version_is_refused(device, model):
@@ -603,11 +633,14 @@ def test_a_decompression_bomb_manifest_is_refused_before_anything_is_inflated(de
     url, _ = device()
     # the host's file validation (the one view/serve use) refuses it before connecting
     with pytest.raises(ProvisionError, match=r"over the limit.*nothing was installed"):
-        provision(bomb_path, url, key=KEY, **QUIET)
+        provision(bomb_path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     with pytest.raises(RemoteTooLargeForRam):
-        provision(bomb_path, url, key=KEY, precheck=False, **QUIET)
+        provision(bomb_path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
+                  QUIET)
     # The device is still fine and takes the honest image.
-    assert provision(path, url, key=KEY, **QUIET).outcome == "installed"
+    assert provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+                     QUIET).outcome == "installed"
 
 
 def test_rollback_is_refused_unless_forced_and_known_images_are_activated(device, tmp_path):
@@ -615,16 +648,21 @@ def test_rollback_is_refused_unless_forced_and_known_images_are_activated(device
     image1 = make_image(v1, size_bytes=40_000, generation=1, seed=1)
     make_image(v2, size_bytes=40_000, generation=2, seed=2)
     url, dev = device()
-    assert provision(v2, url, key=KEY, **QUIET).outcome == "installed"
+    assert provision(v2, url, ProvisionOptions(key=KEY, show_progress=False),
+                     QUIET).outcome == "installed"
     with pytest.raises(ProvisionError, match="ROLLBACK_REFUSED"):
-        provision(v1, url, key=KEY, **QUIET)
+        provision(v1, url, ProvisionOptions(key=KEY, show_progress=False),
+                  QUIET)
     with pytest.raises(RemoteRollbackRefused):
-        provision(v1, url, key=KEY, precheck=False, **QUIET)
-    forced = provision(v1, url, key=KEY, force=True, **QUIET)
+        provision(v1, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
+                  QUIET)
+    forced = provision(v1, url, ProvisionOptions(key=KEY, force=True, show_progress=False),
+                       QUIET)
     assert forced.outcome == "installed" and forced.slot == "B"
     _check_device_holds(dev.config.flash_dir, image1, slot="B")
     # v2 is still in slot A (confirmed): asking for it again activates it, nothing is sent.
-    back = provision(v2, url, key=KEY, **QUIET)
+    back = provision(v2, url, ProvisionOptions(key=KEY, show_progress=False),
+                     QUIET)
     assert back.outcome == "activated" and back.slot == "A" and back.data_bytes_sent == 0
 
 
@@ -667,7 +705,8 @@ def test_device_config_checks_its_inputs(tmp_path):
 def test_hello_reply_before_auth_hides_slots_and_budgets(tmp_path, model, device):
     path, image = model
     url, dev = device()
-    provision(path, url, key=KEY, **QUIET)
+    provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
+              QUIET)
     raw = _open_session(url, auth=False)
     try:
         version = m.PROTOCOL_VERSION
@@ -779,7 +818,8 @@ def test_a_host_gets_in_beside_an_unauthenticated_connection(tmp_path, model):
             version = m.PROTOCOL_VERSION
             hog.link.request(m.Hello(min_version=version, max_version=version,
                                      nonce=bytes(16)))
-            result = provision(path, _tcp(dev), key=KEY, **QUIET)
+            result = provision(path, _tcp(dev), ProvisionOptions(key=KEY, show_progress=False),
+                               QUIET)
             assert result.outcome == "installed" and result.confirmed
             assert dev.device.stats.preempted == 0 and not hog.link.closed
             assert dev.device.lobby.stats.admitted >= 1

@@ -19,6 +19,7 @@ from device_runtime.orbit import canonical_view
 from host.cli import main as eigencast
 from host.fit.model import HostModel
 from host.link.layers import EncodedLayer, RestPlanner, object_ssim
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
@@ -56,9 +57,10 @@ def _serving(url: str, model_path, stop: threading.Event, sent: list, **kwargs):
     out: dict = {}
 
     def host() -> None:
-        kwargs.setdefault("log", _quiet)
-        out["stats"] = serve(model_path, url, key=KEY, stop=stop,
-                             on_frame=lambda enc, view: sent.append((enc, view)), **kwargs)
+        log = kwargs.pop("log", _quiet)
+        out["stats"] = serve(model_path, url, ServeOptions(key=KEY, **kwargs),
+                             ServeParts(stop=stop, log=log,
+                                        on_frame=lambda enc, view: sent.append((enc, view))))
 
     thread = threading.Thread(target=host, daemon=True)
     thread.start()
@@ -87,8 +89,8 @@ def test_a_resting_view_ends_the_ray_cast_bit_for_bit_over_the_serial_line(
     shown: list = []
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
-              log=_quiet)
+    provision(depth_model_path, f"mem://{name}?end=a",
+              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     views = [canonical_view(47.0, 23.0), canonical_view(200.0, -31.0)]
     stop, sent = threading.Event(), []
     with device:
@@ -132,8 +134,8 @@ def test_a_noisy_line_still_ends_exact(tmp_path, depth_model_path, truth_of):
     shown: list = []
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-              log=_quiet)
+    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
+              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     view = canonical_view(130.0, -20.0)
     stop, sent = threading.Event(), []
     with device:
@@ -162,8 +164,8 @@ def test_a_lost_chunk_of_the_exact_layer_is_asked_for_again(tmp_path, depth_mode
     shown: list = []
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-              log=_quiet)
+    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
+              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     runtime = device.device
     receive = runtime.on_scores
     lost: list = []
@@ -206,7 +208,8 @@ def test_a_real_device_process_over_tcp_presents_the_exact_frame(tmp_path, depth
     url = f"socket://127.0.0.1:{device.port}"
     stop, sent = threading.Event(), []
     try:
-        provision(depth_model_path, url, key=KEY, show_progress=False, log=_quiet)
+        provision(depth_model_path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         thread, out = _serving(url, depth_model_path, stop, sent)
 
         def exact_rows():
@@ -305,8 +308,8 @@ def test_a_correction_larger_than_the_devices_frames_costs_its_view_not_the_sess
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            config=config,
                            on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-              log=_quiet)
+    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
+              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     view = canonical_view(47.0, 23.0)
     stop, sent = threading.Event(), []
     lines: list[str] = []

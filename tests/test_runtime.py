@@ -16,6 +16,7 @@ from device_runtime.display import HeadlessPresenter, ViewDelta
 from device_runtime.orbit import canonical_view
 from device_runtime.runtime import LatestSlot, RequestLimiter, RuntimeDevice, ScoreItem
 from host.fit.model import HostModel
+from host.link.options import ProvisionOptions, ProvisionParts
 from host.link.provisioning import provision
 from protocol import auth
 from protocol import messages as m
@@ -60,8 +61,9 @@ def _device(tmp_path, model_path, **kwargs):
     """A RuntimeDevice with the tiny model provisioned (confirmed) and a fake link."""
     name = mem_name("rt")
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0"):
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=lambda line: None)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     presenter = kwargs.pop("presenter", None) or HeadlessPresenter(None)
     device = RuntimeDevice(DeviceConfig(flash_dir=tmp_path / "flash", key=KEY),
                            presenter=presenter, log=lambda line: None, **kwargs)
@@ -76,8 +78,9 @@ def test_a_test_image_is_confirmed_only_once_a_frame_was_shown(tmp_path, model_p
     # a device whose display loop does not run: provisioning commits a TEST image ...
     rt = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", display=False)
     try:
-        result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                           show_progress=False, log=lambda line: None, confirm_timeout_s=0.3)
+        result = provision(model_path, f"mem://{name}?end=a&pace=0",
+                           ProvisionOptions(key=KEY, show_progress=False, confirm_timeout_s=0.3),
+                           ProvisionParts(log=lambda line: None))
         assert result.outcome == "installed" and result.confirmed is None
         assert rt.device.store.slots[0].state.name == "TEST"
         # ... which the first presented frame confirms
@@ -298,14 +301,16 @@ def _serving_runtime(tmp_path, model_path, *, key=KEY):
     flash = tmp_path / "flash"
     if key is None:  # install with a keyed device first; the keyless one boots the same flash
         with RuntimeThread(flash, f"mem://{name}-p?end=b&pace=0"):
-            provision(model_path, f"mem://{name}-p?end=a&pace=0", key=KEY,
-                      show_progress=False, log=lambda line: None)
+            provision(model_path, f"mem://{name}-p?end=a&pace=0",
+                      ProvisionOptions(key=KEY, show_progress=False),
+                      ProvisionParts(log=lambda line: None))
     shown = _Shown()
     rt = RuntimeThread(flash, f"mem://{name}?end=b&pace=0", on_frame=shown,
                        config=DeviceConfig(flash_dir=flash, key=key))
     url = f"mem://{name}?end=a&pace=0"
     if key is not None:
-        provision(model_path, url, key=KEY, show_progress=False, log=lambda line: None)
+        provision(model_path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=lambda line: None))
     return rt, url, shown
 
 

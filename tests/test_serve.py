@@ -12,6 +12,7 @@ from provision_helpers import KEY, mem_name
 from runtime_helpers import RuntimeThread, check_frames, read_frames, wait_until
 
 from device_runtime.orbit import parse_orbit
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import FrameEncoder, ServeError, serve
 from protocol.scores import ScoreDecoder
@@ -52,8 +53,8 @@ def _provisioned_device(tmp_path, model_path, name, **kwargs):
     frames = tmp_path / "frames"
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", frames=frames,
                            **kwargs)
-    result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                       log=_quiet)
+    result = provision(model_path, f"mem://{name}?end=a&pace=0",
+                       ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     assert result.confirmed is True  # the runtime confirmed after showing the first frame
     return device, frames
 
@@ -62,8 +63,9 @@ def test_orbit_frames_are_identical_to_eigencast_view(tmp_path, model_path, mode
     name = mem_name("serve")
     device, frames = _provisioned_device(tmp_path, model_path, name)
     with device:
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
-                      orbit=parse_orbit("steps:9:20"), fps=60, log=_quiet)
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:9:20"),
+                                   fps=60), ServeParts(log=_quiet))
         assert stats.frames == 9 and stats.key_frames == 1 and stats.delta_frames == 8
         wait_until(lambda: any(float(r["phi_deg"]) == 320.0 for r in read_frames(frames)), 10,
                    "the orbit's last view on the device")
@@ -85,9 +87,9 @@ def test_view_requests_are_answered_and_coalesced_on_a_slow_line(tmp_path, model
     result = {}
 
     def host():
-        result["stats"] = serve(model_path, f"mem://{name}-x?end=a", baud=9600, key=KEY,
-                                scores="interpolate",
-                                stop=stop, log=_quiet)
+        result["stats"] = serve(model_path, f"mem://{name}-x?end=a",
+                                ServeOptions(baud=9600, key=KEY, scores="interpolate"),
+                                ServeParts(stop=stop, log=_quiet))
 
     thread = threading.Thread(target=host, daemon=True)
     thread.start()
@@ -115,8 +117,10 @@ def test_lossy_line_recovers_with_key_frames(tmp_path, model_path, model):
     lossy_a = f"mem://{name}-l?end=a&burst=0.0002&burst_bytes=64&seed=3"
     device = RuntimeThread(tmp_path / "flash", lossy_b, frames=frames, baud=921600)
     with device:
-        stats = serve(model_path, lossy_a, baud=921600, key=KEY, scores="interpolate",
-                      orbit=parse_orbit("steps:120:-10"), fps=0, log=_quiet, max_reconnects=20)
+        stats = serve(model_path, lossy_a,
+                      ServeOptions(baud=921600, key=KEY, scores="interpolate",
+                                   orbit=parse_orbit("steps:120:-10"), fps=0, max_reconnects=20),
+                      ServeParts(log=_quiet))
         wait_until(lambda: any(float(r["phi_deg"]) == 357.0 for r in read_frames(frames)), 20,
                    "the orbit's last view")
     rs = device.device.runtime_stats
@@ -131,12 +135,12 @@ def test_serve_refuses_a_device_without_the_image_unless_provisioning(tmp_path, 
     frames = tmp_path / "frames"
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", frames=frames):
         with pytest.raises(ServeError, match=r"does not hold .*eigencast provision"):
-            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                  scores="interpolate", orbit=parse_orbit(
-                "steps:2"), log=_quiet)
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      scores="interpolate", provision_missing=True,
-                      orbit=parse_orbit("steps:3:0"), log=_quiet)
+            serve(model_path, f"mem://{name}?end=a&pace=0",
+                  ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit(
+                "steps:2")), ServeParts(log=_quiet))
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, scores="interpolate", provision_missing=True,
+                                   orbit=parse_orbit("steps:3:0")), ServeParts(log=_quiet))
         assert stats.provisioned and stats.frames == 3
         wait_until(lambda: len(read_frames(frames)) >= 1, 10, "a frame")
     assert check_frames(model, frames) >= 1
@@ -166,8 +170,8 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
     name = mem_name("bigpkt")
     config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=1024)
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", config=config):
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                  log=_quiet)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
         real = FrameEncoder.encode
 
         def padded(self, view, *, key=False, scores=None):  # a model with 2 kB packets
@@ -176,8 +180,9 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
 
         monkeypatch.setattr(FrameEncoder, "encode", padded)
         with pytest.raises(ServeError, match=r"max_frame_bytes=1024.*--max-frame"):
-            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
-                  orbit=parse_orbit("steps:2"), log=_quiet)
+            serve(model_path, f"mem://{name}?end=a&pace=0",
+                  ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:2")),
+                  ServeParts(log=_quiet))
     # a device that takes large frames gets them, although the host's serial line would
     # default to 4 KiB frames
     name = mem_name("bigpkt2")
@@ -187,8 +192,9 @@ def test_a_packet_larger_than_the_devices_frames_is_a_one_line_error(tmp_path, m
                             scores=None: (
             dataclasses.replace(real(self, view, key=key), packet=real(
                 self, view, key=key).packet + bytes(6000))))
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
-                      orbit=parse_orbit("steps:2"), log=_quiet)
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:2")),
+                      ServeParts(log=_quiet))
     assert stats.frames == 2 and stats.packet_bytes > 12000
 
 
@@ -204,20 +210,21 @@ def test_serve_with_a_key_refuses_a_device_that_says_it_holds_none(tmp_path, mod
     config = DeviceConfig(flash_dir=tmp_path / "flash", key=None, insecure=True)
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", frames=frames,
                        config=config) as device:
-        provision(model_path, f"mem://{name}?end=a&pace=0", key=None, show_progress=False,
-                  log=_quiet)
+        provision(model_path, f"mem://{name}?end=a&pace=0",
+                  ProvisionOptions(key=None, show_progress=False), ProvisionParts(log=_quiet))
         seen = []
         on_scores = device.device.handle_scores
         device.device.on(m.MessageType.SCORES,
                          lambda msg, frame: (seen.append(msg), on_scores(msg, frame))[1])
         with pytest.raises(AuthenticationError, match=r"holds no key.*--insecure"):
-            serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, scores="interpolate",
-                  orbit=parse_orbit("steps:3:0"), log=_quiet)
+            serve(model_path, f"mem://{name}?end=a&pace=0",
+                  ServeOptions(key=KEY, scores="interpolate", orbit=parse_orbit("steps:3:0")),
+                  ServeParts(log=_quiet))
         assert seen == [] and read_frames(frames) == []
         lines = []
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY,
-                      scores="interpolate", insecure=True,
-                      orbit=parse_orbit("steps:3:0"), log=lines.append)
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, scores="interpolate", insecure=True,
+                                   orbit=parse_orbit("steps:3:0")), ServeParts(log=lines.append))
         assert stats.frames == 3
         wait_until(lambda: len(seen) == 3, 10, "the three packets on the device")
     assert sum("--insecure" in line for line in lines) == 1

@@ -18,6 +18,7 @@ from runtime_helpers import key_file
 from device_runtime.runtime import parse_orbit
 from host.cli import main as eigencast
 from host.link import provision, serve
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 
 CLI = [sys.executable, "-m", "host.cli"]
 
@@ -53,7 +54,8 @@ def test_duration_holds_while_reconnecting(tmp_path, model_path):
     """A device killed mid-session: serve reconnects, and stops when --duration is over."""
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     try:
-        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         serving = subprocess.Popen(
             [*CLI, "serve", str(model_path), "--port", device.url, "--key",
              str(key_file(model_path)), "--duration", "4"],
@@ -89,7 +91,8 @@ def test_serve_provision_of_an_older_image_says_force_and_has_it(tmp_path, model
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     keyf = str(key_file(model_path))
     try:
-        provision(newer_model, device.url, key=KEY, show_progress=False, log=_quiet)
+        provision(newer_model, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         base = [*CLI, "serve", str(model_path), "--port", device.url, "--key", keyf,
                 "--provision", "--max-frames", "1", "--orbit",
                 "steps:1", "--fps", "0"]
@@ -156,12 +159,14 @@ def test_a_device_that_hangs_up_before_the_session_is_tried_again(tmp_path, mode
     A port where nothing listens is still one line at once (above)."""
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     try:
-        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         port = int(device.url.rsplit(":", 1)[1])
         door = _Door(port, drops=2)
         said: list[str] = []
-        stats = serve(model_path, door.url, key=KEY, orbit=parse_orbit("steps:1:20"), fps=0,
-                      log=said.append, reconnect=False, stats_every_s=0)
+        stats = serve(model_path, door.url,
+                      ServeOptions(key=KEY, orbit=parse_orbit("steps:1:20"), fps=0,
+                                   reconnect=False, stats_every_s=0), ServeParts(log=said.append))
         door.close()
         assert stats.frames == 1 and door.accepted == 3, said
         assert sum("hung up before the session began" in line for line in said) == 2, said
@@ -183,7 +188,8 @@ def test_ctrl_c_ends_serve_with_130_after_its_summary(tmp_path, model_path):
     exited 0)."""
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     try:
-        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         serving = subprocess.Popen(
             [*CLI, "serve", str(model_path), "--port", device.url, "--key",
              str(key_file(model_path))],

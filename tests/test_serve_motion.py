@@ -14,6 +14,7 @@ from runtime_helpers import RuntimeThread, read_frames, serve_cli, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
 from host.fit.motion import BUDGET_SHARE, PROBE_EVERY, MotionScores, angle_between
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import _Pace, open_true_view_scores, serve
 
@@ -153,8 +154,8 @@ def _provisioned_device(tmp_path, model_path, name, **kwargs):
     frames = tmp_path / "frames"
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", frames=frames,
                            **kwargs)
-    result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                       log=_quiet)
+    result = provision(model_path, f"mem://{name}?end=a&pace=0",
+                       ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     assert result.confirmed is True
     return device, frames
 
@@ -183,9 +184,11 @@ def test_orbit_frames_on_a_device_are_the_recovered_scores(tmp_path, model_path,
     device, frames = _provisioned_device(tmp_path, model_path, name)
     source = _Recording(model, renderer, strides=(2,))
     with device:
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
-                      orbit=parse_orbit("steps:5:25"), fps=0, log=_quiet, scores="motion",
-                      motion=source, deadline_s=10.0)  # stride 2 fits however loaded the CPU
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, orbit=parse_orbit("steps:5:25"), fps=0,
+                                   scores="motion",
+                                   deadline_s=10.0),  # stride 2 fits however loaded the CPU
+                      ServeParts(model=model, log=_quiet, motion=source))
         assert stats.frames == 5 and stats.motion_frames == 5 and stats.stride_frames == {"2": 5}
         assert "5 sparse" in stats.line()
         wait_until(lambda: any(float(r["phi_deg"]) == 288.0 for r in read_frames(frames)), 10,
@@ -211,8 +214,9 @@ def test_a_resting_view_on_a_device_converges_to_the_projection(tmp_path, model_
     source = MotionScores(model, renderer, strides=(3,))
 
     def host() -> None:
-        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
-                                stop=stop, log=logs.append, scores="motion", motion=source)
+        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0",
+                                ServeOptions(key=KEY, scores="motion"),
+                                ServeParts(model=model, stop=stop, log=logs.append, motion=source))
 
     view = canonical_view(123.25, -17.5)
     truth, _alpha = renderer.render(*view)

@@ -23,6 +23,7 @@ from device_runtime.device import DeviceConfig
 from device_runtime.display import ViewDelta
 from host.link import provision, serve
 from host.link.errors import ServeError
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.serving import SCORE_MODES, open_true_view_scores
 
 REST_S = 1.5
@@ -41,7 +42,8 @@ def provisioned_flash(tmp_path_factory, model_path):
     flash = tmp_path_factory.mktemp("rest") / "flash"
     device = DeviceProcess(flash, "--headless", key_file=key_file(model_path))
     try:
-        provision(model_path, device.url, key=KEY, show_progress=False, log=_quiet)
+        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
     finally:
         assert device.stop() == 0
     return flash
@@ -52,9 +54,9 @@ def _serve_every_mode(url: str, model_path, model, lines: list[str]) -> dict:
     out = {}
     for mode in SCORE_MODES:
         start = time.monotonic()
-        out[mode] = serve(model_path, url, key=KEY, model=model, scores=mode,
-                          duration_s=REST_S, reconnect=False, log=lines.append,
-                          stats_every_s=0)
+        out[mode] = serve(model_path, url,
+                          ServeOptions(key=KEY, scores=mode, duration_s=REST_S, reconnect=False,
+                                       stats_every_s=0), ServeParts(model=model, log=lines.append))
         out[mode].wall_s = time.monotonic() - start
     return out
 
@@ -112,7 +114,8 @@ def test_every_score_mode_serves_a_view_dragged_then_released(tmp_path, model_pa
     try:
         wait_until(lambda: device.device.transport is not None, 10, "the device listening")
         url = f"socket://127.0.0.1:{device.device.transport.port}"
-        provision(model_path, url, key=KEY, show_progress=False, log=_quiet)
+        provision(model_path, url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=_quiet))
         wait_until(lambda: device.device.runtime_stats.frames_presented >= 1, 20, "first frame")
         lines: list[str] = []
         for mode in SCORE_MODES:
@@ -122,9 +125,10 @@ def test_every_score_mode_serves_a_view_dragged_then_released(tmp_path, model_pa
             def host(mode=mode, box=box) -> None:
                 start = time.monotonic()
                 try:
-                    box["stats"] = serve(
-                        model_path, url, key=KEY, model=model, scores=mode,
-                        duration_s=REST_S, reconnect=False, log=lines.append, stats_every_s=0)
+                    box["stats"] = serve(model_path, url,
+                                         ServeOptions(key=KEY, scores=mode, duration_s=REST_S,
+                                                      reconnect=False, stats_every_s=0),
+                                         ServeParts(model=model, log=lines.append))
                     box["wall_s"] = time.monotonic() - start
                 except BaseException as exc:  # reported below
                     box["error"] = exc
@@ -173,8 +177,9 @@ def test_a_failing_frame_source_is_one_line_and_serving_goes_on(provisioned_flas
     lines: list[str] = []
     try:
         source = _Exploding(MotionScores(model, open_true_view_scores(model).renderer))
-        stats = serve(model_path, device.url, key=KEY, model=model, scores="motion",
-                      motion=source, duration_s=REST_S, log=lines.append, stats_every_s=0)
+        stats = serve(model_path, device.url,
+                      ServeOptions(key=KEY, scores="motion", duration_s=REST_S, stats_every_s=0),
+                      ServeParts(model=model, motion=source, log=lines.append))
         failed = [line for line in lines if "ray-casting failed" in line]
         assert len(failed) == 1 and "ZeroDivisionError: a frame source bug" in failed[0], lines
         # every view fails on its own and is interpolated; serving goes on
@@ -185,15 +190,17 @@ def test_a_failing_frame_source_is_one_line_and_serving_goes_on(provisioned_flas
 
         monkeypatch.setattr(_Serving, "_score", bug)
         with pytest.raises(ServeError) as caught:
-            serve(model_path, device.url, key=KEY, model=model, scores="interpolate",
-                  duration_s=10, log=_quiet, stats_every_s=0)
+            serve(model_path, device.url,
+                  ServeOptions(key=KEY, scores="interpolate", duration_s=10, stats_every_s=0),
+                  ServeParts(model=model, log=_quiet))
         text = str(caught.value)
         assert "\n" not in text and "ZeroDivisionError" in text, text
         wait_until(lambda: any("bye from host" in line for line in device.lines), 10,
                    "the device's BYE line")
         monkeypatch.undo()
-        stats = serve(model_path, device.url, key=KEY, model=model, scores="interpolate",
-                      max_frames=1, reconnect=False, log=_quiet)
+        stats = serve(model_path, device.url,
+                      ServeOptions(key=KEY, scores="interpolate", max_frames=1, reconnect=False),
+                      ServeParts(model=model, log=_quiet))
         assert stats.frames == 1
     finally:
         assert device.stop() == 0, "\n".join(device.lines[-10:])
@@ -232,9 +239,10 @@ def test_one_view_request_from_a_keyless_fake_device(model_path, model):
 
     def host() -> None:
         try:
-            result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", model=model,
-                                    scores="motion", duration_s=REST_S, reconnect=False,
-                                    log=_quiet)
+            result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0",
+                                    ServeOptions(scores="motion", duration_s=REST_S,
+                                                 reconnect=False),
+                                    ServeParts(model=model, log=_quiet))
         except BaseException as exc:  # reported below
             result["error"] = exc
 

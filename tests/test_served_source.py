@@ -1,4 +1,4 @@
-"""``serve(motion=...)``: a sparse source passed in serves the sessions of its kind.
+"""``ServeParts(motion=...)``: a sparse source passed in serves the sessions of its kind.
 
 A source built with the device's own frames (``own``: its frames are corrections) serves a
 device that corrects them, so a caller (a benchmark, a long-running host) can pass one
@@ -15,6 +15,7 @@ from runtime_helpers import RuntimeThread, wait_until
 
 from device_runtime.prediction import OwnFrames
 from host.fit.motion import MotionScores
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
@@ -29,15 +30,15 @@ def test_a_prepared_correcting_source_serves_a_device_that_corrects(tmp_path, mo
     frames: list = []
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
                            on_frame=lambda f, info: frames.append(dict(info or {})))
-    provision(model_path, f"mem://{name}?end=a", key=KEY, show_progress=False,
-              log=lambda line: None)
+    provision(model_path, f"mem://{name}?end=a", ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=lambda line: None))
     stop = threading.Event()
     result: dict = {}
 
     def host() -> None:
-        result["stats"] = serve(model_path, f"mem://{name}?end=a", key=KEY, stop=stop,
-                                log=lambda line: None, model=model, renderer=renderer,
-                                motion=source)
+        result["stats"] = serve(model_path, f"mem://{name}?end=a", ServeOptions(key=KEY),
+                                ServeParts(stop=stop, log=lambda line: None, model=model,
+                                           renderer=renderer, motion=source))
 
     thread = threading.Thread(target=host, daemon=True)
     with device:

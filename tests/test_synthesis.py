@@ -21,6 +21,7 @@ from device_runtime.standalone import StandaloneScores
 from device_runtime.synthesis import ViewSynthesizer
 from host.cli import main as eigencast
 from host.fit.model import HostModel
+from host.link.options import ProvisionOptions, ProvisionParts
 from host.link.provisioning import provision
 from host.render.cinema import CinemaDB, depth_file
 from protocol.errors import ImageFormatError
@@ -426,7 +427,8 @@ def test_standalone_device_shows_the_hosts_warped_frames(depth_model, tmp_path):
     key = depth_model.parent / "device.key"
     device = DeviceProcess(flash, "--headless", key_file=key)
     try:
-        provision(depth_model, device.url, key=KEY, show_progress=False, log=lambda _: None)
+        provision(depth_model, device.url, ProvisionOptions(key=KEY, show_progress=False),
+                  ProvisionParts(log=lambda _: None))
     finally:
         device.stop()
     frames = tmp_path / "frames"

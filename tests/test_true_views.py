@@ -20,6 +20,7 @@ from runtime_helpers import RuntimeThread, serve_cli, wait_until
 
 from device_runtime.orbit import parse_orbit
 from host.fit.model import HostModel
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import TrueViewScores, open_true_view_scores
@@ -85,8 +86,8 @@ def test_true_view_scores_refuse_a_renderer_of_another_size(model):
 
 def _provisioned_device(tmp_path, model_path, name, **kwargs):
     device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b&pace=0", **kwargs)
-    result = provision(model_path, f"mem://{name}?end=a&pace=0", key=KEY, show_progress=False,
-                       log=_quiet)
+    result = provision(model_path, f"mem://{name}?end=a&pace=0",
+                       ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
     assert result.confirmed is True
     return device
 
@@ -158,9 +159,9 @@ def test_serving_goes_on_when_ray_casting_fails(tmp_path, model_path, model, tru
     result: dict = {}
 
     def host() -> None:
-        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
-                                stop=stop, log=logs.append,
-                                renderer=_FlakyRenderer(true_views.renderer, None))
+        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", ServeOptions(key=KEY),
+                                ServeParts(model=model, stop=stop, log=logs.append,
+                                           renderer=_FlakyRenderer(true_views.renderer, None)))
 
     thread = threading.Thread(target=host, daemon=True)
     thread.start()
@@ -194,9 +195,10 @@ def test_serve_keeps_ray_casting_after_one_failed_view(tmp_path, model_path, mod
     device = _provisioned_device(tmp_path, model_path, name, predict=predict)
     logs: list[str] = []
     with device:
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model, fps=0,
-                      orbit=parse_orbit("steps:6:10"), log=logs.append,
-                      renderer=_FlakyRenderer(true_views.renderer, _nth_call(0)))
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, fps=0, orbit=parse_orbit("steps:6:10")),
+                      ServeParts(model=model, log=logs.append,
+                                 renderer=_FlakyRenderer(true_views.renderer, _nth_call(0))))
     assert stats.frames == 6
     assert stats.motion_frames == 5  # every view but the failed one was ray-cast
     assert stats.failed_views == 1
@@ -218,11 +220,12 @@ def test_a_resting_view_whose_refinement_fails_is_not_tried_again(tmp_path, mode
     result: dict = {}
 
     def host() -> None:
-        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, model=model,
-                                stop=stop, log=logs.append, on_frame=lambda e, v: sent.append(v),
-                                stats_every_s=0.3,
-                                renderer=_FlakyRenderer(true_views.renderer,
-                                                         _refining_the_first_view))
+        result["stats"] = serve(model_path, f"mem://{name}?end=a&pace=0",
+                                ServeOptions(key=KEY, stats_every_s=0.3),
+                                ServeParts(model=model, stop=stop, log=logs.append,
+                                           on_frame=lambda e, v: sent.append(v),
+                                           renderer=_FlakyRenderer(true_views.renderer,
+                                                                   _refining_the_first_view)))
 
     def turns_after_the_failure() -> bool:  # a statistics line after the notice
         said = [i for i, line in enumerate(logs) if "ray-casting failed" in line]
@@ -245,7 +248,7 @@ def test_a_resting_view_whose_refinement_fails_is_not_tried_again(tmp_path, mode
 
 def test_serve_rejects_an_unknown_score_mode(model_path):
     with pytest.raises(ValueError, match="scores='magic'"):
-        serve(model_path, "mem://nowhere", scores="magic", log=_quiet)
+        serve(model_path, "mem://nowhere", ServeOptions(scores="magic"), ServeParts(log=_quiet))
 
 
 def test_serve_without_the_volume_says_so_once_and_interpolates(tmp_path, model_path, model):
@@ -253,9 +256,10 @@ def test_serve_without_the_volume_says_so_once_and_interpolates(tmp_path, model_
     device = _provisioned_device(tmp_path, model_path, name, predict=False)
     logs: list[str] = []
     with device:
-        stats = serve(model_path, f"mem://{name}?end=a&pace=0", key=KEY, fps=0,
-                      orbit=parse_orbit("steps:2:10"), log=logs.append,
-                      volume=str(tmp_path / "missing.mhd"))
+        stats = serve(model_path, f"mem://{name}?end=a&pace=0",
+                      ServeOptions(key=KEY, fps=0, orbit=parse_orbit("steps:2:10"),
+                                   volume=str(tmp_path / "missing.mhd")),
+                      ServeParts(log=logs.append))
     notice = [line for line in logs if "cannot be ray-cast" in line]
     assert len(notice) == 1 and "missing.mhd" in notice[0]
     assert stats.frames == 2 and stats.motion_frames == 0

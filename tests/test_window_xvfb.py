@@ -23,6 +23,7 @@ from provision_helpers import KEY, REPO, DeviceProcess
 from runtime_helpers import key_file, tiny_model, wait_until
 
 from host.fit.model import HostModel
+from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 
@@ -126,8 +127,8 @@ def test_window_drag_keys_and_screenshots_show_the_reconstruction(tmp_path, tmp_
     model_path = tiny_model(tmp_path_factory)
     model = HostModel.load(model_path)
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
-    provision(model_path, device.url, key=bytes(range(32)), show_progress=False,
-              log=lambda line: None)
+    provision(model_path, device.url, ProvisionOptions(key=bytes(range(32)), show_progress=False),
+              ProvisionParts(log=lambda line: None))
     device.stop()
     shots = tmp_path / "shots"
     env = dict(os.environ, DISPLAY=display, SDL_VIDEODRIVER="x11",
@@ -207,9 +208,11 @@ def test_window_drag_then_rest_shows_the_exact_ray_cast(tmp_path, tmp_path_facto
     result: dict = {}
 
     def host() -> None:
-        result["stats"] = serve(model_path, device.url, key=KEY, model=model, stop=stop,
-                                log=lambda line: None, provision_missing=True,
-                                on_frame=lambda encoded, view: sent.append((encoded, view)))
+        result["stats"] = serve(model_path, device.url,
+                                ServeOptions(key=KEY, provision_missing=True),
+                                ServeParts(model=model, stop=stop, log=lambda line: None,
+                                           on_frame=lambda encoded, view: sent.append(
+                                               (encoded, view))))
 
     thread = threading.Thread(target=host, daemon=True)
     thread.start()

@@ -7,6 +7,7 @@ import sys
 from typing import TYPE_CHECKING
 
 from host.errors import EigencastError
+from host.render.scene import camera_settings, render_setup, renderer_from_args
 
 if TYPE_CHECKING:
     from host.volume import Volume
@@ -89,58 +90,6 @@ def add_render_arguments(parser: argparse.ArgumentParser, *, size_default: str =
                         "shows (default) or of the whole volume box")
 
 
-def _parse_background(text: str) -> tuple[float, float, float]:
-    try:
-        rgb = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        rgb = ()
-    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
-        raise EigencastError(f"--background {text!r}: expected R,G,B with values in [0,1]")
-    return rgb  # type: ignore[return-value]
-
-
-def renderer_from_args(args: argparse.Namespace, volume, tf):  # noqa: ANN001
-    """Build a `host.render.raycast.Renderer` from parsed options."""
-    from host.render.raycast import Renderer
-
-    if args.samples is not None and args.samples < 2:
-        raise EigencastError(f"--samples {args.samples}: must be at least 2")
-    if args.step is not None and not args.step > 0:
-        raise EigencastError(f"--step {args.step}: must be positive")
-    if args.workers is not None and args.workers < 1:
-        raise EigencastError(f"--workers {args.workers}: must be at least 1")
-    if not 1.0 <= args.fov <= 150.0:
-        raise EigencastError(f"--fov {args.fov}: must be within [1, 150] degrees")
-    samples = args.samples if (args.samples is not None or args.step is not None) else 1000
-    lighting = getattr(args, "lighting", None) or "headlight"
-    if args.no_shading and lighting != "headlight":
-        raise EigencastError(f"--no-shading: not with --lighting {lighting}, which shades by "
-                             "the gradient")
-    return Renderer(
-        volume,
-        tf,
-        samples=samples if args.step is None else None,
-        step=args.step,
-        shading=not args.no_shading,
-        background=_parse_background(args.background),
-        workers=args.workers,
-        lighting=lighting,
-    )
-
-
-def render_setup(args: argparse.Namespace):
-    """Load the volume and transfer function and build the renderer: (volume, tf, renderer).
-    `say_transfer_function` says which transfer function that chose, once the command is
-    sure to render."""
-    from host.render.transfer import transfer_function_from_args
-    from host.volume import volume_from_args
-
-    volume = volume_from_args(args.volume, args)
-    tf = transfer_function_from_args(args, volume)
-    renderer = renderer_from_args(args, volume, tf)
-    return volume, tf, renderer
-
-
 def say_transfer_function(args: argparse.Namespace, volume, tf) -> None:  # noqa: ANN001
     """Print on stderr, in one line, which transfer function was chosen for which modality
     and why (`describe_transfer_function`): after every check of the command's options, so
@@ -148,25 +97,6 @@ def say_transfer_function(args: argparse.Namespace, volume, tf) -> None:  # noqa
     from host.render.transfer import describe_transfer_function
 
     print(describe_transfer_function(volume, tf, getattr(args, "tf", None)), file=sys.stderr)
-
-
-def camera_settings(args: argparse.Namespace, volume, renderer) -> dict:  # noqa: ANN001
-    """Orbit framing for the chosen --frame: projection, fov, centre and radius (JSON-able).
-
-    Recorded in the database sidecar (and from there in the eigenspace image)
-    so novel views are ray-cast with exactly the training cameras' framing.
-    """
-    if args.frame == "visible":
-        center, radius = renderer.visible_sphere()
-    else:
-        center, radius = volume.center_mm, volume.radius_mm
-    return {
-        "projection": args.projection,
-        "fov_deg": float(args.fov),
-        "frame": args.frame,
-        "center_mm": [float(c) for c in center],
-        "radius_mm": float(radius),
-    }
 
 
 def settings_from_args(args: argparse.Namespace, volume: Volume, size: tuple[int, int]) -> dict:

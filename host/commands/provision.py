@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
+from host.link.options import ProvisionOptions, ProvisionParts
 from host.link.provisioning import provision
 from protocol.image_transfer import RETRANSMIT_STRATEGIES
 from protocol.keys import load_key
@@ -40,26 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Provision and print a one-line summary (or JSON)."""
-    if args.baud <= 0:
-        raise ValueError(f"--baud {args.baud} must be positive")
-    if args.chunk is not None and args.chunk < 1:
-        raise ValueError(f"--chunk {args.chunk} must be >= 1")
-    if not args.timeout > 0:
-        raise ValueError(f"--timeout {args.timeout} must be > 0")
-    key = load_key(args.key) if args.key is not None else None
-    result = provision(
-        args.model,
-        args.port,
-        baud=args.baud,
-        key=key,
-        insecure=args.insecure,
-        force=args.force,
-        chunk_bytes=args.chunk,
-        retransmit=args.retransmit,
-        request_timeout_s=args.timeout,
-        show_progress=not (args.quiet or args.json),
-        log=(lambda line: None) if args.json or args.quiet else None,
-    )
+    options = ProvisionOptions.from_args(args)
+    if args.key is not None:
+        options = replace(options, key=load_key(args.key))
+    quiet = args.json or args.quiet
+    result = provision(args.model, args.port, options,
+                       ProvisionParts(log=(lambda line: None) if quiet else None))
     if args.json:
         print(json.dumps(result.as_dict()))
     else:

@@ -6,6 +6,7 @@ import argparse
 import json
 import signal
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 from host.errors import EigencastError
@@ -75,47 +76,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until interrupted, the orbit ends, or a --max-frames/--duration limit."""
-    from device_runtime.runtime import parse_orbit
     from host.fit.model import HostModel
-    from host.link.serving import DEFAULT_DEADLINE_S, serve
+    from host.link.options import ServeOptions, ServeParts
+    from host.link.serving import serve
     from protocol.keys import load_key
 
-    if args.baud <= 0:
-        raise EigencastError(f"--baud {args.baud}: must be positive")
-    if args.fps < 0:
-        raise EigencastError(f"--fps {args.fps}: must be >= 0")
-    if args.keyframe_interval < 0:
-        raise EigencastError(f"--keyframe-interval {args.keyframe_interval}: must be >= 0")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise EigencastError(f"--max-frames {args.max_frames}: must be >= 1")
-    if args.force and not args.provision:
-        raise EigencastError("--force only applies with --provision (it allows installing an "
-                             "older image generation)")
-    if args.duration is not None and not args.duration > 0:
-        raise EigencastError(f"--duration {args.duration}: must be > 0")
-    orbit = None
-    if args.orbit is not None:
-        try:
-            orbit = parse_orbit(args.orbit)
-        except ValueError as exc:
-            raise EigencastError(f"--orbit: {exc}") from None
-    if args.deadline is not None and not (args.deadline > 0 and args.deadline < 1e6):
-        raise EigencastError(f"--deadline {args.deadline}: must be > 0 milliseconds")
-    rest = args.rest_quality
-    if rest not in ("exact", "correction"):
-        try:
-            rest = float(rest)
-        except ValueError:
-            rest = None
-        if rest is None or not 0.0 < rest < 1.0:
-            raise EigencastError(f"--rest-quality {args.rest_quality}: expected exact, "
-                                 "correction or an object SSIM between 0 and 1 (e.g. 0.95)")
+    options = ServeOptions.from_args(args)
     if not args.model.is_file():
         raise EigencastError(f"{args.model}: no such eigenspace image")
-    key = load_key(args.key) if args.key is not None else None
+    if args.key is not None:
+        options = replace(options, key=load_key(args.key))
     quiet = args.quiet or args.json
     say = (lambda line: None) if quiet else None
-    model = HostModel.load(args.model, key=key)
+    model = HostModel.load(args.model, key=options.key)
     stop = threading.Event()
     interrupted: list[int] = []
 
@@ -127,28 +100,8 @@ def run(args: argparse.Namespace) -> int:
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):  # either ends serving cleanly
             signal.signal(signum, on_signal)
-    stats = serve(
-        args.model,
-        args.port,
-        key=key,
-        insecure=args.insecure,
-        baud=args.baud,
-        orbit=orbit,
-        fps=args.fps,
-        keyframe_interval=args.keyframe_interval,
-        provision_missing=args.provision,
-        force=args.force,
-        max_frames=args.max_frames,
-        duration_s=args.duration,
-        reconnect=not args.no_reconnect,
-        stats_every_s=args.stats_every,
-        stop=stop,
-        log=say,
-        model=model,
-        volume=args.volume,
-        deadline_s=(DEFAULT_DEADLINE_S if args.deadline is None else args.deadline / 1000.0),
-        rest=rest,
-    )
+    stats = serve(args.model, args.port, options,
+                  ServeParts(model=model, stop=stop, log=say))
     if args.json:
         print(json.dumps(stats.as_dict()))
     else:

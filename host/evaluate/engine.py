@@ -483,8 +483,30 @@ def evaluate_model(
     -------
     Evaluation
     """
-    from device_runtime.prediction import can_predict
+    pairs = _view_pairs(model, scene, views)
+    workers = default_metric_workers() if metric_workers is None else int(metric_workers)
+    run = _Evaluating(model, scene, info, workers, nearest, sample_views, rd_views, on_view)
+    try:  # (the metric workers start with the first view's metrics)
+        run.open_baselines(webp_db_quality, rest_planner, progress)
+        if motion_deadline_s is not None:
+            run.open_motion(motion_deadline_s, pairs[0], motion_stride, motion_slowdown)
+        with _progress("evaluate", len(pairs), unit=" views", quiet=not progress) as bar:
+            for i, (phi, theta) in enumerate(pairs):
+                run.view(i, phi, theta)
+                while len(run.in_flight) > max(1, workers):
+                    run.finish(bar)
+            while run.in_flight:
+                run.finish(bar)
+        if run.rd_refs:
+            run.rate_distortion(thresholds, step_factors, qualities, progress, rd_pca)
+    finally:
+        run.metrics.close()
+    return run.result()
 
+
+def _view_pairs(model: Any, scene: Any, views: Any) -> list[tuple[float, float]]:
+    """``views`` as (phi, theta) pairs; one line when there are none or ``scene`` makes
+    images of another size than the model's."""
     pairs = [(float(v.phi_deg), float(v.theta_deg)) if hasattr(v, "phi_deg") else
              (float(v[0]), float(v[1])) for v in views]
     if not pairs:
@@ -494,192 +516,251 @@ def evaluate_model(
             f"evaluate: the renderer makes {scene.image_shape[1]}x{scene.image_shape[0]} images, "
             f"the model is {model.image.image_shape[1]}x{model.image.image_shape[0]}"
         )
-    workers = default_metric_workers() if metric_workers is None else int(metric_workers)
-    timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "motion": 0.0, "codecs": 0.0,
-              "webp_db": 0.0,
-              "metrics_wait": 0.0, "rate_distortion": 0.0}
-    evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
-    evaluation.info["metric_workers"] = workers
-    cells = tuple(model.image.cell_shape)
-    device = DevicePath(model)
-    training = TrainingImages(model, scene) if nearest or webp_db_quality is not None else None
-    if training is not None:
-        evaluation.info["nearest_source"] = training.source
-    webp_db = None
-    if webp_db_quality is not None:
-        t0 = time.perf_counter()
-        webp_db = WebPDatabase(model, training, webp_db_quality, progress=progress)
-        timing["webp_db"] += time.perf_counter() - t0
-        evaluation.info["webp_db_quality"] = webp_db.quality
-    served = (ServedFrames(model, scene, planner=rest_planner) if can_predict(model.image)
-              else None)
-    if served is not None:
-        timing["served"] = 0.0
-        if rest_planner is not None:
-            timing["rest"] = 0.0
-            evaluation.info["rest"] = {"targets": list(rest_planner.targets),
-                                       "exact": rest_planner.exact,
-                                       "max_packet_bytes": rest_planner.max_packet_bytes}
-        evaluation.info["own_frame"] = served.kind
-        if model.image.synthesis is not None:
-            evaluation.info["synthesis"] = model.image.synthesis.get("method")
-    motion = None
-    if motion_deadline_s is not None:
-        t0 = time.perf_counter()
-        if served is not None:
-            if motion_stride is None:
-                served.pick_stride(motion_deadline_s, pairs[0], slowdown=motion_slowdown)
-            else:
-                served.set_stride(motion_stride)
-            stride, coarse = served.stride, _moving_coarse()
-        else:
-            motion = _motion_source(model, scene, motion_deadline_s, pairs[0], motion_stride,
-                                    motion_slowdown)
-            stride, coarse = motion.strides[0], motion.coarse
-        timing["motion"] += time.perf_counter() - t0
-        evaluation.info["motion"] = {"deadline_ms": motion_deadline_s * 1e3,
-                                     "stride": stride, "coarse": coarse,
-                                     "step_deg": MOTION_STEP_DEG,
-                                     "slowdown": float(motion_slowdown),
-                                     "stride_given": motion_stride is not None,
-                                     "corrections": served is not None}
-    rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
-    metrics = _Metrics(workers)
-    hints: dict[str, int | None] = {c: None for c in CODECS}
-    rest_hints: dict[str, int] = {}
-    in_flight: list[tuple[int, dict, dict[str, Future], dict | None, Any]] = []
+    return pairs
 
-    def finish(bar: Any) -> None:
-        i, record, futures, sample, rest_job = in_flight.pop(0)
+
+#: The methods whose FLIP maps a sample view keeps for the report's figures.
+_FLIP_MAPS = ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp", "pca_predict")
+
+
+class _Evaluating:
+    """One run of :func:`evaluate_model`: the sources of every method's frames, set up once
+    (:meth:`open_baselines`, :meth:`open_motion`), then per view (:meth:`view`) the
+    ray-cast, the device's frames (:meth:`_device_frames`), the served path's
+    (:meth:`_served_frames`) or the sparse scores' (:meth:`_motion_frame`), the codecs'
+    (:meth:`_codec_frames`), the baselines' (:meth:`_baseline_frames`), and the metrics
+    submitted; :meth:`finish` collects a view's metrics in order."""
+
+    def __init__(self, model: Any, scene: Any, info: dict | None, workers: int, nearest: bool,
+                 sample_views: int, rd_views: int,
+                 on_view: Callable[[int, dict], None] | None) -> None:
+        self.model, self.scene = model, scene
+        self.evaluation = Evaluation(info={**model_info(model), **(info or {})}, views=[])
+        self.evaluation.info["metric_workers"] = workers
+        self.metrics = _Metrics(workers)
+        self.workers, self.nearest, self.sample_views = workers, nearest, sample_views
+        self.rd_views, self.on_view = rd_views, on_view
+        self.timing = {"raycast": 0.0, "nearest": 0.0, "device": 0.0, "motion": 0.0,
+                       "codecs": 0.0, "webp_db": 0.0, "metrics_wait": 0.0,
+                       "rate_distortion": 0.0}
+        self.cells = tuple(model.image.cell_shape)
+        self.device = DevicePath(model)
+        self.training: TrainingImages | None = None
+        self.webp_db: WebPDatabase | None = None
+        self.served: ServedFrames | None = None
+        self.motion: Any = None
+        self.rd_refs: list[tuple[np.ndarray, np.ndarray, float, float]] = []
+        self.hints: dict[str, int | None] = {c: None for c in CODECS}
+        self.rest_hints: dict[str, int] = {}
+        self.in_flight: list[tuple[int, dict, dict[str, Future], dict | None, Any]] = []
+
+    def open_baselines(self, webp_db_quality: int | None, rest_planner: Any,
+                       progress: bool) -> None:
+        """The training images (nearest view, WebP database) and the served path."""
+        from device_runtime.prediction import can_predict
+
+        model, info, timing = self.model, self.evaluation.info, self.timing
+        if self.nearest or webp_db_quality is not None:
+            self.training = TrainingImages(model, self.scene)
+            info["nearest_source"] = self.training.source
+        if webp_db_quality is not None:
+            t0 = time.perf_counter()
+            self.webp_db = WebPDatabase(model, self.training, webp_db_quality,
+                                        progress=progress)
+            timing["webp_db"] += time.perf_counter() - t0
+            info["webp_db_quality"] = self.webp_db.quality
+        if can_predict(model.image):
+            self.served = ServedFrames(model, self.scene, planner=rest_planner)
+        if self.served is not None:
+            timing["served"] = 0.0
+            if rest_planner is not None:
+                timing["rest"] = 0.0
+                info["rest"] = {"targets": list(rest_planner.targets),
+                                "exact": rest_planner.exact,
+                                "max_packet_bytes": rest_planner.max_packet_bytes}
+            info["own_frame"] = self.served.kind
+            if model.image.synthesis is not None:
+                info["synthesis"] = model.image.synthesis.get("method")
+
+    def open_motion(self, deadline_s: float, start: tuple[float, float], stride: int | None,
+                    slowdown: float) -> None:
+        """``pca_motion``: the stride that fits ``deadline_s`` (or the one given)."""
+        t0 = time.perf_counter()
+        served = self.served
+        if served is not None:
+            if stride is None:
+                served.pick_stride(deadline_s, start, slowdown=slowdown)
+            else:
+                served.set_stride(stride)
+            picked, coarse = served.stride, _moving_coarse()
+        else:
+            self.motion = _motion_source(self.model, self.scene, deadline_s, start, stride,
+                                         slowdown)
+            picked, coarse = self.motion.strides[0], self.motion.coarse
+        self.timing["motion"] += time.perf_counter() - t0
+        self.evaluation.info["motion"] = {"deadline_ms": deadline_s * 1e3,
+                                          "stride": picked, "coarse": coarse,
+                                          "step_deg": MOTION_STEP_DEG,
+                                          "slowdown": float(slowdown),
+                                          "stride_given": stride is not None,
+                                          "corrections": served is not None}
+
+    def view(self, i: int, phi: float, theta: float) -> None:
+        """Every method's frame of one view, its metrics submitted (`in_flight`)."""
+        t0 = time.perf_counter()
+        truth, alpha = self.scene.render(phi, theta)
+        mask = alpha_object_mask(alpha)
+        self.timing["raycast"] += time.perf_counter() - t0
+        keep = i < self.sample_views
+        frames: dict[str, np.ndarray] = {}
+        record: dict[str, Any] = {"phi_deg": phi, "theta_deg": theta,
+                                  "object_fraction": float(mask.mean()),
+                                  "raycast_blockiness": blockiness(truth, self.cells, mask)}
+        packet_bytes = self._device_frames(truth, phi, theta, frames, record)
+        rest_job = None
+        if self.served is not None:  # the one served path
+            rest_job = self._served_frames(i, phi, theta, mask, frames, record)
+        elif self.motion is not None:
+            self._motion_frame(phi, theta, frames, record)
+        self._codec_frames(truth, packet_bytes, frames, record)
+        self._baseline_frames(phi, theta, frames, record)
+        futures = {}
+        for name, frame in frames.items():
+            record[name]["blockiness"] = blockiness(frame, self.cells, mask)
+            futures[name] = self.metrics.submit(truth, frame, mask, keep and name in _FLIP_MAPS)
+        sample = None
+        if keep:
+            sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
+                      **frames, "record": record}
+            if rest_job is not None:  # the resting chain's frames, for the strip
+                sample["rest_frames"] = [s.frame for s in rest_job[0].steps]
+        if i < self.rd_views:
+            self.rd_refs.append((truth, mask, phi, theta))
+        self.in_flight.append((i, record, futures, sample, rest_job))
+
+    def _device_frames(self, truth: np.ndarray, phi: float, theta: float, frames: dict,
+                       record: dict) -> int:
+        """``pca`` (interpolated scores) and ``pca_render`` (key packets of the ray-cast's
+        own scores); the ``pca`` packet's bytes (the codecs' budget)."""
+        t1 = time.perf_counter()
+        frames["pca"], packet_bytes = self.device.frame(phi, theta)
+        record["pca"] = {"bytes_per_view": packet_bytes}
+        frames["pca_render"], render_bytes = self.device.projection_frame(truth)
+        record["pca_render"] = {"bytes_per_view": render_bytes}
+        self.timing["device"] += time.perf_counter() - t1
+        return packet_bytes
+
+    def _served_frames(self, i: int, phi: float, theta: float, mask: np.ndarray,
+                       frames: dict, record: dict) -> Any:
+        """The served path's frames: the own frame, at rest, the resting steps (measured
+        in a worker: the job returned) and moving."""
+        served, timing = self.served, self.timing
+        t2 = time.perf_counter()
+        frames["pca_warp"] = served.own_frame(phi, theta)
+        record["pca_warp"] = {"bytes_per_view": 0}
+        frames["pca_predict"], size = served.at_rest(phi, theta)
+        record["pca_predict"] = {"bytes_per_view": size}
+        t3 = time.perf_counter()
+        timing["served"] += t3 - t2
+        rest_job = None
+        rest = served.rest(phi, theta)
+        if rest is not None:
+            rest_job = (rest, self.metrics.call(
+                measure_rest, rest.truth, mask, [s.frame for s in rest.steps],
+                [s.kind for s in rest.steps], codecs=i < self.rd_views,
+                hints=dict(self.rest_hints)))
+            t4 = time.perf_counter()
+            timing["rest"] += t4 - t3
+            t3 = t4
+        if served.stride is not None:
+            frames["pca_motion"], size = served.moving(phi, theta)
+            record["pca_motion"] = {"bytes_per_view": size, "stride": served.stride}
+            timing["motion"] += time.perf_counter() - t3
+        return rest_job
+
+    def _motion_frame(self, phi: float, theta: float, frames: dict, record: dict) -> None:
+        """``pca_motion`` without the standalone table: the sparse ray-cast's scores as a
+        delta packet against the frame `MOTION_STEP_DEG` before it."""
+        from device_runtime.runtime import canonical_view
+
+        t3 = time.perf_counter()
+        motion = self.motion
+        before = motion.frame(canonical_view(phi - MOTION_STEP_DEG, theta)).scores
+        now = motion.frame(canonical_view(phi, theta)).scores
+        frames["pca_motion"], size = self.device.motion_frame(before, now)
+        self.timing["motion"] += time.perf_counter() - t3
+        record["pca_motion"] = {"bytes_per_view": size, "stride": motion.strides[0]}
+
+    def _codec_frames(self, truth: np.ndarray, packet_bytes: int, frames: dict,
+                      record: dict) -> None:
+        """JPEG, WebP and AVIF within the ``pca`` packet's bytes (each starts its search
+        at the previous view's quality)."""
+        t2 = time.perf_counter()
+        coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=self.hints[c])
+                 for c in CODECS}
+        self.hints = {c: coded[c].quality for c in CODECS}
+        for c in CODECS:
+            frames[c] = coded[c].decode()
+            record[c] = {"bytes_per_view": coded[c].size_bytes,
+                         "quality": coded[c].quality,
+                         "within_budget": coded[c].within_budget}
+        self.timing["codecs"] += time.perf_counter() - t2
+
+    def _baseline_frames(self, phi: float, theta: float, frames: dict, record: dict) -> None:
+        """The WebP database's frame and the nearest training view."""
+        t3 = time.perf_counter()
+        if self.webp_db is not None:
+            frames["webp_db"] = self.webp_db.frame(phi, theta)
+            self.timing["webp_db"] += time.perf_counter() - t3
+            record["webp_db"] = {"bytes_per_view": 0, "quality": self.webp_db.quality}
+        t3 = time.perf_counter()
+        training = self.training
+        if self.nearest and training is not None:
+            index, angle = nearest_training_view(phi, theta, training.phi, training.theta)
+            frames["nearest"], png_bytes = training.get(index)
+            self.timing["nearest"] += time.perf_counter() - t3
+            record["nearest"] = {"bytes_per_view": png_bytes, "index": index,
+                                 "angle_deg": angle}
+
+    def rate_distortion(self, thresholds: Sequence[float], step_factors: Sequence[float],
+                        qualities: Sequence[int], progress: bool, pca: bool) -> None:
+        """The rate-distortion sweep on the first ``rd_views`` views."""
+        t0 = time.perf_counter()
+        self.evaluation.rd = _rate_distortion(self.model, self.rd_refs, thresholds,
+                                              step_factors, qualities, self.metrics,
+                                              progress=progress, pca=pca)
+        self.timing["rate_distortion"] = time.perf_counter() - t0
+        self.evaluation.info["rd_views"] = len(self.rd_refs)
+
+    def result(self) -> Evaluation:
+        """The evaluation, with the WebP database's storage and the timings."""
+        evaluation = self.evaluation
+        if self.webp_db is not None:
+            evaluation.info["webp_db_storage_bytes"] = self.webp_db.storage_bytes
+            evaluation.info["webp_db_storage_estimated"] = self.webp_db.storage_estimated
+        evaluation.timing_s = {k: round(v, 3) for k, v in self.timing.items()}
+        return evaluation
+
+    def finish(self, bar: Any) -> None:
+        """Collect the oldest view's metrics into its record (and sample), in order."""
+        i, record, futures, sample, rest_job = self.in_flight.pop(0)
         t0 = time.perf_counter()
         results = {name: f.result() for name, f in futures.items()}
         rest_measured = rest_job[1].result() if rest_job is not None else None
-        timing["metrics_wait"] += time.perf_counter() - t0
+        self.timing["metrics_wait"] += time.perf_counter() - t0
         for name, c in results.items():
             record[name].update(c.values())
         if rest_measured is not None:
             record["rest"] = rest_record(rest_job[0], rest_measured)
-            rest_hints.update(rest_measured["hints"])
+            self.rest_hints.update(rest_measured["hints"])
         if sample is not None:
             sample.update({f"flip_{name}": results[name].flip_map
-                           for name in ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp",
-                                        "pca_predict")
-                           if name in results})
-            evaluation.samples.append(sample)
-        evaluation.views.append(record)
-        if on_view is not None:
-            on_view(i, record)
+                           for name in _FLIP_MAPS if name in results})
+            self.evaluation.samples.append(sample)
+        self.evaluation.views.append(record)
+        if self.on_view is not None:
+            self.on_view(i, record)
         bar.advance()
-
-    try:
-        with _progress("evaluate", len(pairs), unit=" views", quiet=not progress) as bar:
-            for i, (phi, theta) in enumerate(pairs):
-                t0 = time.perf_counter()
-                truth, alpha = scene.render(phi, theta)
-                mask = alpha_object_mask(alpha)
-                t1 = time.perf_counter()
-                timing["raycast"] += t1 - t0
-                keep = i < sample_views
-                rest_job = None
-                frames: dict[str, np.ndarray] = {}
-                record: dict[str, Any] = {"phi_deg": phi, "theta_deg": theta,
-                                          "object_fraction": float(mask.mean()),
-                                          "raycast_blockiness": blockiness(truth, cells, mask)}
-                frames["pca"], packet_bytes = device.frame(phi, theta)
-                record["pca"] = {"bytes_per_view": packet_bytes}
-                # key packets of the ray-cast's own scores
-                frames["pca_render"], render_bytes = device.projection_frame(truth)
-                record["pca_render"] = {"bytes_per_view": render_bytes}
-                t2 = time.perf_counter()
-                timing["device"] += t2 - t1
-                if served is not None:  # the one served path
-                    frames["pca_warp"] = served.own_frame(phi, theta)
-                    record["pca_warp"] = {"bytes_per_view": 0}
-                    frames["pca_predict"], size = served.at_rest(phi, theta)
-                    record["pca_predict"] = {"bytes_per_view": size}
-                    t3 = time.perf_counter()
-                    timing["served"] += t3 - t2
-                    rest = served.rest(phi, theta)
-                    if rest is not None:
-                        rest_job = (rest, metrics.call(
-                            measure_rest, rest.truth, mask, [s.frame for s in rest.steps],
-                            [s.kind for s in rest.steps], codecs=i < rd_views,
-                            hints=dict(rest_hints)))
-                        t4 = time.perf_counter()
-                        timing["rest"] += t4 - t3
-                        t3 = t4
-                    if served.stride is not None:
-                        frames["pca_motion"], size = served.moving(phi, theta)
-                        record["pca_motion"] = {"bytes_per_view": size,
-                                                "stride": served.stride}
-                        timing["motion"] += time.perf_counter() - t3
-                elif motion is not None:
-                    t3 = time.perf_counter()
-                    from device_runtime.runtime import canonical_view
-
-                    before = motion.frame(canonical_view(phi - MOTION_STEP_DEG, theta)).scores
-                    now = motion.frame(canonical_view(phi, theta)).scores
-                    frames["pca_motion"], size = device.motion_frame(before, now)
-                    timing["motion"] += time.perf_counter() - t3
-                    record["pca_motion"] = {"bytes_per_view": size,
-                                            "stride": motion.strides[0]}
-                t2 = time.perf_counter()
-                coded = {c: encode_within_budget(truth, packet_bytes, codec=c, hint=hints[c])
-                         for c in CODECS}
-                hints = {c: coded[c].quality for c in CODECS}
-                for c in CODECS:
-                    frames[c] = coded[c].decode()
-                    record[c] = {"bytes_per_view": coded[c].size_bytes,
-                                 "quality": coded[c].quality,
-                                 "within_budget": coded[c].within_budget}
-                t3 = time.perf_counter()
-                timing["codecs"] += t3 - t2
-                if webp_db is not None:
-                    frames["webp_db"] = webp_db.frame(phi, theta)
-                    timing["webp_db"] += time.perf_counter() - t3
-                    record["webp_db"] = {"bytes_per_view": 0, "quality": webp_db.quality}
-                t3 = time.perf_counter()
-                if nearest and training is not None:
-                    index, angle = nearest_training_view(phi, theta, training.phi,
-                                                         training.theta)
-                    frames["nearest"], png_bytes = training.get(index)
-                    timing["nearest"] += time.perf_counter() - t3
-                    record["nearest"] = {"bytes_per_view": png_bytes, "index": index,
-                                         "angle_deg": angle}
-                flip_maps = ("pca", "jpeg", "webp", "avif", "webp_db", "pca_warp",
-                             "pca_predict")
-                futures = {}
-                for name, frame in frames.items():
-                    record[name]["blockiness"] = blockiness(frame, cells, mask)
-                    futures[name] = metrics.submit(truth, frame, mask,
-                                                   keep and name in flip_maps)
-                sample = None
-                if keep:
-                    sample = {"phi_deg": phi, "theta_deg": theta, "raycast": truth,
-                              **frames, "record": record}
-                    if rest_job is not None:  # the resting chain's frames, for the strip
-                        sample["rest_frames"] = [s.frame for s in rest_job[0].steps]
-                if i < rd_views:
-                    rd_refs.append((truth, mask, phi, theta))
-                in_flight.append((i, record, futures, sample, rest_job))
-                while len(in_flight) > max(1, workers):
-                    finish(bar)
-            while in_flight:
-                finish(bar)
-        if rd_refs:
-            t0 = time.perf_counter()
-            evaluation.rd = _rate_distortion(model, rd_refs, thresholds, step_factors,
-                                             qualities, metrics, progress=progress,
-                                             pca=rd_pca)
-            timing["rate_distortion"] = time.perf_counter() - t0
-            evaluation.info["rd_views"] = len(rd_refs)
-    finally:
-        metrics.close()
-    if webp_db is not None:
-        evaluation.info["webp_db_storage_bytes"] = webp_db.storage_bytes
-        evaluation.info["webp_db_storage_estimated"] = webp_db.storage_estimated
-    evaluation.timing_s = {k: round(v, 3) for k, v in timing.items()}
-    return evaluation
 
 
 def _moving_coarse() -> float:

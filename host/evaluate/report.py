@@ -551,16 +551,14 @@ def write_report(evaluation: Any, folder: str | os.PathLike) -> Path:
     return out / "index.html"
 
 
-def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
-    info = evaluation.info
-    vol = info.get("volume") or {}
-    dims = vol.get("dims")
+def _table1(info: dict, summary: dict) -> list[list[str]]:
+    """The model's rows, laid out like the paper's Table 1."""
+    dims = (info.get("volume") or {}).get("dims")
     h, w = info["image_shape"]
-    name = vol.get("name") or "volume"
     pca, jpeg, webp = summary.get("pca", {}), summary.get("jpeg", {}), summary.get("webp", {})
     avif = summary.get("avif", {})
     t = info.get("threshold")
-    table1 = [
+    return [
         ["volume dimensions", " × ".join(str(d) for d in dims) if dims else "–"],
         ["image size", f"{w} × {h}"],
         ["training views", f"{info['training_views']} ({_fmt(info.get('training_view_spec'))})"],
@@ -578,38 +576,49 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
         ["mean FLIP of equal-bytes WebP", _fmt(webp.get("flip"), 4)],
         ["mean FLIP of equal-bytes AVIF", _fmt(avif.get("flip"), 4)],
     ]
+
+
+def _method_note(method: str, m: dict, summary: dict) -> str:
+    """The last column of a method's row: its quality, distance or what it shows."""
+    extra = ""
+    if method == "webp_db":
+        extra = (f"q={m.get('quality', math.nan):.0f}, device storage "
+                 f"{_bytes(m.get('storage_bytes'))}"
+                 f"{' (estimated)' if m.get('storage_estimated') else ''}")
+    if method in ("jpeg", "webp", "avif"):
+        extra = f"q≈{m.get('quality', math.nan):.0f}"
+        if m.get("over_budget_views"):
+            extra += f", {m['over_budget_views']} views over budget at q=1"
+    elif method == "nearest":
+        extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
+    elif method == "pca_warp":
+        extra = ("shown at once, no packets: the 4 neighbouring training views "
+                 + ("warped by their depth" if m.get("own_frame") == "warp"
+                    else "blended by the predicted scores (an image without depth)"))
+    elif method == "pca_render":
+        extra = "key packets of the ray-cast's own scores (no view interpolation)"
+    elif method == "pca_predict":
+        extra = ("what a resting view converges to: the own frame plus the complete "
+                 "correction at the model's step (a version-3 packet; 0 B when nothing "
+                 "is worth sending)" + _served_note(m))
+    elif method == "pca_motion":
+        extra = (f"stride {m.get('stride', math.nan):.0f} at a "
+                 f"{m.get('deadline_ms', math.nan):.0f} ms deadline, "
+                 f"{m.get('step_deg', math.nan):g}°/frame; "
+                 + ("own frame + sparse correction, bytes as streamed" + _served_note(m)
+                    if "pca_predict" in summary else "delta packets of a drag"))
+    return extra
+
+
+def _method_rows(summary: dict) -> list[list[str]]:
+    """One row per method evaluated: bytes, PSNR/SSIM/FLIP against the PCA's, object-only
+    metrics, blockiness and its note."""
+    pca = summary.get("pca", {})
     rows = []
     for method in METHODS:
         m = summary.get(method)
         if not m:
             continue
-        extra = ""
-        if method == "webp_db":
-            extra = (f"q={m.get('quality', math.nan):.0f}, device storage "
-                     f"{_bytes(m.get('storage_bytes'))}"
-                     f"{' (estimated)' if m.get('storage_estimated') else ''}")
-        if method in ("jpeg", "webp", "avif"):
-            extra = f"q≈{m.get('quality', math.nan):.0f}"
-            if m.get("over_budget_views"):
-                extra += f", {m['over_budget_views']} views over budget at q=1"
-        elif method == "nearest":
-            extra = f"{m.get('angle_deg', math.nan):.2f}° away (PNG)"
-        elif method == "pca_warp":
-            extra = ("shown at once, no packets: the 4 neighbouring training views "
-                     + ("warped by their depth" if m.get("own_frame") == "warp"
-                        else "blended by the predicted scores (an image without depth)"))
-        elif method == "pca_render":
-            extra = "key packets of the ray-cast's own scores (no view interpolation)"
-        elif method == "pca_predict":
-            extra = ("what a resting view converges to: the own frame plus the complete "
-                     "correction at the model's step (a version-3 packet; 0 B when nothing "
-                     "is worth sending)" + _served_note(m))
-        elif method == "pca_motion":
-            extra = (f"stride {m.get('stride', math.nan):.0f} at a "
-                     f"{m.get('deadline_ms', math.nan):.0f} ms deadline, "
-                     f"{m.get('step_deg', math.nan):g}°/frame; "
-                     + ("own frame + sparse correction, bytes as streamed" + _served_note(m)
-                        if "pca_predict" in summary else "delta packets of a drag"))
         rows.append([
             _NAMES[method],
             _bytes(m.get("bytes_per_view")),
@@ -620,18 +629,28 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
             _compare_cell(m.get("flip"), pca.get("flip"), False, 4) if method != "pca"
             else _fmt(m.get("flip"), 4),
             _fmt(m.get("psnr_object"), 2), _fmt(m.get("ssim_object"), 4),
-            _fmt(m.get("flip_object"), 4), _fmt(m.get("blockiness"), 3), extra,
+            _fmt(m.get("flip_object"), 4), _fmt(m.get("blockiness"), 3),
+            _method_note(method, m, summary),
         ])
+    return rows
+
+
+def _int8_text(info: dict) -> str:
+    """What int8 quantization costs, as ``fit`` measured it."""
     int8 = info.get("int8") or {}
-    int8_text = "not recorded (model fitted by an older eigencast)"
-    if int8:
-        int8_text = (
-            f"measured by <code>fit</code> on {int8.get('views', '?')} training views: PSNR "
-            f"float {_fmt(int8.get('train_psnr_float_db'), 2)} dB, int8 "
-            f"{_fmt(int8.get('train_psnr_int8_db'), 2)} dB, loss "
-            f"<b>{_fmt(int8.get('train_loss_db'), 3)} dB</b>; float vs int8 at interpolated "
-            f"novel scores: {_fmt(int8.get('novel_psnr_float_vs_int8_db'), 1)} dB"
-        )
+    if not int8:
+        return "not recorded (model fitted by an older eigencast)"
+    return (
+        f"measured by <code>fit</code> on {int8.get('views', '?')} training views: PSNR "
+        f"float {_fmt(int8.get('train_psnr_float_db'), 2)} dB, int8 "
+        f"{_fmt(int8.get('train_psnr_int8_db'), 2)} dB, loss "
+        f"<b>{_fmt(int8.get('train_loss_db'), 3)} dB</b>; float vs int8 at interpolated "
+        f"novel scores: {_fmt(int8.get('novel_psnr_float_vs_int8_db'), 1)} dB"
+    )
+
+
+def _rd_rows(evaluation: Any) -> list[list[str]]:
+    """The rate-distortion table's rows."""
     rd_rows = []
     for p in evaluation.rd:
         series = _NAMES[p["kind"]].split(",")[0] + ("  (this model)" if p.get("own") else "")
@@ -639,19 +658,34 @@ def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
                         html.escape(p["label"]), _bytes(p["bytes_per_view"]),
                         _fmt(p.get("components_per_cell"), 2) if p["kind"] == "pca" else "–",
                         _fmt(p["psnr"], 2), _fmt(p["ssim"], 4), _fmt(p["flip"], 4)])
+    return rd_rows
+
+
+def _target_html(info: dict) -> str:
+    """What ``fit --target`` chose, when it did."""
+    target = info.get("target")
+    if not target:
+        return ""
+    choice = target.get("choice") or {}
+    return (
+        f"<p>Chosen by <code>fit --target {html.escape(str(target.get('metric')))}="
+        f"{target.get('value')}</code> on {html.escape(str(target.get('holdout')))}: "
+        f"{html.escape(json.dumps(choice))}</p>"
+    )
+
+
+def _html(evaluation: Any, summary: dict, figures: list[str]) -> str:
+    info = evaluation.info
+    name = (info.get("volume") or {}).get("name") or "volume"
+    table1 = _table1(info, summary)
+    rows = _method_rows(summary)
+    int8_text = _int8_text(info)
+    rd_rows = _rd_rows(evaluation)
     timing = evaluation.timing_s
     total = sum(timing.values()) or 1.0
     timing_rows = [[html.escape(k), f"{v:.1f}", f"{100 * v / total:.0f}%"]
                    for k, v in timing.items()]
-    target = info.get("target")
-    target_html = ""
-    if target:
-        choice = target.get("choice") or {}
-        target_html = (
-            f"<p>Chosen by <code>fit --target {html.escape(str(target.get('metric')))}="
-            f"{target.get('value')}</code> on {html.escape(str(target.get('holdout')))}: "
-            f"{html.escape(json.dumps(choice))}</p>"
-        )
+    target_html = _target_html(info)
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'>",
         f"<title>eigencast evaluation: {html.escape(name)}</title>",

@@ -363,6 +363,12 @@ def search_target(
             if j == 0:
                 lo_start = hi - 1
         bar.update(estimate)
+    return TargetResult(target, tries, _cheapest_met(tries, target, knob), heldout.source)
+
+
+def _cheapest_met(tries: list[Try], target: Target, knob: str) -> Try:
+    """The try with the fewest bytes per view (then the lowest level) that met ``target``;
+    when none did, one line naming the best quality reached and how to reach further."""
     met = [t for t in tries if t.met]
     if not met:
         best = max(tries, key=lambda t: t.quality if target.higher_is_better else -t.quality)
@@ -373,5 +379,4 @@ def search_target(
             f"{best.components_per_cell:.1f} components/cell); fit with a higher --threshold or "
             "--components, or render more training views"
         )
-    choice = min(met, key=lambda t: (t.bytes_per_view, t.level))
-    return TargetResult(target, tries, choice, heldout.source)
+    return min(met, key=lambda t: (t.bytes_per_view, t.level))

@@ -5,7 +5,9 @@ and resume, commit) and serving (``serving.py``: the session that answers view r
 score packets: corrections of the device's own frames, ``correction.py``, or absolute
 scores, ``encoding.py``, from the sparse ray-casts of `host.fit.MotionScores` that fit a
 deadline; ``true_views.py``: the scores of ray-cast views; ``serve_stats.py``: `ServeStats`;
-``errors.py``: `ServeError`), and what a resting view gets once its ray-cast is whole
+``errors.py``: `ServeError`; ``options.py``: what the user chooses for each, `ServeOptions`
+and `ProvisionOptions`, validated from one table of constraints, and what a caller hands in,
+`ServeParts` and `ProvisionParts`), and what a resting view gets once its ray-cast is whole
 (``resting.py``: its complete correction and the refinement layers that end at the exact
 ray-cast, planned by ``layers.py``: `RestPlanner`).
 Both drive the shared protocol (`protocol.link`, `protocol.transport`, `protocol.scores`)
@@ -31,10 +33,15 @@ __all__ = [
     "SCORE_MODES",
     "FrameEncoder",
     "ImageInfo",
+    "OptionError",
     "ProvisionError",
+    "ProvisionOptions",
+    "ProvisionParts",
     "ProvisionResult",
     "RestPlanner",
     "ServeError",
+    "ServeOptions",
+    "ServeParts",
     "ServeStats",
     "TrueViewScores",
     "choose_chunk_bytes",

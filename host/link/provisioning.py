@@ -47,6 +47,7 @@ from typing import Any
 
 from device_runtime.image_receiver import required_ram_bytes
 from host.errors import EigencastError
+from host.link.options import ProvisionOptions, ProvisionParts
 from protocol import messages as m
 from protocol.errors import (
     ImageFormatError,
@@ -71,6 +72,8 @@ __all__ = [
     "CHUNK_LATENCY_S",
     "ImageInfo",
     "ProvisionError",
+    "ProvisionOptions",
+    "ProvisionParts",
     "ProvisionResult",
     "choose_chunk_bytes",
     "inspect_image",
@@ -422,24 +425,8 @@ class _Notices:
 def provision(
     image_path: str | os.PathLike,
     url: str,
-    *,
-    baud: int = 115200,
-    key: bytes | None = None,
-    insecure: bool = False,
-    force: bool = False,
-    chunk_bytes: int | None = None,
-    retransmit: str = "selective",
-    precheck: bool = True,
-    show_progress: bool = True,
-    request_timeout_s: float = 1.0,
-    inactivity_timeout_s: float = 15.0,
-    max_reconnects: int = 8,
-    confirm_timeout_s: float = 5.0,
-    transport_factory: Callable[[int], Any] | None = None,
-    on_progress: Callable[[int, int], None] | None = None,
-    on_stage: Callable[[str], None] | None = None,
-    log: Callable[[str], None] | None = None,
-    host_id: str = "eigencast",
+    options: ProvisionOptions | None = None,
+    parts: ProvisionParts | None = None,
 ) -> ProvisionResult:
     """Install the image at ``image_path`` on the device at ``url``.
 
@@ -449,41 +436,12 @@ def provision(
         An ``.ecs`` file (only its device image is sent).
     url : str
         Port URL (``/dev/ttyUSB0``, ``socket://HOST:PORT``, ``mem://...``).
-    baud : int
-        Serial line rate.
-    key : bytes, optional
-        The device key (needed when the device holds one).
-    insecure : bool
-        With ``key``: install on a device that says it holds no key anyway (unauthenticated;
-        said once through ``log``). Without it such a device is refused
-        (:class:`~protocol.errors.AuthenticationError`) before anything is sent.
-    force : bool
-        Allow installing an older image generation (rollback).
-    chunk_bytes : int, optional
-        Data bytes per chunk (default: :func:`choose_chunk_bytes`).
-    retransmit : {"selective", "go-back-n"}
-        Loss recovery of the chunk window (:func:`protocol.image_transfer.send_image`).
-    precheck : bool
-        Refuse on the host what the device would refuse (off in tests of the device).
-    show_progress : bool
-        Progress bar / lines on stderr.
-    request_timeout_s : float
-        First reply timeout of each request (retries back off).
-    inactivity_timeout_s : float
-        A transfer with no progress for this long counts as a lost link.
-    max_reconnects : int
-        Reconnections in a row without progress before giving up.
-    confirm_timeout_s : float
-        How long to wait for the device's "confirmed" NOTICE after the commit.
-    transport_factory : callable, optional
-        ``factory(attempt) -> Transport`` instead of ``open_transport(url, baud=baud)``.
-    on_progress : callable, optional
-        ``on_progress(acked_offset, size_bytes)`` during the transfer.
-    on_stage : callable, optional
-        ``on_stage(name)`` at "connect", "hello", "status", "begin", "transfer",
-        "verify", "commit", "done".
-    log : callable, optional
-        One line per step (default: stderr).
+    options : ProvisionOptions, optional
+        What the user chose (line rate, key, rollback, chunk size, loss recovery, timeouts
+        ...; default: ``ProvisionOptions()``), validated when it was built.
+    parts : ProvisionParts, optional
+        What the caller hands in: a transport factory, progress and stage callbacks, where
+        log lines go.
 
     Returns
     -------
@@ -498,27 +456,29 @@ def provision(
     TransportError
         The device could not be reached, or the link kept failing.
     """
+    o = options if options is not None else ProvisionOptions()
+    p = parts if parts is not None else ProvisionParts()
     started = time.monotonic()
-    info = inspect_image(image_path, key=key if precheck else None, whole_file=precheck)
+    info = inspect_image(image_path, key=o.key if o.precheck else None, whole_file=o.precheck)
     settings = _Settings(
-        key=key, insecure=insecure, force=force, chunk_bytes=chunk_bytes, retransmit=retransmit,
-        precheck=precheck, request_timeout_s=request_timeout_s,
-        inactivity_timeout_s=inactivity_timeout_s, max_reconnects=max_reconnects,
-        confirm_timeout_s=confirm_timeout_s, host_id=host_id,
+        key=o.key, insecure=o.insecure, force=o.force, chunk_bytes=o.chunk_bytes,
+        retransmit=o.retransmit, precheck=o.precheck, request_timeout_s=o.request_timeout_s,
+        inactivity_timeout_s=o.inactivity_timeout_s, max_reconnects=o.max_reconnects,
+        confirm_timeout_s=o.confirm_timeout_s, host_id=o.host_id,
     )
-    factory = transport_factory or (
-        lambda attempt: open_transport(url, baud=baud, timeout_s=max(5.0, request_timeout_s))
+    factory = p.transport_factory or (
+        lambda attempt: open_transport(url, baud=o.baud, timeout_s=max(5.0, o.request_timeout_s))
     )
     with open(info.path, "rb") as handle:
         mapped = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
     try:
-        with _TransferProgress(info.size_bytes, "provision", enabled=show_progress) as bar:
+        with _TransferProgress(info.size_bytes, "provision", enabled=o.show_progress) as bar:
             run = _Provisioning(
                 info, memoryview(mapped)[: info.size_bytes], settings, bar=bar,
-                factory=factory, started=started, on_progress=on_progress,
-                say=log or (lambda line: print(f"eigencast provision: {line}", file=sys.stderr,
-                                               flush=True)),
-                stage=on_stage or (lambda name: None),
+                factory=factory, started=started, on_progress=p.on_progress,
+                say=p.log or (lambda line: print(f"eigencast provision: {line}",
+                                                 file=sys.stderr, flush=True)),
+                stage=p.on_stage or (lambda name: None),
             )
             return run.run()
     finally:

@@ -70,6 +70,14 @@ from host.fit.model import HostModel
 from host.link.encoding import FrameEncoder
 from host.link.errors import ServeError
 from host.link.layers import EncodedLayer
+from host.link.options import (
+    DEFAULT_DEADLINE_S,
+    SCORE_MODES,
+    ProvisionOptions,
+    ProvisionParts,
+    ServeOptions,
+    ServeParts,
+)
 from host.link.serve_link import Connection as _Connection
 from host.link.serve_link import DeviceEvents as _DeviceEvents
 from host.link.serve_link import device_opener as _device_opener
@@ -90,8 +98,12 @@ from protocol.link import Link
 from protocol.scores import EncodedScores
 
 __all__ = [
+    "DEFAULT_DEADLINE_S",
+    "SCORE_MODES",
     "FrameEncoder",
     "ServeError",
+    "ServeOptions",
+    "ServeParts",
     "ServeStats",
     "serve",
 ]
@@ -114,50 +126,14 @@ _FAILURE_LOG_S = 10.0
 """A failed view is said at most this often (the statistics line counts them all), s."""
 
 
-# --------------------------------------------------------------------------- score modes
-
-#: What ``serve`` streams (module docstring): ``auto`` is the one served path (corrections
-#: of the device's own frames where the device takes them, else the sparse ray-cast's
-#: scores, else interpolated ones); ``motion`` and ``interpolate`` force the absolute
-#: scores of the fallbacks (for measurements: what an older device gets).
-SCORE_MODES = ("auto", "motion", "interpolate")
-#: The frame deadline when ``fps`` sets none (a frame rate of 30), seconds.
-DEFAULT_DEADLINE_S = 1.0 / 30.0
-
-
 # --------------------------------------------------------------------------- serve
 
 
 def serve(
     model_path: str | os.PathLike,
     url: str,
-    *,
-    key: bytes | None = None,
-    insecure: bool = False,
-    baud: int = 115200,
-    orbit: OrbitSpec | None = None,
-    fps: float = 60.0,
-    keyframe_interval: int = 0,
-    provision_missing: bool = False,
-    force: bool = False,
-    max_frames: int | None = None,
-    duration_s: float | None = None,
-    reconnect: bool = True,
-    max_reconnects: int | None = None,
-    stop: threading.Event | None = None,
-    transport_factory: Callable[[int], Any] | None = None,
-    log: Callable[[str], None] | None = None,
-    stats_every_s: float = 5.0,
-    request_timeout_s: float = 1.0,
-    model: HostModel | None = None,
-    on_frame: Callable[[EncodedScores, tuple[float, float]], None] | None = None,
-    host_id: str = "eigencast serve",
-    scores: str = "auto",
-    renderer: Any | None = None,
-    volume: str | None = None,
-    deadline_s: float = DEFAULT_DEADLINE_S,
-    motion: Any | None = None,
-    rest: str | float = "exact",
+    options: ServeOptions | None = None,
+    parts: ServeParts | None = None,
 ) -> ServeStats:
     """Serve score packets for ``model_path`` to the device at ``url``.
 
@@ -167,62 +143,12 @@ def serve(
         The ``.ecs`` (with its host annex).
     url : str
         The device's port: ``socket://HOST:PORT``, ``/dev/ttyUSB0``, ``mem://...``.
-    key : bytes, optional
-        Device key (needed when the device holds one; also verifies the image's tag).
-    insecure : bool
-        With ``key``: serve a device that says it holds no key anyway (unauthenticated; said
-        once through ``log``). Without it such a device is refused (AuthenticationError).
-    baud : int
-        Serial line rate.
-    orbit : OrbitSpec, optional
-        Drive the view from the host (VIEW_REQUESTs are then only counted).
-    fps : float
-        Packets per second at most (0: as fast as the link carries them).
-    keyframe_interval : int
-        See :class:`FrameEncoder` (1: key frames only).
-    provision_missing : bool
-        Install the image first when the device's active image is another one.
-    force : bool
-        With ``provision_missing``: install it even when it is an older generation than
-        the device's active image (a rollback; see `host.link.provisioning.provision`).
-    max_frames, duration_s : optional
-        Stop after this many packets / this many seconds after the first session began
-        (time spent reconnecting counts).
-    reconnect : bool
-        Reconnect after a lost link (with backoff); False: return. A first connection
-        that fails raises (reconnecting is for a link that was up).
-    max_reconnects : int, optional
-        Give up after this many failed connection attempts in a row (default: never).
-    stop : threading.Event, optional
-        Set it to end serving (the session ends with BYE).
-    transport_factory : callable, optional
-        ``factory(attempt) -> Transport`` instead of ``open_transport(url, baud=baud)``.
-    log : callable, optional
-        One line per event (default: stderr).
-    stats_every_s : float
-        Period of the statistics line (0: none).
-    model : HostModel, optional
-        Already loaded from ``model_path``.
-    on_frame : callable, optional
-        ``on_frame(encoded, view)`` after each packet is queued.
-    scores : {"auto", "motion", "interpolate"}
-        ``"auto"``: the one served path (module docstring). ``"motion"``: the scores of a
-        sparse ray-cast of every view to any device, as an older device gets them;
-        ``"interpolate"``: the training views' scores interpolated at the view (no ray-cast).
-    renderer : host.render.settings.ViewRenderer, optional
-        The ray-caster (default: the model's recorded render settings and volume, or
-        ``volume``; when that cannot be loaded, ``"auto"`` says so in one line and sends
-        what needs no ray-cast).
-    volume : str, optional
-        The volume to ray-cast instead of the one the model records (a moved file).
-    deadline_s : float
-        The frame budget, seconds; ``fps`` and the link's measured time per packet lengthen
-        it when they are slower.
-    motion : host.fit.motion.MotionScores, optional
-        The sparse source (default: built on ``renderer`` when a session needs it): built
-        with ``own`` (its frames are corrections) it serves devices that correct their own
-        frames, else those that do not. A caller may pass one already prepared
-        (`MotionScores.prepare`: its recovery factors computed) and keep it across calls.
+    options : ServeOptions, optional
+        What the user chose (key, orbit, frame rate, deadline, what a resting view
+        becomes ...; default: ``ServeOptions()``), validated when it was built.
+    parts : ServeParts, optional
+        What the caller hands in to work with (a loaded model, a renderer, a sparse source,
+        a transport factory, a stop event, where log lines go, a callback per packet).
 
     Returns
     -------
@@ -231,54 +157,46 @@ def serve(
     Raises
     ------
     ServeError
-        The device holds another image (and ``provision_missing`` is off).
+        The device holds another image (and ``options.provision_missing`` is off).
     RemoteError, AuthenticationError
         The device refused the session.
     TransportError
         The device cannot be reached or does not answer at the first connection.
     """
+    from host.link.correction import CorrectionEncoder
     from host.link.provisioning import inspect_image
 
-    if fps < 0:
-        raise ValueError(f"fps={fps} must be >= 0")
-    if scores not in SCORE_MODES:
-        raise ValueError(f"scores={scores!r}: expected one of {', '.join(SCORE_MODES)}")
-    if not deadline_s > 0:
-        raise ValueError(f"deadline_s={deadline_s} must be > 0")
-    if rest not in ("exact", "correction") and not (
-            isinstance(rest, (int, float)) and 0.0 < float(rest) < 1.0):
-        raise ValueError(f"rest={rest!r}: expected 'exact', 'correction' or an object SSIM "
-                         "in (0, 1)")
+    o = options if options is not None else ServeOptions()
+    p = parts if parts is not None else ServeParts()
     # the whole file is validated once, by HostModel.load (here or by the caller)
-    info = inspect_image(model_path, key=key, whole_file=False)
-    model = model or HostModel.load(model_path, key=key)
-    say = log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
-    if renderer is None and scores != "interpolate":
-        renderer = _open_renderer(model, volume, scores, say)
-    from host.link.correction import CorrectionEncoder
-
-    encoder = CorrectionEncoder(model, keyframe_interval=keyframe_interval)
-    pace = _Pace(deadline_s, fps)
+    info = inspect_image(model_path, key=o.key, whole_file=False)
+    model = p.model or HostModel.load(model_path, key=o.key)
+    say = p.log or (lambda line: print(f"eigencast serve: {line}", file=sys.stderr, flush=True))
+    renderer = p.renderer
+    if renderer is None and o.scores != "interpolate":
+        renderer = _open_renderer(model, o.volume, o.scores, say)
     settings = _Settings(
-        model_path=model_path, url=url, key=key, insecure=insecure, baud=baud, orbit=orbit,
-        fps=fps, provision_missing=provision_missing, force=force, max_frames=max_frames,
-        duration_s=duration_s, reconnect=reconnect, max_reconnects=max_reconnects,
-        transport_factory=transport_factory, stats_every_s=stats_every_s,
-        request_timeout_s=request_timeout_s, host_id=host_id,
+        model_path=model_path, url=url, key=o.key, insecure=o.insecure, baud=o.baud,
+        orbit=o.orbit, fps=o.fps, provision_missing=o.provision_missing, force=o.force,
+        max_frames=o.max_frames, duration_s=o.duration_s, reconnect=o.reconnect,
+        max_reconnects=o.max_reconnects, transport_factory=p.transport_factory,
+        stats_every_s=o.stats_every_s, request_timeout_s=o.request_timeout_s,
+        host_id=o.host_id,
     )
     run = _Serving(
         settings, info.digest,
-        factory=transport_factory or _device_opener(url, baud, request_timeout_s, model),
+        factory=p.transport_factory or _device_opener(url, o.baud, o.request_timeout_s, model),
         say=say,
-        stop=stop or threading.Event(),
-        encoder=encoder,
-        pace=pace, on_frame=on_frame, scores=scores, renderer=renderer,
-        orbit=orbit.start() if orbit is not None else None,
-        sources={} if motion is None else {
-            "correct" if getattr(motion, "corrects", False) else "motion": motion},
-        rest=rest,
-        looks=served_looks(model, model_path, key, renderer, lambda m: None if scores == (
-            "interpolate") else _open_renderer(m, volume, scores, say)),
+        stop=p.stop or threading.Event(),
+        encoder=CorrectionEncoder(model, keyframe_interval=o.keyframe_interval),
+        pace=_Pace(o.deadline_s, o.fps), on_frame=p.on_frame, scores=o.scores,
+        renderer=renderer,
+        orbit=o.orbit.start() if o.orbit is not None else None,
+        sources={} if p.motion is None else {
+            "correct" if getattr(p.motion, "corrects", False) else "motion": p.motion},
+        rest=o.rest,
+        looks=served_looks(model, model_path, o.key, renderer, lambda m: None if o.scores == (
+            "interpolate") else _open_renderer(m, o.volume, o.scores, say)),
     )
     return run.run()
 
@@ -521,9 +439,10 @@ class _Serving:
         conn.link.close(flush_timeout_s=0.5)
         self.link = None
         self.say(f"device '{hello.device_id}' lacks the image: provisioning it")
-        provision(model_path, url, baud=settings.baud, key=settings.key,
-                  insecure=settings.insecure, force=settings.force, log=self.say,
-                  transport_factory=settings.transport_factory)
+        provision(model_path, url,
+                  ProvisionOptions(baud=settings.baud, key=settings.key,
+                                   insecure=settings.insecure, force=settings.force),
+                  ProvisionParts(log=self.say, transport_factory=settings.transport_factory))
         self.stats.provisioned = True
         return False
 

@@ -473,6 +473,40 @@ def strided_pixels(
     return rows.ravel(), cols.ravel()
 
 
+def _ray_step(samples: int | None, step: float | None, diameter_mm: float, unit_mm: float
+              ) -> tuple[int | None, float]:
+    """(samples, step in mm): ``step`` voxels (``unit_mm`` each; samples None), else
+    ``samples`` (default `DEFAULT_SAMPLES`) across the bounding sphere's diameter; at most
+    `MAX_SAMPLES` samples either way."""
+    if step is not None:
+        step = float(step)
+        if not (math.isfinite(step) and step > 0.0):
+            raise ValueError(f"step={step} must be a positive number of voxels")
+        step_mm = step * unit_mm
+        if diameter_mm / step_mm > MAX_SAMPLES:
+            raise ValueError(
+                f"step={step} gives {diameter_mm / step_mm:.0f} samples across the "
+                f"volume; at most {MAX_SAMPLES} are allowed"
+            )
+        return None, step_mm
+    samples = DEFAULT_SAMPLES if samples is None else samples
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
+        raise ValueError(f"samples={samples!r} must be an integer")
+    if not 2 <= samples <= MAX_SAMPLES:
+        raise ValueError(f"samples={samples} must be within [2, {MAX_SAMPLES}]")
+    return int(samples), diameter_mm / int(samples)
+
+
+def _checked_lut(tf: TransferFunction) -> np.ndarray:
+    """The transfer function's float64 (LUT_SIZE, 4) RGBA table, clipped to [0, 1]."""
+    lut = np.array(tf.lut(LUT_SIZE), dtype=np.float64)
+    if lut.shape != (LUT_SIZE, 4) or not np.all(np.isfinite(lut)):
+        raise TransferFunctionError(
+            f"transfer function {tf.name!r}: LUT is not finite float (n, 4) RGBA"
+        )
+    return np.clip(lut, 0.0, 1.0)
+
+
 class Renderer:
     """Ray-cast one volume with one transfer function from any camera.
 
@@ -540,26 +574,8 @@ class Renderer:
         self.volume = volume
         self.tf = tf
         self.unit_mm = float(min(volume.spacing))
-        diameter_mm = 2.0 * volume.radius_mm
-        if step is not None:
-            step = float(step)
-            if not (math.isfinite(step) and step > 0.0):
-                raise ValueError(f"step={step} must be a positive number of voxels")
-            self.step_mm = step * self.unit_mm
-            if diameter_mm / self.step_mm > MAX_SAMPLES:
-                raise ValueError(
-                    f"step={step} gives {diameter_mm / self.step_mm:.0f} samples across the "
-                    f"volume; at most {MAX_SAMPLES} are allowed"
-                )
-            self.samples = None
-        else:
-            samples = DEFAULT_SAMPLES if samples is None else samples
-            if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
-                raise ValueError(f"samples={samples!r} must be an integer")
-            if not 2 <= samples <= MAX_SAMPLES:
-                raise ValueError(f"samples={samples} must be within [2, {MAX_SAMPLES}]")
-            self.samples = int(samples)
-            self.step_mm = diameter_mm / self.samples
+        self.samples, self.step_mm = _ray_step(samples, step, 2.0 * volume.radius_mm,
+                                               self.unit_mm)
         background = tuple(float(c) for c in background)
         if len(background) != 3 or not all(0.0 <= c <= 1.0 for c in background):
             raise ValueError(f"background={background} must be 3 values within [0, 1]")
@@ -585,12 +601,7 @@ class Renderer:
         np.clip(u, -1e6, 1e6, out=u)
         self._u = np.ascontiguousarray(u, dtype=np.float32)
 
-        lut = np.array(tf.lut(LUT_SIZE), dtype=np.float64)
-        if lut.shape != (LUT_SIZE, 4) or not np.all(np.isfinite(lut)):
-            raise TransferFunctionError(
-                f"transfer function {tf.name!r}: LUT is not finite float (n, 4) RGBA"
-            )
-        lut = np.clip(lut, 0.0, 1.0)
+        lut = _checked_lut(tf)
         lut_unit = lut.copy()  # opacity per unit, what the light field's extinction uses
         if self.opacity_correction:
             ratio = self.step_mm / self.unit_mm

@@ -134,6 +134,25 @@ def _load_metaimage(path: Path) -> _Loaded:
             payload = payload[:need_bytes]  # tolerate trailing bytes after LOCAL data
     data = _decode_raw(payload, dims3, np_dtype, path, label)
 
+    file_axes = _file_axes(fields, path)
+    modality = _MET_MODALITY.get(fields.get("modality", "").upper())
+    extra = {"compressed": compressed}
+    if data_file.upper() != "LOCAL":
+        extra["data_file"] = data_file
+    return _Loaded(
+        data,
+        sp,
+        "metaimage",
+        file_axes=file_axes,
+        modality=modality,
+        units="HU" if modality == "ct" else None,
+        extra=extra,
+    )
+
+
+def _file_axes(fields: dict[str, str], path: Path) -> str | None:
+    """The file's axis code from AnatomicalOrientation, else a direction matrix
+    (TransformMatrix, Orientation or Rotation) that is not the identity; None: neither."""
     file_axes = None
     anat = fields.get("anatomicalorientation", "").upper()
     if len(anat) == 3 and "?" not in anat:
@@ -154,16 +173,4 @@ def _load_metaimage(path: Path) -> _Loaded:
                 file_axes = _axis_code_from_directions(m, "LPS")
             except ValueError as exc:
                 raise _fail(path, f"{matrix_key}: {exc}") from None
-    modality = _MET_MODALITY.get(fields.get("modality", "").upper())
-    extra = {"compressed": compressed}
-    if data_file.upper() != "LOCAL":
-        extra["data_file"] = data_file
-    return _Loaded(
-        data,
-        sp,
-        "metaimage",
-        file_axes=file_axes,
-        modality=modality,
-        units="HU" if modality == "ct" else None,
-        extra=extra,
-    )
+    return file_axes
