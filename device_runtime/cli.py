@@ -138,7 +138,7 @@ def _listen_address(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``eigencast-device`` argument parser (later issues add their flags to it)."""
+    """The ``eigencast-device`` argument parser."""
     parser = _Parser(
         prog=PROG,
         usage=USAGE,
@@ -186,7 +186,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="install this key into the flash folder (mode 0600) and exit")
     parser.add_argument("--unpair", action="store_true",
                         help="remove the key --pair installed in the flash folder and exit")
-    show = parser.add_argument_group("display and runtime")
+    _add_display_arguments(parser.add_argument_group("display and runtime"))
+    return parser
+
+
+def _add_display_arguments(show: argparse._ArgumentGroup) -> None:
+    """The options of what the device shows and how (the parser's second group)."""
     mode = show.add_mutually_exclusive_group()
     mode.add_argument("--headless", action="store_true",
                       help="no window: reconstruct frames and write them with --frames")
@@ -237,7 +242,6 @@ def build_parser() -> argparse.ArgumentParser:
                       help="where 's' saves screenshots (default: --frames DIR or '.')")
     show.add_argument("--zoom", metavar="Z", type=float,
                       help="initial window zoom (default: 1, or less to fit the screen)")
-    return parser
 
 
 def _orbit(text: str) -> Any:

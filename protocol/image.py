@@ -467,29 +467,7 @@ def write_image(
                     annex_file, manifest, arrays, key=None, level=level, tmp_dir=folder
                 )
                 annex_record = {"sha256": annex_digest, "size": annex_size}
-            manifest = {
-                "kind": "image",
-                "image_shape": [int(v) for v in image.image_shape],
-                "cell_shape": [int(v) for v in image.cell_shape],
-                "method": str(image.method),
-                "image_generation": int(image.image_generation),
-                "score_quantization": dict(image.score_quantization),
-                "views": image.views,
-                "interpolation": image.interpolation,
-                "provenance": dict(image.provenance),
-                "annex": annex_record,
-            }
-            if image.synthesis is not None:
-                manifest["synthesis"] = dict(image.synthesis)
-            if image.looks is not None:
-                manifest["looks"] = [dict(look) for look in image.looks]
-            arrays = [
-                ("n_components", np.asarray(image.n_components, dtype=np.int32)),
-                ("scales", np.asarray(image.scales, dtype=np.float32)),
-                ("mean", image.mean),
-                ("eigenimages", image.eigenimages),
-                *image.sections.items(),
-            ]
+            manifest, arrays = _image_manifest(image, annex_record)
             digest, _ = _write_container(
                 out, manifest, arrays, key=key, level=level, tmp_dir=folder,
                 version=image.format_version,
@@ -507,6 +485,36 @@ def write_image(
         raise
     _fsync_folder(folder)
     return digest
+
+
+def _image_manifest(image: EigenspaceImage, annex_record: dict | None
+                    ) -> tuple[dict[str, Any], list[tuple[str, np.ndarray]]]:
+    """The device image's manifest (its annex's digest and size in it) and its sections, in
+    the order they are written."""
+    manifest: dict[str, Any] = {
+        "kind": "image",
+        "image_shape": [int(v) for v in image.image_shape],
+        "cell_shape": [int(v) for v in image.cell_shape],
+        "method": str(image.method),
+        "image_generation": int(image.image_generation),
+        "score_quantization": dict(image.score_quantization),
+        "views": image.views,
+        "interpolation": image.interpolation,
+        "provenance": dict(image.provenance),
+        "annex": annex_record,
+    }
+    if image.synthesis is not None:
+        manifest["synthesis"] = dict(image.synthesis)
+    if image.looks is not None:
+        manifest["looks"] = [dict(look) for look in image.looks]
+    arrays = [
+        ("n_components", np.asarray(image.n_components, dtype=np.int32)),
+        ("scales", np.asarray(image.scales, dtype=np.float32)),
+        ("mean", image.mean),
+        ("eigenimages", image.eigenimages),
+        *image.sections.items(),
+    ]
+    return manifest, arrays
 
 
 def _current_umask() -> int:

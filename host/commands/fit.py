@@ -262,18 +262,52 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     return 0
 
 
+def _looks_depth(image, dbs: list, names: list[str], depth_threshold: float  # noqa: ANN001
+                 ) -> list[str]:
+    """The looks' depth (shared by the looks whose depth maps are the first's, else each
+    its own), noise floor and splat filter, added to ``image``; the lines to print."""
+    from device_runtime.looks import look_image
+    from device_runtime.synthesis import DEPTH_DELTA_SECTION, DEPTH_SECTIONS, NOISE_FLOOR_SECTION
+    from host.evaluate.splat_filter import choose_splat_tent
+    from host.fit.depth import add_depth
+    from host.fit.floor import add_noise_floor
+    from host.fit.looks import add_look_sections, same_depth
+
+    lines: list[str] = []
+    depth = add_depth(image, dbs[0], depth_threshold)
+    shared = [names[0]]
+    for look in range(1, len(dbs)):
+        if same_depth(dbs[0], dbs[look]):
+            shared.append(names[look])
+            continue
+        view = look_image(image, look, decode=False)
+        own = add_depth(view, dbs[look], depth_threshold)
+        add_look_sections(image, look, view, (*DEPTH_SECTIONS, DEPTH_DELTA_SECTION))
+        lines.append(f"look {names[look]}: its own depth (other depth maps than "
+                     f"{names[0]}'s): {own['components']} components")
+    lines.insert(0, f"depth: {depth['components']} components "
+                    f"({depth['components_per_cell']:.2f}/cell at T={depth['threshold']}) "
+                    f"shared by {', '.join(shared)}")
+    for look, db in enumerate(dbs):
+        view = image if look == 0 else look_image(image, look, decode=False)
+        floor = add_noise_floor(view, db).summary()
+        add_look_sections(image, look, view, (NOISE_FLOOR_SECTION,))
+        view = image if look == 0 else look_image(image, look, decode=False)
+        splat = choose_splat_tent(view, db)
+        add_look_sections(image, look, view, ())
+        lines.append(f"look {names[look]}: {_floor_line(floor)}")
+        lines.append(f"look {names[look]}: {_splat_line(splat)}")
+    return lines
+
+
 def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,  # noqa: ANN001
                out: Path) -> int:
     """``fit A.cdb B.cdb ...``: one image with a look per database (`host.fit.looks`)."""
-    from device_runtime.looks import look_image
-    from device_runtime.synthesis import DEPTH_DELTA_SECTION, DEPTH_SECTIONS, NOISE_FLOOR_SECTION
     from host.fit.looks import (
-        add_look_sections,
         build_looks_image,
         check_same_views,
         fit_looks,
         look_names_for,
-        same_depth,
     )
 
     if target is not None:
@@ -318,33 +352,7 @@ def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,
         standalone = add_standalone_table(image, annex[ANNEX_SCORES],
                                           eigenvalues=annex.get(ANNEX_EIGENVALUES))
     if args.depth:
-        from host.evaluate.splat_filter import choose_splat_tent
-        from host.fit.depth import add_depth
-        from host.fit.floor import add_noise_floor
-
-        depth = add_depth(image, dbs[0], depth_threshold)
-        shared = [names[0]]
-        for look in range(1, len(dbs)):
-            if same_depth(dbs[0], dbs[look]):
-                shared.append(names[look])
-                continue
-            view = look_image(image, look, decode=False)
-            own = add_depth(view, dbs[look], depth_threshold)
-            add_look_sections(image, look, view, (*DEPTH_SECTIONS, DEPTH_DELTA_SECTION))
-            lines.append(f"look {names[look]}: its own depth (other depth maps than "
-                         f"{names[0]}'s): {own['components']} components")
-        lines.insert(0, f"depth: {depth['components']} components "
-                        f"({depth['components_per_cell']:.2f}/cell at T={depth['threshold']}) "
-                        f"shared by {', '.join(shared)}")
-        for look, db in enumerate(dbs):
-            view = image if look == 0 else look_image(image, look, decode=False)
-            floor = add_noise_floor(view, db).summary()
-            add_look_sections(image, look, view, (NOISE_FLOOR_SECTION,))
-            view = image if look == 0 else look_image(image, look, decode=False)
-            splat = choose_splat_tent(view, db)
-            add_look_sections(image, look, view, ())
-            lines.append(f"look {names[look]}: {_floor_line(floor)}")
-            lines.append(f"look {names[look]}: {_splat_line(splat)}")
+        lines += _looks_depth(image, dbs, names, depth_threshold)
     save_model(out, image, annex, key=key)
     if args.standalone:
         print(_standalone_line(out, standalone))
