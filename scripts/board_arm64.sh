@@ -25,6 +25,7 @@
 # HEAD` (committed files only). Exit status: 0 when every step passed.
 #
 #   STEPS="frames bench" ...   run only those of the steps tests, frames, bench
+#   FRAMES="tooth-64-depth head-128-depth" SERVED="tooth-64-depth" ...   fewer images
 #   REUSE=1 ...                keep the arm64 install and WORK/x86 (renders, fits) of an earlier
 #                              run when protocol, device_runtime, host, tests, benchmarks and
 #                              pyproject.toml are unchanged since (the install route then is
@@ -68,7 +69,7 @@ in_root() { "${IN_ROOT[@]}" "$@"; }
 cleanup() {
     [ -n "${DEVPID:-}" ] && kill "$DEVPID" 2>/dev/null && wait "$DEVPID" 2>/dev/null
     [ -n "${SERVEPID:-}" ] && kill "$SERVEPID" 2>/dev/null && wait "$SERVEPID" 2>/dev/null
-    mountpoint -q "$ROOT/proc" && umount "$ROOT/proc"
+    [ -n "${MOUNTED_PROC:-}" ] && umount "$ROOT/proc"  # only a mount of this run's
     true
 }
 trap cleanup EXIT
@@ -91,7 +92,7 @@ if [ ! -x "$ROOT/usr/bin/apt-get" ] || [ -e "$ROOT/debootstrap" ]; then
         >"$ROOT/etc/apt/sources.list"
 fi
 cp /etc/resolv.conf "$ROOT/etc/resolv.conf"
-mountpoint -q "$ROOT/proc" || mount -t proc proc "$ROOT/proc"
+mountpoint -q "$ROOT/proc" || { mount -t proc proc "$ROOT/proc" && MOUNTED_PROC=1; }
 # apt runs only when a package is missing (dpkg's own record, not a mark of this script's)
 installed() { in_root dpkg-query -W -f '${db:Status-Abbrev}\n' "$@" 2>/dev/null | grep -c '^ii'; }
 if [ "$(installed $BOARD_PKGS $TEST_PKGS)" != "$(echo $BOARD_PKGS $TEST_PKGS | wc -w)" ]; then
@@ -182,6 +183,9 @@ start_device() {  # an arm64 device process on TCP; sets DEVPID and PORT
 stop_device() { kill -INT "$DEVPID" && wait "$DEVPID" || true; DEVPID=; }
 
 frames_rc=0
+# FRAMES: the images whose arm64 frames are compared (default all eight; under a loaded
+# emulation each takes minutes: a device process starts twice)
+[ -n "${FRAMES:-}" ] && read -r -a MODELS <<<"$FRAMES"
 want frames || MODELS=()
 for name in "${MODELS[@]}"; do
     stamp "$name: provision the arm64 device, its standalone frames"
@@ -227,7 +231,11 @@ sys.exit(0 if len(rows) >= 6 and within else 1)
 PY
 done
 
-SERVED="tooth-64-depth head-128-depth head-64-no-depth"
+# SERVED: the provisioned images of FRAMES that are also served to an exact frame
+SERVED=${SERVED:-"tooth-64-depth head-128-depth head-64-no-depth"}
+for name in $SERVED; do
+    case " ${MODELS[*]} " in *" $name "*) ;; *) die "SERVED $name is not in FRAMES" ;; esac
+done
 want frames || SERVED=
 for name in $SERVED; do
     stamp "$name: served, x86 host -> arm64 device resting on 120,15 until its exact frame"
