@@ -123,9 +123,9 @@ else
     in_root /opt/eigencast-env/bin/pip install --quiet --no-index --no-build-isolation \
         '/opt/eigencast[device]'
     echo "$TREE" >"$ROOT/opt/eigencast/.eigencast-tree"
+    in_root /opt/eigencast-env/bin/eigencast-device --version
+    in_root uname -m
 fi
-in_root /opt/eigencast-env/bin/eigencast-device --version
-in_root uname -m
 
 # ---------------------------------------------------------------- 1. device-only tests
 # the tests run from a copy (no pyproject.toml): they import the installed package
@@ -172,11 +172,12 @@ start_device() {  # an arm64 device process on TCP; sets DEVPID and PORT
         --key "$WORK_IN/x86/k.key" "$@" 2>"$log" &
     DEVPID=$!
     PORT=
-    for _ in $(seq 600); do
+    local until=$((SECONDS + ${START_S:-1200}))  # a loaded emulation: minutes to start
+    while [ $SECONDS -lt $until ]; do
         PORT=$(sed -n 's/.*listening on tcp-listen:\/\/127.0.0.1:\([0-9]*\).*/\1/p' "$log")
         [ -n "$PORT" ] && return 0
         kill -0 "$DEVPID" 2>/dev/null || break
-        sleep 0.2
+        sleep 1
     done
     cat "$log" >&2; die "the arm64 device did not start"
 }
@@ -246,10 +247,9 @@ for name in $SERVED; do
         --key "$WORK/x86/k.key" --quiet --duration 900 &
     SERVEPID=$!
     got=
-    for _ in $(seq 4500); do
+    while kill -0 "$SERVEPID" 2>/dev/null; do   # serve ends itself after --duration
         grep -q ',exact$' "$WORK/served-$name/frames.csv" 2>/dev/null && { got=1; break; }
-        kill -0 "$SERVEPID" 2>/dev/null || break
-        sleep 0.2
+        sleep 1
     done
     kill -INT "$SERVEPID" 2>/dev/null; wait "$SERVEPID" || true; SERVEPID=
     stop_device
