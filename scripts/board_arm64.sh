@@ -69,7 +69,8 @@ in_root() { "${IN_ROOT[@]}" "$@"; }
 cleanup() {
     [ -n "${DEVPID:-}" ] && kill "$DEVPID" 2>/dev/null && wait "$DEVPID" 2>/dev/null
     [ -n "${SERVEPID:-}" ] && kill "$SERVEPID" 2>/dev/null && wait "$SERVEPID" 2>/dev/null
-    [ -n "${MOUNTED_PROC:-}" ] && umount "$ROOT/proc"  # only a mount of this run's
+    [ -n "${MOUNTED_PTS:-}" ] && umount "$ROOT/dev/pts"  # only mounts of this run's
+    [ -n "${MOUNTED_PROC:-}" ] && umount "$ROOT/proc"
     true
 }
 trap cleanup EXIT
@@ -93,6 +94,9 @@ if [ ! -x "$ROOT/usr/bin/apt-get" ] || [ -e "$ROOT/debootstrap" ]; then
 fi
 cp /etc/resolv.conf "$ROOT/etc/resolv.conf"
 mountpoint -q "$ROOT/proc" || { mount -t proc proc "$ROOT/proc" && MOUNTED_PROC=1; }
+# pseudo-terminals (the tests' serial lines are pty pairs): the host's, whose slaves then
+# exist in the root too
+mountpoint -q "$ROOT/dev/pts" || { mount --bind /dev/pts "$ROOT/dev/pts" && MOUNTED_PTS=1; }
 # apt runs only when a package is missing (dpkg's own record, not a mark of this script's)
 installed() { in_root dpkg-query -W -f '${db:Status-Abbrev}\n' "$@" 2>/dev/null | grep -c '^ii'; }
 if [ "$(installed $BOARD_PKGS $TEST_PKGS)" != "$(echo $BOARD_PKGS $TEST_PKGS | wc -w)" ]; then
