@@ -216,6 +216,20 @@ def test_auth_golden(case):
     )
 
 
+def _hand_tag(msg, session_key: bytes) -> bytes:
+    """The tag formula of docs/protocol.md, recomputed by hand: HMAC-SHA256 over the session
+    counter (8 bytes, little-endian), the message type and the canonical CBOR body without
+    its tag."""
+    body = dict(cbor2.loads(msg.to_body()))
+    del body[m.SESSION_TAG_KEY]
+    data = (
+        msg.session_counter.to_bytes(8, "little")
+        + bytes([int(msg.TYPE)])
+        + cbor2.dumps(body, canonical=True)
+    )
+    return hmac.new(session_key, data, hashlib.sha256).digest()
+
+
 def test_signed_golden_lines_verify_with_the_golden_session_key():
     (case_auth,) = AUTH_CASES
     session_key = bytes.fromhex(case_auth["session_key"])
@@ -224,15 +238,7 @@ def test_signed_golden_lines_verify_with_the_golden_session_key():
     for case in signed:
         msg = _record_from_json(_class(case["class"]), case["kwargs"])
         assert auth.verify(msg, session_key, msg.session_counter - 1) == msg.session_counter
-        # The tag formula of docs/protocol.md, recomputed by hand.
-        body = dict(cbor2.loads(msg.to_body()))
-        del body[m.SESSION_TAG_KEY]
-        data = (
-            msg.session_counter.to_bytes(8, "little")
-            + bytes([int(msg.TYPE)])
-            + cbor2.dumps(body, canonical=True)
-        )
-        assert hmac.new(session_key, data, hashlib.sha256).digest() == msg.session_tag
+        assert _hand_tag(msg, session_key) == msg.session_tag
 
 
 def test_tagged_event_golden_lines_verify_with_the_golden_session_key():
@@ -245,14 +251,7 @@ def test_tagged_event_golden_lines_verify_with_the_golden_session_key():
         msg = _record_from_json(_class(case["class"]), case["kwargs"])
         assert auth.verify_event(msg, session_key, msg.session_counter - 1) == msg.session_counter
         # docs/protocol.md section 5: the signed-request formula, truncated to 16 bytes.
-        body = dict(cbor2.loads(msg.to_body()))
-        del body[m.SESSION_TAG_KEY]
-        data = (
-            msg.session_counter.to_bytes(8, "little")
-            + bytes([int(msg.TYPE)])
-            + cbor2.dumps(body, canonical=True)
-        )
-        assert hmac.new(session_key, data, hashlib.sha256).digest()[:16] == msg.session_tag
+        assert _hand_tag(msg, session_key)[:16] == msg.session_tag
 
 
 # --------------------------------------------------------------------------- docs
