@@ -197,6 +197,24 @@ class RuntimeThread:
         self.stop()
 
 
+def provisioned_device(tmp_path: Path, name: str, image_path, frames: list, *,
+                       host_query: str = "", **kwargs) -> RuntimeThread:
+    """A predicting `RuntimeThread` on the mem:// line ``name`` (end b), provisioned with
+    ``image_path`` (signed with ``KEY``) from end a, ``host_query`` appended to that end's URL
+    (``"&pace=0"``); it appends each frame it shows and its info to ``frames``. ``kwargs``
+    go to `RuntimeThread`."""
+    from host.link.options import ProvisionOptions, ProvisionParts
+    from host.link.provisioning import provision
+
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))),
+                           **kwargs)
+    provision(image_path, f"mem://{name}?end=a{host_query}",
+              ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=lambda line: None))
+    return device
+
+
 def serve_cli(*args: str) -> subprocess.CompletedProcess:
     """Run ``eigencast serve ARGS`` in a subprocess from the repository root (60 s at most)."""
     return subprocess.run([sys.executable, "-m", "host.cli", "serve", *args],

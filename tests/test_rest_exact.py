@@ -12,35 +12,20 @@ import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, DeviceProcess, mem_name
-from runtime_helpers import RuntimeThread, wait_until
+from runtime_helpers import provisioned_device, wait_until
 
 from device_runtime.device import DeviceConfig
 from device_runtime.orbit import canonical_view
-from host.cli import main as eigencast
 from host.fit.model import HostModel
 from host.link.layers import EncodedLayer, RestPlanner, object_ssim
 from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
-from protocol.keys import write_key
 
 
 def _quiet(line: str) -> None:
     pass
-
-
-@pytest.fixture(scope="module")
-def depth_model_path(tmp_path_factory):
-    """A signed tooth model with depth and the standalone table (the defaults), 48 px."""
-    root = tmp_path_factory.mktemp("rest-exact")
-    db, out, key = root / "tooth.cdb", root / "tooth.ecs", root / "device.key"
-    write_key(key, KEY, force=True)
-    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
-                      "--size", "48", "--samples", "80"]) == 0
-    assert eigencast(["fit", str(db), "-o", str(out), "--cell", "12", "--threshold", "0.99",
-                      "--key", str(key)]) == 0
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -87,10 +72,7 @@ def test_a_resting_view_ends_the_ray_cast_bit_for_bit_over_the_serial_line(
     view: the old view's layers stop, and the new view ends exact too."""
     name = mem_name(f"exact-{cpu}")
     shown: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown)
     views = [canonical_view(47.0, 23.0), canonical_view(200.0, -31.0)]
     stop, sent = threading.Event(), []
     with device:
@@ -132,10 +114,7 @@ def test_a_noisy_line_still_ends_exact(tmp_path, depth_model_path, truth_of):
     still ends exactly the ray-cast."""
     name = mem_name("noisy")
     shown: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0")
     view = canonical_view(130.0, -20.0)
     stop, sent = threading.Event(), []
     with device:
@@ -162,10 +141,7 @@ def test_a_lost_chunk_of_the_exact_layer_is_asked_for_again(tmp_path, depth_mode
 
     name = mem_name("lost")
     shown: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0")
     runtime = device.device
     receive = runtime.on_scores
     lost: list = []
@@ -305,11 +281,8 @@ def test_a_correction_larger_than_the_devices_frames_costs_its_view_not_the_sess
     name = mem_name("small-frames")
     shown: list = []
     config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=1024)
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           config=config,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0",
+                                config=config)
     view = canonical_view(47.0, 23.0)
     stop, sent = threading.Event(), []
     lines: list[str] = []
