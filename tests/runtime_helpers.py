@@ -141,6 +141,16 @@ def steady_requests(worker, views, interval_s: float = 60.0) -> None:
         worker._cond.notify_all()
 
 
+class FakeClock:
+    """A clock that stands still at ``now`` until a test moves it (``clock.now += dt``)."""
+
+    def __init__(self, now: float = 0.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
 class RuntimeThread:
     """A RuntimeDevice serving ``url`` (if any) with its display loop on a thread."""
 
