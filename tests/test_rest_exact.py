@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, DeviceProcess, mem_name
-from runtime_helpers import provisioned_device, wait_until
+from runtime_helpers import RuntimeThread, provisioned_device, wait_until
 
 from device_runtime.device import DeviceConfig
 from device_runtime.orbit import canonical_view
@@ -50,6 +50,22 @@ def _serving(url: str, model_path, stop: threading.Event, sent: list, **kwargs):
     thread = threading.Thread(target=host, daemon=True)
     thread.start()
     return thread, out
+
+
+def _serve_until_exact(device: RuntimeThread, shown: list, url: str, model_path, view,
+                       timeout_s: float) -> None:
+    """Run ``device`` resting on ``view`` and serve ``model_path`` to it on ``url`` until the
+    frames it ``shown`` include the exact frame of ``view``; then stop both."""
+    stop, sent = threading.Event(), []
+    with device:
+        device.device.set_view(*view)
+        thread, _ = _serving(url, model_path, stop, sent)
+        try:
+            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
+                                   for _, i in shown), timeout_s, "the exact frame")
+        finally:
+            stop.set()
+            thread.join(30)
 
 
 def _perturbed(frame: np.ndarray, seed: int) -> np.ndarray:
@@ -116,17 +132,8 @@ def test_a_noisy_line_still_ends_exact(tmp_path, depth_model_path, truth_of):
     shown: list = []
     device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0")
     view = canonical_view(130.0, -20.0)
-    stop, sent = threading.Event(), []
-    with device:
-        device.device.set_view(*view)
-        thread, _ = _serving(f"mem://{name}?end=a&ber=4e-5&seed=3", depth_model_path, stop,
-                             sent)
-        try:
-            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
-                                   for _, i in shown), 180, "the exact frame")
-        finally:
-            stop.set()
-            thread.join(30)
+    _serve_until_exact(device, shown, f"mem://{name}?end=a&ber=4e-5&seed=3", depth_model_path,
+                       view, 180)
     frame = next(f for f, i in reversed(shown) if i.get("exact"))
     np.testing.assert_array_equal(frame, truth_of(view))
 
@@ -158,16 +165,7 @@ def test_a_lost_chunk_of_the_exact_layer_is_asked_for_again(tmp_path, depth_mode
 
     runtime.on_scores = on_scores
     view = canonical_view(222.0, 33.0)
-    stop, sent = threading.Event(), []
-    with device:
-        runtime.set_view(*view)
-        thread, _ = _serving(f"mem://{name}?end=a", depth_model_path, stop, sent)
-        try:
-            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
-                                   for _, i in shown), 120, "the exact frame")
-        finally:
-            stop.set()
-            thread.join(30)
+    _serve_until_exact(device, shown, f"mem://{name}?end=a", depth_model_path, view, 120)
     assert lost and runtime.runtime_stats.layer_retries >= 1
     frame = next(f for f, i in reversed(shown) if i.get("exact"))
     np.testing.assert_array_equal(frame, truth_of(view))
