@@ -93,6 +93,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -970,6 +971,16 @@ def print_warp(r: dict) -> None:
           f"{r['required_ram_bytes'] / MB:.1f} MB)", flush=True)
 
 
+def _rows(items: list, measure: Callable[[Any], dict], show: Callable[[dict], None]) -> list[dict]:
+    """A section's rows: ``measure`` of each item in turn, each row shown as soon as it is
+    measured."""
+    rows = []
+    for item in items:
+        rows.append(measure(item))
+        show(rows[-1])
+    return rows
+
+
 def main_correction(args: argparse.Namespace) -> int:
     """Section x alone (`device_correction`)."""
     from device_correction import print_correction, section_correction
@@ -987,10 +998,8 @@ def main_correction(args: argparse.Namespace) -> int:
     print(f"(x) correction vs blend, median of {views} drag views x 3, one reconstructor "
           f"thread; OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', '-')}, "
           f"CPUs {sorted(os.sched_getaffinity(0))}, load {os.getloadavg()[0]:.1f}", flush=True)
-    rows = []
-    for path in paths:
-        rows.append(section_correction(path, views, args.correction_stride))
-        print_correction(rows[-1])
+    rows = _rows(paths, lambda path: section_correction(path, views, args.correction_stride),
+                 print_correction)
     if args.json:
         print(json.dumps({"correction": rows}, default=float))
     return 0
@@ -1103,48 +1112,27 @@ def main() -> int:
     if "b" in args.sections:
         print(f"\n(b) VIEW_REQUEST -> presented over TCP loopback ({latency_views} requests)",
               flush=True)
-        rows = []
-        for case in real:
-            row = section_latency(case, work, latency_views, frame_rows.get(case.size))
-            rows.append(row)
-            print_latency(row)
-        results["latency"] = rows
+        results["latency"] = _rows(
+            real, lambda c: section_latency(c, work, latency_views, frame_rows.get(c.size)),
+            print_latency)
     if "c" in args.sections:
         print("\n(c) bytes per frame over an orbit vs the equal-quality JPEG", flush=True)
-        rows = []
-        for case in real:
-            row = section_bytes(case, jpeg_views)
-            rows.append(row)
-            print_bytes(row)
-        results["bytes"] = rows
+        results["bytes"] = _rows(real, lambda c: section_bytes(c, jpeg_views), print_bytes)
     if "d" in args.sections:
         bare = bare_rss_bytes()
         print(f"\n(d) device peak RSS over {rss_frames} frames (bare runtime process "
               f"{bare / MB:.1f} MB)", flush=True)
-        rows = []
-        for case in real:
-            row = section_rss(case, work, rss_frames, bare)
-            rows.append(row)
-            print_rss(row)
-        results["rss"] = rows
+        results["rss"] = _rows(real, lambda c: section_rss(c, work, rss_frames, bare),
+                               print_rss)
     if "e" in args.sections:
         print(f"\n(e) frames per second over a paced {args.baud}-baud line (mem://, "
               f"{serial_s:g} s per mode)", flush=True)
-        rows = []
-        for case in real:
-            row = section_serial(case, work, serial_s, args.baud)
-            rows.append(row)
-            print_serial(row)
-        results["serial"] = rows
+        results["serial"] = _rows(real, lambda c: section_serial(c, work, serial_s, args.baud),
+                                  print_serial)
     if "f" in args.sections:
         print(f"\n(f) SCORES event tag: device frame (body + decode + reconstruct) with and "
               f"without verify_event, median of {frames} interleaved frames", flush=True)
-        rows = []
-        for case in cases:
-            row = section_tag_cost(case, frames)
-            rows.append(row)
-            print_tag_cost(row)
-        results["tag_cost"] = rows
+        results["tag_cost"] = _rows(cases, lambda c: section_tag_cost(c, frames), print_tag_cost)
     if args.json:
         print(json.dumps(results, default=float))
     return 0

@@ -48,7 +48,7 @@ sys.path.insert(0, str(REPO / "tests"))
 from provision_helpers import KEY, DeviceProcess, DeviceThread, make_image, mem_name  # noqa: E402
 
 from host.link.options import ProvisionOptions, ProvisionParts  # noqa: E402
-from host.link.provisioning import provision  # noqa: E402
+from host.link.provisioning import ProvisionResult, provision  # noqa: E402
 from protocol import messages as m  # noqa: E402
 from protocol.host_session import HostSession  # noqa: E402
 from protocol.image import read_manifest  # noqa: E402
@@ -132,6 +132,19 @@ def raw_tcp_blast(size: int) -> float:
     return size / elapsed
 
 
+def _transfer_row(result: ProvisionResult, path: Path) -> dict:
+    """What one provisioning of the image at ``path`` measured (``result``: its
+    provisioning result)."""
+    return {
+        "size_bytes": result.size_bytes,
+        "eigenspace_bytes": eigenspace_bytes(path),
+        "seconds": result.transfer_seconds,
+        "wire_bytes_per_s": result.rate_bytes_per_s,
+        "retransmitted_chunks": result.retransmitted_chunks,
+        "verified": result.verified,
+    }
+
+
 def bench_mem(baud: int, size: int, compressible: bool, tmp: Path, *, faults: str = "",
               retransmit: str = "selective") -> dict:
     path = tmp / f"mem{baud}-{compressible}-{size}-{retransmit}.ecs"
@@ -142,14 +155,7 @@ def bench_mem(baud: int, size: int, compressible: bool, tmp: Path, *, faults: st
                            ProvisionOptions(baud=baud, key=KEY, retransmit=retransmit,
                                             show_progress=False),
                            QUIET)
-    return {
-        "size_bytes": result.size_bytes,
-        "eigenspace_bytes": eigenspace_bytes(path),
-        "seconds": result.transfer_seconds,
-        "wire_bytes_per_s": result.rate_bytes_per_s,
-        "retransmitted_chunks": result.retransmitted_chunks,
-        "verified": result.verified,
-    }
+    return _transfer_row(result, path)
 
 
 def bench_tcp(size: int, compressible: bool, tmp: Path) -> dict:
@@ -163,14 +169,7 @@ def bench_tcp(size: int, compressible: bool, tmp: Path) -> dict:
                            QUIET)
     finally:
         dev.stop()
-    return {
-        "size_bytes": result.size_bytes,
-        "eigenspace_bytes": eigenspace_bytes(path),
-        "seconds": result.transfer_seconds,
-        "wire_bytes_per_s": result.rate_bytes_per_s,
-        "retransmitted_chunks": result.retransmitted_chunks,
-        "verified": result.verified,
-    }
+    return _transfer_row(result, path)
 
 
 def ping_during_transfer(baud: int, tmp: Path, pings: int = 8) -> dict:

@@ -59,6 +59,7 @@ from host.evaluate import (
     WebPDatabase,
     compare_images,
     eigenspace_bytes,
+    json_safe,
 )
 from host.fit.interpolate import ScoreInterpolator
 from host.fit.model import HostModel, standalone_scores
@@ -376,7 +377,7 @@ def main(argv: list[str] | None = None) -> int:
         "means": _means(study.names, per_view, seams),
         "per_view": per_view,
     }
-    Path(args.output).write_text(json.dumps(_safe(result), indent=1))
+    Path(args.output).write_text(json.dumps(json_safe(result), indent=1))
     _print_table(result)
     return 0
 
@@ -398,18 +399,6 @@ def _finish(rec: dict, futures: dict) -> dict:
     for m, fut in futures.items():
         rec[m] = fut.result().values()
     return rec
-
-
-def _safe(v):  # noqa: ANN001
-    if isinstance(v, dict):
-        return {str(k): _safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_safe(x) for x in v]
-    if isinstance(v, np.generic):
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
 
 
 def _print_table(r: dict) -> None:

@@ -11,6 +11,7 @@ Produces no doc section itself: helpers of the rdp_*.py scripts.
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from dataclasses import dataclass
@@ -38,6 +39,17 @@ class Case:
     @property
     def n_views(self) -> int:
         return len(self.truth)
+
+
+def case_parser(description: str, *, views: int) -> argparse.ArgumentParser:
+    """The arguments every rdp_*.py script takes: a model, its held-out views' database, the
+    JSON output and how many of those views to measure (default ``views``)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("model")
+    ap.add_argument("test_db")
+    ap.add_argument("-o", "--output", required=True)
+    ap.add_argument("--views", type=int, default=views)
+    return ap
 
 
 def load_case(model_path: str | Path, test_db: str | Path, *, views: int | None = None,

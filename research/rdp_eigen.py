@@ -23,7 +23,6 @@ Produces: docs/rate-distortion-packets.md, section 3 "Bit allocation for the eig
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -32,17 +31,13 @@ import zstandard as zstd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rdp_common import Timer, load_case, quality, save_json
+from rdp_common import Timer, case_parser, load_case, quality, save_json
 
 from host.fit.quantize import QuantizedEigenspace, allocate_bits, quantize_components
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
-    ap.add_argument("test_db")
-    ap.add_argument("-o", "--output", required=True)
-    ap.add_argument("--views", type=int, default=60)
+    ap = case_parser(__doc__.splitlines()[0], views=60)
     ap.add_argument("--budgets", default="0,0.05,0.1,0.2,0.4,0.8,1.6")
     args = ap.parse_args(argv)
     t = Timer()

@@ -39,7 +39,7 @@ import zstandard as zstd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rdp_common import Timer, load_case, quality, save_json, smallest_codec_file
+from rdp_common import Timer, case_parser, load_case, quality, save_json, smallest_codec_file
 
 from protocol.scores import HEADER_SIZE, EncodedScores, encode_scores, zigzag_varints
 
@@ -127,11 +127,7 @@ def entropy_bits(train_q: np.ndarray, test_q: np.ndarray, ranks: np.ndarray) -> 
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
-    ap.add_argument("test_db")
-    ap.add_argument("-o", "--output", required=True)
-    ap.add_argument("--views", type=int, default=100)
+    ap = case_parser(__doc__.splitlines()[0], views=100)
     ap.add_argument("--factors", default="1,2,4,8,16,32")
     ap.add_argument("--codec-views", type=int, default=40,
                     help="views of the equal-quality WebP/JPEG search (slow)")

@@ -19,7 +19,6 @@ WebP image database".
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import tempfile
@@ -29,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rdp_common import Timer, load_case, quality, save_json, webp_db_sweep
+from rdp_common import Timer, case_parser, load_case, quality, save_json, webp_db_sweep
 
 from host.fit.model import HostModel, add_standalone_table
 from host.fit.quantize import allocate_bits, quantize_components
@@ -44,11 +43,7 @@ def residual(model: HostModel) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
-    ap.add_argument("test_db")
-    ap.add_argument("-o", "--output", required=True)
-    ap.add_argument("--views", type=int, default=60)
+    ap = case_parser(__doc__.splitlines()[0], views=60)
     ap.add_argument("--thresholds", default="0.9,0.95,0.98,0.99,0.995")
     ap.add_argument("--bit-budgets", default="0,0.03,0.1")
     ap.add_argument("--table-factors", default="1,2")

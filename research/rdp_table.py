@@ -31,7 +31,6 @@ database rows of section 4).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -41,7 +40,7 @@ import zstandard as zstd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rdp_common import Timer, load_case, quality, save_json, webp_db_sweep
+from rdp_common import Timer, case_parser, load_case, quality, save_json, webp_db_sweep
 
 from host.fit.model import add_standalone_table
 from protocol.scores import zigzag_varints
@@ -74,11 +73,7 @@ def dct_matrix(n: int) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
-    ap.add_argument("test_db")
-    ap.add_argument("-o", "--output", required=True)
-    ap.add_argument("--views", type=int, default=100)
+    ap = case_parser(__doc__.splitlines()[0], views=100)
     ap.add_argument("--factors", default="1,2,4,8,16")
     ap.add_argument("--train-db", default=None)
     ap.add_argument("--webp-qualities", default="5,20,50,80")

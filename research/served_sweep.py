@@ -32,17 +32,19 @@ REPO = Path(__file__).resolve().parent.parent
 DB = Path("/work/cache/db")
 VAR = Path("/work/cache/eval23/var")
 #: (label, model, what varies): the shared volumes at 128/256/512, others at 256, variations.
-CASES = [
-    ("tooth-128", DB / "tooth-128.ecs", "cells 16"),
-    ("vismale_head-128", DB / "vismale_head-128.ecs", "cells 16"),
-    ("tooth-256", DB / "tooth-256.ecs", "cells 16"),
-    ("vismale_head-256", DB / "vismale_head-256.ecs", "cells 16"),
-    ("mni152-256", DB / "mni152-256.ecs", "cells 16"),
-    ("brainsmall-256", DB / "brainsmall-256.ecs", "cells 16"),
-    ("engine-256", DB / "engine-256.ecs", "cells 16"),
-    ("headsq-256", DB / "headsq-256.ecs", "cells 16"),
-    ("tooth-512", DB / "tooth-512.ecs", "cells 30"),
-    ("vismale_head-512", DB / "vismale_head-512.ecs", "cells 30"),
+#: The models under DB are named after their label.
+CASES = [(label, DB / f"{label}.ecs", what) for label, what in (
+    ("tooth-128", "cells 16"),
+    ("vismale_head-128", "cells 16"),
+    ("tooth-256", "cells 16"),
+    ("vismale_head-256", "cells 16"),
+    ("mni152-256", "cells 16"),
+    ("brainsmall-256", "cells 16"),
+    ("engine-256", "cells 16"),
+    ("headsq-256", "cells 16"),
+    ("tooth-512", "cells 30"),
+    ("vismale_head-512", "cells 30"),
+)] + [
     ("tooth-256-c30", VAR / "tooth-256-c30.ecs", "cells 30"),
     ("tooth-256-fib300", VAR / "tooth-256-fib300.ecs", "300 views (fibonacci)"),
     ("vismale_head-256-muscle", VAR / "vismale_head-256-muscle.ecs", "ct-muscle (translucent)"),

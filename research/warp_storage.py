@@ -85,7 +85,7 @@ from host.fit.model import HostModel, add_standalone_table, score_step_for
 from host.render.camera import parse_view_set
 from host.render.cinema import CinemaDB
 from protocol.image import DEFAULT_LEVEL, HEADER_SIZE, image_size, write_image
-from research.warp_views import Volume, Warper, variant_depth
+from research.warp_views import Volume, Warper, study_parser, variant_depth
 
 #: Depth score noise of the fit used to re-quantize at every ``--depth-mse`` (mm^2 / pixel):
 #: fine enough that rounding twice adds nothing measurable.
@@ -546,11 +546,7 @@ def print_tables(cases: list[dict], db_step: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--volumes", default="tooth,vismale_head")
-    ap.add_argument("--sizes", default="256,512")
-    ap.add_argument("--views", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=15)
+    ap = study_parser(__doc__.split("\n")[0])
     ap.add_argument("--limit", type=int, default=0, help="only the first N held-out views")
     ap.add_argument("--cache", default="/work/cache/warpstore")
     ap.add_argument("--warp-cache", default="/work/cache/warp",

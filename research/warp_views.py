@@ -486,32 +486,40 @@ def save_picture(path: Path, truth: np.ndarray, frames: dict[str, np.ndarray]) -
     image.save(path, quality=85, optimize=True)
 
 
+def _print_method_table(title: str, heads: list[str], methods: list[str],
+                        columns: list[dict], digits: int) -> None:
+    """One Markdown table: a row per method, a column per case, object SSIM / FLIP in each
+    cell to ``digits`` decimals ("–" where the case lacks the method)."""
+    print(f"| {title} (SSIM obj / FLIP obj) | " + " | ".join(heads) + " |")
+    print("|---" * (len(heads) + 1) + "|")
+    for m in methods:
+        cells = ["–" if (v := col.get(m)) is None
+                 else f"{v['ssim_object']:.{digits}f} / {v['flip_object']:.{digits}f}"
+                 for col in columns]
+        print(f"| {m} | " + " | ".join(cells) + " |")
+    print()
+
+
+def study_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments of the warp studies (this script and research/warp_storage.py): which
+    volumes at which sizes, how many held-out views from which seed."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--volumes", default="tooth,vismale_head")
+    ap.add_argument("--sizes", default="256,512")
+    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=15)
+    return ap
+
+
 def print_tables(results: list[dict], depth: dict) -> None:
     methods = ["blend", "webp_db", "oracle", "warp_true_half", "warp_true_mean",
                "warp_true_half_d256", "warp_rec_half", "warp_rec_mean",
                "warp_rec_half_truedepth"]
     methods += sorted({m for r in results for m in r["means"] if m.startswith("warp_rec_half_T")})
     heads = [f"{r['volume']} {r['size']}" for r in results]
-    print("| method (SSIM obj / FLIP obj) | " + " | ".join(heads) + " |")
-    print("|---" * (len(heads) + 1) + "|")
-    for m in methods:
-        cells = []
-        for r in results:
-            v = r["means"].get(m)
-            cells.append("–" if v is None else f"{v['ssim_object']:.4f} / {v['flip_object']:.4f}")
-        print(f"| {m} | " + " | ".join(cells) + " |")
-    print()
-    print("| gap closed (SSIM obj / FLIP obj) | " + " | ".join(heads) + " |")
-    print("|---" * (len(heads) + 1) + "|")
-    for m in methods:
-        if m in ("blend", "oracle"):
-            continue
-        cells = []
-        for r in results:
-            v = r["gap_closed"].get(m)
-            cells.append("–" if v is None else f"{v['ssim_object']:.2f} / {v['flip_object']:.2f}")
-        print(f"| {m} | " + " | ".join(cells) + " |")
-    print()
+    _print_method_table("method", heads, methods, [r["means"] for r in results], 4)
+    _print_method_table("gap closed", heads, [m for m in methods if m not in ("blend", "oracle")],
+                        [r["gap_closed"] for r in results], 2)
     print("| median ms per frame | " + " | ".join(heads) + " |")
     print("|---" * (len(heads) + 1) + "|")
     for key in ("blend", "warp", "colour_reconstructs", "depth_reconstructs", "device_frame"):
@@ -532,11 +540,7 @@ def print_tables(results: list[dict], depth: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--volumes", default="tooth,vismale_head")
-    ap.add_argument("--sizes", default="256,512")
-    ap.add_argument("--views", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=15)
+    ap = study_parser(__doc__.split("\n")[0])
     ap.add_argument("--cache", default="/work/cache/warp")
     ap.add_argument("--images", default="docs/images", help="'' for no pictures")
     ap.add_argument("-o", "--output", default="/work/cache/warp/results.json")

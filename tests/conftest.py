@@ -43,6 +43,26 @@ def tooth_db(tmp_path_factory):
     return db
 
 
+@pytest.fixture(scope="session")
+def depth_model_path(tmp_path_factory):
+    """A tooth model with depth and the standalone table (the defaults), 48 px, signed with
+    `provision_helpers.KEY`; its database ``tooth.cdb`` and key file ``device.key`` lie beside
+    it. Built once per session."""
+    from provision_helpers import KEY
+
+    from host.cli import main as eigencast
+    from protocol.keys import write_key
+
+    root = tmp_path_factory.mktemp("depth-model")
+    db, out, key = root / "tooth.cdb", root / "tooth.ecs", root / "device.key"
+    write_key(key, KEY, force=True)
+    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
+                      "--size", "48", "--samples", "80"]) == 0
+    assert eigencast(["fit", str(db), "-o", str(out), "--cell", "12", "--threshold", "0.99",
+                      "--key", str(key)]) == 0
+    return out
+
+
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory):
     """The signed, standalone tiny tooth model of `runtime_helpers.tiny_model` (built once

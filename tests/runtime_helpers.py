@@ -141,6 +141,16 @@ def steady_requests(worker, views, interval_s: float = 60.0) -> None:
         worker._cond.notify_all()
 
 
+class FakeClock:
+    """A clock that stands still at ``now`` until a test moves it (``clock.now += dt``)."""
+
+    def __init__(self, now: float = 0.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
 class RuntimeThread:
     """A RuntimeDevice serving ``url`` (if any) with its display loop on a thread."""
 
@@ -195,6 +205,24 @@ class RuntimeThread:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def provisioned_device(tmp_path: Path, name: str, image_path, frames: list, *,
+                       host_query: str = "", **kwargs) -> RuntimeThread:
+    """A predicting `RuntimeThread` on the mem:// line ``name`` (end b), provisioned with
+    ``image_path`` (signed with ``KEY``) from end a, ``host_query`` appended to that end's URL
+    (``"&pace=0"``); it appends each frame it shows and its info to ``frames``. ``kwargs``
+    go to `RuntimeThread`."""
+    from host.link.options import ProvisionOptions, ProvisionParts
+    from host.link.provisioning import provision
+
+    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
+                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))),
+                           **kwargs)
+    provision(image_path, f"mem://{name}?end=a{host_query}",
+              ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=lambda line: None))
+    return device
 
 
 def serve_cli(*args: str) -> subprocess.CompletedProcess:

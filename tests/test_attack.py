@@ -304,6 +304,21 @@ def _hello(peer: RawPeer, request_id: int = 1) -> m.HelloReply:
     return reply
 
 
+def _replay(target, captured: list[bytes]) -> None:
+    """Send the ``captured`` frames to ``target`` on a fresh connection as they are, then on
+    another after a HELLO of the attacker's own."""
+    for with_hello in (False, True):
+        peer = target.peer()
+        try:
+            if with_hello:
+                _hello(peer)
+            for wire in captured:
+                peer.send(wire)
+            assert peer.barrier(30)
+        finally:
+            peer.close()
+
+
 # --------------------------------------------------------------------------- decode level
 
 
@@ -565,16 +580,7 @@ def test_replayed_authenticated_frames_are_not_shown_or_stored(targets, name, tm
                              m.MessageType.BYE)]
     assert any(t == m.MessageType.IMAGE_COMMIT for rec in recorders for t, _ in rec.frames)
     since = target.mark()
-    for with_hello in (False, True):
-        peer = target.peer()
-        try:
-            if with_hello:
-                _hello(peer)
-            for wire in captured:
-                peer.send(wire)
-            assert peer.barrier(30)
-        finally:
-            peer.close()
+    _replay(target, captured)
     target.check("replays of a captured session", since, stored=stored_after)
 
 
@@ -630,16 +636,7 @@ def test_replayed_corrections_are_not_applied(targets):
     after = corrections()
     assert after - before == stats.correction_frames  # the in-session replay was dropped
     captured = [wire for t, wire in recorders[0].frames if t == m.MessageType.SCORES]
-    for with_hello in (False, True):
-        peer = target.peer()
-        try:
-            if with_hello:
-                _hello(peer)
-            for wire in captured:
-                peer.send(wire)
-            assert peer.barrier(30)
-        finally:
-            peer.close()
+    _replay(target, captured)
     assert corrections() == after
     target.check("replayed corrections", since, decoded=stats.frames)
 

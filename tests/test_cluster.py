@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
-import time
 import types
 from pathlib import Path
 
 import distributed
 import pytest
+from cli_helpers import kill_render_halfway, run_cli, snapshot
 
 import host.cluster
 import host.fit.model
@@ -24,18 +23,9 @@ from host.cli import main
 from host.progress import Progress
 from host.render.cinema import CinemaDB, CinemaWriter
 
-CLI = [sys.executable, "-m", "host.cli"]
 VIEWS = "grid:30x6"  # 180 views: long enough to catch a client halfway
 SMALL = ["--size", "40", "--samples", "150"]
 FIT = ["--cell", "8"]
-
-
-def _snapshot(db: Path) -> dict[str, bytes]:
-    return {p.relative_to(db).as_posix(): p.read_bytes() for p in db.rglob("*") if p.is_file()}
-
-
-def _png_count(db: Path) -> int:
-    return sum(1 for _ in (db / "images").glob("view_*.png"))
 
 
 @pytest.fixture(scope="module")
@@ -84,8 +74,8 @@ def test_local_n_render_is_byte_identical_to_in_process(tmp_path, reference):
     assert main(["render", "builtin:tooth", "-o", str(db), "--views", VIEWS, *SMALL,
                  "--scheduler", "local:2"]) == 0
     assert CinemaDB.open(reference).depth is not None
-    assert sum(name.startswith("depth/view_") for name in _snapshot(db)) == 180
-    assert _snapshot(db) == _snapshot(reference)
+    assert sum(name.startswith("depth/view_") for name in snapshot(db)) == 180
+    assert snapshot(db) == snapshot(reference)
 
 
 def test_a_cinematic_render_on_the_cluster_is_byte_identical(tmp_path, scheduler):
@@ -93,7 +83,7 @@ def test_a_cinematic_render_on_the_cluster_is_byte_identical(tmp_path, scheduler
     args = ["render", "builtin:tooth", "--views", "grid:8x3", *SMALL, "--lighting", "cinematic"]
     assert main([*args, "-o", str(tmp_path / "here.cdb")]) == 0
     assert main([*args, "-o", str(tmp_path / "there.cdb"), "--scheduler", scheduler]) == 0
-    here, there = _snapshot(tmp_path / "here.cdb"), _snapshot(tmp_path / "there.cdb")
+    here, there = snapshot(tmp_path / "here.cdb"), snapshot(tmp_path / "there.cdb")
     assert here == there and sum(name.startswith("images/") for name in here) == 24
 
 
@@ -105,28 +95,18 @@ def test_render_survives_a_killed_worker(tmp_path, reference, scheduler, monkeyp
     assert len(killed) == 1
     with pytest.raises(ProcessLookupError):
         os.kill(killed[0], 0)  # the worker really died mid-run
-    assert _snapshot(db) == _snapshot(reference)
+    assert snapshot(db) == snapshot(reference)
 
 
 def test_killed_client_resumes_to_the_same_database(tmp_path, reference, scheduler):
     db = tmp_path / "resumed.cdb"
     args = ["render", "builtin:tooth", "-o", str(db), "--views", VIEWS, *SMALL,
             "--scheduler", scheduler]
-    proc = subprocess.Popen([*CLI, *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while not (db / "images").exists() or _png_count(db) < 1:
-        assert proc.poll() is None, "render finished before it could be interrupted"
-        assert time.monotonic() < deadline, "render made no progress"
-        time.sleep(0.005)  # polling a condition, not waiting out a race
-    proc.send_signal(signal.SIGSTOP)
-    written = _png_count(db)
-    proc.kill()
-    proc.wait()
+    written = kill_render_halfway(args, db, 1)
     assert 1 <= written < 180
-    out = subprocess.run([*CLI, *args], capture_output=True, text=True, check=True)
+    out = run_cli(*args)
     assert "resuming" in out.stderr
-    assert _snapshot(db) == _snapshot(reference)
+    assert snapshot(db) == snapshot(reference)
 
 
 def test_fit_is_byte_identical_and_survives_a_killed_worker(

@@ -19,7 +19,13 @@ import time
 import numpy as np
 import pytest
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, serve_cli, steady_requests, wait_until
+from runtime_helpers import (
+    RuntimeThread,
+    provisioned_device,
+    serve_cli,
+    steady_requests,
+    wait_until,
+)
 
 from device_runtime.device import DeviceConfig
 from device_runtime.orbit import canonical_view
@@ -38,7 +44,6 @@ from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
 from protocol import messages as m
 from protocol.image import read_image
-from protocol.keys import write_key
 from protocol.scores import (
     ScoreDecoder,
     ScorePacketError,
@@ -51,19 +56,6 @@ VIEWS = [(0.0, 0.0), (11.0, 13.0), (200.0, -40.0), (97.5, 51.0), (123.456, 7.891
 
 def _quiet(line: str) -> None:
     pass
-
-
-@pytest.fixture(scope="module")
-def depth_model_path(tmp_path_factory):
-    """A signed tooth model with depth and the standalone table (the defaults)."""
-    root = tmp_path_factory.mktemp("correct-depth")
-    db, out, key = root / "tooth.cdb", root / "tooth.ecs", root / "device.key"
-    write_key(key, KEY, force=True)
-    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
-                      "--size", "48", "--samples", "80"]) == 0
-    assert eigencast(["fit", str(db), "-o", str(out), "--cell", "12", "--threshold", "0.99",
-                      "--key", str(key)]) == 0
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -434,16 +426,6 @@ def test_hello_says_the_device_reads_version_3_and_whether_it_predicts(tmp_path,
 # --------------------------------------------------------------------------- sessions
 
 
-def _provisioned_device(tmp_path, name: str, image_path, frames: list) -> RuntimeThread:
-    """A predicting device on the mem:// line ``name`` (end b), provisioned with
-    ``image_path``, appending each frame it shows and its info to ``frames``."""
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: frames.append((f.copy(), dict(info or {}))))
-    provision(image_path, f"mem://{name}?end=a", ProvisionOptions(key=KEY, show_progress=False),
-              ProvisionParts(log=_quiet))
-    return device
-
-
 def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
         tmp_path, depth_model_path, depth_model):
     """A real session over a paced 115200-baud mem:// line with an image with depth: a new
@@ -454,7 +436,7 @@ def test_served_session_shows_its_own_frame_at_once_then_the_hosts_correction(
     model = depth_model
     name = mem_name("served")
     frames: list = []
-    device = _provisioned_device(tmp_path, name, depth_model_path, frames)
+    device = provisioned_device(tmp_path, name, depth_model_path, frames)
     arrivals: list = []
     original = device.device.on_scores
 
@@ -524,7 +506,7 @@ def test_a_served_device_in_steady_motion_shows_the_view_warped_ahead_at_once(
     view and shows its warp as its first frame of it, no blend first, bit for bit the
     device's own frame of the view."""
     frames: list = []
-    device = _provisioned_device(tmp_path, mem_name("ahead"), depth_model_path, frames)
+    device = provisioned_device(tmp_path, mem_name("ahead"), depth_model_path, frames)
     views = [canonical_view(60.0 + 3.0 * i, 20.0) for i in range(4)]
 
     def shown_warp(view) -> bool:
@@ -703,7 +685,7 @@ def test_a_live_image_swap_at_rest_shows_the_new_images_corrected_frame(
     dropped every correction, or corrected A's frame with B's scores)."""
     name = mem_name("swap")
     frames: list = []
-    device = _provisioned_device(tmp_path, name, depth_model_path, frames)
+    device = provisioned_device(tmp_path, name, depth_model_path, frames)
     target = canonical_view(47.0, 23.0)
     url = f"mem://{name}?end=a"
     with device:

@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 from PIL import Image
 from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
@@ -29,12 +28,6 @@ from host.fit.motion import DEFAULT_STRIDES
 from host.render.cinema import CinemaDB
 from host.render.settings import RenderSettings, SettingsError, ViewRenderer
 from protocol.scores import encode_scores
-
-CLI = [sys.executable, "-m", "host.cli"]
-
-
-def _run(*args, check=True):
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, check=check)
 
 
 def _smooth_image(size=64, seed=0):
@@ -291,8 +284,8 @@ def test_render_settings_refuse_missing_or_mismatched(tooth_db):
 
 def test_evaluate_cli_json_and_report(small_model, tmp_path):
     report = tmp_path / "report"
-    res = _run("evaluate", str(small_model), "--views", "random:5", "--report", str(report),
-               "--json", "--rd-views", "2", "--samples-shown", "2")
+    res = run_cli("evaluate", str(small_model), "--views", "random:5", "--report", str(report),
+                  "--json", "--rd-views", "2", "--samples-shown", "2")
     summary = json.loads(res.stdout)  # exactly one JSON object on stdout
     for key in ("method", "threshold", "components_per_cell", "eigenspace_bytes", "views",
                 "pca", "pca_render", "pca_motion", "jpeg", "webp", "avif", "nearest", "webp_db"):
@@ -405,13 +398,13 @@ def test_object_masks_from_the_image_and_from_the_opacity():
 
 
 def test_evaluate_refuses_a_mismatched_volume_in_one_line(small_model, tmp_path):
-    res = _run("evaluate", str(small_model), "builtin:head", "--views", "random:2",
-               check=False)
+    res = run_cli("evaluate", str(small_model), "builtin:head", "--views", "random:2",
+                  check=False)
     assert res.returncode == 1
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "dims" in lines[0] and "builtin:head" in lines[0]
-    res = _run("evaluate", str(small_model), "--tf", "ct-bone", "--views", "random:2",
-               check=False)
+    res = run_cli("evaluate", str(small_model), "--tf", "ct-bone", "--views", "random:2",
+                  check=False)
     assert res.returncode == 1 and "--tf" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
 
@@ -420,13 +413,13 @@ def test_evaluate_help_says_the_models_recorded_settings_win(small_model):
     """--help listed "--size (default 300)" and a --tf "chosen from the volume's modality"
     while the model's recorded settings were used: it says which wins, and those options
     are refused for a model that records its settings (one line each)."""
-    text = " ".join(_run("evaluate", "--help").stdout.split())
+    text = " ".join(run_cli("evaluate", "--help").stdout.split())
     assert "default 300" not in text and "chosen from the volume's modality" not in text
     assert "evaluate always ray-casts novel views that way" in text
     assert "--size N|WxH its images' size (default and only value: the model's)" in text
     assert "required for it" in text
     for option in (["--size", "64"], ["--samples", "50"], ["--tf", "generic"]):
-        res = _run("evaluate", str(small_model), *option, "--views", "random:2", check=False)
+        res = run_cli("evaluate", str(small_model), *option, "--views", "random:2", check=False)
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 1 and len(lines) == 1, res.stderr
         assert "records its render settings and evaluate ray-casts with them" in lines[0]
@@ -442,12 +435,12 @@ def test_evaluate_foreign_model_needs_explicit_render_options(tooth_db, tmp_path
     image, annex = build_image(model, db)
     path = tmp_path / "f.ecs"
     save_model(path, image, annex)
-    res = _run("evaluate", str(path), "--views", "random:2", check=False)
+    res = run_cli("evaluate", str(path), "--views", "random:2", check=False)
     assert res.returncode == 1 and "--tf" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
     # with the options the database was rendered with, the novel views are ray-cast
-    res = _run("evaluate", str(path), "builtin:tooth", "--tf", "tooth", "--samples", "120",
-               "--views", "random:2", "--json", "--rd-views", "0", "--no-nearest")
+    res = run_cli("evaluate", str(path), "builtin:tooth", "--tf", "tooth", "--samples", "120",
+                  "--views", "random:2", "--json", "--rd-views", "0", "--no-nearest")
     summary = json.loads(res.stdout)
     assert summary["pca"]["ssim"] > 0.5 and "nearest" not in summary
 
@@ -474,9 +467,9 @@ def test_evaluate_reports_the_served_path_for_a_model_with_the_table(model_path,
     bytes and every method's blockiness, in the JSON, the table and the report; nothing of
     it for a model without the table."""
     report = tmp_path / "report"
-    res = _run("evaluate", str(model_path), "--views", "random:3", "--json", "--rd-views", "3",
-               "--samples-shown", "1", "--no-nearest", "--motion-stride", "0",
-               "--webp-db-quality", "0", "--report", str(report), "--rd-codecs-only")
+    res = run_cli("evaluate", str(model_path), "--views", "random:3", "--json", "--rd-views", "3",
+                  "--samples-shown", "1", "--no-nearest", "--motion-stride", "0",
+                  "--webp-db-quality", "0", "--report", str(report), "--rd-codecs-only")
     summary = json.loads(res.stdout)
     assert {p["kind"] for p in summary["rate_distortion"]} == {"jpeg", "webp", "avif"}
     assert summary["pca_warp"]["own_frame"] == "blend" and summary["pca_warp"][
@@ -505,11 +498,11 @@ def test_evaluate_reports_the_served_path_for_a_model_with_the_table(model_path,
     assert rest["views"] == 3 and rest["stages"]["exact"]["x_webp_lossless"]["median"] > 0
     assert all(v["rest"]["steps"][-1]["kind"] == "exact" for v in summary["per_view"])
     assert (report / "rest.png").is_file() and "At rest: layers to the exact frame" in html
-    table = _run("evaluate", str(model_path), "--views", "random:2", "--rd-views", "0",
-                 "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0").stdout
+    table = run_cli("evaluate", str(model_path), "--views", "random:2", "--rd-views", "0",
+                    "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0").stdout
     assert "pca_predict: served, at rest" in table and "score blend" in table
-    plain = _run("evaluate", str(small_model), "--views", "random:2", "--json", "--rd-views",
-                 "0", "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0")
+    plain = run_cli("evaluate", str(small_model), "--views", "random:2", "--json", "--rd-views",
+                    "0", "--no-nearest", "--motion-deadline", "0", "--webp-db-quality", "0")
     plain = json.loads(plain.stdout)
     assert "pca_predict" not in plain and "pca_warp" not in plain and "rest" not in plain
     assert plain["pca"]["blockiness"] > 0

@@ -7,11 +7,10 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
+from cli_helpers import CLI, render_tooth, run_cli, wait_for_views
 from PIL import Image
 
 from device_runtime.orbit import canonical_view
@@ -20,24 +19,15 @@ from host.fit.model import HostModel, auto_score_step
 from host.render.cinema import CinemaDB
 from protocol.image import read_image
 
-CLI = [sys.executable, "-m", "host.cli"]
-
-
-def _run(*args, check=True):
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, check=check)
-
 
 @pytest.fixture(scope="module")
 def small_db(tmp_path_factory):
-    db = tmp_path_factory.mktemp("fit") / "tooth.cdb"
-    _run("render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6", "--size", "48",
-         "--samples", "150")
-    return db
+    return render_tooth(tmp_path_factory.mktemp("fit") / "tooth.cdb", "grid:24x6", 48, 150)
 
 
 def test_fit_writes_a_model_whose_training_views_reconstruct(small_db, tmp_path):
     out = tmp_path / "m.ecs"
-    res = _run("fit", str(small_db), "-o", str(out), "--cell", "16", "--threshold", "0.999")
+    res = run_cli("fit", str(small_db), "-o", str(out), "--cell", "16", "--threshold", "0.999")
     assert "components/cell" in res.stdout
     model = HostModel.load(out)
     db = CinemaDB.open(small_db)
@@ -55,10 +45,10 @@ def test_view_cli_matches_host_model(small_db, tmp_path):
     """Without depth, `view` is the blend of the quantized scores at the view as a device
     takes it (float32, `canonical_view`); the depth case: test_synthesis.py."""
     out = tmp_path / "m.ecs"
-    _run("fit", str(small_db), "-o", str(out), "--method", "cell", "--cell", "12",
-         "--components", "8", "--score-step", "2.5", "--no-depth")
+    run_cli("fit", str(small_db), "-o", str(out), "--method", "cell", "--cell", "12",
+            "--components", "8", "--score-step", "2.5", "--no-depth")
     png = tmp_path / "v.png"
-    res = _run("view", str(out), "--phi", "33.3", "--theta", "-17", "-o", str(png))
+    res = run_cli("view", str(out), "--phi", "33.3", "--theta", "-17", "-o", str(png))
     assert "blend of the scores" in res.stdout
     model = HostModel.load(out)
     assert model.score_step == 2.5
@@ -85,13 +75,13 @@ def test_fit_and_view_errors_are_one_line(tmp_path):
         (["view", str(tmp_path / "none.ecs"), "--phi", "0", "--theta", "0", "-o",
           str(tmp_path / "v.png")], "none.ecs"),
     ]:
-        res = _run(*args, check=False)
+        res = run_cli(*args, check=False)
         assert res.returncode == 1
         assert len(res.stderr.strip().splitlines()) == 1 and message in res.stderr
     bad = tmp_path / "bad.ecs"
     bad.write_bytes(b"ECS\x00garbage" * 10)
-    res = _run("view", str(bad), "--phi", "0", "--theta", "0", "-o", str(tmp_path / "v.png"),
-               check=False)
+    res = run_cli("view", str(bad), "--phi", "0", "--theta", "0", "-o", str(tmp_path / "v.png"),
+                  check=False)
     assert res.returncode == 1 and "Traceback" not in res.stderr
 
 
@@ -103,11 +93,7 @@ def _interrupted_render(db, views: str) -> subprocess.CompletedProcess:
                              "--size", "40", "--samples", "150"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.monotonic() + 120
-    while sum(1 for _ in db.glob("images/view_*.png")) < 10:
-        assert proc.poll() is None, "render finished before it could be interrupted"
-        assert time.monotonic() < deadline, "render made no progress"
-        time.sleep(0.005)  # polling a condition, not waiting out a race
+    wait_for_views(proc, db, 10)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
@@ -123,13 +109,13 @@ def test_fit_refuses_an_interrupted_render_until_it_is_resumed(tmp_path):
     assert stopped.returncode == 130 and "rerun the same command" in stopped.stderr
     kept = CinemaDB.open(db).n_views
     assert 10 <= kept < 180
-    res = _run("fit", str(db), "-o", str(out), "--cell", "20", check=False)
+    res = run_cli("fit", str(db), "-o", str(out), "--cell", "20", check=False)
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 1 and len(lines) == 1, res.stderr
     assert f"{180 - kept} of its 180 views are missing" in lines[0]
     assert "rerun the same eigencast render command" in lines[0] and "--incomplete" in lines[0]
     assert not out.exists()
-    res = _run("fit", str(db), "-o", str(out), "--cell", "20", "--incomplete")
+    res = run_cli("fit", str(db), "-o", str(out), "--cell", "20", "--incomplete")
     assert f"fitting {kept} of the view set's 180 views" in res.stderr
     assert f"{kept} views at 40x40" in res.stdout
     # a database rendered before the sidecar recorded the count: its spec says it
@@ -138,10 +124,10 @@ def test_fit_refuses_an_interrupted_render_until_it_is_resumed(tmp_path):
     del record["views"]["count"]
     sidecar.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
     assert CinemaDB.open(db).expected_views == 180
-    res = _run("render", "builtin:tooth", "-o", str(db), "--views", views, "--size", "40",
-               "--samples", "150")
+    res = run_cli("render", "builtin:tooth", "-o", str(db), "--views", views, "--size", "40",
+                  "--samples", "150")
     assert f"{kept} valid images kept, {180 - kept} to render" in res.stderr
-    res = _run("fit", str(db), "-o", str(out), "--cell", "20")
+    res = run_cli("fit", str(db), "-o", str(out), "--cell", "20")
     assert "180 views at 40x40" in res.stdout
 
 
@@ -154,7 +140,7 @@ def test_fit_stores_depth_and_the_standalone_table_by_default(small_db, tmp_path
     for name, extra in (("default", []), ("nodepth", ["--no-depth"]),
                         ("notable", ["--no-standalone"]), ("old", ["--depth", "--standalone"])):
         out = tmp_path / f"{name}.ecs"
-        runs[name] = _run("fit", str(small_db), "-o", str(out), "--cell", "16", *extra)
+        runs[name] = run_cli("fit", str(small_db), "-o", str(out), "--cell", "16", *extra)
         images[name] = read_image(out)
     assert images["default"].synthesis["method"] == "warp-depth-3"  # with the noise floor
     assert "noise_floor" in images["default"].sections
@@ -165,31 +151,31 @@ def test_fit_stores_depth_and_the_standalone_table_by_default(small_db, tmp_path
     assert images["nodepth"].synthesis is None and standalone_table(images["nodepth"])
     assert images["notable"].synthesis is None and standalone_table(images["notable"]) is None
     assert all("blend" not in r.stderr for r in runs.values())
-    res = _run("fit", str(small_db), "-o", str(tmp_path / "x.ecs"), "--no-standalone",
-               "--depth", check=False)
+    res = run_cli("fit", str(small_db), "-o", str(tmp_path / "x.ecs"), "--no-standalone",
+                  "--depth", check=False)
     assert res.returncode == 1 and "--depth needs the standalone table" in res.stderr
     # a database without depth (here: rendered with --no-depth, as an old one is)
     flat = tmp_path / "flat.cdb"
-    _run("render", "builtin:tooth", "-o", str(flat), "--views", "grid:8x3", "--size", "40",
-         "--samples", "60", "--no-depth")
-    res = _run("fit", str(flat), "-o", str(tmp_path / "flat.ecs"), "--cell", "20")
+    run_cli("render", "builtin:tooth", "-o", str(flat), "--views", "grid:8x3", "--size", "40",
+            "--samples", "60", "--no-depth")
+    res = run_cli("fit", str(flat), "-o", str(tmp_path / "flat.ecs"), "--cell", "20")
     lines = res.stderr.strip().splitlines()
     note = [line for line in lines if "blend" in line]
     assert len(note) == 1 and "has no depth maps" in note[0] and "eigencast render" in note[0]
     flat_image = read_image(tmp_path / "flat.ecs")
     assert flat_image.synthesis is None and standalone_table(flat_image) is not None
-    res = _run("fit", str(flat), "-o", str(tmp_path / "y.ecs"), "--depth", check=False)
+    res = run_cli("fit", str(flat), "-o", str(tmp_path / "y.ecs"), "--depth", check=False)
     assert res.returncode == 1 and "has no depth maps" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "y.ecs").exists()
     (flat / "eigencast.json").unlink()  # as another tool (ParaView) writes a database
-    res = _run("fit", str(flat), "-o", str(tmp_path / "z.ecs"), "--cell", "20")
+    res = run_cli("fit", str(flat), "-o", str(tmp_path / "z.ecs"), "--cell", "20")
     note = [line for line in res.stderr.splitlines() if "blend" in line]
     assert len(note) == 1 and "render the volume with eigencast render" in note[0]
 
 
 def test_fit_says_what_the_file_holds_beyond_the_device_image(small_db, tmp_path):
     out = tmp_path / "m.ecs"
-    res = _run("fit", str(small_db), "-o", str(out), "--cell", "16")
+    res = run_cli("fit", str(small_db), "-o", str(out), "--cell", "16")
     found = re.search(r"device image ([\d.]+) MB \+ host annex ([\d.]+) MB", res.stdout)
     assert found, res.stdout
     device, annex = float(found.group(1)), float(found.group(2))
@@ -204,18 +190,18 @@ def test_fit_says_where_its_image_stack_stays_keeps_one_and_no_cache_keeps_none(
     the folder holds the last fit's stack only, and --no-cache keeps none."""
     cache = small_db / ".eigencast-cache"
     out = tmp_path / "m.ecs"
-    first = _run("fit", str(small_db), "-o", str(out), "--cell", "12", "--no-depth")
+    first = run_cli("fit", str(small_db), "-o", str(out), "--cell", "12", "--no-depth")
     said = [line for line in first.stdout.splitlines() if "image stack" in line]
     size = sum(f.stat().st_size for f in cache.iterdir())
     assert len(said) == 1 and str(cache) in said[0] and f"{size / 1e6:.0f} MB" in said[0]
     assert "--no-cache" in said[0]
-    _run("fit", str(small_db), "-o", str(out), "--cell", "16", "--no-depth")
+    run_cli("fit", str(small_db), "-o", str(out), "--cell", "16", "--no-depth")
     assert sorted(f.name for f in cache.iterdir()) == [
         "stack-48x48-cell16x16.u8", "stack-48x48-cell16x16.u8.json"]  # one stack, not two
     copy = tmp_path / "copy.cdb"
     shutil.copytree(small_db, copy, ignore=shutil.ignore_patterns(".eigencast-cache"))
-    none = _run("fit", str(copy), "-o", str(out), "--cell", "12", "--no-depth", "--no-cache")
+    none = run_cli("fit", str(copy), "-o", str(out), "--cell", "12", "--no-depth", "--no-cache")
     assert not (copy / ".eigencast-cache").exists() and "image stack" not in none.stdout
-    refused = _run("fit", str(copy), "-o", str(out), "--no-cache", "--cache", str(tmp_path),
-                   check=False)
+    refused = run_cli("fit", str(copy), "-o", str(out), "--no-cache", "--cache", str(tmp_path),
+                      check=False)
     assert refused.returncode == 1 and "pick one" in refused.stderr

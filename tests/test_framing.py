@@ -7,6 +7,7 @@ import zlib
 
 import numpy as np
 import pytest
+from cobs_reference import reference_cobs_encode
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -26,24 +27,6 @@ from protocol.framing import (
 )
 
 FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
-
-def _reference_cobs_encode(data: bytes) -> bytes:
-    """Wikipedia's reference algorithm, transcribed (independent of protocol._cobs)."""
-    out = bytearray([0])
-    code_at, code = 0, 1
-    for i, byte in enumerate(data):
-        if byte:
-            out.append(byte)
-            code += 1
-        if not byte or code == 0xFF:
-            out[code_at] = code
-            code, code_at = 1, len(out)
-            if not byte or i < len(data) - 1:
-                out.append(0)
-    if code_at < len(out):
-        out[code_at] = code
-    return bytes(out)
 
 
 def _raw_frame(
@@ -71,7 +54,7 @@ def _raw_frame(
         + body
     )
     raw += (zlib.crc32(raw) if crc is None else crc).to_bytes(4, "little")
-    return _reference_cobs_encode(raw) + b"\x00"
+    return reference_cobs_encode(raw) + b"\x00"
 
 
 # --------------------------------------------------------------------------- COBS
@@ -83,7 +66,7 @@ zero_heavy = st.lists(st.sampled_from([0, 0, 0, 1, 255, 7]), max_size=700).map(b
 @given(st.one_of(st.binary(max_size=1200), zero_heavy))
 def test_cobs_matches_reference_and_round_trips(data):
     encoded = cobs_encode(data)
-    assert encoded == _reference_cobs_encode(data)
+    assert encoded == reference_cobs_encode(data)
     assert 0 not in encoded
     assert len(data) + 1 <= len(encoded) <= cobs_max_encoded_size(len(data))
     assert cobs_decode(encoded) == data
@@ -96,7 +79,7 @@ def test_cobs_long_runs():
         bytes(5000),
         (bytes([1]) * 253 + b"\x00") * 10,
     ):
-        assert cobs_encode(data) == _reference_cobs_encode(data)
+        assert cobs_encode(data) == reference_cobs_encode(data)
         assert cobs_decode(cobs_encode(data)) == data
 
 
@@ -313,7 +296,7 @@ def test_bad_crc_names_both_values():
 
 def test_short_frame_and_bad_cobs_counted():
     decoder = FrameDecoder(256)
-    decoder.feed(_reference_cobs_encode(b"\x01\x02\x03") + b"\x00")  # 3 bytes < 14
+    decoder.feed(reference_cobs_encode(b"\x01\x02\x03") + b"\x00")  # 3 bytes < 14
     decoder.feed(b"\x05\x11\x22\x00")  # block runs past the end
     assert decoder.bad_header == 1 and decoder.bad_cobs == 1
     with pytest.raises(BadCobs):

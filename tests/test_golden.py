@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cbor2
 import pytest
+from cobs_reference import reference_cobs_decode, reference_cobs_encode
 
 from protocol import auth
 from protocol import messages as m
@@ -126,7 +127,7 @@ def test_message_golden_frames_follow_the_documented_layout(case):
     """Re-derive each golden frame with only zlib, struct and a reference COBS decoder."""
     wire = bytes.fromhex(case["frame"])
     assert wire.endswith(b"\x00") and wire.count(0) == 1
-    raw = _reference_cobs_decode(wire[:-1])
+    raw = reference_cobs_decode(wire[:-1])
     ver_flags, channel, kind, msg_type, request_id, body_len = HEADER.unpack_from(raw)
     assert HEADER.size == 10
     assert ver_flags >> 4 == 1 and ver_flags & 0x0F == case["flags"]
@@ -147,43 +148,13 @@ def test_message_golden_frames_follow_the_documented_layout(case):
     assert list(obj) == sorted(obj)  # canonical order
 
 
-def _reference_cobs_decode(enc: bytes) -> bytes:
-    out = bytearray()
-    p = 0
-    while p < len(enc):
-        code = enc[p]
-        out += enc[p + 1 : p + code]
-        p += code
-        if code < 0xFF and p < len(enc):
-            out.append(0)
-    return bytes(out)
-
-
-def _reference_cobs_encode(data: bytes) -> bytes:
-    """Wikipedia's reference algorithm, transcribed."""
-    out = bytearray([0])
-    code_at, code = 0, 1
-    for i, byte in enumerate(data):
-        if byte:
-            out.append(byte)
-            code += 1
-        if not byte or code == 0xFF:
-            out[code_at] = code
-            code, code_at = 1, len(out)
-            if not byte or i < len(data) - 1:
-                out.append(0)
-    if code_at < len(out):
-        out[code_at] = code
-    return bytes(out)
-
-
 def test_hand_built_ping_frame_matches_the_spec():
     """One frame built byte by byte from docs/protocol.md, independent of the encoder."""
     body = bytes([0xA2, 0x00, 0x42]) + b"hi" + bytes([0x01, 0x18, 0x7B])  # {0: h'6869', 1: 123}
     header = bytes([0x11, 0x00, 0x00, 0x05, 0x34, 0x12]) + len(body).to_bytes(4, "little")
     raw = header + body
     raw += zlib.crc32(raw).to_bytes(4, "little")
-    expected = _reference_cobs_encode(raw) + b"\x00"
+    expected = reference_cobs_encode(raw) + b"\x00"
     msg = m.Ping(payload=b"hi", sent_us=123)
     assert msg.encode(request_id=0x1234) == expected
     assert m.decode_message(decode_frame(expected, max_frame_bytes=4096)) == msg
@@ -245,6 +216,20 @@ def test_auth_golden(case):
     )
 
 
+def _hand_tag(msg, session_key: bytes) -> bytes:
+    """The tag formula of docs/protocol.md, recomputed by hand: HMAC-SHA256 over the session
+    counter (8 bytes, little-endian), the message type and the canonical CBOR body without
+    its tag."""
+    body = dict(cbor2.loads(msg.to_body()))
+    del body[m.SESSION_TAG_KEY]
+    data = (
+        msg.session_counter.to_bytes(8, "little")
+        + bytes([int(msg.TYPE)])
+        + cbor2.dumps(body, canonical=True)
+    )
+    return hmac.new(session_key, data, hashlib.sha256).digest()
+
+
 def test_signed_golden_lines_verify_with_the_golden_session_key():
     (case_auth,) = AUTH_CASES
     session_key = bytes.fromhex(case_auth["session_key"])
@@ -253,15 +238,7 @@ def test_signed_golden_lines_verify_with_the_golden_session_key():
     for case in signed:
         msg = _record_from_json(_class(case["class"]), case["kwargs"])
         assert auth.verify(msg, session_key, msg.session_counter - 1) == msg.session_counter
-        # The tag formula of docs/protocol.md, recomputed by hand.
-        body = dict(cbor2.loads(msg.to_body()))
-        del body[m.SESSION_TAG_KEY]
-        data = (
-            msg.session_counter.to_bytes(8, "little")
-            + bytes([int(msg.TYPE)])
-            + cbor2.dumps(body, canonical=True)
-        )
-        assert hmac.new(session_key, data, hashlib.sha256).digest() == msg.session_tag
+        assert _hand_tag(msg, session_key) == msg.session_tag
 
 
 def test_tagged_event_golden_lines_verify_with_the_golden_session_key():
@@ -274,14 +251,7 @@ def test_tagged_event_golden_lines_verify_with_the_golden_session_key():
         msg = _record_from_json(_class(case["class"]), case["kwargs"])
         assert auth.verify_event(msg, session_key, msg.session_counter - 1) == msg.session_counter
         # docs/protocol.md section 5: the signed-request formula, truncated to 16 bytes.
-        body = dict(cbor2.loads(msg.to_body()))
-        del body[m.SESSION_TAG_KEY]
-        data = (
-            msg.session_counter.to_bytes(8, "little")
-            + bytes([int(msg.TYPE)])
-            + cbor2.dumps(body, canonical=True)
-        )
-        assert hmac.new(session_key, data, hashlib.sha256).digest()[:16] == msg.session_tag
+        assert _hand_tag(msg, session_key)[:16] == msg.session_tag
 
 
 # --------------------------------------------------------------------------- docs

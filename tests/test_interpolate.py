@@ -379,6 +379,16 @@ def test_manifest_round_trip_is_bit_identical(which, codec, grid_pair, fib_set):
     np.testing.assert_array_equal(again(q_phi, q_theta), host(q_phi, q_theta))
 
 
+def _refused_when_mutated(interpolator, mutate, message: str) -> None:
+    """``interpolator``'s manifest (its lists copied), changed by ``mutate``, is refused with
+    an `InterpolationError` matching ``message``."""
+    manifest = interpolator.to_manifest()
+    manifest = {k: list(v) if isinstance(v, list) else v for k, v in manifest.items()}
+    mutate(manifest)
+    with pytest.raises(InterpolationError, match=message):
+        interpolator_from_manifest(manifest)
+
+
 @pytest.mark.parametrize(
     ("mutate", "message"),
     [
@@ -395,11 +405,7 @@ def test_manifest_round_trip_is_bit_identical(which, codec, grid_pair, fib_set):
     ],
 )
 def test_malformed_triangle_manifests_are_refused(mutate, message, fib_set):
-    manifest = fib_set[3].to_manifest()
-    manifest = {k: list(v) if isinstance(v, list) else v for k, v in manifest.items()}
-    mutate(manifest)
-    with pytest.raises(InterpolationError, match=message):
-        interpolator_from_manifest(manifest)
+    _refused_when_mutated(fib_set[3], mutate, message)
 
 
 @pytest.mark.parametrize(
@@ -417,11 +423,7 @@ def test_malformed_triangle_manifests_are_refused(mutate, message, fib_set):
     ],
 )
 def test_malformed_grid_manifests_are_refused(mutate, message, grid_pair):
-    manifest = grid_pair[0].to_manifest()
-    manifest = {k: list(v) if isinstance(v, list) else v for k, v in manifest.items()}
-    mutate(manifest)
-    with pytest.raises(InterpolationError, match=message):
-        interpolator_from_manifest(manifest)
+    _refused_when_mutated(grid_pair[0], mutate, message)
     assert issubclass(InterpolationError, ValueError)
 
 

@@ -7,6 +7,7 @@ import json
 import cbor2
 import numpy as np
 import pytest
+from cli_helpers import render_tooth, run_cli
 
 from device_runtime.interpolation import (
     GridCubicInterpolator,
@@ -178,20 +179,9 @@ def test_unknown_methods_are_refused_not_guessed(cubic_set):
 # fit --interpolation, and the device's standalone mode with a bicubic manifest
 
 
-def _cli(*args, check=True):
-    import subprocess
-    import sys
-
-    return subprocess.run([sys.executable, "-m", "host.cli", *args], capture_output=True,
-                           text=True, check=check)
-
-
 @pytest.fixture(scope="module")
 def tiny_grid_db(tmp_path_factory):
-    db = tmp_path_factory.mktemp("cubic") / "t.cdb"
-    _cli("render", "builtin:tooth", "-o", str(db), "--views", "grid:12x4", "--size", "24",
-         "--samples", "60")
-    return db
+    return render_tooth(tmp_path_factory.mktemp("cubic") / "t.cdb", "grid:12x4", 24, 60)
 
 
 def test_fit_interpolation_option_and_standalone_device_agree(tiny_grid_db, tmp_path):
@@ -199,8 +189,8 @@ def test_fit_interpolation_option_and_standalone_device_agree(tiny_grid_db, tmp_
     from host.fit.model import HostModel
 
     out = tmp_path / "m.ecs"
-    _cli("fit", str(tiny_grid_db), "-o", str(out), "--cell", "12", "--threshold", "0.99",
-         "--standalone", "--interpolation", "bicubic", "--cache", str(tmp_path / "c"))
+    run_cli("fit", str(tiny_grid_db), "-o", str(out), "--cell", "12", "--threshold", "0.99",
+            "--standalone", "--interpolation", "bicubic", "--cache", str(tmp_path / "c"))
     model = HostModel.load(out)
     assert model.image.interpolation["method"] == "bicubic"
     assert model.interpolator.method_ == "bicubic"
@@ -222,10 +212,10 @@ def test_fit_interpolation_option_and_standalone_device_agree(tiny_grid_db, tmp_
 
 def test_fit_refuses_a_grid_method_on_scattered_views_in_one_line(tmp_path):
     db = tmp_path / "f.cdb"
-    _cli("render", "builtin:tooth", "-o", str(db), "--views", "fibonacci:30", "--size", "24",
-         "--samples", "60")
-    res = _cli("fit", str(db), "-o", str(tmp_path / "m.ecs"), "--cell", "12",
-               "--interpolation", "bicubic", "--cache", str(tmp_path / "c"), check=False)
+    run_cli("render", "builtin:tooth", "-o", str(db), "--views", "fibonacci:30", "--size", "24",
+            "--samples", "60")
+    res = run_cli("fit", str(db), "-o", str(tmp_path / "m.ecs"), "--cell", "12",
+                  "--interpolation", "bicubic", "--cache", str(tmp_path / "c"), check=False)
     assert res.returncode == 1
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "bicubic" in lines[-1] and "grid" in lines[-1]

@@ -329,6 +329,13 @@ def _open_session(url: str, key=KEY, *, auth: bool = True) -> HostSession:
     return session
 
 
+def _say_hello(session: HostSession) -> m.HelloReply:
+    """HELLO at this protocol version, and nothing more (no AUTH): the device's reply."""
+    version = m.PROTOCOL_VERSION
+    return session.link.request(m.Hello(min_version=version, max_version=version,
+                                        nonce=bytes(16)))
+
+
 def test_no_common_protocol_version_is_one_clear_error(device):
     url, _ = device()
     link = Link(open_transport(url, timeout_s=5), owns_transport=True).start()
@@ -355,8 +362,7 @@ def test_unauthenticated_signed_request_is_refused_not_authenticated(device):
     url, _ = device()
     session = _open_session(url, auth=False)
     try:
-        session.link.request(m.Hello(min_version=m.PROTOCOL_VERSION,
-                                     max_version=m.PROTOCOL_VERSION, nonce=bytes(16)))
+        _say_hello(session)
         with pytest.raises(RemoteNotAuthenticated):
             session.link.request(m.ImageAbort(), retries=0)
     finally:
@@ -545,27 +551,31 @@ def test_image_signed_with_another_key_is_refused_at_verify(device, tmp_path):
     assert store.status()["journal"] is None  # and the transfer was discarded
 
 
+def _refused_by_host_and_device(path, url: str, host_match: str, remote: type[Exception],
+                                remote_match: str | None = None) -> Exception:
+    """Provisioning ``path`` to ``url`` is refused twice: by the host's precheck (a
+    `ProvisionError` matching ``host_match``) and, with the precheck off, by the device
+    (``remote``, matching ``remote_match``); the device's error."""
+    with pytest.raises(ProvisionError, match=host_match):
+        provision(path, url, ProvisionOptions(key=KEY, show_progress=False), QUIET)
+    with pytest.raises(remote, match=remote_match) as info:
+        provision(path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
+                  QUIET)
+    return info.value
+
+
 def test_ram_budget_is_enforced_by_host_and_device(device, model):
     path, _ = model
     url, _ = device(ram_budget_bytes=1 << 20)
-    with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_RAM"):
-        provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
-                  QUIET)
-    with pytest.raises(RemoteTooLargeForRam, match=r"budget is 1048576") as info:
-        provision(path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
-                  QUIET)
-    assert info.value.detail["limit_bytes"] == 1 << 20
+    error = _refused_by_host_and_device(path, url, "TOO_LARGE_FOR_RAM", RemoteTooLargeForRam,
+                                        r"budget is 1048576")
+    assert error.detail["limit_bytes"] == 1 << 20
 
 
 def test_flash_size_is_enforced_by_host_and_device(device, model):
     path, _ = model
     url, _ = device(slot_size_bytes=100_000)
-    with pytest.raises(ProvisionError, match="TOO_LARGE_FOR_FLASH"):
-        provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
-                  QUIET)
-    with pytest.raises(RemoteTooLargeForFlash):
-        provision(path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
-                  QUIET)
+    _refused_by_host_and_device(path, url, "TOO_LARGE_FOR_FLASH", RemoteTooLargeForFlash)
 
 
 def test_unsupported_format_version_is_refused(device, model):
@@ -632,12 +642,8 @@ def test_a_decompression_bomb_manifest_is_refused_before_anything_is_inflated(de
     bomb_path.write_bytes(_bomb(image))
     url, _ = device()
     # the host's file validation (the one view/serve use) refuses it before connecting
-    with pytest.raises(ProvisionError, match=r"over the limit.*nothing was installed"):
-        provision(bomb_path, url, ProvisionOptions(key=KEY, show_progress=False),
-                  QUIET)
-    with pytest.raises(RemoteTooLargeForRam):
-        provision(bomb_path, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
-                  QUIET)
+    _refused_by_host_and_device(bomb_path, url, r"over the limit.*nothing was installed",
+                                RemoteTooLargeForRam)
     # The device is still fine and takes the honest image.
     assert provision(path, url, ProvisionOptions(key=KEY, show_progress=False),
                      QUIET).outcome == "installed"
@@ -650,12 +656,7 @@ def test_rollback_is_refused_unless_forced_and_known_images_are_activated(device
     url, dev = device()
     assert provision(v2, url, ProvisionOptions(key=KEY, show_progress=False),
                      QUIET).outcome == "installed"
-    with pytest.raises(ProvisionError, match="ROLLBACK_REFUSED"):
-        provision(v1, url, ProvisionOptions(key=KEY, show_progress=False),
-                  QUIET)
-    with pytest.raises(RemoteRollbackRefused):
-        provision(v1, url, ProvisionOptions(key=KEY, precheck=False, show_progress=False),
-                  QUIET)
+    _refused_by_host_and_device(v1, url, "ROLLBACK_REFUSED", RemoteRollbackRefused)
     forced = provision(v1, url, ProvisionOptions(key=KEY, force=True, show_progress=False),
                        QUIET)
     assert forced.outcome == "installed" and forced.slot == "B"
@@ -709,9 +710,7 @@ def test_hello_reply_before_auth_hides_slots_and_budgets(tmp_path, model, device
               QUIET)
     raw = _open_session(url, auth=False)
     try:
-        version = m.PROTOCOL_VERSION
-        hello = raw.link.request(m.Hello(min_version=version, max_version=version,
-                                         nonce=bytes(16)))
+        hello = _say_hello(raw)
         # what starting a session needs, nothing about the installed images or budgets
         assert hello.has_key and hello.device_id == dev.config.device_id
         assert hello.max_frame_bytes >= 1024 and hello.rx_window_frames >= 1
@@ -735,9 +734,7 @@ def test_hello_reply_before_auth_hides_slots_and_budgets(tmp_path, model, device
     url2, _ = device(key=None, insecure=True)
     raw = _open_session(url2, key=None, auth=False)
     try:
-        version = m.PROTOCOL_VERSION
-        hello = raw.link.request(m.Hello(min_version=version, max_version=version,
-                                         nonce=bytes(16)))
+        hello = _say_hello(raw)
         assert len(hello.slots) == 2 and hello.ram_budget_bytes > 0
     finally:
         raw.link.close()
@@ -790,9 +787,7 @@ def test_auth_deadline_drops_a_hello_and_ping_hog(tmp_path):
                       auth_timeout_s=0.5) as dev:
         hog = _open_session(_tcp(dev), auth=False)
         try:
-            version = m.PROTOCOL_VERSION
-            hog.link.request(m.Hello(min_version=version, max_version=version,
-                                     nonce=bytes(16)))
+            _say_hello(hog)
             pings = 0
             deadline = time.monotonic() + 10
             while not hog.link.closed and time.monotonic() < deadline:
@@ -815,9 +810,7 @@ def test_a_host_gets_in_beside_an_unauthenticated_connection(tmp_path, model):
                       auth_timeout_s=600) as dev:
         hog = _open_session(_tcp(dev), auth=False)
         try:
-            version = m.PROTOCOL_VERSION
-            hog.link.request(m.Hello(min_version=version, max_version=version,
-                                     nonce=bytes(16)))
+            _say_hello(hog)
             result = provision(path, _tcp(dev), ProvisionOptions(key=KEY, show_progress=False),
                                QUIET)
             assert result.outcome == "installed" and result.confirmed
@@ -836,9 +829,7 @@ def test_the_lobby_is_paused_while_a_host_is_served(tmp_path):
                       auth_timeout_s=2.0) as dev:
         peer = _open_session(_tcp(dev), auth=False)
         try:
-            version = m.PROTOCOL_VERSION
-            peer.link.request(m.Hello(min_version=version, max_version=version,
-                                      nonce=bytes(16)))
+            _say_hello(peer)
             host = _open_session(_tcp(dev))
             threading.Event().wait(2.5)  # the session outlasts the peer's deadline
             host.ping(timeout_s=1.0)
@@ -897,9 +888,7 @@ def test_a_signed_request_with_an_added_handler_still_needs_authentication(tmp_p
         dev.device.on(m.MessageType.RESET, lambda msg, frame: calls.append(msg) or m.Ok())
         raw = _open_session(_tcp(dev), auth=False)
         try:
-            version = m.PROTOCOL_VERSION
-            raw.link.request(m.Hello(min_version=version, max_version=version,
-                                     nonce=bytes(16)))
+            _say_hello(raw)
             with pytest.raises(RemoteNotAuthenticated):
                 raw.link.request(m.Reset(), timeout_s=2.0, retries=0)
             assert calls == []

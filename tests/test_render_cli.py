@@ -4,67 +4,41 @@ from __future__ import annotations
 
 import csv
 import os
-import signal
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import CLI, kill_render_halfway, png_count, run_cli, snapshot
 from PIL import Image
 
 from host.render.cinema import CinemaDB
 
-CLI = [sys.executable, "-m", "host.cli"]
 SMALL = ["--size", "40", "--samples", "150"]
-
-
-def _run(*args, check=True):
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, check=check)
-
-
-def _png_count(db: Path) -> int:
-    return sum(1 for p in (db / "images").glob("view_*.png"))
-
-
-def _snapshot(db: Path) -> dict[str, bytes]:
-    files = {p.relative_to(db).as_posix(): p.read_bytes() for p in db.rglob("*") if p.is_file()}
-    return files
 
 
 def test_killed_render_resumes_to_the_same_database(tmp_path):
     views = "grid:30x6"  # 180 views: long enough to be caught halfway
     ref, resumed = tmp_path / "ref.cdb", tmp_path / "resumed.cdb"
-    _run("render", "builtin:tooth", "-o", str(ref), "--views", views, *SMALL)
+    run_cli("render", "builtin:tooth", "-o", str(ref), "--views", views, *SMALL)
 
-    proc = subprocess.Popen([*CLI, "render", "builtin:tooth", "-o", str(resumed),
-                             "--views", views, *SMALL],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while not (resumed / "images").exists() or _png_count(resumed) < 20:
-        assert proc.poll() is None, "render finished before it could be interrupted"
-        assert time.monotonic() < deadline, "render made no progress"
-        time.sleep(0.005)  # polling a condition, not waiting out a race
-    proc.send_signal(signal.SIGSTOP)
-    written = _png_count(resumed)
-    proc.kill()
-    proc.wait()
+    written = kill_render_halfway(["render", "builtin:tooth", "-o", str(resumed),
+                                   "--views", views, *SMALL], resumed, 20)
     assert 20 <= written < 180
     # whatever the kill left must already be a consistent (partial) database
     if (resumed / "data.csv").exists():
         partial = CinemaDB.open(resumed)
         assert partial.n_views <= written
 
-    out = _run("render", "builtin:tooth", "-o", str(resumed), "--views", views, *SMALL)
+    out = run_cli("render", "builtin:tooth", "-o", str(resumed), "--views", views, *SMALL)
     assert "resuming" in out.stderr
-    assert _snapshot(resumed) == _snapshot(ref)
+    assert snapshot(resumed) == snapshot(ref)
 
 
 def test_render_database_layout_and_sidecar(tmp_path):
     db = tmp_path / "t.cdb"
-    _run("render", "builtin:head", "-o", str(db), "--views", "list:0,0;90,30;180,-30",
-         *SMALL)
+    run_cli("render", "builtin:head", "-o", str(db), "--views", "list:0,0;90,30;180,-30",
+            *SMALL)
     opened = CinemaDB.open(db)
     assert opened.n_views == 3 and opened.image_shape == (40, 40)
     np.testing.assert_allclose(opened.phi_deg, [0, 90, 180])
@@ -83,7 +57,7 @@ def test_render_database_layout_and_sidecar(tmp_path):
 
 def test_render_view_writes_one_png(tmp_path):
     out = tmp_path / "one.png"
-    _run("render-view", "builtin:tooth", "--phi", "30", "--theta", "10", "-o", str(out), *SMALL)
+    run_cli("render-view", "builtin:tooth", "--phi", "30", "--theta", "10", "-o", str(out), *SMALL)
     assert Image.open(out).size == (40, 40)
 
 
@@ -104,7 +78,7 @@ def test_render_view_says_in_one_line_which_transfer_function_and_why(tmp_path):
         (["builtin:tooth"], "transfer function tooth for modality tooth (from the built-in "
                             "volume), window"),
     ]:
-        res = _run("render-view", *args, "-o", str(tmp_path / "one.png"), *SMALL)
+        res = run_cli("render-view", *args, "-o", str(tmp_path / "one.png"), *SMALL)
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(expected), res.stderr
 
@@ -140,7 +114,7 @@ def test_a_nii_gz_with_overwritten_bytes_is_one_line_and_writes_nothing(tmp_path
     blob[5000:8000] = bytes(3000)
     path.write_bytes(bytes(blob))
     out = tmp_path / ("out.png" if command == "render-view" else "out.cdb")
-    res = _run(command, str(path), "-o", str(out), *SMALL, check=False)
+    res = run_cli(command, str(path), "-o", str(out), *SMALL, check=False)
     assert res.returncode == 1, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "corrupt compressed data" in lines[0] and "CRC" in lines[0]
@@ -153,7 +127,7 @@ def test_a_truncated_tiff_is_exactly_one_line(tmp_path):
     path = tmp_path / "stack.tif"
     tifffile.imwrite(path, (np.arange(16 * 32 * 32) % 251).astype(np.uint8).reshape(16, 32, 32))
     path.write_bytes(path.read_bytes()[:-100])
-    res = _run("render-view", str(path), "-o", str(tmp_path / "o.png"), *SMALL, check=False)
+    res = run_cli("render-view", str(path), "-o", str(tmp_path / "o.png"), *SMALL, check=False)
     assert res.returncode == 1, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "stack.tif" in lines[0] and "truncated" in lines[0], res.stderr
@@ -192,12 +166,12 @@ def test_the_sidecar_records_an_absolute_volume_path_and_old_relative_ones_resum
     old = json.loads(sidecar.read_text())
     old["volume"]["source"] = "volumes/cube.mha"
     sidecar.write_text(json.dumps(old, indent=2, sort_keys=True) + "\n")
-    before = _png_count(db)
+    before = png_count(db)
     (db / "images" / "view_00000.png").unlink()
     run = subprocess.run([*CLI, "render", "./volumes/../volumes/cube.mha", "-o", str(db),
                           *views], capture_output=True, text=True, cwd=tmp_path)
     assert run.returncode == 0, run.stderr
-    assert _png_count(db) == before
+    assert png_count(db) == before
     assert json.loads(sidecar.read_text())["volume"]["source"] == recorded
     # a really different volume is still refused
     write_mha(vol_dir / "other.mha", data[:, :, ::-1].copy() // 2)

@@ -12,35 +12,20 @@ import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, DeviceProcess, mem_name
-from runtime_helpers import RuntimeThread, wait_until
+from runtime_helpers import RuntimeThread, provisioned_device, wait_until
 
 from device_runtime.device import DeviceConfig
 from device_runtime.orbit import canonical_view
-from host.cli import main as eigencast
 from host.fit.model import HostModel
 from host.link.layers import EncodedLayer, RestPlanner, object_ssim
 from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, ServeParts
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
-from protocol.keys import write_key
 
 
 def _quiet(line: str) -> None:
     pass
-
-
-@pytest.fixture(scope="module")
-def depth_model_path(tmp_path_factory):
-    """A signed tooth model with depth and the standalone table (the defaults), 48 px."""
-    root = tmp_path_factory.mktemp("rest-exact")
-    db, out, key = root / "tooth.cdb", root / "tooth.ecs", root / "device.key"
-    write_key(key, KEY, force=True)
-    assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "grid:24x6",
-                      "--size", "48", "--samples", "80"]) == 0
-    assert eigencast(["fit", str(db), "-o", str(out), "--cell", "12", "--threshold", "0.99",
-                      "--key", str(key)]) == 0
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +52,22 @@ def _serving(url: str, model_path, stop: threading.Event, sent: list, **kwargs):
     return thread, out
 
 
+def _serve_until_exact(device: RuntimeThread, shown: list, url: str, model_path, view,
+                       timeout_s: float) -> None:
+    """Run ``device`` resting on ``view`` and serve ``model_path`` to it on ``url`` until the
+    frames it ``shown`` include the exact frame of ``view``; then stop both."""
+    stop, sent = threading.Event(), []
+    with device:
+        device.device.set_view(*view)
+        thread, _ = _serving(url, model_path, stop, sent)
+        try:
+            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
+                                   for _, i in shown), timeout_s, "the exact frame")
+        finally:
+            stop.set()
+            thread.join(30)
+
+
 def _perturbed(frame: np.ndarray, seed: int) -> np.ndarray:
     """``frame`` as another CPU's float32 arithmetic may leave it (docs/protocol.md): a level
     off on a tenth of the pixels, up to 8 on one in a hundred."""
@@ -87,10 +88,7 @@ def test_a_resting_view_ends_the_ray_cast_bit_for_bit_over_the_serial_line(
     view: the old view's layers stop, and the new view ends exact too."""
     name = mem_name(f"exact-{cpu}")
     shown: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown)
     views = [canonical_view(47.0, 23.0), canonical_view(200.0, -31.0)]
     stop, sent = threading.Event(), []
     with device:
@@ -132,22 +130,10 @@ def test_a_noisy_line_still_ends_exact(tmp_path, depth_model_path, truth_of):
     still ends exactly the ray-cast."""
     name = mem_name("noisy")
     shown: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0")
     view = canonical_view(130.0, -20.0)
-    stop, sent = threading.Event(), []
-    with device:
-        device.device.set_view(*view)
-        thread, _ = _serving(f"mem://{name}?end=a&ber=4e-5&seed=3", depth_model_path, stop,
-                             sent)
-        try:
-            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
-                                   for _, i in shown), 180, "the exact frame")
-        finally:
-            stop.set()
-            thread.join(30)
+    _serve_until_exact(device, shown, f"mem://{name}?end=a&ber=4e-5&seed=3", depth_model_path,
+                       view, 180)
     frame = next(f for f, i in reversed(shown) if i.get("exact"))
     np.testing.assert_array_equal(frame, truth_of(view))
 
@@ -162,10 +148,7 @@ def test_a_lost_chunk_of_the_exact_layer_is_asked_for_again(tmp_path, depth_mode
 
     name = mem_name("lost")
     shown: list = []
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0")
     runtime = device.device
     receive = runtime.on_scores
     lost: list = []
@@ -182,16 +165,7 @@ def test_a_lost_chunk_of_the_exact_layer_is_asked_for_again(tmp_path, depth_mode
 
     runtime.on_scores = on_scores
     view = canonical_view(222.0, 33.0)
-    stop, sent = threading.Event(), []
-    with device:
-        runtime.set_view(*view)
-        thread, _ = _serving(f"mem://{name}?end=a", depth_model_path, stop, sent)
-        try:
-            wait_until(lambda: any(i.get("exact") and (i["phi_deg"], i["theta_deg"]) == view
-                                   for _, i in shown), 120, "the exact frame")
-        finally:
-            stop.set()
-            thread.join(30)
+    _serve_until_exact(device, shown, f"mem://{name}?end=a", depth_model_path, view, 120)
     assert lost and runtime.runtime_stats.layer_retries >= 1
     frame = next(f for f, i in reversed(shown) if i.get("exact"))
     np.testing.assert_array_equal(frame, truth_of(view))
@@ -305,11 +279,8 @@ def test_a_correction_larger_than_the_devices_frames_costs_its_view_not_the_sess
     name = mem_name("small-frames")
     shown: list = []
     config = DeviceConfig(flash_dir=tmp_path / "flash", key=KEY, max_frame_bytes=1024)
-    device = RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b", predict=True,
-                           config=config,
-                           on_frame=lambda f, info: shown.append((f.copy(), dict(info))))
-    provision(depth_model_path, f"mem://{name}?end=a&pace=0",
-              ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
+    device = provisioned_device(tmp_path, name, depth_model_path, shown, host_query="&pace=0",
+                                config=config)
     view = canonical_view(47.0, 23.0)
     stop, sent = threading.Event(), []
     lines: list[str] = []

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 from provision_helpers import KEY
-from runtime_helpers import tiny_model
+from runtime_helpers import FakeClock, tiny_model
 
 from device_runtime.device import DeviceConfig
 from device_runtime.display import ViewDelta
@@ -26,14 +26,6 @@ TICK_S = 1.0 / 30.0
 @pytest.fixture(scope="module")
 def depth_image(tmp_path_factory):
     return read_image(tiny_model(tmp_path_factory, name="tiny-depth", depth=True), key=KEY)
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 class SlowWorker:
@@ -83,7 +75,7 @@ def test_a_warp_that_takes_three_ticks_never_holds_the_display(depth_image, tmp_
     """With a fake clock and a warp that is ready 3 ticks after it is asked: a drag shows the
     blend of every view on its own tick, and once the view rests its warp follows 3 ticks
     later; in between the last frame stays. Every turn returns at once (never waits)."""
-    clock, shown = FakeClock(), []
+    clock, shown = FakeClock(1000.0), []
     device, model = _device(depth_image, tmp_path, clock, standalone=standalone, shown=shown)
     blend = Reconstructor.from_image(depth_image)
     on_screen = []  # per tick: (view, kind) of the frame on show at the end of the tick

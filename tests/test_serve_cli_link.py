@@ -50,18 +50,26 @@ def test_serve_to_a_port_where_nothing_listens_is_one_line(model_path):
     assert "reconnecting" not in run.stderr and run.stdout == "", run.stdout
 
 
+def _provision_and_serve(device: DeviceProcess, model_path,
+                         *args: str) -> tuple[subprocess.Popen, str]:
+    """Provision ``model_path`` onto ``device`` and start ``eigencast serve`` to it (more
+    ``args``); once it streams, the process and the first line it logged."""
+    provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
+              ProvisionParts(log=_quiet))
+    serving = subprocess.Popen(
+        [*CLI, "serve", str(model_path), "--port", device.url, "--key",
+         str(key_file(model_path)), *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+    first = serving.stderr.readline()  # "serving tooth.ecs to device ..." once it streams
+    assert "serving" in first, first
+    return serving, first
+
+
 def test_duration_holds_while_reconnecting(tmp_path, model_path):
     """A device killed mid-session: serve reconnects, and stops when --duration is over."""
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     try:
-        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
-                  ProvisionParts(log=_quiet))
-        serving = subprocess.Popen(
-            [*CLI, "serve", str(model_path), "--port", device.url, "--key",
-             str(key_file(model_path)), "--duration", "4"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
-        first = serving.stderr.readline()  # "serving tooth.ecs to device ..." once it streams
-        assert "serving" in first, first
+        serving, first = _provision_and_serve(device, model_path, "--duration", "4")
     finally:
         device.kill()
     try:
@@ -188,14 +196,7 @@ def test_ctrl_c_ends_serve_with_130_after_its_summary(tmp_path, model_path):
     exited 0)."""
     device = DeviceProcess(tmp_path / "flash", "--headless", key_file=key_file(model_path))
     try:
-        provision(model_path, device.url, ProvisionOptions(key=KEY, show_progress=False),
-                  ProvisionParts(log=_quiet))
-        serving = subprocess.Popen(
-            [*CLI, "serve", str(model_path), "--port", device.url, "--key",
-             str(key_file(model_path))],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
-        first = serving.stderr.readline()  # "serving tooth.ecs to device ..." once it streams
-        assert "serving" in first, first
+        serving, first = _provision_and_serve(device, model_path)
         serving.send_signal(signal.SIGINT)
         try:
             out, err = serving.communicate(timeout=60)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 from provision_helpers import KEY, mem_name
-from runtime_helpers import RuntimeThread, read_frames, serve_cli, wait_until
+from runtime_helpers import FakeClock, RuntimeThread, read_frames, serve_cli, wait_until
 
 from device_runtime.runtime import canonical_view, parse_orbit
 from host.fit.motion import BUDGET_SHARE, PROBE_EVERY, MotionScores, angle_between
@@ -28,18 +28,10 @@ def _quiet(line: str) -> None:
     pass
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 class _SlowRays:
     """The real ray-caster, charging ``per_ray`` seconds of a fake clock per ray cast."""
 
-    def __init__(self, inner, clock: _Clock, per_ray: float) -> None:
+    def __init__(self, inner, clock: FakeClock, per_ray: float) -> None:
         self.inner, self.clock, self.per_ray = inner, clock, per_ray
 
     def render_pixels(self, camera, width, height, rows, cols):
@@ -54,7 +46,7 @@ class _SlowRays:
 
 
 class _SlowRenderer:
-    def __init__(self, renderer, clock: _Clock, per_ray: float) -> None:
+    def __init__(self, renderer, clock: FakeClock, per_ray: float) -> None:
         self.settings = renderer.settings
         self.image_shape = renderer.image_shape
         self.renderer = _SlowRays(renderer.renderer, clock, per_ray)
@@ -69,7 +61,7 @@ def test_a_slower_renderer_gets_sparser_frames_that_still_fit_the_budget(model, 
     budget = 0.05
     strides = {}
     for per_ray in (1e-6, 2e-4):  # a full frame: a fraction of the budget / several budgets
-        clock = _Clock()
+        clock = FakeClock()
         source = MotionScores(model, _SlowRenderer(renderer, clock, per_ray), budget_s=budget,
                               clock=clock)
         frames = _drag(source, 6)
@@ -87,7 +79,7 @@ def test_a_slower_renderer_gets_sparser_frames_that_still_fit_the_budget(model, 
 
 
 def test_a_host_too_slow_for_any_stride_sends_the_prior_and_probes_again(model, renderer):
-    clock = _Clock()
+    clock = FakeClock()
     source = MotionScores(model, _SlowRenderer(renderer, clock, 1e-2), budget_s=0.05,
                           clock=clock)
     frames = _drag(source, 2 + PROBE_EVERY)
@@ -111,7 +103,7 @@ def test_a_full_stride_frame_is_the_projection(model, renderer):
 
 
 def test_a_resting_view_converges_to_the_projection(model, renderer):
-    clock = _Clock()
+    clock = FakeClock()
     source = MotionScores(model, _SlowRenderer(renderer, clock, 1e-4), strides=(4,),
                           budget_s=0.05, clock=clock, coarse=1.0)
     view = canonical_view(101.0, -12.0)

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 from host.evaluate import DevicePath, structural_similarity
 from host.evaluate.target import (
@@ -28,12 +27,6 @@ from host.fit.model import (
 from host.render.cinema import CinemaDB
 from host.render.settings import RenderSettings, ViewRenderer
 from protocol.image import read_image
-
-CLI = [sys.executable, "-m", "host.cli"]
-
-
-def _run(*args, check=True):
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, check=check)
 
 
 @pytest.fixture(scope="module")
@@ -182,8 +175,8 @@ def test_search_with_components_for_cell_models(tooth_db, heldout):
 
 def test_fit_target_cli_writes_the_chosen_model(tooth_db, tmp_path):
     out = tmp_path / "auto.ecs"
-    res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "ssim=0.8",
-               "--holdout", "random:6:2")
+    res = run_cli("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "ssim=0.8",
+                  "--holdout", "random:6:2")
     assert "<- chosen" in res.stdout and "wrote" in res.stdout
     image = read_image(out)
     target = image.provenance["target"]
@@ -197,18 +190,18 @@ def test_fit_target_cli_writes_the_chosen_model(tooth_db, tmp_path):
 
 def test_fit_target_with_a_test_database(tooth_db, tmp_path):
     test_db = tmp_path / "test.cdb"
-    _run("render", "builtin:tooth", "-o", str(test_db), "--views", "random:5:9", "--size", "40",
-         "--samples", "120")
+    run_cli("render", "builtin:tooth", "-o", str(test_db), "--views", "random:5:9", "--size", "40",
+            "--samples", "120")
     out = tmp_path / "t.ecs"
-    res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
-               "--test-db", str(test_db))
+    res = run_cli("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
+                  "--test-db", str(test_db))
     assert "test database" in res.stdout
     assert read_image(out).provenance["target"]["holdout"].startswith("test database")
     other = tmp_path / "other.cdb"
-    _run("render", "builtin:tooth", "-o", str(other), "--views", "random:3", "--size", "40",
-         "--samples", "60")
-    res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
-               "--test-db", str(other), check=False)
+    run_cli("render", "builtin:tooth", "-o", str(other), "--views", "random:3", "--size", "40",
+            "--samples", "60")
+    res = run_cli("fit", str(tooth_db), "-o", str(out), "--cell", "16", "--target", "flip=0.2",
+                  "--test-db", str(other), check=False)
     assert res.returncode == 1 and "renderer differ" in res.stderr
 
 
@@ -217,8 +210,8 @@ def test_fit_target_falls_back_to_own_views_without_render_settings(tooth_db, tm
     shutil.copytree(tooth_db, foreign, ignore=shutil.ignore_patterns(".eigencast-cache"))
     (foreign / "eigencast.json").unlink()
     out = tmp_path / "f.ecs"
-    res = _run("fit", str(foreign), "-o", str(out), "--method", "cell", "--cell", "20",
-               "--components", "10", "--target", "flip=0.3", "--holdout", "random:8")
+    res = run_cli("fit", str(foreign), "-o", str(out), "--method", "cell", "--cell", "20",
+                  "--components", "10", "--target", "flip=0.3", "--holdout", "random:8")
     assert "held out of" in res.stdout
     image = read_image(out)
     assert image.provenance["target"]["refitted_on_all_views"] is True
@@ -232,7 +225,7 @@ def test_fit_target_errors_are_one_line(tooth_db, tmp_path):
         (["--target", "ssim=0.99999", "--holdout", "random:4"], "best held-out ssim"),
         (["--test-db", str(tmp_path / "none.cdb")], "only with --target"),
     ]:
-        res = _run("fit", str(tooth_db), "-o", str(out), "--cell", "16", *args, check=False)
+        res = run_cli("fit", str(tooth_db), "-o", str(out), "--cell", "16", *args, check=False)
         assert res.returncode == 1, res.stderr
         lines = res.stderr.strip().splitlines()
         assert message in lines[-1] and "Traceback" not in res.stderr

@@ -136,6 +136,15 @@ def test_known_dataset_fixes_are_rotations_not_mirrors():
 # --------------------------------------------------------------------------
 
 
+def _assert_round_trip(write, path, dtype: str, spacing: tuple) -> None:
+    """A small ``dtype`` volume written by ``write`` at ``path`` with ``spacing`` loads back
+    as it was, with that spacing."""
+    src = small_volume(dtype, SHAPE)
+    vol = load_volume(write(path, src, spacing))
+    np.testing.assert_array_equal(vol.data, src)
+    assert vol.spacing == spacing
+
+
 @pytest.mark.parametrize("dtype", ["uint8", "uint16", "int16", "float32"])
 @pytest.mark.parametrize("endian", ["little", "big"])
 def test_raw_round_trip(tmp_path, dtype, endian):
@@ -168,10 +177,7 @@ def test_mhd_round_trip(tmp_path, compressed, big_endian):
 
 
 def test_mha_local_round_trip(tmp_path):
-    src = small_volume("float32", SHAPE)
-    vol = load_volume(write_mha(tmp_path / "v.mha", src, (1.0, 2.0, 3.0)))
-    np.testing.assert_array_equal(vol.data, src)
-    assert vol.spacing == (1.0, 2.0, 3.0)
+    _assert_round_trip(write_mha, tmp_path / "v.mha", "float32", (1.0, 2.0, 3.0))
 
 
 def test_mhd_transform_matrix_reorients_to_ras(tmp_path):
@@ -293,10 +299,7 @@ def test_dicom_series_sorted_by_position_not_file_name(tmp_path):
 
 
 def test_dat_text_header_round_trip(tmp_path):
-    src = small_volume("uint16", SHAPE)
-    vol = load_volume(write_dat(tmp_path / "v.dat", src, (3.2, 3.2, 1.5)))
-    np.testing.assert_array_equal(vol.data, src)
-    assert vol.spacing == (3.2, 3.2, 1.5)
+    _assert_round_trip(write_dat, tmp_path / "v.dat", "uint16", (3.2, 3.2, 1.5))
 
 
 def test_dat_binary_tuwien_header(tmp_path):
@@ -308,10 +311,7 @@ def test_dat_binary_tuwien_header(tmp_path):
 
 @pytest.mark.parametrize("dtype", ["uint8", "uint16"])
 def test_pvm_round_trip(tmp_path, dtype):
-    src = small_volume(dtype, SHAPE)
-    vol = load_volume(write_pvm(tmp_path / "v.pvm", src, (0.5, 0.5, 1.0)))
-    np.testing.assert_array_equal(vol.data, src)
-    assert vol.spacing == (0.5, 0.5, 1.0)
+    _assert_round_trip(write_pvm, tmp_path / "v.pvm", dtype, (0.5, 0.5, 1.0))
 
 
 def test_orientation_override_wins_over_header(tmp_path):

@@ -67,6 +67,7 @@ __all__ = [
     "flip_error",
     "flip_error_map",
     "holdout_indices",
+    "json_safe",
     "level_ladder",
     "model_info",
     "nearest_training_view",

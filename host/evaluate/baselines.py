@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -126,6 +126,18 @@ def decode_image(data: bytes) -> np.ndarray:
         return np.asarray(im.convert("RGB"), dtype=np.uint8)
 
 
+def _bisect(lo: int, hi: int, below: Callable[[int], bool]) -> tuple[int, int]:
+    """Narrow ``lo < hi`` to neighbouring qualities by bisection, keeping ``below(lo)`` true
+    and ``below(hi)`` false (the search never asks ``below`` of ``lo`` or ``hi`` itself)."""
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if below(mid):
+            lo = mid
+        else:
+            hi = mid
+    return lo, hi
+
+
 def encode_within_budget(
     image: np.ndarray, budget_bytes: int, *, codec: str, hint: int | None = None
 ) -> CodedImage:
@@ -181,12 +193,7 @@ def encode_within_budget(
             while hi - step >= 1 and not fits(hi - step):
                 hi, step = hi - step, step * 2
             lo = max(lo, hi - step)
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if fits(mid):
-            lo = mid
-        else:
-            hi = mid
+    lo, hi = _bisect(lo, hi, fits)
     return at(max(lo, 1))
 
 class CodecLadder:
@@ -262,12 +269,7 @@ class CodecLadder:
                         lo = below
             else:
                 lo = hint
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if reaches(mid):
-                hi = mid
-            else:
-                lo = mid
+        lo, hi = _bisect(lo, hi, lambda q: not reaches(q))
         tried = [q for q in self._values if name in self._values[q] and reaches(q)]
         return min((self._files[q] for q in tried), key=lambda c: (c.size_bytes, c.quality))
 

@@ -233,7 +233,7 @@ class Evaluation:
         ]
         out["timing_s"] = dict(self.timing_s)
         out["per_view"] = self.views
-        return _json_safe(out)
+        return json_safe(out)
 
 
 def codec_equivalent(points: Sequence[dict], ssim: float, size: float) -> dict:
@@ -264,12 +264,12 @@ def codec_equivalent(points: Sequence[dict], ssim: float, size: float) -> dict:
     return out
 
 
-def _json_safe(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
     """Non-finite floats become None (strict JSON); numpy scalars become Python ones."""
     if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
