@@ -23,6 +23,7 @@ import contextlib
 import itertools
 import json
 import random
+import re
 import socket
 import subprocess
 import sys
@@ -127,6 +128,18 @@ class Target:
     settled: int | None = None
     """Packets decoded as of the end of the last :meth:`check` (nothing has reached the
     device since): saves :meth:`mark` a fresh read."""
+
+    def latest_confirmed(self) -> bool:
+        """Whether the device has said it showed and confirmed the image it committed last
+        (its first frame writes the slot's state record)."""
+        lines = list(self.device.lines)
+        commits = [re.search(r"commit: slot \w: image generation (\d+)", line) for line in lines]
+        last = max((i for i, c in enumerate(commits) if c), default=None)
+        if last is None:
+            return True
+        generation = commits[last].group(1)
+        return any(f"image generation {generation} shown and confirmed" in line
+                   for line in lines[last:])
 
     def mark(self) -> Mark:
         """Where the device is now: frames written, packets decoded."""
@@ -574,6 +587,9 @@ def test_replayed_authenticated_frames_are_not_shown_or_stored(targets, name, tm
         provision(image, target.host_url(),
                   ProvisionOptions(key=KEY, force=True, show_progress=False),
                   ProvisionParts(log=_quiet, transport_factory=factory(None)))
+    # the model's first frame confirms its slot (a state record write): wait for it, so that
+    # what is stored is compared after the device's own writes, not during them
+    wait_until(target.latest_confirmed, 30, "the model's slot confirmed")
     stored_after = flash_fingerprint(target.flash)
     captured = [wire for rec in recorders for t, wire in rec.frames
                 if t not in (m.MessageType.HELLO, m.MessageType.AUTH_CHALLENGE,
