@@ -99,6 +99,7 @@ __all__ = [
     "lighting_from_record",
     "resolve_lighting",
     "transmittance_at",
+    "trilinear_in_box",
 ]
 
 #: Version of the light field's algorithm (part of its cache key and its record).
@@ -349,8 +350,9 @@ def extinction_lut(tf_lut: np.ndarray, unit_mm: float) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _tri(u: np.ndarray, x: float, y: float, z: float) -> float:
-    """Trilinear ``u`` at index-space ``(x, y, z)`` inside the box (as the ray-caster's)."""
+def trilinear_in_box(u: np.ndarray, x: float, y: float, z: float) -> float:
+    """Trilinear ``u`` (nz, ny, nx) at index-space ``(x, y, z)``, which must lie inside the
+    box (the ray-caster's `_trilinear` clamps to it first)."""
     nz, ny, nx = u.shape
     i = min(int(x), nx - 2)
     j = min(int(y), ny - 2)
@@ -438,7 +440,7 @@ def _optical_depth_kernel(
                         )
                         m = max(m + 1, math.floor(t_block / step_mm - 0.5) + 1)
                         continue
-                    tpos = _tri(u, x, y, z) * (n_lut - 1)
+                    tpos = trilinear_in_box(u, x, y, z) * (n_lut - 1)
                     if not tpos > 0.0:
                         tpos = 0.0
                     elif tpos > n_lut - 1:
@@ -640,7 +642,7 @@ def _field_channel(field: np.ndarray, ch: int, i: int, j: int, k: int, fx: float
 def _sigma_at(u: np.ndarray, light: np.ndarray, x: float, y: float, z: float) -> float:
     """Extinction per mm at index-space ``(x, y, z)`` inside the box (LUT after the params)."""
     n_lut = light.shape[0] - KERNEL_PARAMS
-    tpos = _tri(u, x, y, z) * (n_lut - 1)
+    tpos = trilinear_in_box(u, x, y, z) * (n_lut - 1)
     if not tpos > 0.0:
         tpos = 0.0
     elif tpos > n_lut - 1:

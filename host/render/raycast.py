@@ -78,6 +78,7 @@ from host.render.lighting import (
     resolve_lighting,
     shade_world,
     transmittance_at,
+    trilinear_in_box,
 )
 from host.render.transfer import TransferFunction
 from host.volume import Volume
@@ -149,19 +150,7 @@ def _trilinear(u: np.ndarray, x: float, y: float, z: float) -> float:
     x = min(max(x, 0.0), nx - 1.0)
     y = min(max(y, 0.0), ny - 1.0)
     z = min(max(z, 0.0), nz - 1.0)
-    i = min(int(x), nx - 2)
-    j = min(int(y), ny - 2)
-    k = min(int(z), nz - 2)
-    fx = x - i
-    fy = y - j
-    fz = z - k
-    c00 = u[k, j, i] + fx * (u[k, j, i + 1] - u[k, j, i])
-    c10 = u[k, j + 1, i] + fx * (u[k, j + 1, i + 1] - u[k, j + 1, i])
-    c01 = u[k + 1, j, i] + fx * (u[k + 1, j, i + 1] - u[k + 1, j, i])
-    c11 = u[k + 1, j + 1, i] + fx * (u[k + 1, j + 1, i + 1] - u[k + 1, j + 1, i])
-    c0 = c00 + fy * (c10 - c00)
-    c1 = c01 + fy * (c11 - c01)
-    return c0 + fz * (c1 - c0)
+    return trilinear_in_box(u, x, y, z)
 
 
 @njit(cache=True, nogil=True)
