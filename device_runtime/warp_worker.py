@@ -229,6 +229,15 @@ class WarpWorker:
         time (within `AHEAD_TIME_TOL` of the interval), the view ``steps`` more steps on, by
         the least-squares line through them (its rounding averaged out: the device's views
         are float32), canonical. None: no steady motion."""
+        line = cls._motion_line(history)
+        return None if line is None else cls._on_line(line, steps)
+
+    @classmethod
+    def _motion_line(cls, history: list[tuple[float, float, float]]
+                     ) -> tuple[tuple[float, float, float], ...] | None:
+        """The least-squares line through ``history``'s angles (`predicted_view`): per
+        angle (phi unwrapped, theta) its intercept, slope and last requested value, with the
+        number of requests; None: no steady motion."""
         if len(history) < cls.AHEAD_VIEWS:
             return None
         t, phi, theta = (np.asarray(a, dtype=np.float64) for a in zip(*history))
@@ -243,10 +252,19 @@ class WarpWorker:
             slope, icpt = np.polyfit(k, a, 1)
             if np.abs(icpt + slope * k - a).max() > cls.AHEAD_ANGLE_TOL:
                 return None
-            out.append(icpt + slope * (len(a) - 1 + steps))
-        if abs(out[0] - phi[-1]) + abs(out[1] - theta[-1]) < 1e-6 * steps:
+            out.append((icpt, slope, a[-1]))
+        return (*out, (float(len(phi)), 0.0, 0.0))
+
+    @staticmethod
+    def _on_line(line: tuple[tuple[float, float, float], ...], steps: int
+                 ) -> tuple[float, float] | None:
+        """The view ``steps`` requests on along `_motion_line`'s ``line``, canonical; None
+        when the line does not move."""
+        (i_phi, s_phi, last_phi), (i_theta, s_theta, last_theta), (n, _, _) = line
+        phi, theta = i_phi + s_phi * (n - 1 + steps), i_theta + s_theta * (n - 1 + steps)
+        if abs(phi - last_phi) + abs(theta - last_theta) < 1e-6 * steps:
             return None  # not moving
-        return canonical_view(out[0], out[1])
+        return canonical_view(phi, theta)
 
     def snap(self, view: tuple[float, float]) -> tuple[float, float]:
         """``view``, or the view made (or being made) ahead when each angle is within
@@ -267,9 +285,10 @@ class WarpWorker:
         """Whether ``view`` lies ahead on the line of the steady motion requested (one to
         `LEAD_STEPS` steps on); under the lock, or read without it (a stale answer costs
         one warp)."""
-        history = list(self._history)
-        return any(v is not None and self.same_view(v, view) for v in (
-            self.predicted_view(history, k) for k in range(1, self.LEAD_STEPS + 1)))
+        line = self._motion_line(list(self._history))  # one fit for every step
+        return line is not None and any(
+            v is not None and self.same_view(v, view)
+            for v in (self._on_line(line, k) for k in range(1, self.LEAD_STEPS + 1)))
 
     def _lead_view(self) -> tuple[float, float] | None:
         """While requests come faster than a warp takes (a held view) on steady motion: the
