@@ -14,8 +14,10 @@ ray-cast's alpha) and cumulative bytes against the smallest WebP (method 6), AVI
 and JPEG of the ray-cast reaching the same object SSIM, and the exact step against the
 ray-cast's WebP lossless and optimized PNG files. The layers are planned unsplit (packets up
 to ``--packet-bytes``, default the planner's 64 KiB: one chunk at 256) and, for the chunk
-columns ("strips"), as ``serve`` splits each layer's file on each ``--splits`` packet size
-(2880: a 115200-baud line's quarter second; 16288: a TCP device's default 16 KiB frame).
+columns, as ``serve`` splits each layer's file on each ``--splits`` packet size (2880: a
+115200-baud line's quarter second; 16288: a TCP device's default 16 KiB frame); the exact
+layer of a frame over `protocol.layers.STRIP_PIXELS` goes in strips, as ``serve`` sends it
+to a device that reads them.
 
 **device**: on one core (the process pins itself to ``--cpu``, ``OPENBLAS_NUM_THREADS=1``,
 ``Reconstructor(threads=1)``), each layer's packets taken as the device's scheduler takes
@@ -23,7 +25,8 @@ them (`protocol.layers.decode_layer` and `LayerAssembly.add` per chunk; the whol
 `device_runtime.layers.decode_file` + `RestFrame.apply` with its last chunk), interleaved
 with the device's blend (`Reconstructor.update` of a moved view's interpolated scores,
 `StandaloneScores`); thread CPU time, median of ``--repeat``; the ratio layer / blend per
-layer (all its chunks) and for its costliest chunk (the one that decodes).
+layer (all its chunks and strips) and per *tick* (its costliest chunk: the one whose file
+decodes, which the device's scheduler takes in one display tick).
 
 Usage (one command; the figures of BENCHMARKS.md "Refinement layers at rest")::
 
@@ -254,7 +257,8 @@ def time_device(planned: dict[str, Any], cpu: int, repeat: int,
                                  max_packet_bytes=max(len(packet), 1 << 16))
             data = assembly.add(chunk)
             if data is not None:
-                rest.apply(chunk, decode_file(data, chunk.codec, (height, width)))
+                rest.apply(chunk, decode_file(data, chunk.codec, (height, width),
+                                              row0=chunk.row0 if chunk.strip else None))
             out.append(time.thread_time() - t0)
         return out
 
@@ -272,24 +276,24 @@ def time_device(planned: dict[str, Any], cpu: int, repeat: int,
                              base))
     blends: list[float] = []
     per_layer: dict[str, list[float]] = {}
-    per_strip: dict[str, list[float]] = {}
+    per_tick: dict[str, list[float]] = {}
     ratios: dict[str, list[float]] = {}
     for i, (label, packets, before, view, base) in enumerate(jobs):
-        layer_runs, strip_runs, blend_runs = [], [], []
+        layer_runs, tick_runs, blend_runs = [], [], []
         for r in range(repeat):
             blend_runs.append(blend_s(i * repeat + r))
-            strips = layer_s(packets, before, view, base)
-            layer_runs.append(sum(strips))
-            strip_runs.append(max(strips))
+            ticks = layer_s(packets, before, view, base)
+            layer_runs.append(sum(ticks))
+            tick_runs.append(max(ticks))
         b = float(np.median(blend_runs))
         blends += blend_runs
         per_layer.setdefault(label, []).append(float(np.median(layer_runs)))
-        per_strip.setdefault(label, []).append(float(np.median(strip_runs)))
+        per_tick.setdefault(label, []).append(float(np.median(tick_runs)))
         ratios.setdefault(label, []).append(float(np.median(layer_runs)) / b)
-        ratios.setdefault(label + " strip", []).append(float(np.median(strip_runs)) / b)
+        ratios.setdefault(label + " tick", []).append(float(np.median(tick_runs)) / b)
     return {"blend_ms": 1e3 * float(np.median(blends)),
             "layer_ms": {k: 1e3 * _med(v) for k, v in per_layer.items()},
-            "strip_ms": {k: 1e3 * _med(v) for k, v in per_strip.items()},
+            "tick_ms": {k: 1e3 * _med(v) for k, v in per_tick.items()},
             "x_blend": {k: _med(v) for k, v in ratios.items()},
             "x_blend_worst": {k: _worst(v) for k, v in ratios.items()}}
 
@@ -303,7 +307,7 @@ def bytes_table(rows: list[dict], splits: list[int]) -> str:
             "(residual) | first /WebP | first /AVIF | from 0.9 worst /WebP, /AVIF (/WebP "
             "without layer headers) | exact B (WebP lossless, PNG) | exact /WLL | exact layer "
             "/WLL (- WLL B) | "
-            + " | ".join(f"strips of {s} B: exact /WLL (strips)" for s in splits) + " |")
+            + " | ".join(f"chunks of {s} B: exact /WLL (chunks)" for s in splits) + " |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         split_cells = [f"{_f(c['exact_x_wll'])} ({_f(c['exact_x_wll_worst'])}; "
@@ -327,7 +331,7 @@ def bytes_table(rows: list[dict], splits: list[int]) -> str:
 def device_table(rows: list[dict], splits: list[int]) -> str:
     labels = ["lossy", "exact"] + [f"{k}@{s}" for s in splits for k in ("lossy", "exact")]
     head = ("| image | blend ms | " + " | ".join(
-        f"{lab}: ms (x blend, worst; strip x blend worst)" for lab in labels) + " |")
+        f"{lab}: ms (x blend, worst; tick x blend worst)" for lab in labels) + " |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         d = r["device"]
@@ -338,7 +342,7 @@ def device_table(rows: list[dict], splits: list[int]) -> str:
                 continue
             cells.append(f"{d['layer_ms'][lab]:.2f} ({_f(d['x_blend'][lab])}, "
                          f"{_f(d['x_blend_worst'][lab])}; "
-                         f"{_f(d['x_blend_worst'][lab + ' strip'])})")
+                         f"{_f(d['x_blend_worst'][lab + ' tick'])})")
         lines.append(f"| {r['name']} | {d['blend_ms']:.2f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -363,6 +367,8 @@ def verdicts(rows: list[dict]) -> list[str]:
                 if lab in d["x_blend_worst"]:
                     checks.append((f"{lab} layer worst x blend <= 1", d["x_blend_worst"][lab],
                                    BARS["x_blend"]))
+                    checks.append((f"{lab} tick worst x blend <= 1",
+                                   d["x_blend_worst"][lab + " tick"], BARS["x_blend"]))
         parts = []
         for text, value, bar in checks:
             if value is None or not np.isfinite(value):

@@ -98,7 +98,7 @@ from device_runtime.stats import RuntimeStats, peak_rss_bytes
 from protocol import messages as m
 from protocol.errors import ProtocolError
 from protocol.framing import Frame
-from protocol.layers import LAYER_VERSION, decode_layer, is_layer, max_file_bytes
+from protocol.layers import LAYER_VERSIONS, decode_layer, is_layer, max_file_bytes
 from protocol.scores import VERSIONS, ImageMismatch, MissingBase
 
 __all__ = [
@@ -368,7 +368,7 @@ class RuntimeDevice(FrameScheduler, Device):
         HELLO_REPLY also says which score packet versions this device reads and whether it
         predicts (a keyed device says the latter only in AUTH_RESPONSE)."""
         reply = super().handle_hello(msg, frame)
-        reply = dataclasses.replace(reply, score_versions=(*VERSIONS, LAYER_VERSION), predicts=(
+        reply = dataclasses.replace(reply, score_versions=(*VERSIONS, *LAYER_VERSIONS), predicts=(
             None if self.config.key is not None else self.predicts))
         self.runtime_stats.sessions += 1
         model = self._decoder_model

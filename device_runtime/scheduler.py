@@ -265,7 +265,8 @@ class FrameScheduler:
                 continue  # more chunks to come
             t0 = time.perf_counter()
             try:
-                pixels = decode_file(data, chunk.codec, rest.frame.shape[:2])
+                pixels = decode_file(data, chunk.codec, rest.frame.shape[:2],
+                                     row0=chunk.row0 if chunk.strip else None)
             except LayerError as exc:
                 stats.layers_bad += 1
                 self._frame_failed(chunk.frame, exc)

@@ -5,14 +5,22 @@ host sends *layers*, coarse to fine, until the device's frame is the host's ray-
 bit. A layer is one image file of the whole frame in a codec the device decodes through
 pygame (PNG, JPEG, WebP lossy or lossless), sent in one or more *chunks*, each a score packet
 of version 4 (the same magic and SCORES message as the other versions; a decoder that does
-not list 4 refuses it in one line). A file is never split into independent tiles (each tile
-a file of its own cost 4-32 % more bytes, research/rest_layers.md); its bytes are cut into
-chunks that fit the device's frames and a slow line's quarter second, and the device joins
-them. Little-endian, 40-byte header::
+not list 4 refuses it in one line). A file's bytes are cut into chunks that fit the device's
+frames and a slow line's quarter second, and the device joins them.
+
+Version 5 is the same packet whose file is a *strip*: the image's rows ``row0 .. row0 + h``
+(``h`` the file's declared height; its width is the image's), so a large frame's layer can be
+several files, each decoded in its own display tick (a 512 px WebP lossless frame takes two
+of the tooth's blends to decode on one core, a quarter of it half of one). The host sends
+version 5 only to a device that lists it (its HELLO reply's ``score_versions``), and only
+where strips cost no bytes: lossless layers of frames over `STRIP_PIXELS` (at 512 px, four
+strips of WebP lossless are 0.99-1.01x the whole file; two strips of a 256 px frame cost
+0.5-2 % more, of a lossy WebP 2-5 %, research/rest_layers.md). Little-endian, 40-byte
+header::
 
     offset size field
     0      2    magic b"\\xecS"
-    2      1    version 4
+    2      1    version 4 (the whole frame) or 5 (a strip)
     3      1    flags: bit 0 RESIDUAL (the file is a residual, else the pixels themselves);
                 bits 1-2 SHIFT s (a residual's values are v = (R - F) >> s offset by 128);
                 bit 3 EXACT (absolute, lossless: the ray-cast's pixels exactly);
@@ -26,7 +34,7 @@ them. Little-endian, 40-byte header::
     16     4    theta_deg float32
     20     1    layer u8: the layer's place in the chain (0 first)
     21     1    codec u8: 1 PNG, 2 JPEG, 3 WebP (lossy or lossless, as the file says)
-    22     2    reserved, 0
+    22     2    version 4: reserved, 0; version 5: row0 u16, the strip's first row
     24     4    image tag: the first 4 bytes of the eigenspace image's SHA-256 digest
     28     4    file size u32: the whole file's bytes
     32     4    offset u32: where this chunk's bytes start in the file
@@ -35,7 +43,8 @@ them. Little-endian, 40-byte header::
 
 Joining (`LayerAssembly`): a file's chunks come in order; its first chunk (offset 0) must
 hold the file's header, whose declared width and height (`declared_size`: PNG's IHDR, JPEG's
-SOF, WebP's VP8/VP8L/VP8X chunk) must be the image's, and its file size must be within
+SOF, WebP's VP8/VP8L/VP8X chunk) must be the image's (a strip: the image's width, and a
+height of at least one row that ends within the image), and its file size must be within
 `max_file_bytes` of the image, so no file makes a device allocate more than its bound; each
 later chunk must continue the same file (same layer, base frame, view, sizes and CRC) at the
 next byte. When the last byte is in, the CRC is checked and the file is ready to decode.
@@ -44,7 +53,9 @@ How the device applies a layer (`device_runtime.layers`) to its frame ``F`` of t
 absolute file replaces it (``F = D``); a residual adds to it (``F = clip(F + ((D - 128) <<
 s), 0, 255)``, int16). The device counts the layers applied since the frame named by the base:
 a residual of layer ``L`` applies only after exactly the layers before it (``L``), an absolute
-one after at most ``L``; each sets the count to ``L + 1``. A lost or dropped layer therefore
+one after at most ``L``; each sets the count to ``L + 1``. A layer in strips does so once
+every row of the image has come in one of its strips (a residual strip applies only to rows
+no strip of its layer has changed yet). A lost or dropped layer therefore
 never misapplies the next one, and an absolute layer repairs any frame. The EXACT layer ends
 the chain: the frame is then the ray-cast, whatever float32 arithmetic made the device's own
 frame (the host never codes the exact step against it).
@@ -70,7 +81,10 @@ __all__ = [
     "FLAG_RESIDUAL",
     "LAYER_HEADER_SIZE",
     "LAYER_VERSION",
+    "LAYER_VERSIONS",
     "MAX_SHIFT",
+    "STRIP_PIXELS",
+    "STRIP_VERSION",
     "LayerAssembly",
     "LayerChunk",
     "declared_size",
@@ -82,8 +96,13 @@ __all__ = [
     "max_file_bytes",
 ]
 
-#: The score packet version of a layer.
+#: The score packet version of a layer of the whole frame, and of a strip of it.
 LAYER_VERSION = 4
+STRIP_VERSION = 5
+LAYER_VERSIONS = (LAYER_VERSION, STRIP_VERSION)
+#: Lossless layers of frames with more pixels than this go in strips of at most this many
+#: (one 256 px frame: its WebP lossless decode is within the cheapest image's blend).
+STRIP_PIXELS = 1 << 16
 _HEADER = struct.Struct("<2sBBIIffBBH4sIII")
 LAYER_HEADER_SIZE = _HEADER.size  # 40
 FLAG_RESIDUAL = 0x01
@@ -127,6 +146,11 @@ class LayerChunk:
     data : bytes
         The chunk.
     packet_bytes : int
+    row0 : int
+        The first image row the file covers.
+    strip : bool
+        A strip (version 5): the file covers rows ``row0`` on, as many as it declares;
+        else the whole image.
     """
 
     frame: int
@@ -144,6 +168,8 @@ class LayerChunk:
     crc: int
     data: bytes
     packet_bytes: int
+    row0: int = 0
+    strip: bool = False
 
     @property
     def last(self) -> bool:
@@ -154,24 +180,27 @@ class LayerChunk:
         """Whether ``other`` is a chunk of the same layer's file."""
         return (self.base_frame, self.phi_deg, self.theta_deg, self.layer, self.codec,
                 self.residual, self.shift, self.exact, self.last_layer, self.file_bytes,
-                self.crc) == (
+                self.crc, self.row0, self.strip) == (
             other.base_frame, other.phi_deg, other.theta_deg, other.layer, other.codec,
             other.residual, other.shift, other.exact, other.last_layer, other.file_bytes,
-            other.crc)
+            other.crc, other.row0, other.strip)
 
 
 def is_layer(packet: bytes | bytearray | memoryview) -> bool:
-    """Whether a score packet is a layer (magic and version 4), from its first 3 bytes."""
-    return len(packet) >= 3 and bytes(packet[:2]) == MAGIC and packet[2] == LAYER_VERSION
+    """Whether a score packet is a layer (magic and version 4 or 5), from its first 3
+    bytes."""
+    return len(packet) >= 3 and bytes(packet[:2]) == MAGIC and packet[2] in LAYER_VERSIONS
 
 
 def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
                  view: tuple[float, float], image_digest: bytes, layer: int,
                  residual: bool = False, shift: int = 0, exact: bool = False,
-                 last: bool = False, max_chunk_bytes: int | None = None) -> list[bytes]:
+                 last: bool = False, max_chunk_bytes: int | None = None,
+                 row0: int | None = None) -> list[bytes]:
     """The packets carrying the layer file ``data``: one, or chunks of at most
     ``max_chunk_bytes`` each (the first at least `FIRST_CHUNK_MIN`), numbered from
-    ``frame`` (wrapping after 2**32 - 1 to 1).
+    ``frame`` (wrapping after 2**32 - 1 to 1). ``row0`` None: the file is the whole frame
+    (version 4); a row: the file is the strip from that row (version 5).
 
     Raises
     ------
@@ -185,7 +214,8 @@ def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
     if exact and residual:
         raise ValueError("encode_layer: an EXACT layer is absolute, not a residual")
     for name, value, top in (("frame", frame, 0xFFFFFFFF),
-                             ("base_frame", base_frame, 0xFFFFFFFF), ("layer", layer, 0xFF)):
+                             ("base_frame", base_frame, 0xFFFFFFFF), ("layer", layer, 0xFF),
+                             ("row0", row0 or 0, 0xFFFF)):
         if not 0 <= int(value) <= top:
             raise ValueError(f"encode_layer: {name}={value!r} must be within 0..{top}")
     if not data or len(data) > 0xFFFFFFFF:
@@ -198,9 +228,9 @@ def encode_layer(data: bytes, *, codec: int, frame: int, base_frame: int,
     packets = []
     for k, offset in enumerate(range(0, size, step)):
         number = (int(frame) + k - 1) % 0xFFFFFFFF + 1
-        head = _HEADER.pack(MAGIC, LAYER_VERSION, flags, number, base_frame, float(view[0]),
-                            float(view[1]), layer, codec, 0, bytes(image_digest[:4]), size,
-                            offset, crc)
+        head = _HEADER.pack(MAGIC, LAYER_VERSION if row0 is None else STRIP_VERSION, flags,
+                            number, base_frame, float(view[0]), float(view[1]), layer, codec,
+                            row0 or 0, bytes(image_digest[:4]), size, offset, crc)
         packets.append(head + bytes(data[offset:offset + step]))
     return packets
 
@@ -234,7 +264,8 @@ def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
     ScorePacketError
         Anything malformed: magic, version, reserved bits, codec, shift, EXACT with RESIDUAL,
         a view that is not finite, a chunk outside its file, a first chunk too short to hold
-        the file's header, a file whose declared size is not the image's.
+        the file's header, a file whose declared size is not the image's (a strip: not its
+        width, or rows past its last).
     """
     n = len(packet)
     if n > max_packet_bytes:
@@ -242,12 +273,13 @@ def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
                             f"{max_packet_bytes}")
     if n < LAYER_HEADER_SIZE + 1:
         raise ScorePacketError(f"decode layer: {n} bytes is shorter than a header and a chunk")
-    (magic, version, flags, frame, base, phi, theta, layer, codec, reserved, tag, size,
+    (magic, version, flags, frame, base, phi, theta, layer, codec, row0, tag, size,
      offset, crc) = _HEADER.unpack_from(bytes(packet[:LAYER_HEADER_SIZE]))
-    if magic != MAGIC or version != LAYER_VERSION:
+    if magic != MAGIC or version not in LAYER_VERSIONS:
         raise ScorePacketError(f"decode layer: not a layer packet (magic {magic!r}, version "
                                f"{version})")
-    if flags & _RESERVED or reserved:
+    strip = version == STRIP_VERSION
+    if flags & _RESERVED or (row0 and not strip):
         raise ScorePacketError(f"decode layer: reserved bits set (flags 0x{flags:02x})")
     residual, exact = bool(flags & FLAG_RESIDUAL), bool(flags & FLAG_EXACT)
     last_layer = bool(flags & FLAG_LAST)
@@ -275,12 +307,19 @@ def decode_layer(packet: bytes | bytearray | memoryview, *, image_digest: bytes,
                                    "hold the file's header")
         height, width = image_shape
         declared = declared_size(data, codec)
-        if declared != (width, height):
+        if strip and (declared[0] != width or not 1 <= declared[1] <= height - row0):
+            raise ScorePacketError(f"decode layer: the {CODECS[codec][0]} strip declares "
+                                   f"{declared[0]}x{declared[1]} from row {row0}, the image "
+                                   f"is {width}x{height}")
+        if not strip and declared != (width, height):
             raise ScorePacketError(f"decode layer: the {CODECS[codec][0]} file declares "
                                    f"{declared[0]}x{declared[1]}, the image is "
                                    f"{width}x{height}")
+    elif strip and row0 >= image_shape[0]:
+        raise ScorePacketError(f"decode layer: a strip from row {row0}, the image has "
+                               f"{image_shape[0]}")
     return LayerChunk(frame, base, phi, theta, layer, codec, residual, shift, exact,
-                      last_layer, size, offset, crc, data, n)
+                      last_layer, size, offset, crc, data, n, row0, strip)
 
 
 class LayerAssembly:

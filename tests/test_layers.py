@@ -88,6 +88,30 @@ def test_a_layer_round_trips_and_its_file_decodes_through_pygame(codec, fmt, kwa
     assert np.abs(decoded.astype(int) - want).max() <= 2  # pygame decodes as Pillow does
 
 
+@pytest.mark.parametrize("mode", ["RGB", "RGBA", "P", "L"])
+def test_a_png_decodes_to_its_rgb_pixels_whatever_surface_pygame_makes(mode):
+    """pygame loads an RGB PNG as a 24-bit surface, RGBA as 32-bit, palette and grey as
+    8-bit: every one must give the same (height, width, 3) pixels, odd widths included."""
+    pixels = _pixels(width=SHAPE[1] - 1)
+    image = Image.fromarray(pixels)
+    if mode == "P":
+        image = image.quantize(64)
+    elif mode == "L":
+        image = image.convert("L")
+    elif mode == "RGBA":
+        image = image.convert("RGBA")
+    data = _file(np.asarray(image), "PNG") if mode != "P" else _png(image)
+    decoded = decode_file(data, CODEC_PNG, (SHAPE[0], SHAPE[1] - 1))
+    assert decoded.shape == (SHAPE[0], SHAPE[1] - 1, 3) and decoded.flags["C_CONTIGUOUS"]
+    np.testing.assert_array_equal(decoded, np.asarray(image.convert("RGB")))
+
+
+def _png(image: Image.Image) -> bytes:
+    out = io.BytesIO()
+    image.save(out, "PNG")
+    return out.getvalue()
+
+
 def test_a_file_in_chunks_is_joined_in_order_and_only_in_order():
     """One file cut in chunks (numbered on from the first frame): joined it is the file; a
     lost, repeated or reordered chunk, a chunk of another file or a wrong CRC is refused and
@@ -179,9 +203,104 @@ def test_the_rest_frame_applies_layers_in_order_and_ends_exact():
     assert own is not rest.frame  # the device's copy, not the frame it was made from
 
 
+def test_a_strip_names_its_rows_and_one_outside_the_image_is_refused():
+    """Version 5: a file of the image's width from ``row0``, as many rows as it declares;
+    a strip of another width, or past the last row, is refused on its first chunk; version
+    4 keeps the field reserved."""
+    pixels = _pixels()
+    (packet,) = _packets(_file(pixels[8:20], "PNG"), row0=8, exact=True)
+    assert packet[2] == 5 and is_layer(packet)
+    chunk = _decode(packet)
+    assert (chunk.strip, chunk.row0) == (True, 8)
+    np.testing.assert_array_equal(
+        decode_file(chunk.data, CODEC_PNG, SHAPE, row0=chunk.row0), pixels[8:20])
+    whole = _decode(_packets(_file(pixels, "PNG"), row0=0)[0])  # a strip may be all rows
+    assert whole.strip and whole.row0 == 0
+    for data, row0, why in ((_file(pixels[8:20, :-1], "PNG"), 8, "declares 39x12"),
+                            (_file(pixels[8:20], "PNG"), 13, "from row 13")):
+        with pytest.raises(ScorePacketError, match=why):
+            _decode(_packets(data, row0=row0)[0])
+    later = _packets(_file(_pixels(seed=3), "PNG"), row0=30, max_chunk_bytes=FIRST_CHUNK_MIN)
+    with pytest.raises(ScorePacketError, match="from row 30"):  # a later chunk, too
+        _decode(later[1])
+    v4 = bytearray(_packets(_file(pixels, "PNG"))[0])
+    v4[22] = 8  # a row in version 4's reserved field
+    with pytest.raises(ScorePacketError, match="reserved"):
+        _decode(bytes(v4))
+    with pytest.raises(LayerError, match="rows from row 20"):  # the device checks it again
+        decode_file(_file(pixels[8:20], "PNG"), CODEC_PNG, SHAPE, row0=20)
+    with pytest.raises(ValueError, match="row0"):
+        _packets(_file(pixels, "PNG"), row0=1 << 16)
+
+
+def test_a_layer_in_strips_counts_once_every_row_is_in():
+    """A residual layer in two strips: the count moves only when both are in, and a strip
+    that came twice is not added twice; an exact layer in three strips with one lost leaves
+    the frame not exact and the next residual refused, until an absolute layer repairs it."""
+    truth, own = _pixels(seed=1), _pixels(seed=2)
+    rest = RestFrame((30.0, 15.0), 10, own)
+    residual = np.clip(truth.astype(np.int16) - own + 128, 0, 255).astype(np.uint8)
+
+    def strip(pixels, r0, r1, **kwargs):
+        (packet,) = _packets(_file(pixels[r0:r1], "PNG"), row0=r0, **kwargs)
+        chunk = _decode(packet)
+        return chunk, decode_file(chunk.data, CODEC_PNG, SHAPE, row0=r0)
+
+    top, bottom = strip(residual, 0, 12, residual=True), strip(residual, 12, 24, residual=True)
+    assert rest.accepts(top[0])
+    rest.apply(*top)
+    assert rest.layers == 0 and not rest.accepts(top[0])  # the same rows: not twice
+    assert rest.accepts(bottom[0])
+    rest.apply(*bottom)
+    assert rest.layers == 1
+    np.testing.assert_array_equal(rest.frame, truth)  # (no clip on these pixels)
+    parts = [strip(truth, r0, r1, layer=1, exact=True) for r0, r1 in ((0, 8), (8, 16),
+                                                                      (16, 24))]
+    for part in (parts[2], parts[0]):  # the middle strip lost, the others out of order
+        assert rest.accepts(part[0])
+        rest.apply(*part)
+    assert not rest.is_exact and rest.layers == 1
+    assert not rest.accepts(strip(residual, 0, 24, residual=True, layer=2)[0])
+    rest.apply(*parts[1])  # it came after all (or a whole absolute layer would repair)
+    assert rest.is_exact and rest.layers == 2
+    np.testing.assert_array_equal(rest.frame, truth)
+
+
+def test_the_planner_sends_a_large_frames_exact_layer_in_strips_that_end_exact():
+    """With ``strip_pixels`` the exact layer of a larger frame is several version-5 files
+    covering every row once; joined and applied as a device does, they end at the ray-cast;
+    without it (a device that reads no strips), one version-4 file."""
+    from host.link.layers import RestPlanner
+
+    truth = _pixels(rows=SHAPE[0], seed=4)
+    own = _pixels(rows=SHAPE[0], seed=5)
+    for strip_pixels, want in ((None, {4}), (400, {5})):
+        planner = RestPlanner(DIGEST, max_packet_bytes=300, strip_pixels=strip_pixels)
+        plan = planner.plan((30.0, 15.0), truth, own, own, 0, base_frame=0, first_frame=7)
+        exact = plan.layers[-1]
+        assert exact.exact and {p[2] for p in exact.packets} == want
+        rest, assembly, rows = RestFrame((30.0, 15.0), 0, plan.layers[-2].frame
+                                         if len(plan.layers) > 1 else own), LayerAssembly(), []
+        rest.layers = len(plan.layers) - 1
+        for packet in exact.packets:
+            chunk = _decode(packet)
+            data = assembly.add(chunk)
+            if data is not None:
+                pixels = decode_file(data, chunk.codec, SHAPE,
+                                     row0=chunk.row0 if chunk.strip else None)
+                rows.append((chunk.row0, pixels.shape[0]))
+                rest.apply(chunk, pixels)
+        assert rest.is_exact and rest.finished
+        np.testing.assert_array_equal(rest.frame, truth)
+        np.testing.assert_array_equal(exact.frame, truth)
+        if strip_pixels:  # 960 pixels: three strips of 320, every row once
+            assert rows == [(0, 8), (8, 8), (16, 8)]
+
+
 def test_layer_golden_vectors_both_directions():
     cases = [json.loads(line) for line in GOLDEN.read_text().splitlines()]
-    assert {c["name"] for c in cases} >= {"absolute_png", "residual_webp_chunks", "exact_png"}
+    assert {c["name"] for c in cases} >= {"absolute_png", "residual_webp_chunks", "exact_png",
+                                          "exact_webp_strip"}
     for case in cases:
         data = bytes.fromhex(case["file"])
         packets = encode_layer(data, image_digest=bytes.fromhex(case["digest"]),
@@ -194,6 +313,9 @@ def test_layer_golden_vectors_both_directions():
                                  image_shape=tuple(case["image_shape"]), max_packet_bytes=4096)
             for name in ("codec", "base_frame", "layer"):
                 assert getattr(chunk, name) == case["fields"][name], (case["name"], name)
+            assert (chunk.strip, chunk.row0) == ("row0" in case["fields"],
+                                                 case["fields"].get("row0", 0))
+            assert bytes.fromhex(hexed)[2] == (5 if chunk.strip else 4)
             joined = assembly.add(chunk)
         assert joined == data
 
@@ -204,6 +326,7 @@ def _regenerate() -> None:
     frame = np.arange(24 * 40 * 3, dtype=np.uint32).reshape(24, 40, 3) % 251
     png = _file(frame.astype(np.uint8), "PNG")
     webp = _file(frame.astype(np.uint8), "WEBP", lossless=True)
+    strip = _file(frame[16:].astype(np.uint8), "WEBP", lossless=True)
     cases = [
         ("absolute_png", png, dict(codec=CODEC_PNG, frame=1000, base_frame=999, layer=0)),
         ("residual_webp_chunks", webp, dict(codec=CODEC_WEBP, frame=1001, base_frame=999,
@@ -211,6 +334,8 @@ def _regenerate() -> None:
                                             max_chunk_bytes=FIRST_CHUNK_MIN)),
         ("exact_png", png, dict(codec=CODEC_PNG, frame=1003, base_frame=0, layer=2,
                                 exact=True)),
+        ("exact_webp_strip", strip, dict(codec=CODEC_WEBP, frame=1004, base_frame=0,
+                                         layer=2, exact=True, row0=16)),
     ]
     lines = []
     for name, data, fields in cases:

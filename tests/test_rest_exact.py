@@ -78,15 +78,20 @@ def _perturbed(frame: np.ndarray, seed: int) -> np.ndarray:
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
-@pytest.mark.parametrize("cpu", ["same", "other"])
+@pytest.mark.parametrize("cpu,strips", [("same", False), ("other", False), ("other", True)])
 def test_a_resting_view_ends_the_ray_cast_bit_for_bit_over_the_serial_line(
-        tmp_path, depth_model_path, truth_of, cpu):
+        tmp_path, depth_model_path, truth_of, cpu, strips, monkeypatch):
     """A served device resting on a view over a paced 115200-baud mem:// line: after its own
     frame and its correction, layers follow until the frame the display presents equals the
     host's ray-cast; with ``cpu="other"`` the device's own and corrected frames are off by
-    the levels another CPU may differ by, and the exact frame is still exact. Then a new
-    view: the old view's layers stop, and the new view ends exact too."""
-    name = mem_name(f"exact-{cpu}")
+    the levels another CPU may differ by, and the exact frame is still exact; with
+    ``strips`` the exact layer comes in strips (version 5, as a 512 px frame's would). Then
+    a new view: the old view's layers stop, and the new view ends exact too."""
+    if strips:  # this image's frames are small: strips of 1,000 pixels
+        import protocol.layers
+
+        monkeypatch.setattr(protocol.layers, "STRIP_PIXELS", 1000)
+    name = mem_name(f"exact-{cpu}-{strips}")
     shown: list = []
     device = provisioned_device(tmp_path, name, depth_model_path, shown)
     views = [canonical_view(47.0, 23.0), canonical_view(200.0, -31.0)]
@@ -116,6 +121,8 @@ def test_a_resting_view_ends_the_ray_cast_bit_for_bit_over_the_serial_line(
             thread.join(30)
     stats = out["stats"]
     assert stats.exact_views >= 2 and stats.layer_frames >= 2
+    versions = {enc.packet[2] for enc, _ in sent if isinstance(enc, EncodedLayer)}
+    assert versions == ({4, 5} if strips else {4})  # (lossy layers stay whole)
     rs = runtime.runtime_stats
     assert rs.exact_frames >= 2 and rs.layers_bad == 0
     # what was shown of the first view: its own frame first, then the layers in order

@@ -507,12 +507,14 @@ class _Serving:
 
     def _planner(self, hello: m.HelloReply) -> Any | None:
         """The layers' planner of a session whose device reads them (score packet version
-        4) and whose ``rest`` asks for any; None otherwise."""
+        4; 5 too: lossless layers of large frames in strips) and whose ``rest`` asks for
+        any; None otherwise."""
         from host.link.layers import DEFAULT_TARGETS, RestPlanner
-        from protocol.layers import LAYER_VERSION
+        from protocol.layers import LAYER_VERSION, STRIP_PIXELS, STRIP_VERSION
 
         rest = self.rest
-        if rest == "correction" or LAYER_VERSION not in (hello.score_versions or ()):
+        versions = hello.score_versions or ()
+        if rest == "correction" or LAYER_VERSION not in versions:
             return None
         if rest == "exact":
             targets, exact = DEFAULT_TARGETS, True
@@ -522,7 +524,8 @@ class _Serving:
         # the SCORES message around a packet: its CBOR body, the event tag and the frame
         room = hello.max_frame_bytes - _SCORES_OVERHEAD
         return RestPlanner(self.encoder.model.digest, targets=targets, exact=exact,
-                           max_packet_bytes=max(min(room, self._link_share()), 256))
+                           max_packet_bytes=max(min(room, self._link_share()), 256),
+                           strip_pixels=STRIP_PIXELS if STRIP_VERSION in versions else None)
 
     def _link_share(self) -> int:
         """The bytes a serial line carries in `_CHUNK_S` (a chunk never holds a new view's
