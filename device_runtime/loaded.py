@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from device_runtime.layers import RestFrame
-from device_runtime.looks import look_image, look_names
+from device_runtime.looks import look_image, look_names, own_scores
 from device_runtime.prediction import Predictor, can_predict
 from device_runtime.reconstruct import Reconstructor
 from device_runtime.standalone import StandaloneScores
@@ -137,6 +137,9 @@ class LoadedModel:
     shown: ShownState = field(default_factory=ShownState)
     base: EigenspaceImage | None = None
     look: int = 0
+    #: per look of ``base`` whose scores are its own: (standalone, predictor), made once
+    #: and shared by the models of its looks (a switch back builds no table again)
+    look_scores: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, image: EigenspaceImage, *, slot: str, generation: int, test: bool,
@@ -156,13 +159,7 @@ class LoadedModel:
         base = image if image.looks is not None else None
         image = look_image(image, look)
         standalone = StandaloneScores(image) if want_standalone else None
-        decoder = ScoreDecoder(
-            image.n_coefficients,
-            image.digest or bytes(32),
-            n_components=image.n_components,
-            max_packet_bytes=max_packet_bytes,
-            max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
-        )
+        decoder = _decoder(image, max_packet_bytes)
         predictor = (Predictor(image) if want_predictor and not want_standalone
                      and can_predict(image) else None)
         table = standalone if standalone is not None else (
@@ -195,15 +192,25 @@ class LoadedModel:
         if self.base is None:
             raise ValueError("the image has one look")
         image = look_image(self.base, look)
-        table = self.standalone if self.standalone is not None else (
-            self.predictor.standalone if self.predictor is not None else None)
+        decoder, standalone, predictor = self.decoder, self.standalone, self.predictor
+        if own_scores(self.base, look) or own_scores(self.base, self.look):
+            # the looks' eigenspaces differ: the new look's scores, table and predictor
+            self.look_scores.setdefault(self.look, (standalone, predictor))
+            decoder = _decoder(image, None)
+            if look not in self.look_scores:
+                self.look_scores[look] = (
+                    StandaloneScores(image) if standalone is not None else None,
+                    Predictor(image) if predictor is not None else None)
+            standalone, predictor = self.look_scores[look]
+        table = standalone if standalone is not None else (
+            predictor.standalone if predictor is not None else None)
         reconstructor, synthesis, worker = _frames(image, table, on_warp,
                                                    start_worker=start_worker,
                                                    scratch_of=self.reconstructor)
-        return LoadedModel(image, reconstructor, self.decoder, self.slot, self.generation,
-                           self.test, self.standalone, confirmed=self.confirmed,
-                           predictor=self.predictor, synthesis=synthesis, warp_worker=worker,
-                           base=self.base, look=look)
+        return LoadedModel(image, reconstructor, decoder, self.slot, self.generation,
+                           self.test, standalone, confirmed=self.confirmed,
+                           predictor=predictor, synthesis=synthesis, warp_worker=worker,
+                           base=self.base, look=look, look_scores=self.look_scores)
 
     @property
     def own_frames(self) -> bool:
@@ -224,6 +231,17 @@ class LoadedModel:
         self.reconstructor.close()
         if self.synthesis is not None:
             self.synthesis.reconstructor.close()
+
+
+def _decoder(image: EigenspaceImage, max_packet_bytes: int | None) -> ScoreDecoder:
+    """The score packet decoder of ``image`` (a look's image: its own K), bounded by it."""
+    return ScoreDecoder(
+        image.n_coefficients,
+        image.digest or bytes(32),
+        n_components=image.n_components,
+        max_packet_bytes=max_packet_bytes,
+        max_abs_score=score_bound(max(1, int(np.asarray(image.mean).shape[-1]))),
+    )
 
 
 def _frames(image: EigenspaceImage, table: StandaloneScores | None,

@@ -1,13 +1,14 @@
 """Several looks in one image: the single-look image a device shows for one of them.
 
-An image with looks (``.ecs`` format version 2, `protocol.image`) holds several pictures of
-the same views -- transfer functions or lightings -- as one eigenspace of their scores: one
-standalone table, one score vector per view on the wire, one depth eigenspace where the
-looks' depth is the same. Each look has its own colour sections (its slice of the joint
-eigenspace: eigenimages, scales and mean, `host.fit.looks`), its noise floor, and, when its
-transfer function differs from the first look's, its own depth eigenspace and synthesis
-record. The manifest's ``looks`` list names, per look, the sections that replace the
-standard ones.
+An image with looks (``.ecs`` format version 3, `protocol.image`) holds several pictures of
+the same views -- transfer functions or lightings -- each as an eigenspace of its own
+(`host.fit.looks`): its colour sections (counts, eigenimages, scales, mean), its standalone
+table and score step, its noise floor, and, when its transfer function differs from the
+first look's, its own depth eigenspace and synthesis record; looks share the view set, its
+interpolation and, where their depth is the same, the depth eigenspace. The manifest's
+``looks`` list names, per look, the sections that replace the standard ones. (Format version
+2, read as well, has looks sharing one eigenspace's scores: the first look's counts and
+table.)
 
 `look_image` is the image of one look: the image with that look's sections under the
 standard names, its synthesis record, and the render settings (and database, int8 loss) it
@@ -30,17 +31,18 @@ import numpy as np
 
 from device_runtime.standalone import (
     STANDALONE_DELTA_SECTION,
+    STANDALONE_SECTION,
     delta_decode,
     standalone_order,
     standalone_table,
 )
 from device_runtime.synthesis import DEPTH_DELTA_SECTION
 from protocol.errors import ImageFormatError
-from protocol.image import EigenspaceImage
+from protocol.image import LOOK_SCORE_SECTIONS, EigenspaceImage
 
-__all__ = ["look_image", "look_index", "look_names"]
+__all__ = ["look_image", "look_index", "look_names", "own_scores"]
 
-_COLOUR = ("mean", "scales", "eigenimages")
+_COLOUR = ("n_components", "mean", "scales", "eigenimages")
 _PLAIN_DEPTH = "depth_scores"
 #: What ``provenance["looks"][i]`` records of look i that a look's image shows as its own
 #: provenance (the first look's are the image's).
@@ -50,6 +52,16 @@ _RECORDED = ("render", "source_database", "int8")
 def look_names(image: EigenspaceImage) -> tuple[str, ...]:
     """The image's look names in order; ``()`` for an image with one look."""
     return tuple(str(look["name"]) for look in image.looks or ())
+
+
+def own_scores(image: EigenspaceImage, look: int) -> bool:
+    """Whether look ``look`` of ``image`` has scores of its own (format version 3: its own
+    eigenspace and table); False: it shares the first look's (and for an image with one
+    look)."""
+    if image.looks is None or look == 0:
+        return False
+    mapping = image.looks[look].get("sections") or {}
+    return bool(LOOK_SCORE_SECTIONS & set(mapping) or "standalone_scores" in mapping)
 
 
 def look_index(image: EigenspaceImage, look: int | str | None) -> int:
@@ -90,7 +102,8 @@ def look_image(image: EigenspaceImage, look: int | str | None = 0, *,
     sharing ``image``'s arrays: the look's sections under the standard names, the other
     looks' sections left out, the look's ``synthesis`` (else the image's), its recorded
     render settings as ``provenance["render"]`` (``provenance["looks"][i]["render"]``), no
-    ``looks``, and the image's digest, tag state and annex. What the image's provenance
+    ``looks``, its ``score_quantization`` (else the image's), and the image's digest, tag
+    state and annex. What the image's provenance
     records of the look (``provenance["looks"][i]``: its render settings, database and int8
     loss) replaces the image's own entries.
 
@@ -127,11 +140,13 @@ def look_image(image: EigenspaceImage, look: int | str | None = 0, *,
                 provenance[key] = recorded[index][key]
     view = dataclasses.replace(
         image,
+        n_components=colour.get("n_components", image.n_components),
         mean=colour.get("mean", image.mean),
         scales=colour.get("scales", image.scales),
         eigenimages=colour.get("eigenimages", image.eigenimages),
         sections=sections,
         synthesis=entry.get("synthesis", image.synthesis),
+        score_quantization=entry.get("score_quantization", image.score_quantization),
         provenance=provenance,
         looks=None,
     )
@@ -144,30 +159,39 @@ def look_image(image: EigenspaceImage, look: int | str | None = 0, *,
 
 def _decode_tables(image: EigenspaceImage) -> None:
     """Decode the image's delta-coded tables in place, once, so every look shares them: the
-    standalone table, the first look's depth table and each look's own depth table (renamed
-    to its plain form in the image and in the look's map)."""
+    standalone table, the first look's depth table and each look's own standalone and depth
+    tables (renamed to their plain form in the image and in the look's map)."""
     if STANDALONE_DELTA_SECTION in image.sections:
         standalone_table(image)
     if DEPTH_DELTA_SECTION in image.sections:
         _decode_depth(image, DEPTH_DELTA_SECTION, _PLAIN_DEPTH)
     for entry in image.looks or ():
         mapping = entry.get("sections") or {}
-        coded = mapping.get(DEPTH_DELTA_SECTION)
-        if coded is None:
-            continue
-        plain = f"{coded}:plain"
-        _decode_depth(image, coded, plain)
-        del mapping[DEPTH_DELTA_SECTION]
-        mapping[_PLAIN_DEPTH] = plain
+        for delta, plain_name in ((DEPTH_DELTA_SECTION, _PLAIN_DEPTH),
+                                  (STANDALONE_DELTA_SECTION, STANDALONE_SECTION)):
+            coded = mapping.get(delta)
+            if coded is None:
+                continue
+            rows = None
+            if delta == STANDALONE_DELTA_SECTION:  # the look's own eigenspace's K
+                counts = image.sections.get(mapping.get("n_components", ""), image.n_components)
+                rows = int(np.asarray(counts).sum())
+            plain = f"{coded}:plain"
+            _decode_depth(image, coded, plain, rows=rows)
+            del mapping[delta]
+            mapping[plain_name] = plain
 
 
-def _decode_depth(image: EigenspaceImage, name: str, plain: str) -> None:
-    """Replace the delta-coded depth table ``name`` by its int16 table ``plain``."""
+def _decode_depth(image: EigenspaceImage, name: str, plain: str, *,
+                  rows: int | None = None) -> None:
+    """Replace the delta-coded table ``name`` (a depth table, or with ``rows`` components a
+    look's standalone table) by its int16 table ``plain``."""
     coded = image.sections[name]
     n_views = (image.interpolation or {}).get("n_views")
     if (not isinstance(n_views, int) or coded.dtype != np.uint8 or coded.ndim != 3
-            or coded.shape[1:] != (2, n_views)):
-        raise ImageFormatError(f"image section {name!r}: expected uint8 of shape (K, 2, "
+            or coded.shape[1:] != (2, n_views) or rows not in (None, coded.shape[0])):
+        raise ImageFormatError(f"image section {name!r}: expected uint8 of shape "
+                               f"(K{'' if rows is None else f'={rows}'}, 2, "
                                f"n_views={n_views}), got {coded.dtype} {coded.shape}")
     if plain in image.sections:
         raise ImageFormatError(f"image sections {plain!r} and {name!r} are both present")

@@ -83,7 +83,7 @@ from device_runtime.display import (
 )
 from device_runtime.errors import DeviceError, FlashError
 from device_runtime.loaded import LayerItem, LoadedModel, ScoreItem
-from device_runtime.looks import look_index
+from device_runtime.looks import look_index, own_scores
 from device_runtime.orbit import OrbitSpec, canonical_view, parse_orbit, parse_view_list
 from device_runtime.scheduler import FrameScheduler
 from device_runtime.slots import LatestSlot, RequestLimiter
@@ -401,6 +401,10 @@ class RuntimeDevice(FrameScheduler, Device):
             if not self._for_look(model, msg):
                 return
             self._on_layer(model, msg.packet)
+            return
+        if model.base is not None and (msg.look or 0) != model.look and (
+                own_scores(model.base, msg.look or 0) or own_scores(model.base, model.look)):
+            self._for_look(model, msg)  # another eigenspace's scores: not for this decoder
             return
         t0 = time.perf_counter()
         try:

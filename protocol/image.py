@@ -1,11 +1,12 @@
 """The eigenspace image (``.ecs``): an authenticated container for a quantized eigenspace.
 
-File layout (format version 1, or 2 for an image with several looks; every integer
+File layout (format version 1; 2 or 3 for an image with several looks; every integer
 little-endian)::
 
     offset  size  field
     0       8     magic  b"\\x89ECS\\r\\n\\x1a\\n"  (PNG-style: catches text-mode mangling)
-    8       2     format_version  u16 (1; 2: the manifest has ``looks``)
+    8       2     format_version  u16 (1; 2: the manifest has ``looks`` sharing one
+                  eigenspace's scores; 3: ``looks`` each with its own eigenspace)
     10      2     flags  u16: bit 0 = SIGNED (tag is an HMAC), other bits must be 0
     12      2     header_size  u16 (32 in version 1; the digest covers the whole header)
     14      2     reserved u16 = 0
@@ -36,12 +37,15 @@ view set); ``interpolation`` map or null (data for standalone score interpolatio
 ``provenance`` map (opaque: fit parameters, solver, sign convention, render settings, creation
 time); optional ``synthesis`` map (absent: the device blends; ``{"method": "warp-depth-1",
 ...}``: depth-aware view synthesis, see `device_runtime.synthesis`); ``annex`` null or
-``{"sha256": 32 bytes, "size": int}``; ``looks`` (format version 2 only, and required there)
-a list of 2..`MAX_LOOKS` maps ``{"name": str, "sections": {standard name: section name},
-"synthesis": map (optional)}``: the image shows one look at a time, each the image with the
-sections its map names in place of the standard ones (`LOOK_SECTION_NAMES`; the first look
-usually names none) and its own ``synthesis`` record when it has one
-(`device_runtime.looks`); ``sections`` list of
+``{"sha256": 32 bytes, "size": int}``; ``looks`` (format versions 2 and 3 only, and required
+there) a list of 2..`MAX_LOOKS` maps ``{"name": str, "sections": {standard name: section
+name}, "synthesis": map (optional), "score_quantization": map (optional, version 3)}``: the
+image shows one look at a time, each the image with the sections its map names in place of
+the standard ones (`LOOK_SECTION_NAMES`; the first look usually names none) and its own
+``synthesis`` and ``score_quantization`` records when it has them (`device_runtime.looks`).
+In version 2 the looks share the first look's scores (``n_components`` and the standalone
+table: one eigenspace of all looks); version 3 lets a look name its own (`LOOK_SCORE_SECTIONS`:
+an eigenspace of its own, with its own score step); ``sections`` list of
 ``{"name", "dtype", "shape", "offset", "size", "raw_size"}`` where ``dtype`` is a numpy
 little-endian type string (``"|u1"``, ``"|i1"``, ``"<f4"`` ...), ``offset`` counts from the
 first byte after the manifest, ``size`` is the compressed and ``raw_size`` the decompressed byte
@@ -92,6 +96,8 @@ __all__ = [
     "FORMAT_VERSION",
     "HEADER_SIZE",
     "LOOKS_FORMAT_VERSION",
+    "LOOK_SCORES_FORMAT_VERSION",
+    "LOOK_SCORE_SECTIONS",
     "LOOK_SECTION_NAMES",
     "MAGIC",
     "MAX_LOOKS",
@@ -120,7 +126,10 @@ FORMAT_VERSION = 1
 #: predates looks refuses it in one line ("unsupported format version 2") instead of
 #: showing one of its looks as if it were the whole image.
 LOOKS_FORMAT_VERSION = 2
-SUPPORTED_VERSIONS: tuple[int, ...] = (1, LOOKS_FORMAT_VERSION)
+#: The format version of an image whose looks have eigenspaces of their own (a look names its
+#: own ``n_components`` and standalone table): a reader of version 2 refuses it in one line.
+LOOK_SCORES_FORMAT_VERSION = 3
+SUPPORTED_VERSIONS: tuple[int, ...] = (1, LOOKS_FORMAT_VERSION, LOOK_SCORES_FORMAT_VERSION)
 #: Most looks one image holds.
 MAX_LOOKS = 16
 #: Longest look name, in characters.
@@ -129,8 +138,12 @@ MAX_LOOK_NAME = 32
 #: image) and the named extra sections a view synthesis reads. A look names, for each one it
 #: replaces, the image section that holds its own (e.g. ``{"mean": "look1_mean"}``).
 LOOK_SECTION_NAMES = frozenset({
-    "mean", "scales", "eigenimages", "noise_floor", "depth_counts", "depth_scales",
-    "depth_mean", "depth_components", "depth_scores", "depth_scores_delta"})
+    "n_components", "mean", "scales", "eigenimages", "noise_floor", "depth_counts",
+    "depth_scales", "depth_mean", "depth_components", "depth_scores", "depth_scores_delta",
+    "standalone_scores", "standalone_scores_delta"})
+#: The sections of a look's own scores: only in format version 3.
+LOOK_SCORE_SECTIONS = frozenset({"n_components", "standalone_scores",
+                                 "standalone_scores_delta"})
 FLAG_SIGNED = 0x0001
 _KNOWN_FLAGS = FLAG_SIGNED
 
@@ -312,15 +325,21 @@ class EigenspaceImage:
                 f"EigenspaceImage: image_generation={self.image_generation!r} must be an int >= 0"
             )
         if self.looks is not None:
-            problem = _looks_problem(self.looks, {"mean", "scales", "eigenimages",
-                                                  *self.sections})
+            problem = _looks_problem(self.looks, {"n_components", "mean", "scales",
+                                                  "eigenimages", *self.sections},
+                                     LOOK_SCORES_FORMAT_VERSION)
             if problem:
                 raise ValueError(f"EigenspaceImage: {problem}")
 
     @property
     def format_version(self) -> int:
-        """The format version this image is written with: 2 with looks, else 1."""
-        return LOOKS_FORMAT_VERSION if self.looks is not None else FORMAT_VERSION
+        """The format version this image is written with: 3 with looks that have their
+        own scores, 2 with looks sharing the first's, else 1."""
+        if self.looks is None:
+            return FORMAT_VERSION
+        if any(LOOK_SCORE_SECTIONS & set(look.get("sections") or ()) for look in self.looks):
+            return LOOK_SCORES_FORMAT_VERSION
+        return LOOKS_FORMAT_VERSION
 
 
 # --------------------------------------------------------------------------- header
@@ -1168,8 +1187,8 @@ def _check_image_manifest(manifest: dict, table: list[dict], what: str) -> None:
 
 
 def _check_looks_manifest(manifest: dict, names: set[str], version: int, what: str) -> None:
-    """``looks``: required by format version 2, refused by version 1; well formed, and
-    naming sections the image has."""
+    """``looks``: required by format versions 2 and 3, refused by version 1; well formed,
+    and naming sections the image has (a look's own scores: version 3 only)."""
     looks = manifest.get("looks")
     if version == FORMAT_VERSION:
         if "looks" in manifest:
@@ -1179,13 +1198,14 @@ def _check_looks_manifest(manifest: dict, names: set[str], version: int, what: s
     if looks is None:
         raise ImageFormatError(f"read {what}: format version {version} needs the manifest's "
                                "'looks' list")
-    problem = _looks_problem(looks, names)
+    problem = _looks_problem(looks, names, version)
     if problem:
         raise ImageFormatError(f"read {what}: {problem}")
 
 
-def _looks_problem(looks: Any, sections: set[str]) -> str | None:
-    """What is wrong with a ``looks`` list (module docstring), or None."""
+def _looks_problem(looks: Any, sections: set[str], version: int) -> str | None:
+    """What is wrong with a ``looks`` list of an image of format ``version`` (module
+    docstring), or None."""
     if not isinstance(looks, list) or not 2 <= len(looks) <= MAX_LOOKS:
         return f"'looks' must be a list of 2..{MAX_LOOKS} maps"
     seen: set[str] = set()
@@ -1205,11 +1225,21 @@ def _looks_problem(looks: Any, sections: set[str]) -> str | None:
             if standard not in LOOK_SECTION_NAMES:
                 return (f"look '{name}': section '{str(standard)[:_MAX_NAME_CHARS]}' cannot "
                         f"be replaced (a look replaces {', '.join(sorted(LOOK_SECTION_NAMES))})")
+            if standard in LOOK_SCORE_SECTIONS and version < LOOK_SCORES_FORMAT_VERSION:
+                return (f"look '{name}': its own '{standard}' needs format version "
+                        f"{LOOK_SCORES_FORMAT_VERSION}")
             if not isinstance(section, str) or section not in sections:
                 return (f"look '{name}': its '{standard}' names section "
                         f"'{str(section)[:_MAX_NAME_CHARS]}', which the image lacks")
         if not isinstance(look.get("synthesis"), (dict, type(None))):
             return f"look '{name}': 'synthesis' must be a map or null"
+        quant = look.get("score_quantization")
+        if quant is not None and (version < LOOK_SCORES_FORMAT_VERSION
+                                  or not isinstance(quant, dict) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool)
+                and math.isfinite(v) and v > 0 for v in quant.values())):
+            return (f"look '{name}': 'score_quantization' must be a map of positive numbers "
+                    f"(format version {LOOK_SCORES_FORMAT_VERSION})")
     return None
 
 

@@ -395,8 +395,8 @@ def test_bad_magic_version_flags_and_header():
     with pytest.raises(ImageFormatError, match=r"bad magic .*not an eigencast image"):
         read_image(io.BytesIO(b"GIF89a" + good[6:]))
     with pytest.raises(ImageFormatError,
-                       match=r"unsupported format version 3 \(supported: 1, 2\)"):
-        read_image(io.BytesIO(build_container(manifest, body, version=3)))
+                       match=r"unsupported format version 4 \(supported: 1, 2, 3\)"):
+        read_image(io.BytesIO(build_container(manifest, body, version=4)))
     with pytest.raises(ImageFormatError, match="format version 2 needs the manifest's 'looks'"):
         read_image(io.BytesIO(build_container(manifest, body, version=2)))
     with pytest.raises(ImageFormatError, match="unknown header flags 0x0004"):
@@ -693,8 +693,8 @@ def test_an_image_with_looks_is_format_version_2_and_round_trips(tmp_path):
     ([{"name": "a"}], "list of 2..16 maps"),
     ([{"name": "a"}, {"name": "a"}], "unique printable 'name'"),
     ([{"name": "a"}, {"name": ""}], "unique printable 'name'"),
-    ([{"name": "a"}, {"name": "b", "sections": {"n_components": "look1_mean"}}],
-     "section 'n_components' cannot be replaced"),
+    ([{"name": "a"}, {"name": "b", "sections": {"interpolation": "look1_mean"}}],
+     "section 'interpolation' cannot be replaced"),
     ([{"name": "a"}, {"name": "b", "sections": {"mean": "nope"}}], "which the image lacks"),
     ([{"name": "a"}, {"name": "b", "synthesis": 3}], "'synthesis' must be a map or null"),
 ])
@@ -707,6 +707,28 @@ def test_malformed_looks_are_refused_by_the_writer_and_the_reader(tmp_path, look
     manifest["looks"] = looks
     with pytest.raises(ImageFormatError, match=match):
         read_image(io.BytesIO(build_container(manifest, body, version=2)))
+
+
+def test_looks_with_their_own_scores_are_format_version_3(tmp_path):
+    """A look naming its own counts and standalone table (an eigenspace of its own) makes
+    the image version 3, with its score step in its entry; version 2 may not name them, and
+    a score step must be positive numbers."""
+    image = _looks_image()
+    image.sections["look1_n_components"] = image.n_components.copy()
+    image.looks[1]["sections"]["n_components"] = "look1_n_components"
+    image.looks[1]["score_quantization"] = {"step": 2.5, "table_step": 2.5}
+    path = tmp_path / "own.ecs"
+    write_image(path, image)
+    assert struct.unpack_from("<H", path.read_bytes(), 8)[0] == 3
+    assert read_image(path).looks[1]["score_quantization"] == {"step": 2.5, "table_step": 2.5}
+    manifest, body = device_manifest(image)
+    manifest["looks"] = [{"name": "a"}, {"name": "b", "sections": {
+        "n_components": "look1_n_components"}}]
+    with pytest.raises(ImageFormatError, match="its own 'n_components' needs format version 3"):
+        read_image(io.BytesIO(build_container(manifest, body, version=2)))
+    image.looks[1]["score_quantization"] = {"step": -1.0}
+    with pytest.raises(ValueError, match="'score_quantization' must be a map of positive"):
+        write_image(tmp_path / "bad.ecs", image)
 
 
 def test_looks_in_a_version_1_manifest_are_refused():

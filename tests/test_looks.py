@@ -1,7 +1,7 @@
 """Several looks in one image: ``eigencast fit A B C`` (host/fit/looks.py), the single-look
 image of each look (device_runtime/looks.py), a device switching looks, ``serve`` correcting
 the look on show, and devices that predate looks refusing such an image in one line. The
-format itself (version 2, the manifest's ``looks``): test_image.py."""
+format itself (versions 2 and 3, the manifest's ``looks``): test_image.py."""
 
 from __future__ import annotations
 
@@ -61,27 +61,32 @@ def _quiet(line: str) -> None:
     pass
 
 
-def test_fit_writes_one_image_whose_looks_share_the_scores_and_the_depth(looks_path):
-    """Three databases of the same views make one version-2 image: one standalone table and
-    one K for every look, the lighting variants sharing the depth and the other transfer
-    function with its own; each look's eigenspace reconstructs its own training views, far
-    closer than any other look's."""
+def test_fit_writes_one_image_whose_looks_have_their_own_eigenspaces_and_share_the_depth(
+        looks_path):
+    """Three databases of the same views make one version-3 image: each look its own K,
+    standalone table and score step, as its database fitted alone makes them (the same
+    arrays), the lighting variants sharing the depth and the other transfer function with
+    its own; each look's eigenspace reconstructs its own training views, far closer than
+    any other look's."""
     image = read_image(looks_path, key=KEY)
-    assert read_manifest(looks_path)["header"]["format_version"] == 2
+    assert read_manifest(looks_path)["header"]["format_version"] == 3
     assert look_names(image) == NAMES
-    assert sum(name.startswith("standalone_scores") for name in image.sections) == 1
     own = [look.get("sections", {}) for look in image.looks]
     assert own[0] == {}
-    assert {"mean", "scales", "eigenimages", "noise_floor"} <= set(own[1]) <= {
-        "mean", "scales", "eigenimages", "noise_floor"}
+    for look in (1, 2):
+        assert {"n_components", "mean", "scales", "eigenimages", "noise_floor",
+                "standalone_scores_delta"} <= set(own[look])
+        assert "score_quantization" in image.looks[look]
+    assert not any(k.startswith("depth_") for k in own[1])
     assert any(k.startswith("depth_") for k in own[2])
     records = image.provenance["looks"]
     assert [r["name"] for r in records] == list(NAMES)
     assert records[1]["render"]["renderer"]["lighting"]["name"] == "cinematic"
     dbs = _dbs(looks_path)
-    for look in range(len(NAMES)):
-        view = look_image(image, look)
-        assert view.looks is None and view.n_coefficients == image.n_coefficients
+    views = [look_image(image, look) for look in range(len(NAMES))]
+    assert len({v.n_coefficients for v in views}) > 1  # each look its own K
+    for look, view in enumerate(views):
+        assert view.looks is None and view.n_coefficients == records[look]["components"]
         assert view.provenance["render"] == dbs[look].settings
         rec, table = Reconstructor.from_image(view), StandaloneScores(view)
         for i in (0, 37, 61):
@@ -89,6 +94,41 @@ def test_fit_writes_one_image_whose_looks_share_the_scores_and_the_depth(looks_p
             err = [float(np.mean((frame - db.read_image(i)) ** 2)) for db in dbs]
             others = [e for j, e in enumerate(err) if j != look]
             assert err[look] < 0.25 * min(others), (look, i, err)
+    # the host's model of a look: its own annex (float training scores of its own K)
+    model = HostModel.load(looks_path, key=KEY, look=2)
+    assert model.image.n_coefficients == views[2].n_coefficients
+    assert model.training_scores.shape[1] == views[2].n_coefficients
+
+
+def test_an_image_whose_looks_share_the_scores_still_shows(looks_path, tmp_path):
+    """Format version 2 (looks sharing the first look's scores, as images fitted before
+    each look had an eigenspace of its own) is still read and shown: a switch keeps the
+    decoder and the table, and a look with the first look's sections shows its frames."""
+    import dataclasses
+
+    from protocol.image import write_image
+
+    first = look_image(read_image(looks_path, key=KEY), 0, decode=False)
+    colour = ("mean", "scales", "eigenimages")
+    shared = dataclasses.replace(first, sections=dict(first.sections), looks=[
+        {"name": "a", "sections": {}},
+        {"name": "b", "sections": {k: f"look1_{k}" for k in colour}}])
+    for k in colour:
+        shared.sections[f"look1_{k}"] = getattr(first, k).copy()
+    path = tmp_path / "shared.ecs"
+    write_image(path, shared, key=KEY)
+    assert read_manifest(path)["header"]["format_version"] == 2
+    model = LoadedModel.build(read_image(path, key=KEY), slot="A", generation=1, test=False,
+                              want_standalone=True)
+    other = model.for_look(1, start_worker=False)
+    try:
+        assert other.decoder is model.decoder and other.standalone is model.standalone
+        y = model.standalone.scores(40.0, 10.0)
+        np.testing.assert_array_equal(model.reconstructor.update(y).copy(),
+                                      other.reconstructor.update(y))
+    finally:
+        other.close()
+        model.close()
 
 
 def test_looks_are_named_and_picked_by_name_or_index(looks_path, tmp_path, capsys):
@@ -293,32 +333,33 @@ def _ray_cast(model: HostModel, info: dict) -> np.ndarray:
 
 def test_a_device_that_predates_looks_refuses_the_image_in_one_line(looks_path, tmp_path,
                                                                     monkeypatch):
-    """An image with looks is format version 2: a reader of version 1 only refuses it in one
-    line; a host will not send it to a device whose HELLO lists version 1 only, and such a
-    device refuses IMAGE_BEGIN of version 2 (UNSUPPORTED_FORMAT)."""
+    """An image with looks is format version 3: a reader of versions 1 (no looks) and 2
+    (looks sharing scores) only refuses it in one line; a host will not send it to a device
+    whose HELLO lists those only, and such a device refuses IMAGE_BEGIN of version 3
+    (UNSUPPORTED_FORMAT)."""
     import device_runtime.device as device_module
     import device_runtime.image_receiver as receiver_module
 
     versions = image_format.SUPPORTED_VERSIONS
-    monkeypatch.setattr(image_format, "SUPPORTED_VERSIONS", (1,))
-    with pytest.raises(ImageFormatError, match=r"unsupported format version 2 \(supported: 1\)"
-                       ) as info:
+    monkeypatch.setattr(image_format, "SUPPORTED_VERSIONS", (1, 2))
+    with pytest.raises(ImageFormatError,
+                       match=r"unsupported format version 3 \(supported: 1, 2\)") as info:
         read_image(looks_path)
     assert "\n" not in str(info.value)
     # the host reads it; the device is the old one
     monkeypatch.setattr(image_format, "SUPPORTED_VERSIONS", versions)
-    monkeypatch.setattr(device_module, "SUPPORTED_VERSIONS", (1,))
-    monkeypatch.setattr(receiver_module, "SUPPORTED_VERSIONS", (1,))
+    monkeypatch.setattr(device_module, "SUPPORTED_VERSIONS", (1, 2))
+    monkeypatch.setattr(receiver_module, "SUPPORTED_VERSIONS", (1, 2))
     name = mem_name("old")
     with RuntimeThread(tmp_path / "flash", f"mem://{name}?end=b") as device:
-        with pytest.raises(ProvisionError, match="reads image format versions 1; this image "
-                           "is version 2") as info:
+        with pytest.raises(ProvisionError, match="reads image format versions 1, 2; this "
+                           "image is version 3") as info:
             provision(looks_path, f"mem://{name}?end=a",
                       ProvisionOptions(key=KEY, show_progress=False), ProvisionParts(log=_quiet))
         assert "\n" not in str(info.value)
         begin = m.ImageBegin(digest=bytes(32), size_bytes=4096, image_tag=bytes(32),
-                             format_version=2, generation=1)
-        with pytest.raises(Exception, match="format version 2 is not supported") as info:
+                             format_version=3, generation=1)
+        with pytest.raises(Exception, match="format version 3 is not supported") as info:
             device.device.handle_image_begin(begin, None)
         assert info.value.code == m.ErrorCode.UNSUPPORTED_FORMAT
 

@@ -10,8 +10,9 @@ database itself (the search model is fitted without them, the written model is r
 every view).
 
 Several databases of the same views (other transfer functions or lightings) make one image
-with a look per database (`host.fit.looks`: one joint eigenspace, one standalone table, the
-depth shared where the looks' depth is the same); ``--look-names`` names them.
+with a look per database (`host.fit.looks`: each look its own eigenspace and table, fitted
+as its database alone would be; the depth shared where the looks' depth is the same);
+``--look-names`` names them.
 """
 
 from __future__ import annotations
@@ -34,7 +35,6 @@ from host.fit.model import (
     fit_database,
     save_model,
     stack_cache,
-    stack_for,
     subset_database,
     truncate_eigenspace,
 )
@@ -302,19 +302,14 @@ def _looks_depth(image, dbs: list, names: list[str], depth_threshold: float  # n
 
 def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,  # noqa: ANN001
                out: Path) -> int:
-    """``fit A.cdb B.cdb ...``: one image with a look per database (`host.fit.looks`)."""
-    from host.fit.looks import (
-        build_looks_image,
-        check_same_views,
-        fit_looks,
-        look_names_for,
-    )
+    """``fit A.cdb B.cdb ...``: one image with a look per database, each look an eigenspace
+    of its own fitted as its database alone would be (`host.fit.looks`)."""
+    from host.cluster import fit_blocks
+    from host.fit.looks import build_looks_image, check_same_views, look_names_for
 
     if target is not None:
         raise EigencastError("--target chooses the setting of one database; fit the looks "
                              "with --threshold (or --components)")
-    if cluster is not None:
-        raise EigencastError("--scheduler fits one database; fit several looks in-process")
     dbs = [CinemaDB.open(path) for path in args.database]
     check_same_views(dbs)
     for db in dbs:
@@ -332,45 +327,39 @@ def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,
                              "depth maps, without --no-depth)")
     if args.depth and not 0.0 < depth_threshold <= 1.0:
         raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
-    method = args.method
-    cell_shape = (dbs[0].image_shape if method == "standard" else
-                  (min(args.cell, dbs[0].image_shape[0]), min(args.cell, dbs[0].image_shape[1])))
     if args.cell < 1:
         raise EigencastError(f"--cell {args.cell!r}: must be a positive integer")
-    stacks = [stack_for(db, cell_shape, cache_dir=(
-        None if args.cache is None else str(Path(args.cache) / f"look{i}")))
-        for i, db in enumerate(dbs)]
-    joint = fit_looks(stacks, method=method, cell=args.cell, components=args.components,
-                      threshold=threshold)
-    image, annex = build_looks_image(joint, stacks, dbs, names, score_step=args.score_step,
-                                     interpolation=args.interpolation,
-                                     bit_budget=args.bit_budget)
-    lines = []
-    if args.standalone:
-        from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
+    parts, models = [], []
+    for i, db in enumerate(dbs):
+        print(f"look {names[i]} ({i + 1}/{len(dbs)}): fitting {db.path}", flush=True)
+        model = fit_database(
+            db, method=args.method, cell=args.cell, components=args.components,
+            threshold=threshold,
+            cache_dir=None if args.cache is None else str(Path(args.cache) / f"look{i}"),
+            fit_elsewhere=None if cluster is None else functools.partial(fit_blocks, cluster))
+        image, annex = build_image(model, db, score_step=args.score_step,
+                                   interpolation=args.interpolation, bit_budget=args.bit_budget)
+        if args.standalone:
+            from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
 
-        standalone = add_standalone_table(image, annex[ANNEX_SCORES],
-                                          eigenvalues=annex.get(ANNEX_EIGENVALUES))
-    if args.depth:
-        lines += _looks_depth(image, dbs, names, depth_threshold)
+            add_standalone_table(image, annex[ANNEX_SCORES],
+                                 eigenvalues=annex.get(ANNEX_EIGENVALUES))
+        parts.append((image, annex))
+        models.append(model)
+    image, annex = build_looks_image(parts, dbs, names)
+    lines = _looks_depth(image, dbs, names, depth_threshold) if args.depth else []
     save_model(out, image, annex, key=key)
-    if args.standalone:
-        print(_standalone_line(out, standalone))
     for line in lines:
         print(line)
     device_bytes = image_device_bytes(out)
     annex_bytes = out.stat().st_size - device_bytes
-    losses = [image.provenance["int8"]["train_loss_db"]] + [
-        r["int8"]["train_loss_db"] for r in image.provenance["looks"][1:]]
-    print(
-        f"wrote {out}: {len(dbs)} looks ({', '.join(names)}) of one joint eigenspace, "
-        f"{method}, {dbs[0].n_views} views at {dbs[0].image_shape[1]}x"
-        f"{dbs[0].image_shape[0]}, {joint.grid_shape_[0]}x{joint.grid_shape_[1]} cells, "
-        f"{joint.n_components_.mean():.2f} components/cell (K={int(joint.n_components_.sum())}"
-        f"), device image {device_bytes / 1e6:.2f} MB{', signed' if key else ''} + host annex "
-        f"{annex_bytes / 1e6:.2f} MB; score step {image.score_quantization['step']:.3g}; "
-        f"int8 loss {', '.join(f'{v:.3f}' for v in losses)} dB"
-    )
+    per_look = ", ".join(f"{name} K={int(m.n_components_.sum())} "
+                         f"({rec['int8']['train_loss_db']:.3f} dB int8 loss)"
+                         for name, m, rec in zip(names, models, image.provenance["looks"]))
+    print(f"wrote {out}: {len(dbs)} looks, each its own {args.method} eigenspace ({per_look}), "
+          f"{dbs[0].n_views} views at {dbs[0].image_shape[1]}x{dbs[0].image_shape[0]}, "
+          f"device image {device_bytes / 1e6:.2f} MB{', signed' if key else ''} + host annex "
+          f"{annex_bytes / 1e6:.2f} MB")
     if not args.no_cache:
         for i, db in enumerate(dbs):
             _say_cache(db, None if args.cache is None else str(Path(args.cache) / f"look{i}"))

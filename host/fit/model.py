@@ -358,7 +358,6 @@ def build_image(
     extra_provenance: dict | None = None,
     measure_int8: bool = True,
     bit_budget: float = DEFAULT_BIT_BUDGET,
-    quantized: Any = None,
 ) -> tuple[EigenspaceImage, dict[str, np.ndarray]]:
     """Quantize ``model`` into an `EigenspaceImage` plus its host annex.
 
@@ -378,16 +377,13 @@ def build_image(
 
     ``bit_budget`` is `host.fit.quantize.quantize_eigenspace`'s bit allocation (a fraction of the
     model's residual MSE; 0: 8 bits for every component); the bits chosen are summarised in
-    ``provenance["eigen_bits"]`` and the int8 measurement covers them. ``quantized`` (a
-    `QuantizedEigenspace` of ``model``) is used as it is instead (a look of a joint
-    eigenspace, `host.fit.looks.quantize_look`).
+    ``provenance["eigen_bits"]`` and the int8 measurement covers them.
     """
     step = float(score_step) if score_step is not None else auto_score_step(model)
     if not step > 0:
         raise FitError(f"--score-step {score_step}: must be positive")
     interp = ScoreInterpolator(db.phi_deg, db.theta_deg, model.scores_, method=interpolation)
-    if quantized is None:
-        quantized = quantize_eigenspace(model, bit_budget=bit_budget)
+    quantized = quantize_eigenspace(model, bit_budget=bit_budget)
     bits = quantized.bits if quantized.bits is not None else np.zeros(0, np.int8)
     eigen_bits = {"bit_budget": float(bit_budget),
                   "mse_budget": float(bit_budget * residual_mse(model)),
@@ -532,7 +528,9 @@ class HostModel:
         except ValueError as exc:
             raise FitError(f"{path}: {exc}") from None
         names = look_names(image)
-        model = cls.from_image(look_image(image, index), image.annex or {},
+        from host.fit.looks import look_annex
+
+        model = cls.from_image(look_image(image, index), look_annex(image.annex or {}, index),
                                interpolation=interpolation, path=Path(path))
         model.looks, model.look = names, (names[index] if names else None)
         return model
