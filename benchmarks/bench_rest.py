@@ -32,7 +32,8 @@ Usage (one command; the figures of BENCHMARKS.md "Refinement layers at rest")::
 
     nice .venv/bin/python benchmarks/bench_rest.py [--cache /work/cache] \\
         [--work bench-out/rest] [--volumes tooth,head,vismale_head,engine] [--sizes 256,512] \\
-        [--views 12] [--splits 2880,16288] [--repeat 7] [--write FILE.md] [--json FILE]
+        [--views 12] [--splits 2880,16288] [--targets 0.95] [--repeat 7] [--write FILE.md] \
+        [--json FILE]
 
 Volumes whose database is not ready are skipped with one line.
 """
@@ -89,8 +90,9 @@ def ensure_model(cache: Path, work: Path, name: str) -> Path | None:
 
 
 def plan_views(path: Path, n_views: int, seed: int, packet_bytes: int,
-               splits: list[int]) -> dict[str, Any]:
-    """Plan and measure the resting chain of ``n_views`` views of the model at ``path``."""
+               splits: list[int], targets: tuple[float, ...] | None = None) -> dict[str, Any]:
+    """Plan and measure the resting chain of ``n_views`` views of the model at ``path``
+    (``targets``: the lossy layers' object SSIMs, default serve's)."""
     from host.evaluate import ServedFrames, alpha_object_mask
     from host.evaluate.resting import measure_rest, rest_record
     from host.fit.model import HostModel
@@ -100,8 +102,10 @@ def plan_views(path: Path, n_views: int, seed: int, packet_bytes: int,
 
     model = HostModel.load(path)
     scene = ViewRenderer.open(RenderSettings.from_record(model.render_settings, what=str(path)))
-    planner = RestPlanner(model.digest, max_packet_bytes=packet_bytes)
-    split_planners = {s: RestPlanner(model.digest, max_packet_bytes=s) for s in splits}
+    chosen = {} if targets is None else {"targets": targets}
+    planner = RestPlanner(model.digest, max_packet_bytes=packet_bytes, **chosen)
+    split_planners = {s: RestPlanner(model.digest, max_packet_bytes=s, **chosen)
+                      for s in splits}
     served = ServedFrames(model, scene, planner=planner)
     views = parse_view_set(f"random:{n_views}:{seed}").views
     records, chains, split_records = [], [], []
@@ -391,6 +395,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="the unsplit plan's largest packet (default: the planner's)")
     ap.add_argument("--splits", default="2880,16288",
                     help="packet sizes serve splits layers to (comma list; '' none)")
+    ap.add_argument("--targets", default=None,
+                    help="the lossy layers' object SSIMs, increasing (comma list; default "
+                         "serve's)")
     ap.add_argument("--parts", default="bytes,device")
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--cpu", type=int, default=0, help="the one core of the device timings")
@@ -398,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     splits = [int(s) for s in args.splits.split(",") if s]
+    targets = (None if args.targets is None
+               else tuple(float(t) for t in args.targets.split(",")))
     parts = set(args.parts.split(","))
     rows = []
     t_start = time.perf_counter()
@@ -409,7 +418,8 @@ def main(argv: list[str] | None = None) -> int:
             if path is None:
                 continue
             print(f"{name}: planning {args.views} views", flush=True)
-            planned = plan_views(path, args.views, args.seed, args.packet_bytes, splits)
+            planned = plan_views(path, args.views, args.seed, args.packet_bytes, splits,
+                                 targets)
             row = bytes_row(name, planned)
             row.update(plan_s=planned["plan_s"], measure_s=planned["measure_s"],
                        split_s=planned["split_s"])
