@@ -61,7 +61,7 @@ def own_scores(image: EigenspaceImage, look: int) -> bool:
     if image.looks is None or look == 0:
         return False
     mapping = image.looks[look].get("sections") or {}
-    return bool(LOOK_SCORE_SECTIONS & set(mapping) or "standalone_scores" in mapping)
+    return bool(LOOK_SCORE_SECTIONS & set(mapping))
 
 
 def look_index(image: EigenspaceImage, look: int | str | None) -> int:

@@ -583,13 +583,13 @@ def test_unsupported_format_version_is_refused(device, model):
     session = _open_session(url)
     try:
         begin = m.ImageBegin(size_bytes=1000, digest=bytes(32), image_tag=bytes(32),
-                             format_version=3, generation=1)
-        with pytest.raises(RemoteUnsupportedFormat, match="format version 3"):
+                             format_version=4, generation=1)
+        with pytest.raises(RemoteUnsupportedFormat, match="format version 4"):
             session.call(begin, retries=0)
     finally:
         session.link.close()
     hello = session.hello
-    info = dataclasses.replace(inspect_image(model[0]), format_version=3)
+    info = dataclasses.replace(inspect_image(model[0]), format_version=4)
     from host.link.provisioning import _precheck
 
     with pytest.raises(ProvisionError, match="UNSUPPORTED_FORMAT"):
