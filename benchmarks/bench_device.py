@@ -18,7 +18,7 @@ b. **Latency** from VIEW_REQUEST to frame presented over TCP loopback: ``eigenca
    measured in-process in the same run.
 c. **Bytes per frame** over an orbit (3 and 0.5 degrees of phi per frame at theta 15), key
    frames only vs key + delta frames, beside the smallest JPEG whose SSIM against the
-   ray-cast reaches the reconstruction's (``host.demo.equal_quality_jpeg``) on a few of
+   ray-cast reaches the reconstruction's (`equal_quality_jpeg`) on a few of
    the orbit's views, ray-cast with the model's own render settings.
 d. **Memory**: peak RSS (``VmHWM``) of the device process while it presents
    ``--rss-frames`` frames of an orbit served over TCP, against the eigenspace size (int8
@@ -583,8 +583,25 @@ def print_latency(r: dict) -> None:
 # --------------------------------------------------------------------------- (c)
 
 
+def equal_quality_jpeg(reference: np.ndarray, test: np.ndarray) -> dict[str, float]:
+    """``test``'s SSIM against ``reference`` and the smallest JPEG of ``reference`` that
+    reaches it (`host.evaluate.baselines.CodecLadder`; the best quality when none does)."""
+    from skimage.metrics import structural_similarity
+
+    from host.evaluate.baselines import MAX_QUALITY, CodecLadder
+
+    def ssim(decoded: np.ndarray, name: str) -> dict[str, float]:
+        return {name: float(structural_similarity(reference, decoded, data_range=255,
+                                                  channel_axis=-1))}
+
+    target = ssim(test, "ssim")["ssim"]
+    ladder = CodecLadder(reference, "jpeg", ssim)
+    coded = ladder.smallest(target, "ssim") or ladder.file(MAX_QUALITY)
+    return {"ssim": target, "jpeg_quality": coded.quality, "jpeg_bytes": coded.size_bytes,
+            "jpeg_ssim": ladder.value(coded.quality, "ssim")}
+
+
 def section_bytes(case: Case, jpeg_views: int) -> dict:
-    from host.demo import equal_quality_jpeg
     from host.link.serving import FrameEncoder
     from host.render.settings import RenderSettings, ViewRenderer
 
