@@ -420,11 +420,7 @@ class RuntimeDevice(FrameScheduler, Device):
             self._request_keyframe(exc.base_frame)
             return
         except ImageMismatch as exc:
-            stats.wrong_image += 1
-            if not self._wrong_image_logged:
-                self._wrong_image_logged = True
-                self.log(f"scores for another image dropped ({exc}); provision the host's "
-                         "image")
+            self._wrong_image(exc)
             return
         except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.decode_errors += 1
@@ -445,6 +441,13 @@ class RuntimeDevice(FrameScheduler, Device):
         stats._bytes_ring.append(decoded.packet_bytes)
         self._scores.put(ScoreItem(model, decoded, msg.sequence, time.monotonic()))
 
+    def _wrong_image(self, exc: Exception) -> None:
+        """A packet or layer made for another image: counted, said once."""
+        self.runtime_stats.wrong_image += 1
+        if not self._wrong_image_logged:
+            self._wrong_image_logged = True
+            self.log(f"scores for another image dropped ({exc}); provision the host's image")
+
     def _for_look(self, model: LoadedModel, msg: m.Scores) -> bool:
         """Whether a packet was made for the look ``model`` shows (absent: the first);
         one for another look (the user switched while it was on its way) is counted."""
@@ -463,8 +466,8 @@ class RuntimeDevice(FrameScheduler, Device):
             layer = decode_layer(packet, image_digest=model.image.digest or bytes(32),
                                  image_shape=model.image.image_shape,
                                  max_packet_bytes=self._frame_limit())
-        except ImageMismatch:
-            stats.wrong_image += 1
+        except ImageMismatch as exc:
+            self._wrong_image(exc)
             return
         except Exception as exc:  # ProtocolError, or anything else a packet provokes
             stats.layers_bad += 1

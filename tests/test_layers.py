@@ -419,6 +419,8 @@ def test_a_device_drops_every_bad_layer_and_shows_a_good_one_exactly(resting_dev
               _layer_for(device, image, truth[: h // 2]),
               _layer_for(device, image, truth, image_digest=bytes(32))]
     frames_before = len(shown)
+    said: list[str] = []
+    device.log, device._wrong_image_logged = said.append, False
     for packets in sends:
         for packet in packets:
             device.on_scores(m.Scores(sequence=0, packet=packet))
@@ -426,6 +428,8 @@ def test_a_device_drops_every_bad_layer_and_shows_a_good_one_exactly(resting_dev
                 device.display_turn(None)
     stats = device.runtime_stats
     assert stats.exact_frames == 0
+    assert stats.wrong_image >= 1  # another image's layer: counted, and said once
+    assert sum("another image" in line for line in said) == 1
     for _, info in shown[frames_before:]:  # whatever a flipped pixel byte made, it is
         assert info.get("layer") is not None and not info.get("exact")  # never "exact"
     # each packet a layer's chunk, or (its magic or version flipped) a bad score packet
