@@ -14,7 +14,7 @@ several files, each decoded in its own display tick (a 512 px WebP lossless fram
 of the tooth's blends to decode on one core, a quarter of it half of one). The host sends
 version 5 only to a device that lists it (its HELLO reply's ``score_versions``), and only
 where strips cost no bytes: lossless layers of frames over `STRIP_PIXELS` (at 512 px, four
-strips of WebP lossless are 0.99-1.01x the whole file; two strips of a 256 px frame cost
+strips of WebP lossless are 0.96-1.03x the whole file; two strips of a 256 px frame cost
 0.5-2 % more, of a lossy WebP 2-5 %, research/rest_layers.md). Little-endian, 40-byte
 header::
 

@@ -21,7 +21,7 @@ host). `RestPlanner.plan` then lays out the layers:
    host's in a level here and there (docs/protocol.md) the frame still ends exactly ``R``.
    A frame of more than ``strip_pixels`` pixels (a device that reads strips) is sent in
    strips of at most that many, each its own file the device decodes in its own display
-   tick: at 512 px four WebP lossless strips cost 0.99-1.01x the whole file, and each
+   tick: at 512 px four WebP lossless strips cost 0.96-1.03x the whole file, and each
    decodes in about half the tooth's blend where the whole file takes 1.4x it.
 
 A layer is one file of the whole frame (independent tiles cost 4-32 % more bytes), cut into
