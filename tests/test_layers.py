@@ -266,37 +266,6 @@ def test_a_layer_in_strips_counts_once_every_row_is_in():
     np.testing.assert_array_equal(rest.frame, truth)
 
 
-def test_the_planner_sends_a_large_frames_exact_layer_in_strips_that_end_exact():
-    """With ``strip_pixels`` the exact layer of a larger frame is several version-5 files
-    covering every row once; joined and applied as a device does, they end at the ray-cast;
-    without it (a device that reads no strips), one version-4 file."""
-    from host.link.layers import RestPlanner
-
-    truth = _pixels(rows=SHAPE[0], seed=4)
-    own = _pixels(rows=SHAPE[0], seed=5)
-    for strip_pixels, want in ((None, {4}), (400, {5})):
-        planner = RestPlanner(DIGEST, max_packet_bytes=300, strip_pixels=strip_pixels)
-        plan = planner.plan((30.0, 15.0), truth, own, own, 0, base_frame=0, first_frame=7)
-        exact = plan.layers[-1]
-        assert exact.exact and {p[2] for p in exact.packets} == want
-        rest, assembly, rows = RestFrame((30.0, 15.0), 0, plan.layers[-2].frame
-                                         if len(plan.layers) > 1 else own), LayerAssembly(), []
-        rest.layers = len(plan.layers) - 1
-        for packet in exact.packets:
-            chunk = _decode(packet)
-            data = assembly.add(chunk)
-            if data is not None:
-                pixels = decode_file(data, chunk.codec, SHAPE,
-                                     row0=chunk.row0 if chunk.strip else None)
-                rows.append((chunk.row0, pixels.shape[0]))
-                rest.apply(chunk, pixels)
-        assert rest.is_exact and rest.finished
-        np.testing.assert_array_equal(rest.frame, truth)
-        np.testing.assert_array_equal(exact.frame, truth)
-        if strip_pixels:  # 960 pixels: three strips of 320, every row once
-            assert rows == [(0, 8), (8, 8), (16, 8)]
-
-
 def test_layer_golden_vectors_both_directions():
     cases = [json.loads(line) for line in GOLDEN.read_text().splitlines()]
     assert {c["name"] for c in cases} >= {"absolute_png", "residual_webp_chunks", "exact_png",

@@ -15,6 +15,7 @@ from provision_helpers import KEY, DeviceProcess, mem_name
 from runtime_helpers import RuntimeThread, provisioned_device, wait_until
 
 from device_runtime.device import DeviceConfig
+from device_runtime.layers import RestFrame, decode_file
 from device_runtime.orbit import canonical_view
 from host.fit.model import HostModel
 from host.link.layers import EncodedLayer, RestPlanner, object_ssim
@@ -22,6 +23,7 @@ from host.link.options import ProvisionOptions, ProvisionParts, ServeOptions, Se
 from host.link.provisioning import provision
 from host.link.serving import serve
 from host.link.true_views import open_true_view_scores
+from protocol.layers import LayerAssembly, decode_layer
 
 
 def _quiet(line: str) -> None:
@@ -305,3 +307,43 @@ def test_a_correction_larger_than_the_devices_frames_costs_its_view_not_the_sess
     assert stats.oversize_corrections >= 1 and stats.exact_views >= 1
     assert all(len(enc.packet) <= 200 or isinstance(enc, EncodedLayer) for enc, _ in sent)
     assert sum("does not fit the device's frames" in line for line in lines) == 1
+
+
+SHAPE = (24, 40)  # (height, width): a frame of 960 pixels
+DIGEST = bytes(range(32))
+
+
+def _pixels(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    base = np.linspace(0, 255, SHAPE[1], dtype=np.float32)[None, :, None]
+    return np.clip(base + rng.normal(0, 12, (*SHAPE, 3)), 0, 255).astype(np.uint8)
+
+
+def test_the_planner_sends_a_large_frames_exact_layer_in_strips_that_end_exact():
+    """With ``strip_pixels`` the exact layer of a larger frame is several version-5 files
+    covering every row once; joined and applied as a device does, they end at the ray-cast;
+    without it (a device that reads no strips), one version-4 file."""
+    truth = _pixels(seed=4)
+    own = _pixels(seed=5)
+    for strip_pixels, want in ((None, {4}), (400, {5})):
+        planner = RestPlanner(DIGEST, max_packet_bytes=300, strip_pixels=strip_pixels)
+        plan = planner.plan((30.0, 15.0), truth, own, own, 0, base_frame=0, first_frame=7)
+        exact = plan.layers[-1]
+        assert exact.exact and {p[2] for p in exact.packets} == want
+        rest, assembly, rows = RestFrame((30.0, 15.0), 0, plan.layers[-2].frame
+                                         if len(plan.layers) > 1 else own), LayerAssembly(), []
+        rest.layers = len(plan.layers) - 1
+        for packet in exact.packets:
+            chunk = decode_layer(packet, image_digest=DIGEST, image_shape=SHAPE,
+                                 max_packet_bytes=1 << 20)
+            data = assembly.add(chunk)
+            if data is not None:
+                pixels = decode_file(data, chunk.codec, SHAPE,
+                                     row0=chunk.row0 if chunk.strip else None)
+                rows.append((chunk.row0, pixels.shape[0]))
+                rest.apply(chunk, pixels)
+        assert rest.is_exact and rest.finished
+        np.testing.assert_array_equal(rest.frame, truth)
+        np.testing.assert_array_equal(exact.frame, truth)
+        if strip_pixels:  # 960 pixels: three strips of 320, every row once
+            assert rows == [(0, 8), (8, 8), (16, 8)]
