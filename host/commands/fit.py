@@ -207,11 +207,7 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
         if reason:
             raise EigencastError(f"--interpolation {args.interpolation} needs a full phi x theta "
                                  f"grid of views: {reason}; use auto or barycentric")
-    from host.cluster import fit_blocks  # no Dask import until a cluster is used
-
-    options = {"method": args.method, "cell": args.cell, "components": args.components,
-               "threshold": threshold, "cache_dir": args.cache,
-               "fit_elsewhere": None if cluster is None else functools.partial(fit_blocks, cluster)}
+    options = _fit_options(args, threshold, cluster, args.cache)
     extra: dict = {}
     if target is None:
         model = fit_database(db, **options)
@@ -220,12 +216,7 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
         model, score_step, extra = _fit_to_target(args, db, target, options)
     image, annex = build_image(model, db, score_step=score_step, extra_provenance=extra,
                                interpolation=args.interpolation, bit_budget=args.bit_budget)
-    standalone = None
-    if args.standalone:
-        from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
-
-        standalone = add_standalone_table(image, annex[ANNEX_SCORES],
-                                          eigenvalues=annex.get(ANNEX_EIGENVALUES))
+    standalone = _add_table(image, annex) if args.standalone else None
     depth = None
     if args.depth:
         from host.evaluate.splat_filter import choose_splat_tent
@@ -260,6 +251,26 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     if not args.no_cache:
         _say_cache(db, args.cache)
     return 0
+
+
+def _fit_options(args: argparse.Namespace, threshold: float, cluster,  # noqa: ANN001
+                 cache_dir: str | Path | None) -> dict:
+    """`fit_database`'s keyword arguments from the command's options (``cluster``: fit
+    its cells there; None: in-process), its image stack kept in ``cache_dir``."""
+    from host.cluster import fit_blocks  # no Dask import until a cluster is used
+
+    return {"method": args.method, "cell": args.cell, "components": args.components,
+            "threshold": threshold, "cache_dir": None if cache_dir is None else str(cache_dir),
+            "fit_elsewhere": None if cluster is None else functools.partial(fit_blocks, cluster)}
+
+
+def _add_table(image, annex: dict) -> dict:  # noqa: ANN001
+    """Add the standalone table of the training scores in ``annex`` to ``image``; what
+    `add_standalone_table` says of it."""
+    from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
+
+    return add_standalone_table(image, annex[ANNEX_SCORES],
+                                eigenvalues=annex.get(ANNEX_EIGENVALUES))
 
 
 def _looks_depth(image, dbs: list, names: list[str], depth_threshold: float  # noqa: ANN001
@@ -304,7 +315,6 @@ def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,
                out: Path) -> int:
     """``fit A.cdb B.cdb ...``: one image with a look per database, each look an eigenspace
     of its own fitted as its database alone would be (`host.fit.looks`)."""
-    from host.cluster import fit_blocks
     from host.fit.looks import build_looks_image, check_same_views, look_names_for
 
     if target is not None:
@@ -332,18 +342,12 @@ def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,
     parts, models = [], []
     for i, db in enumerate(dbs):
         print(f"look {names[i]} ({i + 1}/{len(dbs)}): fitting {db.path}", flush=True)
-        model = fit_database(
-            db, method=args.method, cell=args.cell, components=args.components,
-            threshold=threshold,
-            cache_dir=None if args.cache is None else str(Path(args.cache) / f"look{i}"),
-            fit_elsewhere=None if cluster is None else functools.partial(fit_blocks, cluster))
+        cache = None if args.cache is None else Path(args.cache) / f"look{i}"
+        model = fit_database(db, **_fit_options(args, threshold, cluster, cache))
         image, annex = build_image(model, db, score_step=args.score_step,
                                    interpolation=args.interpolation, bit_budget=args.bit_budget)
         if args.standalone:
-            from host.fit.model import ANNEX_EIGENVALUES, ANNEX_SCORES, add_standalone_table
-
-            add_standalone_table(image, annex[ANNEX_SCORES],
-                                 eigenvalues=annex.get(ANNEX_EIGENVALUES))
+            _add_table(image, annex)
         parts.append((image, annex))
         models.append(model)
     image, annex = build_looks_image(parts, dbs, names)
