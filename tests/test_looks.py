@@ -469,15 +469,23 @@ def test_a_packet_for_the_look_left_is_never_shown(looks_path, tmp_path):
 
 
 def test_bad_look_input_is_one_line_with_an_exit_code(looks_path, tmp_path, capsys):
-    """Databases of other sizes, repeated look names, a --look the image lacks (evaluate,
-    the device): one line each, exit code 1."""
+    """Databases of other sizes, repeated look names, an interpolation the views cannot
+    have, a --look the image lacks (evaluate, the device): one line each, exit code 1, and
+    no look fitted first."""
     first = str(looks_path.parent / "look0.cdb")
     small = tmp_path / "small.cdb"
     assert eigencast(["render", "builtin:tooth", "-o", str(small), "--views", TINY_VIEWS,
                       "--size", "24", "--samples", "40"]) == 0
+    scattered = [tmp_path / f"scattered{i}.cdb" for i in range(2)]
+    for i, db in enumerate(scattered):
+        assert eigencast(["render", "builtin:tooth", "-o", str(db), "--views", "random:30:1",
+                          "--size", "24", "--samples", "40"] + (["--tf", "ct-skin"] if i else
+                                                                [])) == 0
     capsys.readouterr()
     cases = [
         (["fit", first, str(small), "-o", str(tmp_path / "x.ecs")], "render the looks at one"),
+        (["fit", *map(str, scattered), "-o", str(tmp_path / "x.ecs"), "--interpolation",
+          "bilinear"], "needs a full phi x theta grid"),
         (["fit", first, str(looks_path.parent / "look1.cdb"), "-o", str(tmp_path / "x.ecs"),
           "--look-names", "a,a"], "look names repeat"),
         (["evaluate", str(looks_path), "--look", "bone", "--rd-views", "0"],
@@ -485,8 +493,10 @@ def test_bad_look_input_is_one_line_with_an_exit_code(looks_path, tmp_path, caps
     ]
     for argv, needle in cases:
         assert eigencast(argv) == 1, argv
-        err = capsys.readouterr().err.strip().splitlines()
+        out, err = capsys.readouterr()
+        err = err.strip().splitlines()
         assert len(err) == 1 and needle in err[0], (argv, err)
+        assert "fitting" not in out  # refused before any look is fitted
     assert not (tmp_path / "x.ecs").exists()
 
 

@@ -200,13 +200,7 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
                              "depth maps, without --no-depth)")
     if args.depth and not 0.0 < depth_threshold <= 1.0:
         raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
-    if args.interpolation in ("bilinear", "bicubic"):  # refuse before the (long) fit
-        from device_runtime.interpolation import detect_grid
-
-        reason = detect_grid(db.phi_deg, db.theta_deg)[1]
-        if reason:
-            raise EigencastError(f"--interpolation {args.interpolation} needs a full phi x theta "
-                                 f"grid of views: {reason}; use auto or barycentric")
+    _check_interpolation(args, db)
     options = _fit_options(args, threshold, cluster, args.cache)
     extra: dict = {}
     if target is None:
@@ -251,6 +245,18 @@ def _run(args: argparse.Namespace, cluster) -> int:  # noqa: ANN001
     if not args.no_cache:
         _say_cache(db, args.cache)
     return 0
+
+
+def _check_interpolation(args: argparse.Namespace, db: CinemaDB) -> None:
+    """Refuse, before the (long) fit, ``--interpolation bilinear|bicubic`` for views that
+    are not a full phi x theta grid."""
+    if args.interpolation in ("bilinear", "bicubic"):
+        from device_runtime.interpolation import detect_grid
+
+        reason = detect_grid(db.phi_deg, db.theta_deg)[1]
+        if reason:
+            raise EigencastError(f"--interpolation {args.interpolation} needs a full phi x theta "
+                                 f"grid of views: {reason}; use auto or barycentric")
 
 
 def _fit_options(args: argparse.Namespace, threshold: float, cluster,  # noqa: ANN001
@@ -339,6 +345,7 @@ def _fit_looks(args: argparse.Namespace, cluster, threshold: float, target, key,
         raise EigencastError(f"--depth-threshold {depth_threshold}: must be within (0, 1]")
     if args.cell < 1:
         raise EigencastError(f"--cell {args.cell!r}: must be a positive integer")
+    _check_interpolation(args, dbs[0])  # (the looks' views are the same)
     parts, models = [], []
     for i, db in enumerate(dbs):
         print(f"look {names[i]} ({i + 1}/{len(dbs)}): fitting {db.path}", flush=True)
