@@ -117,7 +117,6 @@ SUPPORTED_BAUDS = (
 PROTOCOL_VERSIONS = (m.PROTOCOL_VERSION, m.PROTOCOL_VERSION)
 """(min, max) protocol versions this device speaks."""
 SOFTWARE = "eigencast-device 0.1"
-_DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
 
 
 @dataclass

@@ -36,6 +36,7 @@ from protocol import messages as m
 from protocol.errors import ImageFormatError, NotAuthenticated, ProtocolError
 from protocol.framing import Frame
 from protocol.image import (
+    DEVICE_SECTIONS,
     HEADER_SIZE,
     MAX_MANIFEST_BYTES,
     SUPPORTED_VERSIONS,
@@ -47,7 +48,6 @@ from protocol.image import (
 
 __all__ = ["ImageReceiver", "image_problem", "read_device_image", "required_ram_bytes"]
 
-_DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
 _MAX_TOLD_NO_TRANSFER = 64
 
 
@@ -97,7 +97,7 @@ def required_ram_bytes(manifest: dict) -> int:
         if entry["name"] == "eigenimages":
             shape = ints(entry.get("shape"), None, "eigenimages shape")
             n_coefficients = shape[0] if shape else 0
-        elif entry["name"] not in _DEVICE_SECTIONS:
+        elif entry["name"] not in DEVICE_SECTIONS:
             extra += raw
     base = reconstruction_memory_bytes(
         (image_shape[0], image_shape[1]), (cell_shape[0], cell_shape[1]), n_coefficients

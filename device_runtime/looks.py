@@ -38,11 +38,10 @@ from device_runtime.standalone import (
 )
 from device_runtime.synthesis import DEPTH_DELTA_SECTION
 from protocol.errors import ImageFormatError
-from protocol.image import LOOK_SCORE_SECTIONS, EigenspaceImage
+from protocol.image import DEVICE_SECTIONS, LOOK_SCORE_SECTIONS, EigenspaceImage
 
 __all__ = ["look_image", "look_index", "look_names", "own_scores"]
 
-_COLOUR = ("n_components", "mean", "scales", "eigenimages")
 _PLAIN_DEPTH = "depth_scores"
 #: What ``provenance["looks"][i]`` records of look i that a look's image shows as its own
 #: provenance (the first look's are the image's).
@@ -124,12 +123,12 @@ def look_image(image: EigenspaceImage, look: int | str | None = 0, *,
     mapping = dict(entry.get("sections") or {})
     own = {name for other in image.looks for name in (other.get("sections") or {}).values()}
     sections = {k: v for k, v in image.sections.items() if k not in own}
-    colour = {k: image.sections[mapping[k]] for k in _COLOUR if k in mapping}
+    colour = {k: image.sections[mapping[k]] for k in DEVICE_SECTIONS if k in mapping}
     if any(k.startswith("depth_") for k in mapping):
         # a look with its own depth: none of the first look's depth sections stay
         sections = {k: v for k, v in sections.items() if not k.startswith("depth_")}
     for standard, section in mapping.items():
-        if standard not in _COLOUR:
+        if standard not in DEVICE_SECTIONS:
             sections[standard] = image.sections[section]
     provenance = dict(image.provenance)
     recorded = provenance.get("looks")

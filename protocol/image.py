@@ -91,6 +91,7 @@ from protocol.errors import AuthenticationError, ImageFormatError
 
 __all__ = [
     "DEFAULT_LEVEL",
+    "DEVICE_SECTIONS",
     "DIGEST_SIZE",
     "FLAG_SIGNED",
     "FORMAT_VERSION",
@@ -176,7 +177,9 @@ _MAX_NDIM = 8
 _MAX_SECTIONS = 256
 _MAX_IMAGE_SIDE = 65535
 
-_DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
+#: The four sections every image starts with, in this order (the colour eigenspace; the
+#: `EigenspaceImage` fields of the same names); a look may name its own of each.
+DEVICE_SECTIONS = ("n_components", "scales", "mean", "eigenimages")
 _ALLOWED_DTYPES = frozenset(
     ["|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"]
 )
@@ -315,7 +318,7 @@ class EigenspaceImage:
             raise ValueError(f"EigenspaceImage: {problem}")
         for name, arr in {**self.sections, **(self.annex or {})}.items():
             _check_extra_section(name, arr)
-        reserved = set(self.sections) & set(_DEVICE_SECTIONS)
+        reserved = set(self.sections) & set(DEVICE_SECTIONS)
         if reserved:
             raise ValueError(
                 f"EigenspaceImage: extra section names {sorted(reserved)} are reserved"
@@ -1161,10 +1164,10 @@ def _check_image_manifest(manifest: dict, table: list[dict], what: str) -> None:
                 f"read {what}: annex record needs a 32-byte sha256 and a size >= "
                 f"{HEADER_SIZE + _TRAILER_SIZE}"
             )
-    names = [entry["name"] for entry in table[: len(_DEVICE_SECTIONS)]]
-    if tuple(names) != _DEVICE_SECTIONS:
+    names = [entry["name"] for entry in table[: len(DEVICE_SECTIONS)]]
+    if tuple(names) != DEVICE_SECTIONS:
         raise ImageFormatError(
-            f"read {what}: sections start with {names}, expected {list(_DEVICE_SECTIONS)}"
+            f"read {what}: sections start with {names}, expected {list(DEVICE_SECTIONS)}"
         )
     ny, nx = _grid_shape(image_shape, cell_shape)
     n_cells = ny * nx
